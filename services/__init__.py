@@ -1,0 +1,1 @@
+"""Service shells over Zenoh: bridge, geometry, semantic, query."""
