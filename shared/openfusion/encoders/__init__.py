@@ -1,1 +1,41 @@
-"""encoders."""
+"""Region and text encoders (docs/ARCHITECTURE.md "Encoders", docs/ENCODERS.md).
+
+Backends: ``gt`` (ground-truth regions, measures fusion not vision), ``onnx`` (exported models run
+by onnxruntime), ``clip-regions`` (graph-segmentation proposals + CLIP crop embeddings). Build them
+with :func:`make_region_encoder` / :func:`make_text_encoder`; pick devices with :func:`select_device`.
+"""
+
+from .base import (
+    DEFAULT_OUTPUT_SCALE,
+    EncoderError,
+    ImageQueryEncoder,
+    RegionEncoder,
+    RegionObservation,
+    TextEncoder,
+    normalize_rows,
+    output_size_for,
+)
+from .device import onnx_providers, select_device
+from .noise import NOISE_PROFILES, NoiseProfile, NoiseReport, get_noise_profile
+from .registry import REGION_ENCODER_NAMES, TEXT_ENCODER_NAMES, make_region_encoder, make_text_encoder
+
+__all__ = [
+    "DEFAULT_OUTPUT_SCALE",
+    "NOISE_PROFILES",
+    "REGION_ENCODER_NAMES",
+    "TEXT_ENCODER_NAMES",
+    "EncoderError",
+    "ImageQueryEncoder",
+    "NoiseProfile",
+    "NoiseReport",
+    "RegionEncoder",
+    "RegionObservation",
+    "TextEncoder",
+    "get_noise_profile",
+    "make_region_encoder",
+    "make_text_encoder",
+    "normalize_rows",
+    "onnx_providers",
+    "output_size_for",
+    "select_device",
+]

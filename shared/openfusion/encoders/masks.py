@@ -1,0 +1,106 @@
+"""Mask resampling and morphology at the encoder's output resolution (numpy / scipy only)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from .base import EncoderError
+
+
+def _cell_index(height_px: int, width_px: int, out_h: int, out_w: int) -> np.ndarray:
+    """Flat output-cell index of every input pixel (pixel centre -> the cell that contains it).
+
+    Uses the pixel-centre convention of :meth:`CameraIntrinsics.scaled`: input pixel u lands in
+    output cell floor((u + 0.5) * out / in). For integer factors (640 -> 160) every cell receives
+    exactly factor^2 pixels, i.e. exact area averaging.
+    """
+    rows = np.minimum(((np.arange(height_px) + 0.5) * out_h / height_px).astype(np.int64), out_h - 1)
+    cols = np.minimum(((np.arange(width_px) + 0.5) * out_w / width_px).astype(np.int64), out_w - 1)
+    return (rows[:, None] * out_w + cols[None, :]).ravel()
+
+
+def area_downsample_labels(
+    label_image: np.ndarray, region_ids: np.ndarray, out_hw: tuple[int, int]
+) -> np.ndarray:
+    """Per-region coverage fractions on an ``out_hw`` grid.
+
+    ``label_image`` is an HxW integer image; ``region_ids`` the ids to extract (any order). Returns
+    (n, h, w) float32 where entry [i, y, x] is the fraction of the input pixels of output cell
+    (y, x) that carry ``region_ids[i]``: 1 inside a region, 0 outside, soft in between at boundaries.
+    One pass over the image (bincount), independent of the number of regions.
+    """
+    if label_image.ndim != 2:
+        raise EncoderError(f"label image must be HxW, got shape {label_image.shape}")
+    out_h, out_w = int(out_hw[0]), int(out_hw[1])
+    H, W = label_image.shape
+    if out_h < 1 or out_w < 1 or out_h > H or out_w > W:
+        raise EncoderError(f"output size {out_w}x{out_h} must be within 1x1 .. {W}x{H}")
+    ids = np.asarray(region_ids, dtype=np.int64).ravel()
+    n = ids.size
+    cells = out_h * out_w
+    if n == 0:
+        return np.zeros((0, out_h, out_w), np.float32)
+    order = np.argsort(ids)
+    sorted_ids = ids[order]
+    flat = label_image.ravel().astype(np.int64)
+    pos = np.clip(np.searchsorted(sorted_ids, flat), 0, n - 1)
+    hit = sorted_ids[pos] == flat
+    region_of_pixel = order[pos[hit]]
+    cell = _cell_index(H, W, out_h, out_w)
+    cell_count = np.bincount(cell, minlength=cells).astype(np.float32)
+    counts = np.bincount(region_of_pixel * cells + cell[hit], minlength=n * cells).astype(np.float32)
+    conf = counts.reshape(n, cells) / cell_count[None, :]
+    return np.clip(conf, 0.0, 1.0).reshape(n, out_h, out_w).astype(np.float32)
+
+
+def disk_footprint(radius_px: int) -> np.ndarray:
+    """Boolean disk of the given radius (a (2r+1)^2 square mask)."""
+    r = int(radius_px)
+    y, x = np.mgrid[-r : r + 1, -r : r + 1]
+    return (x * x + y * y) <= r * r + 1e-9
+
+
+def erode_soft(conf: np.ndarray, radius_px: int) -> np.ndarray:
+    """Grey erosion of one (h, w) confidence map with a disk: moves boundaries inward by radius_px."""
+    if radius_px <= 0:
+        return conf.copy()
+    return ndimage.grey_erosion(conf, footprint=disk_footprint(radius_px), mode="nearest").astype(np.float32)
+
+
+def dilate_soft(conf: np.ndarray, radius_px: int) -> np.ndarray:
+    """Grey dilation of one (h, w) confidence map with a disk: moves boundaries outward by radius_px."""
+    if radius_px <= 0:
+        return conf.copy()
+    return ndimage.grey_dilation(conf, footprint=disk_footprint(radius_px), mode="constant", cval=0.0).astype(
+        np.float32
+    )
+
+
+def resize_maps_bilinear(maps: np.ndarray, out_hw: tuple[int, int]) -> np.ndarray:
+    """Resize (n, h, w) float maps to (n, H, W) with bilinear interpolation (pixel-centre aligned)."""
+    n, h, w = maps.shape
+    out_h, out_w = int(out_hw[0]), int(out_hw[1])
+    if (h, w) == (out_h, out_w):
+        return maps.astype(np.float32, copy=True)
+    ys = np.clip((np.arange(out_h) + 0.5) * h / out_h - 0.5, 0, h - 1)
+    xs = np.clip((np.arange(out_w) + 0.5) * w / out_w - 0.5, 0, w - 1)
+    y0 = np.floor(ys).astype(np.int64)
+    x0 = np.floor(xs).astype(np.int64)
+    y1 = np.minimum(y0 + 1, h - 1)
+    x1 = np.minimum(x0 + 1, w - 1)
+    wy = (ys - y0).astype(np.float32)[None, :, None]
+    wx = (xs - x0).astype(np.float32)[None, None, :]
+    m = maps.astype(np.float32)
+    top = m[:, y0][:, :, x0] * (1 - wx) + m[:, y0][:, :, x1] * wx
+    bottom = m[:, y1][:, :, x0] * (1 - wx) + m[:, y1][:, :, x1] * wx
+    return (top * (1 - wy) + bottom * wy).astype(np.float32)
+
+
+def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """(y0, x0, y1, x1) half-open bounding box of the True pixels, or None when empty."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(mask.any(axis=0))
+    return int(rows[0]), int(cols[0]), int(rows[-1]) + 1, int(cols[-1]) + 1

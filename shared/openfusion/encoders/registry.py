@@ -1,0 +1,79 @@
+"""Build encoders by name: the one switch services and configs use.
+
+Region encoders: ``gt``, ``onnx``, ``clip-regions``. Text encoders: the same three names give the
+text encoder that matches that region encoder's embedding space (``gt`` -> ``minilm``), plus
+``minilm`` and ``hash`` (lexical baseline, no model). Backends import lazily, so importing
+:mod:`openfusion.encoders` does not pull in torch, transformers or onnxruntime.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from .base import RegionEncoder, TextEncoder
+
+REGION_ENCODER_NAMES = ("gt", "onnx", "clip-regions")
+TEXT_ENCODER_NAMES = ("gt", "onnx", "clip-regions", "minilm", "hash")
+
+
+def _normalise_name(name: str) -> str:
+    return str(name).strip().lower().replace("_", "-")
+
+
+def make_text_encoder(name: str, **options: Any) -> TextEncoder:
+    """A text encoder by name.
+
+    - ``minilm`` (alias ``gt``): MiniLM-L6-v2 sentence embeddings, space ``minilm-l6-v2``; options ``device``.
+    - ``hash``: hashed character trigrams, space ``hash-trigram-<dim>``; option ``dim``.
+    - ``onnx``: an ONNX text model (docs/ENCODERS.md); options ``model_path``, ``device``.
+    - ``clip-regions`` (alias ``clip``): the CLIP text tower; options ``model``, ``device``, ``embedding_space``.
+    """
+    key = _normalise_name(name)
+    if key in ("minilm", "gt"):
+        from .text_minilm import MiniLMTextEncoder
+
+        return MiniLMTextEncoder(**options)
+    if key == "hash":
+        from .text_hash import HashTextEncoder
+
+        return HashTextEncoder(**options)
+    if key == "onnx":
+        from .onnx_backend import OnnxTextEncoder
+
+        return OnnxTextEncoder(**options)
+    if key in ("clip-regions", "clip"):
+        from .clip_regions import ClipTextEncoder
+
+        return ClipTextEncoder(**options)
+    raise ValueError(f"unknown text encoder {name!r}; known: {', '.join(TEXT_ENCODER_NAMES)}")
+
+
+def make_region_encoder(name: str, **options: Any) -> RegionEncoder:
+    """A region encoder by name.
+
+    - ``gt``: ground-truth instances; options ``text_encoder`` (a TextEncoder or a text encoder
+      name, default ``minilm``), ``text_options`` (dict for that name), ``noise``, ``seed``,
+      ``output_scale``, ``min_area_px``.
+    - ``onnx``: an ONNX region model or crop embedder (docs/ENCODERS.md); options ``model_path``, ``device``, ...
+    - ``clip-regions``: graph-segmentation proposals + CLIP crop embeddings; options ``model``, ``device``, ...
+    """
+    key = _normalise_name(name)
+    if key == "gt":
+        from .gt import GroundTruthRegionEncoder
+
+        text = options.pop("text_encoder", "minilm")
+        text_options = dict(options.pop("text_options", None) or {})
+        if isinstance(text, str):
+            text = make_text_encoder(text, **text_options)
+        elif text_options:
+            raise ValueError("text_options only apply when text_encoder is given by name")
+        return GroundTruthRegionEncoder(text, **options)
+    if key == "onnx":
+        from .onnx_backend import make_onnx_region_encoder
+
+        return make_onnx_region_encoder(**options)
+    if key == "clip-regions":
+        from .clip_regions import ClipRegionEncoder
+
+        return ClipRegionEncoder(**options)
+    raise ValueError(f"unknown region encoder {name!r}; known: {', '.join(REGION_ENCODER_NAMES)}")
