@@ -1,0 +1,363 @@
+"""The wire codec: pydantic messages <-> msgpack bytes, numpy arrays as raw bytes.
+
+Wire format (one msgpack map, readable by any msgpack library)::
+
+    {"schema": "sensor.rgbd", "version": 1, "body": {...fields...}}
+
+Inside ``body`` every numpy array field is a map ``{"dtype": "uint16", "shape": [480, 640],
+"data": <bin>}``: ``data`` is the C-contiguous, little-endian bytes of the array, ``dtype`` one
+of :data:`ALLOWED_DTYPES` (names, byte order always little-endian). Dict keys travel as
+strings (msgpack maps with ``strict_map_key``); int keys come back through pydantic.
+
+Payloads come from the network, so decoding never runs code: msgpack with ``raw=False``,
+``strict_map_key=True`` and an ``ext_hook`` that refuses every extension type; no pickle. Bytes
+that are not a valid message raise :class:`DecodeError` (a ValueError) whose ``reason`` is one
+of :data:`DECODE_REASONS`:
+
+=====================  ======================================================================
+``too_large``          payload over ``max_bytes``, or an array over ``max_array_elements``
+``truncated``          empty or cut-off input
+``not_msgpack``        not msgpack, trailing bytes, extension types, non-string map keys
+``bad_envelope``       msgpack, but not a ``{schema, version, body}`` map
+``unknown_schema``     no message class registered for that schema name
+``unexpected_schema``  a valid message, but not the schema the caller expected
+``version_mismatch``   the schema is known, in another version
+``bad_dtype``          an array dtype outside the whitelist or not allowed for that field
+``array_size_mismatch``  an array's byte count disagrees with its dtype and shape
+``invalid_fields``     fields missing, unknown or of the wrong type/shape (pydantic's message)
+=====================  ======================================================================
+
+Decoded arrays are zero-copy views (``np.frombuffer``) on the bytes msgpack produced for the
+``data`` field: they are READ-ONLY. Copy (``arr.copy()``) before writing into one.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Annotated, Any, TypeVar
+
+import msgpack
+import numpy as np
+from pydantic import BaseModel, ValidationError
+from pydantic_core import PydanticCustomError, core_schema
+
+if TYPE_CHECKING:
+    from openfusion.messages import Message
+
+DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+"""Largest payload :func:`encode` writes and :func:`decode` reads unless told otherwise."""
+
+DEFAULT_MAX_ARRAY_ELEMENTS = 32 * 1024 * 1024
+"""Most elements one array may have on the wire unless told otherwise (per array)."""
+
+MAX_ARRAY_NDIM = 8
+
+ALLOWED_DTYPES: tuple[str, ...] = (
+    "bool",
+    "int8",
+    "int16",
+    "int32",
+    "int64",
+    "uint8",
+    "uint16",
+    "uint32",
+    "uint64",
+    "float16",
+    "float32",
+    "float64",
+)
+_WIRE_DTYPES: dict[str, np.dtype] = {name: np.dtype(name).newbyteorder("<") for name in ALLOWED_DTYPES}
+
+DECODE_REASONS: tuple[str, ...] = (
+    "too_large",
+    "truncated",
+    "not_msgpack",
+    "bad_envelope",
+    "unknown_schema",
+    "unexpected_schema",
+    "version_mismatch",
+    "bad_dtype",
+    "array_size_mismatch",
+    "invalid_fields",
+)
+# Error types raised inside array validation that name a decode reason of their own.
+_ARRAY_REASONS = ("too_large", "bad_dtype", "array_size_mismatch")
+
+M = TypeVar("M", bound=BaseModel)
+
+
+class DecodeError(ValueError):
+    """Bytes that are not a valid message. ``reason`` is one of :data:`DECODE_REASONS`."""
+
+    def __init__(self, reason: str, detail: str, *, schema: str | None = None) -> None:
+        assert reason in DECODE_REASONS, reason
+        self.reason = reason
+        self.detail = detail
+        self.schema = schema
+        where = f" ({schema})" if schema else ""
+        super().__init__(f"{reason}{where}: {detail}")
+
+
+class EncodeError(ValueError):
+    """A message that cannot be put on the wire (too large, or an array of an unsupported dtype)."""
+
+
+# --------------------------------------------------------------------------------------- arrays
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """Pydantic annotation for a numpy array field: allowed dtypes and shape.
+
+    ``dtypes``: allowed dtype names (subset of :data:`ALLOWED_DTYPES`; empty = all of them).
+    ``shape``: None for any shape, else a tuple with one entry per dimension: an int for a
+    fixed size or None for any size. A field accepts a numpy array of an allowed dtype, the wire
+    map ``{dtype, shape, data}``, or (when exactly one dtype is allowed) a nested list.
+    Arrays are taken as they are (no dtype casting) so a wrong dtype is reported, not hidden.
+    """
+
+    dtypes: tuple[str, ...] = ()
+    shape: tuple[int | None, ...] | None = None
+
+    def __post_init__(self) -> None:
+        unknown = [d for d in self.dtypes if d not in ALLOWED_DTYPES]
+        if unknown:
+            raise ValueError(f"ArraySpec dtypes {unknown} are not in the wire whitelist {ALLOWED_DTYPES}")
+
+    def __get_pydantic_core_schema__(self, source: Any, handler: Any) -> core_schema.CoreSchema:
+        return core_schema.with_info_plain_validator_function(self._validate)
+
+    def describe(self) -> str:
+        dt = "|".join(self.dtypes) if self.dtypes else "any dtype"
+        if self.shape is None:
+            return f"{dt} array"
+        dims = ",".join("?" if d is None else str(d) for d in self.shape)
+        return f"{dt} array of shape ({dims})"
+
+    def _validate(self, value: Any, info: core_schema.ValidationInfo) -> np.ndarray:
+        if isinstance(value, np.ndarray):
+            arr = value
+        elif isinstance(value, Mapping):
+            context = info.context or {}
+            arr = array_from_wire(
+                value, max_elements=context.get("max_array_elements", DEFAULT_MAX_ARRAY_ELEMENTS)
+            )
+        elif isinstance(value, (list, tuple)) and len(self.dtypes) == 1:
+            try:
+                arr = np.asarray(value, dtype=self.dtypes[0])
+            except (ValueError, TypeError, OverflowError) as exc:
+                raise PydanticCustomError(
+                    "ndarray_type", "cannot make a {spec} from this list: {error}",
+                    {"spec": self.describe(), "error": str(exc)},
+                ) from None
+        else:
+            raise PydanticCustomError(
+                "ndarray_type", "expected a numpy {spec}, got {type}",
+                {"spec": self.describe(), "type": type(value).__name__},
+            )
+        if arr.dtype.name not in ALLOWED_DTYPES:
+            raise PydanticCustomError(
+                "bad_dtype", "array dtype {dtype} is not allowed on the wire", {"dtype": str(arr.dtype)}
+            )
+        if self.dtypes and arr.dtype.name not in self.dtypes:
+            raise PydanticCustomError(
+                "bad_dtype", "expected a {spec}, got dtype {dtype}",
+                {"spec": self.describe(), "dtype": arr.dtype.name},
+            )
+        if self.shape is not None and (
+            arr.ndim != len(self.shape) or any(w is not None and w != s for w, s in zip(self.shape, arr.shape, strict=True))
+        ):
+            raise PydanticCustomError(
+                "ndarray_shape", "expected a {spec}, got shape {shape}",
+                {"spec": self.describe(), "shape": str(tuple(arr.shape))},
+            )
+        return arr
+
+
+def ndarray(*dtypes: str, shape: tuple[int | None, ...] | None = None) -> Any:
+    """The annotated type of an array field: ``color: ndarray("uint8", shape=(None, None, 3))``."""
+    return Annotated[np.ndarray, ArraySpec(tuple(dtypes), shape)]
+
+
+def array_to_wire(arr: np.ndarray) -> dict[str, Any]:
+    """The wire map of ``arr`` (little-endian, C-contiguous; copies only when it must)."""
+    name = arr.dtype.name
+    if name not in _WIRE_DTYPES:
+        raise EncodeError(f"array dtype {arr.dtype} cannot go on the wire (allowed: {', '.join(ALLOWED_DTYPES)})")
+    wire_dtype = _WIRE_DTYPES[name]
+    if arr.dtype != wire_dtype:
+        arr = arr.astype(wire_dtype)
+    shape = list(arr.shape)  # before ascontiguousarray, which makes 0-d arrays 1-d
+    data = np.ascontiguousarray(arr).reshape(-1).view(np.uint8).data if arr.size else b""
+    return {"dtype": name, "shape": shape, "data": data}
+
+
+def array_from_wire(value: Mapping[str, Any], *, max_elements: int = DEFAULT_MAX_ARRAY_ELEMENTS) -> np.ndarray:
+    """The (read-only, zero-copy) array of a wire map; PydanticCustomError naming the reason."""
+    if set(value.keys()) != {"dtype", "shape", "data"}:
+        raise PydanticCustomError(
+            "ndarray_wire", "an array must be a map with keys dtype, shape, data; got keys {keys}",
+            {"keys": str(sorted(map(str, value.keys())))},
+        )
+    dtype_name, shape, data = value["dtype"], value["shape"], value["data"]
+    if not isinstance(dtype_name, str) or dtype_name not in _WIRE_DTYPES:
+        raise PydanticCustomError(
+            "bad_dtype", "array dtype {dtype!r} is not one of the allowed dtypes", {"dtype": str(dtype_name)[:40]}
+        )
+    if (
+        not isinstance(shape, (list, tuple))
+        or len(shape) > MAX_ARRAY_NDIM
+        or not all(type(d) is int and d >= 0 for d in shape)
+    ):
+        raise PydanticCustomError(
+            "ndarray_wire", "array shape must be a list of at most {n} non-negative ints, got {shape}",
+            {"n": MAX_ARRAY_NDIM, "shape": str(shape)[:80]},
+        )
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise PydanticCustomError("ndarray_wire", "array data must be bytes, got {type}", {"type": type(data).__name__})
+    count = math.prod(shape)
+    if count > max_elements or any(d > max_elements for d in shape):
+        raise PydanticCustomError(
+            "too_large", "array of shape {shape} has more than {limit} elements",
+            {"shape": str(tuple(shape)), "limit": max_elements},
+        )
+    dtype = _WIRE_DTYPES[dtype_name]
+    if len(data) != count * dtype.itemsize:
+        raise PydanticCustomError(
+            "array_size_mismatch", "array {dtype} {shape} needs {need} bytes, got {got}",
+            {"dtype": dtype_name, "shape": str(tuple(shape)), "need": count * dtype.itemsize, "got": len(data)},
+        )
+    arr = np.frombuffer(data, dtype=dtype).reshape(shape)
+    if sys.byteorder != "little":  # keep native dtypes for the rest of the code
+        arr = arr.astype(dtype.newbyteorder("="))
+    return arr
+
+
+# -------------------------------------------------------------------------------- encode/decode
+
+
+def _to_wire(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return array_to_wire(value)
+    if isinstance(value, BaseModel):
+        return {name: _to_wire(getattr(value, name)) for name in type(value).model_fields}
+    if isinstance(value, (list, tuple)):
+        return [_to_wire(v) for v in value]
+    if isinstance(value, dict):
+        return {(k if isinstance(k, str) else str(k)): _to_wire(v) for k, v in value.items()}
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
+def encode(msg: Message, *, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> bytes:
+    """The wire bytes of ``msg`` (a registered :class:`openfusion.messages.Message`)."""
+    schema = getattr(type(msg), "schema_name", None)
+    version = getattr(type(msg), "schema_version", None)
+    if not isinstance(msg, BaseModel) or not isinstance(schema, str) or not isinstance(version, int):
+        raise TypeError(f"encode needs an openfusion.messages.Message with a schema name, got {type(msg).__name__}")
+    try:
+        data = msgpack.packb({"schema": schema, "version": version, "body": _to_wire(msg)}, use_bin_type=True)
+    except (TypeError, ValueError, OverflowError) as exc:
+        if isinstance(exc, EncodeError):
+            raise
+        raise EncodeError(f"cannot encode {schema}: {exc}") from exc
+    if len(data) > max_bytes:
+        raise EncodeError(f"{schema} message is {len(data)} bytes, over the limit of {max_bytes} bytes")
+    return data
+
+
+def _refuse_ext(code: int, data: bytes) -> Any:
+    raise ValueError(f"msgpack extension type {code} is not allowed")
+
+
+def _as_buffer(data: Any) -> bytes | bytearray | memoryview:
+    if isinstance(data, (bytes, bytearray, memoryview)):
+        return data
+    to_bytes = getattr(data, "to_bytes", None)  # zenoh.ZBytes
+    if callable(to_bytes):
+        return to_bytes()
+    raise TypeError(f"decode needs bytes (or zenoh.ZBytes), got {type(data).__name__}")
+
+
+def unpack_envelope(
+    data: Any, *, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+) -> tuple[str, int, dict[str, Any]]:
+    """``(schema, version, body)`` of wire bytes, without validating the body."""
+    buf = _as_buffer(data)
+    if len(buf) > max_bytes:
+        raise DecodeError("too_large", f"payload is {len(buf)} bytes, over the limit of {max_bytes} bytes")
+    if len(buf) == 0:
+        raise DecodeError("truncated", "payload is empty")
+    try:
+        envelope = msgpack.unpackb(
+            buf, raw=False, strict_map_key=True, ext_hook=_refuse_ext
+        )
+    except msgpack.ExtraData:
+        raise DecodeError("not_msgpack", "trailing bytes after the msgpack message") from None
+    except (ValueError, TypeError, msgpack.UnpackException) as exc:
+        text = str(exc)
+        # msgpack bounds declared lengths by the buffer size ("3 exceeds max_map_len(0)"):
+        # a length the rest of the buffer cannot hold means the payload was cut off.
+        if "incomplete input" in text or "exceeds max_" in text:
+            raise DecodeError("truncated", f"payload of {len(buf)} bytes is cut off") from None
+        raise DecodeError("not_msgpack", f"payload is not valid msgpack ({type(exc).__name__}: {text})") from None
+    if not isinstance(envelope, dict) or set(envelope.keys()) != {"schema", "version", "body"}:
+        got = sorted(envelope.keys()) if isinstance(envelope, dict) else type(envelope).__name__
+        raise DecodeError("bad_envelope", f"expected a map with keys schema, version, body; got {got}")
+    schema, version, body = envelope["schema"], envelope["version"], envelope["body"]
+    if not isinstance(schema, str) or type(version) is not int:
+        raise DecodeError("bad_envelope", "schema must be a string and version an int")
+    if not isinstance(body, dict):
+        raise DecodeError("invalid_fields", f"body must be a map, got {type(body).__name__}", schema=schema)
+    return schema, version, body
+
+
+def decode(
+    data: Any,
+    *,
+    expected: type[M] | None = None,
+    max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+    max_array_elements: int = DEFAULT_MAX_ARRAY_ELEMENTS,
+) -> M:
+    """The validated message in ``data``; :class:`DecodeError` for anything else.
+
+    ``expected``: refuse any other schema (reason ``unexpected_schema``).
+    ``max_bytes`` / ``max_array_elements``: size limits for this call.
+    """
+    from openfusion.messages import message_class
+
+    schema, version, body = unpack_envelope(data, max_bytes=max_bytes)
+    if expected is not None and schema != expected.schema_name:
+        raise DecodeError(
+            "unexpected_schema", f"expected {expected.schema_name} v{expected.schema_version}, got {schema}",
+            schema=schema,
+        )
+    cls = message_class(schema)
+    if cls is None:
+        raise DecodeError("unknown_schema", f"no message type is registered as {schema!r}", schema=schema)
+    if version != cls.schema_version:
+        raise DecodeError(
+            "version_mismatch", f"got version {version}, this build speaks version {cls.schema_version}",
+            schema=schema,
+        )
+    try:
+        return cls.model_validate(body, context={"max_array_elements": max_array_elements})  # type: ignore[return-value]
+    except ValidationError as exc:
+        errors = exc.errors(include_url=False, include_input=False)
+        for err in errors:
+            if err["type"] in _ARRAY_REASONS:
+                loc = ".".join(map(str, err["loc"]))
+                raise DecodeError(err["type"], f"{loc}: {err['msg']}", schema=schema) from None
+        raise DecodeError("invalid_fields", _summarize(errors), schema=schema) from None
+    except RecursionError:
+        raise DecodeError("invalid_fields", "body is nested too deeply", schema=schema) from None
+
+
+def _summarize(errors: list[Any], limit: int = 5) -> str:
+    parts = [f"{'.'.join(map(str, e['loc'])) or '<body>'}: {e['msg']}" for e in errors[:limit]]
+    more = f" (+{len(errors) - limit} more)" if len(errors) > limit else ""
+    return "; ".join(parts) + more

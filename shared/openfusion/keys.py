@@ -1,0 +1,227 @@
+"""Every Zenoh key expression of OpenFusion-Z is built here (design §2).
+
+Key space: ``{prefix}/{map_id}/{service}/{...}``; the default prefix is ``openfusion``.
+``map_id`` names one map (a robot, a site, a session) and must be ONE key segment. The prefix
+may have several segments (``fleet/openfusion``), each of which must be a valid segment.
+
+A valid segment is non-empty, at most 128 characters, made only of ASCII letters, digits,
+``_``, ``-`` and ``.``, and does not start with ``.``. This refuses everything with a meaning
+in Zenoh key expressions (``/``, ``*``, ``$``, ``?``, ``#``, ``@``) and whitespace, so a user id
+can never widen a subscription or escape its map.
+
+Use :class:`KeySpace` in services::
+
+    keys = KeySpace("openfusion", "lab")
+    keys.sensor_rgbd            # "openfusion/lab/sensor/rgbd"
+    keys.health("geometry")     # "openfusion/lab/health/geometry"
+    keys.health_all             # "openfusion/lab/health/*"
+
+and :func:`key_for` for anything else (it is what every property calls).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from typing import Literal
+
+DEFAULT_PREFIX = "openfusion"
+MAX_SEGMENT_CHARS = 128
+
+#: A single-segment wildcard part, allowed in the ``parts`` of :func:`key_for` only.
+ANY = "*"
+#: A multi-segment wildcard part, allowed in the ``parts`` of :func:`key_for` only.
+ANY_DEEP = "**"
+
+CONTROL_ACTIONS: tuple[str, ...] = ("save", "load", "reset")
+ControlAction = Literal["save", "load", "reset"]
+
+_VALID_SEGMENT = re.compile(r"^[A-Za-z0-9_\-][A-Za-z0-9_.\-]*$")
+_SPECIAL_CHARS = {
+    "/": "'/' separates key segments",
+    "*": "'*' is a Zenoh wildcard",
+    "$": "'$' is a Zenoh wildcard marker",
+    "?": "'?' starts Zenoh selector parameters",
+    "#": "'#' is reserved in Zenoh key expressions",
+    "@": "'@' marks Zenoh verbatim/admin chunks",
+}
+
+
+def segment_error(value: object) -> str | None:
+    """Why ``value`` is not a valid single key segment, or None when it is."""
+    if not isinstance(value, str):
+        return f"must be a string, got {type(value).__name__}"
+    if value == "":
+        return "is empty"
+    if len(value) > MAX_SEGMENT_CHARS:
+        return f"is {len(value)} characters long (at most {MAX_SEGMENT_CHARS})"
+    for ch in value:
+        if ch.isspace():
+            return f"contains whitespace ({ch!r})"
+        if ch in _SPECIAL_CHARS:
+            return f"contains {ch!r} ({_SPECIAL_CHARS[ch]})"
+    if value.startswith("."):
+        return "starts with '.'"
+    if not _VALID_SEGMENT.match(value):
+        bad = next(ch for ch in value if not re.match(r"[A-Za-z0-9_.\-]", ch))
+        return f"contains {bad!r} (allowed: ASCII letters, digits, '_', '-', '.')"
+    return None
+
+
+def validate_segment(value: str, *, what: str = "map id") -> str:
+    """Return ``value`` if it is one valid key segment, else raise ValueError naming it and why."""
+    why = segment_error(value)
+    if why is not None:
+        raise ValueError(f"{what} {value!r} is not a valid key segment: it {why}")
+    return value
+
+
+def validate_map_id(map_id: str) -> str:
+    """Return ``map_id`` if it is one valid key segment, else raise ValueError naming it and why."""
+    return validate_segment(map_id, what="map id")
+
+
+def validate_prefix(prefix: str) -> str:
+    """Return ``prefix`` if each of its '/'-separated segments is valid, else raise ValueError."""
+    if not isinstance(prefix, str) or prefix == "":
+        raise ValueError(f"key prefix {prefix!r} is not valid: it is empty")
+    for segment in prefix.split("/"):
+        why = segment_error(segment)
+        if why is not None:
+            raise ValueError(f"key prefix {prefix!r} is not valid: segment {segment!r} {why}")
+    return prefix
+
+
+def key_for(map_id: str, *parts: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """The key expression ``{prefix}/{map_id}/{part}/...``.
+
+    Every part must be a valid segment, or exactly :data:`ANY` (``*``) / :data:`ANY_DEEP`
+    (``**``) for wildcard subscriptions and queries. ``map_id`` and ``prefix`` are never
+    wildcards. Raises ValueError naming the offending id and why.
+    """
+    validate_prefix(prefix)
+    validate_map_id(map_id)
+    if not parts:
+        raise ValueError("key_for needs at least one part after the map id (e.g. 'sensor', 'rgbd')")
+    for part in parts:
+        if part in (ANY, ANY_DEEP):
+            continue
+        validate_segment(part, what="key part")
+    return "/".join((prefix, map_id, *parts))
+
+
+@dataclass(frozen=True)
+class KeySpace:
+    """All keys of one map: ``KeySpace(prefix, map_id)``; validated on construction."""
+
+    prefix: str = DEFAULT_PREFIX
+    map_id: str = "default"
+
+    def __post_init__(self) -> None:
+        validate_prefix(self.prefix)
+        validate_map_id(self.map_id)
+
+    def key(self, *parts: str) -> str:
+        """Any key of this map (see :func:`key_for`)."""
+        return key_for(self.map_id, *parts, prefix=self.prefix)
+
+    @property
+    def base(self) -> str:
+        """``{prefix}/{map_id}`` (not itself a key anything is declared on)."""
+        return f"{self.prefix}/{self.map_id}"
+
+    @property
+    def all(self) -> str:
+        """Every key of this map: ``{prefix}/{map_id}/**``."""
+        return self.key(ANY_DEEP)
+
+    # sensors
+    @property
+    def sensor_rgbd(self) -> str:
+        """pub/sub of :class:`openfusion.messages.RgbdFrame`."""
+        return self.key("sensor", "rgbd")
+
+    # geometry
+    @property
+    def geometry_render(self) -> str:
+        """queryable: RenderRequest -> RenderReply."""
+        return self.key("geometry", "render")
+
+    @property
+    def geometry_points(self) -> str:
+        """queryable: PointsRequest -> PointsReply."""
+        return self.key("geometry", "points")
+
+    @property
+    def geometry_mesh(self) -> str:
+        """queryable: MeshRequest -> MeshReply."""
+        return self.key("geometry", "mesh")
+
+    # semantic
+    @property
+    def semantic_update(self) -> str:
+        """pub/sub of SemanticUpdate (semantic -> geometry)."""
+        return self.key("semantic", "update")
+
+    @property
+    def semantic_dictionary(self) -> str:
+        """queryable: DictionaryRequest -> DictionarySnapshot."""
+        return self.key("semantic", "dictionary")
+
+    @property
+    def semantic_dictionary_delta(self) -> str:
+        """pub/sub of DictionaryDelta."""
+        return self.key("semantic", "dictionary", "delta")
+
+    # queries
+    @property
+    def query_text(self) -> str:
+        """queryable: TextQuery -> QueryReply."""
+        return self.key("query", "text")
+
+    @property
+    def query_image(self) -> str:
+        """queryable: ImageQuery -> QueryReply."""
+        return self.key("query", "image")
+
+    @property
+    def query_point(self) -> str:
+        """queryable: PointQuery -> QueryReply."""
+        return self.key("query", "point")
+
+    # admin
+    def control(self, action: str) -> str:
+        """queryable: ControlRequest -> ControlReply, for ``action`` in save/load/reset."""
+        if action not in CONTROL_ACTIONS:
+            raise ValueError(f"control action {action!r} is not one of {', '.join(CONTROL_ACTIONS)}")
+        return self.key("control", action)
+
+    # presence and stats
+    def health(self, service: str) -> str:
+        """HealthStats pub + health queryable of one service instance."""
+        return self.key("health", validate_segment(service, what="service name"))
+
+    def liveliness(self, service: str) -> str:
+        """Liveliness token key of one service instance (same key as its health, in the
+        separate liveliness namespace of Zenoh)."""
+        return self.health(service)
+
+    @property
+    def health_all(self) -> str:
+        """Health / liveliness of every service of this map: ``{prefix}/{map_id}/health/*``."""
+        return self.key("health", ANY)
+
+    def service_from_health_key(self, key: str) -> str:
+        """The service name of a key matched by :attr:`health_all`; ValueError otherwise."""
+        head = f"{self.base}/health/"
+        key = str(key)
+        rest = key[len(head) :] if key.startswith(head) else ""
+        if segment_error(rest) is not None:
+            raise ValueError(f"{key!r} is not a health key of map {self.map_id!r} (expected {head}<service>)")
+        return rest
+
+
+def health_all_maps(prefix: str = DEFAULT_PREFIX) -> str:
+    """Health / liveliness of every service of every map under ``prefix``."""
+    validate_prefix(prefix)
+    return f"{prefix}/{ANY}/health/{ANY}"
