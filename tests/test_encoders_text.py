@@ -1,0 +1,71 @@
+"""Text encoders: MiniLM (semantic, offline) and the hashed-trigram baseline."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from openfusion.encoders import EncoderError, make_region_encoder, make_text_encoder
+from openfusion.encoders.testing import Box, make_box_frame
+
+CATALOGUE = [
+    "chair", "table", "sofa", "bed", "bookshelf", "cabinet", "lamp", "monitor",
+    "plant", "door", "picture", "wall", "floor", "ceiling",
+]  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def minilm():
+    return make_text_encoder("minilm", device="cpu")
+
+
+def test_minilm_ranks_chair_closest_to_office_chair(minilm):
+    """A region labelled "office chair" must be scored as the class "chair" (the gt protocol relies on
+    the text space putting raw categories near their benchmark class)."""
+    classes = minilm.encode(CATALOGUE)
+    query = minilm.encode(["office chair"])[0]
+    scores = classes @ query
+    assert CATALOGUE[int(np.argmax(scores))] == "chair"
+    ranked = [CATALOGUE[i] for i in np.argsort(-scores)]
+    assert ranked.index("chair") == 0 and scores.max() > 0.7
+
+
+def test_minilm_output_contract(minilm):
+    """(k, 384) float32 unit rows in space minilm-l6-v2; same text -> same vector across batches."""
+    assert minilm.embedding_space == "minilm-l6-v2" and minilm.dim == 384
+    e = minilm.encode(["a lamp", "lamp", "a red sofa"])
+    assert e.shape == (3, 384) and e.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(e, axis=1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(minilm.encode(["lamp"])[0], e[1], atol=1e-5)
+    assert minilm.encode([]).shape == (0, 384)
+
+
+def test_text_encoders_reject_bad_input(minilm):
+    """A bare string (a common slip: encode("chair")), empty strings and non-strings are refused clearly."""
+    for enc in (minilm, make_text_encoder("hash")):
+        with pytest.raises(EncoderError, match="single string"):
+            enc.encode("chair")
+        with pytest.raises(EncoderError, match="text 1 is empty"):
+            enc.encode(["chair", "  "])
+        with pytest.raises(EncoderError, match="text 0 is int"):
+            enc.encode([3])
+
+
+def test_gt_embeddings_are_minilm_of_raw_category(minilm):
+    """The gt encoder embeds the RAW category ("office chair"), cached per category, in MiniLM space."""
+    frame = make_box_frame([Box(1, "office chair", 0, 0, 32, 32), Box(2, "office chair", 32, 32, 64, 64)],
+                           height_px=64, width_px=64)
+    enc = make_region_encoder("gt", text_encoder=minilm)
+    obs = enc.encode(frame)
+    assert obs.embedding_space == "minilm-l6-v2"
+    np.testing.assert_allclose(obs.embeddings, np.repeat(minilm.encode(["office chair"]), 2, axis=0), atol=1e-5)
+    assert list(enc._embedding_cache) == ["office chair"]
+
+
+def test_hash_encoder_is_lexical_and_deterministic():
+    """The hashed baseline places shared-word phrases close and is stable across processes (blake2b)."""
+    enc = make_text_encoder("hash", dim=256)
+    e = enc.encode(["office chair", "chair", "ceiling", "office chair"])
+    assert enc.embedding_space == "hash-trigram-256"
+    assert e[0] @ e[1] > e[0] @ e[2]
+    np.testing.assert_array_equal(e[0], e[3])
+    np.testing.assert_allclose(np.linalg.norm(e, axis=1), 1.0, atol=1e-6)
