@@ -103,3 +103,21 @@ def test_bad_inputs_are_refused() -> None:
         obs.add_view(np.ones((10, 10), np.float32), CameraIntrinsics(20, 10, 10, 10, 10, 5), np.eye(4))
     empty = geometry_metrics(np.zeros((0, 3)), gt, voxel_size_m=VOXEL_M)
     assert empty.completeness == 0.0 and np.isnan(empty.accuracy_m)
+
+
+def test_mesh_distances_are_exact_point_to_triangle_distances() -> None:
+    """Unit square at z = 0 as two triangles: a point above the interior is its height away, a
+    point beside an edge is its Euclidean distance to that edge; accuracy can use them."""
+    from openfusion.eval.geometry import mesh_distances
+
+    verts = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    tris = np.array([[0, 1, 2], [0, 2, 3]])
+    pts = np.array([[0.5, 0.5, 0.03], [0.2, 0.7, -0.01], [1.3, 0.5, 0.4]])
+    d = mesh_distances(pts, verts, tris)
+    np.testing.assert_allclose(d, [0.03, 0.01, 0.5], atol=1e-6)
+    g = geometry_metrics(pts, verts, voxel_size_m=VOXEL_M, accuracy_distances_m=d)
+    assert g.accuracy_m == pytest.approx(0.18, abs=1e-6)
+    with pytest.raises(ValueError, match="one entry per reconstructed point"):
+        geometry_metrics(pts, verts, voxel_size_m=VOXEL_M, accuracy_distances_m=d[:2])
+    with pytest.raises(ValueError, match="out of range"):
+        mesh_distances(pts, verts, np.array([[0, 1, 7]]))

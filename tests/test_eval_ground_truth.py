@@ -6,19 +6,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from openfusion.eval.classes import NYU40_CLASSES, class_for_category
+from openfusion.eval.classes import NYU40_CLASSES, SYNTHETIC_CLASSES, class_for_category
 from openfusion.eval.ground_truth import (
     ground_truth_from_instances,
     load_scannet_ground_truth,
     read_scannet_label_table,
 )
-from openfusion.eval.ply import PlyError, read_ply_vertices, write_ply_vertices
+from openfusion.eval.ply import PlyError, read_ply, read_ply_vertices, write_ply_vertices
 
 
 def _write_scannet_like_ply(path: Path, xyz: np.ndarray, label: np.ndarray, *, truncate: int = 0) -> None:
     """Byte layout of ScanNet's *_vh_clean_2.labels.ply, written by hand (not by our writer)."""
     n = len(xyz)
-    faces = np.array([[0, 1, 2]], dtype=np.int32)
+    faces = np.array([[0, 1, 2]] if n >= 3 else [], dtype=np.int32).reshape(-1, 3)
     header = (
         "ply\nformat binary_little_endian 1.0\ncomment VCGLIB generated\n"
         f"element vertex {n}\nproperty float x\nproperty float y\nproperty float z\n"
@@ -62,6 +62,7 @@ def test_scannet_labels_ply_and_tsv(tmp_path: Path) -> None:
     _write_tsv(tmp_path / "scannetv2-labels.combined.tsv")  # two folders up, as in the release
 
     gt = load_scannet_ground_truth(scene)
+    assert gt.has_mesh and gt.mesh_triangles.tolist() == [[0, 1, 2]]
     assert gt.class_names == ("wall", "chair", "table")
     assert gt.labels.tolist() == [0, 1, 1, -1, 2]
     np.testing.assert_array_equal(gt.points, xyz)
@@ -84,7 +85,9 @@ def test_truncated_or_unlabelled_ply_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="truncated"):
         load_scannet_ground_truth(ply)
     plain = tmp_path / "p_vh_clean_2.labels.ply"
-    write_ply_vertices(plain, {"x": np.zeros(3, np.float32), "y": np.zeros(3, np.float32), "z": np.zeros(3, np.float32)})
+    write_ply_vertices(
+        plain, {"x": np.zeros(3, np.float32), "y": np.zeros(3, np.float32), "z": np.zeros(3, np.float32)}
+    )
     with pytest.raises(ValueError, match="label"):
         load_scannet_ground_truth(plain)
     not_ply = tmp_path / "n.ply"
@@ -101,14 +104,24 @@ def test_ply_writer_reader_roundtrip_and_ascii(tmp_path: Path) -> None:
              "label": np.array([3, 2, 1, 0], np.uint16)}  # fmt: skip
     write_ply_vertices(tmp_path / "a.ply", props, faces=np.array([[0, 1, 2]]))
     back = read_ply_vertices(tmp_path / "a.ply")
+    assert read_ply(tmp_path / "a.ply").triangles.tolist() == [[0, 1, 2]]
     for k, v in props.items():
         assert back[k].dtype == v.dtype and np.array_equal(back[k], v)
     (tmp_path / "b.ply").write_text(
         "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
-        "property ushort label\nend_header\n0 0 0 3\n1.5 2 3 7\n"
+        "property ushort label\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+        "0 0 0 3\n1.5 2 3 7\n3 0 1 1\n"
     )
     b = read_ply_vertices(tmp_path / "b.ply")
     assert b["x"].tolist() == [0.0, 1.5] and b["label"].tolist() == [3, 7]
+    assert read_ply(tmp_path / "b.ply").triangles.tolist() == [[0, 1, 1]]
+    # A face index beyond the vertex count is corrupt, not silently accepted.
+    (tmp_path / "c.ply").write_text(
+        "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\n"
+        "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n3 0 0 5\n"
+    )
+    with pytest.raises(PlyError, match="out of range"):
+        read_ply(tmp_path / "c.ply")
 
 
 def test_label_table_with_conflicting_names_is_refused(tmp_path: Path) -> None:
@@ -126,9 +139,17 @@ def test_synthetic_instances_map_raw_categories_to_classes() -> None:
     """Two chair kinds become one class; instance 0 and instances without a category are -1."""
     points = np.zeros((6, 3), np.float32)
     inst = np.array([1, 2, 3, 0, 9, 1])
-    cats = {1: "office chair", 2: "dining chair", 3: "sofa"}
+    cats = {1: "office chair", 2: "chair", 3: "sofa"}
     gt = ground_truth_from_instances(points, inst, cats, source="test")
     assert gt.class_names == ("chair", "sofa")
     assert gt.labels.tolist() == [0, 0, 1, -1, -1, 0]
     assert class_for_category("Office Chair") == "chair"
     assert class_for_category("toaster") == "toaster"
+
+
+def test_every_synthetic_category_has_an_evaluation_class() -> None:
+    """A category added to the synthetic world without a class would silently become its own
+    class and change the query list; this catches it."""
+    from openfusion.sources.synthetic import CATEGORIES
+
+    assert {class_for_category(c) for c in CATEGORIES} == set(SYNTHETIC_CLASSES)

@@ -25,7 +25,7 @@ from typing import Protocol
 import numpy as np
 
 from openfusion.eval.classes import NYU40_CLASSES, class_for_category
-from openfusion.eval.ply import PlyError, read_ply_vertices
+from openfusion.eval.ply import PlyError, read_ply
 
 logger = logging.getLogger(__name__)
 
@@ -40,6 +40,9 @@ class GroundTruth:
     labels: np.ndarray  # (N,) int32, index into class_names, -1 = not evaluated
     class_names: tuple[str, ...]
     source: str
+    #: The ground-truth mesh when known (accuracy is then the exact point-to-mesh distance).
+    mesh_vertices: np.ndarray | None = None  # (V, 3) float
+    mesh_triangles: np.ndarray | None = None  # (T, 3) int
 
     def __post_init__(self) -> None:
         p, lab = np.asarray(self.points), np.asarray(self.labels)
@@ -49,8 +52,18 @@ class GroundTruth:
             raise ValueError(f"ground-truth labels must be ({len(p)},), got {lab.shape}")
         if lab.size and (lab.min() < -1 or lab.max() >= len(self.class_names)):
             raise ValueError(f"ground-truth labels out of range for {len(self.class_names)} classes")
+        if (self.mesh_vertices is None) != (self.mesh_triangles is None):
+            raise ValueError("give both mesh_vertices and mesh_triangles, or neither")
         object.__setattr__(self, "points", p.astype(np.float32, copy=False))
         object.__setattr__(self, "labels", lab.astype(np.int32, copy=False))
+
+    @property
+    def has_mesh(self) -> bool:
+        return (
+            self.mesh_vertices is not None
+            and self.mesh_triangles is not None
+            and len(self.mesh_triangles) > 0
+        )
 
     def class_counts(self) -> dict[str, int]:
         counts = np.bincount(self.labels[self.labels >= 0], minlength=len(self.class_names))
@@ -119,9 +132,10 @@ def load_scannet_ground_truth(
                 )
             ply_path = candidates[0]
     try:
-        verts = read_ply_vertices(ply_path)
+        ply = read_ply(ply_path)
     except PlyError as exc:
         raise ValueError(str(exc)) from exc
+    verts = ply.vertices
     missing = {"x", "y", "z", "label"} - set(verts)
     if missing:
         raise ValueError(f"{ply_path}: vertex element lacks propert(ies) {sorted(missing)}")
@@ -139,7 +153,9 @@ def load_scannet_ground_truth(
         logger.info("no %s found near %s; using the built-in NYU40 class names", SCANNET_LABEL_TSV, scene_dir)
     unknown = sorted(set(np.unique(nyu[nyu > 0]).tolist()) - set(names_by_id))
     if unknown:
-        logger.warning("%s: label id(s) %s have no class name; they are not evaluated", ply_path, unknown[:10])
+        logger.warning(
+            "%s: label id(s) %s have no class name; they are not evaluated", ply_path, unknown[:10]
+        )
     present = sorted(set(np.unique(nyu[nyu > 0]).tolist()) & set(names_by_id))
     class_names = tuple(names_by_id[i] for i in present)
     lut = np.full(int(max(nyu.max(initial=0), max(names_by_id, default=0))) + 1, -1, dtype=np.int32)
@@ -147,7 +163,14 @@ def load_scannet_ground_truth(
         lut[i] = j
     labels = np.where(nyu > 0, lut[np.clip(nyu, 0, len(lut) - 1)], -1).astype(np.int32)
     logger.info("ScanNet GT %s: %d vertices, %d classes", ply_path.name, len(points), len(class_names))
-    return GroundTruth(points=points, labels=labels, class_names=class_names, source=str(ply_path))
+    return GroundTruth(
+        points=points,
+        labels=labels,
+        class_names=class_names,
+        source=str(ply_path),
+        mesh_vertices=points if ply.triangles is not None else None,
+        mesh_triangles=ply.triangles,
+    )
 
 
 # ----------------------------------------------------------------------------- synthetic
@@ -166,6 +189,8 @@ def ground_truth_from_instances(
     *,
     source: str,
     category_to_class: Mapping[str, str] | None = None,
+    mesh_vertices: np.ndarray | None = None,
+    mesh_triangles: np.ndarray | None = None,
 ) -> GroundTruth:
     """Labelled points from per-point instance ids and instance -> raw category names.
 
@@ -181,7 +206,8 @@ def ground_truth_from_instances(
         if int(iid) == 0:
             continue
         cls_of_instance[int(iid)] = (
-            category_to_class[cat] if category_to_class is not None and cat in category_to_class
+            category_to_class[cat]
+            if category_to_class is not None and cat in category_to_class
             else class_for_category(cat)
         )
     present_ids = set(np.unique(inst).tolist()) - {0}
@@ -191,12 +217,28 @@ def ground_truth_from_instances(
     ids, inverse = np.unique(inst, return_inverse=True)
     mapped = np.array([lut.get(int(i), -1) for i in ids], dtype=np.int32)
     labels = mapped[inverse.reshape(-1)]
-    return GroundTruth(points=np.asarray(points), labels=labels, class_names=class_names, source=source)
+    return GroundTruth(
+        points=np.asarray(points),
+        labels=labels,
+        class_names=class_names,
+        source=source,
+        mesh_vertices=mesh_vertices,
+        mesh_triangles=mesh_triangles,
+    )
 
 
 def synthetic_ground_truth(world: object, *, spacing_m: float, source: str = "synthetic") -> GroundTruth:
-    """Ground truth of a :class:`openfusion.sources.synthetic.SyntheticWorld`."""
+    """Ground truth of a :class:`openfusion.sources.synthetic.SyntheticWorld`: its visible surface
+    sampled at ``spacing_m`` (labels) and its full mesh (accuracy)."""
     if not spacing_m > 0:
         raise ValueError(f"spacing_m must be positive, got {spacing_m}")
     surface: _SurfaceLike = world.ground_truth_surface(spacing_m)  # type: ignore[attr-defined]
-    return ground_truth_from_instances(surface.points, surface.instance_ids, surface.categories, source=source)
+    mesh = world.to_mesh()  # type: ignore[attr-defined]
+    return ground_truth_from_instances(
+        surface.points,
+        surface.instance_ids,
+        surface.categories,
+        source=source,
+        mesh_vertices=np.asarray(mesh.vertices),
+        mesh_triangles=np.asarray(mesh.triangles),
+    )

@@ -69,7 +69,9 @@ class ConfusionMatrix:
         pred = np.asarray(pred_labels)
         gt = np.asarray(gt_labels)
         if pred.shape != gt.shape or pred.ndim != 1:
-            raise ValueError(f"pred and gt labels must be 1-D of equal length, got {pred.shape} and {gt.shape}")
+            raise ValueError(
+                f"pred and gt labels must be 1-D of equal length, got {pred.shape} and {gt.shape}"
+            )
         if not (np.issubdtype(pred.dtype, np.integer) and np.issubdtype(gt.dtype, np.integer)):
             raise ValueError(f"labels must be integers, got {pred.dtype} and {gt.dtype}")
         k = len(class_names)

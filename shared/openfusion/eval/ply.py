@@ -35,12 +35,29 @@ class PlyError(ValueError):
 class _Element:
     name: str
     count: int
-    properties: list[tuple[str, str]]  # (name, numpy type code); list properties are rejected in vertex
-    has_list: bool
+    properties: list[tuple[str, str]]  # (name, numpy type code) of scalar properties
+    lists: list[tuple[str, str, str]]  # (name, count type code, item type code) of list properties
+
+    @property
+    def has_list(self) -> bool:
+        return bool(self.lists)
+
+
+@dataclass(frozen=True)
+class PlyData:
+    """Vertex properties and, when the file has a plain triangle face element, the triangles."""
+
+    vertices: dict[str, np.ndarray]
+    triangles: np.ndarray | None  # (M, 3) int64 vertex indices
 
 
 def read_ply_vertices(path: str | Path) -> dict[str, np.ndarray]:
     """Return the vertex properties of a PLY file as ``{name: (N,) array}``."""
+    return read_ply(path, with_faces=False).vertices
+
+
+def read_ply(path: str | Path, *, with_faces: bool = True) -> PlyData:
+    """Vertex properties and triangles (``None`` when absent, not all triangles, or unsupported)."""
     path = Path(path)
     try:
         raw = path.read_bytes()
@@ -62,12 +79,14 @@ def read_ply_vertices(path: str | Path) -> dict[str, np.ndarray]:
     if vertex.has_list:
         raise PlyError(f"{path}: list properties in the vertex element are not supported")
     if fmt == "ascii":
-        return _read_ascii(path, raw[body_offset:], elements, vertex_pos)
+        return _read_ascii(path, raw[body_offset:], elements, vertex_pos, with_faces=with_faces)
     endian = "<" if fmt == "binary_little_endian" else ">"
     offset = body_offset
     for e in elements[:vertex_pos]:
         if e.has_list:
-            raise PlyError(f"{path}: element '{e.name}' with list properties precedes 'vertex'; not supported")
+            raise PlyError(
+                f"{path}: element '{e.name}' with list properties precedes 'vertex'; not supported"
+            )
         offset += e.count * np.dtype([(n, endian + t) for n, t in e.properties]).itemsize
     dtype = np.dtype([(n, endian + t) for n, t in vertex.properties])
     need = vertex.count * dtype.itemsize
@@ -77,7 +96,28 @@ def read_ply_vertices(path: str | Path) -> dict[str, np.ndarray]:
             f"file has {len(raw) - offset} bytes after the header"
         )
     arr = np.frombuffer(raw, dtype=dtype, count=vertex.count, offset=offset)
-    return {n: arr[n].astype(arr[n].dtype.newbyteorder("="), copy=True) for n, _ in vertex.properties}
+    vertices = {n: arr[n].astype(arr[n].dtype.newbyteorder("="), copy=True) for n, _ in vertex.properties}
+    triangles = None
+    if with_faces and vertex_pos + 1 < len(elements) and elements[vertex_pos + 1].name == "face":
+        face = elements[vertex_pos + 1]
+        if face.properties or len(face.lists) != 1:
+            logger.info("%s: face element is not a single index list; faces not read", path)
+        else:
+            _, count_t, item_t = face.lists[0]
+            fdt = np.dtype([("n", endian + count_t), ("v", endian + item_t, (3,))])
+            avail = (len(raw) - offset - need) // fdt.itemsize
+            rec = np.frombuffer(raw, dtype=fdt, count=min(face.count, avail), offset=offset + need)
+            if avail < face.count or not np.all(rec["n"] == 3):
+                logger.info("%s: faces are not all triangles (or truncated); faces not read", path)
+            else:
+                triangles = rec["v"].astype(np.int64)
+    return PlyData(vertices, _checked_triangles(path, triangles, vertex.count))
+
+
+def _checked_triangles(path: Path, triangles: np.ndarray | None, num_vertices: int) -> np.ndarray | None:
+    if triangles is not None and triangles.size and (triangles.min() < 0 or triangles.max() >= num_vertices):
+        raise PlyError(f"{path}: face indices out of range for {num_vertices} vertices")
+    return triangles
 
 
 def _parse_header(path: Path, lines: list[str]) -> tuple[str, list[_Element]]:
@@ -94,13 +134,15 @@ def _parse_header(path: Path, lines: list[str]) -> tuple[str, list[_Element]]:
         elif parts[0] == "element":
             if len(parts) != 3 or not parts[2].isdigit():
                 raise PlyError(f"{path}: header line {ln}: bad element line {line!r}")
-            elements.append(_Element(parts[1], int(parts[2]), [], False))
+            elements.append(_Element(parts[1], int(parts[2]), [], []))
         elif parts[0] == "property":
             if not elements:
                 raise PlyError(f"{path}: header line {ln}: property before any element")
             e = elements[-1]
             if len(parts) == 5 and parts[1] == "list":
-                elements[-1] = _Element(e.name, e.count, e.properties, True)
+                if parts[2] not in _PLY_TYPES or parts[3] not in _PLY_TYPES:
+                    raise PlyError(f"{path}: header line {ln}: unsupported list property {line!r}")
+                e.lists.append((parts[4], _PLY_TYPES[parts[2]], _PLY_TYPES[parts[3]]))
                 continue
             if len(parts) != 3 or parts[1] not in _PLY_TYPES:
                 raise PlyError(f"{path}: header line {ln}: unsupported property {line!r}")
@@ -112,7 +154,9 @@ def _parse_header(path: Path, lines: list[str]) -> tuple[str, list[_Element]]:
     return fmt, elements
 
 
-def _read_ascii(path: Path, body: bytes, elements: list[_Element], vertex_pos: int) -> dict[str, np.ndarray]:
+def _read_ascii(
+    path: Path, body: bytes, elements: list[_Element], vertex_pos: int, *, with_faces: bool
+) -> PlyData:
     lines = body.decode("ascii", errors="replace").splitlines()
     start = sum(e.count for e in elements[:vertex_pos])
     vertex = elements[vertex_pos]
@@ -124,11 +168,26 @@ def _read_ascii(path: Path, body: bytes, elements: list[_Element], vertex_pos: i
     except ValueError as exc:
         raise PlyError(f"{path}: bad vertex line in ASCII body: {exc}") from exc
     if table.shape[1] != len(vertex.properties):
-        raise PlyError(f"{path}: vertex lines have {table.shape[1]} values, header declares {len(vertex.properties)}")
-    return {n: table[:, i].astype(t) for i, (n, t) in enumerate(vertex.properties)}
+        raise PlyError(
+            f"{path}: vertex lines have {table.shape[1]} values, header declares {len(vertex.properties)}"
+        )
+    vertices = {n: table[:, i].astype(t) for i, (n, t) in enumerate(vertex.properties)}
+    triangles = None
+    if with_faces and vertex_pos + 1 < len(elements) and elements[vertex_pos + 1].name == "face":
+        face = elements[vertex_pos + 1]
+        frows = lines[start + vertex.count : start + vertex.count + face.count]
+        try:
+            ftab = [list(map(int, r.split())) for r in frows]
+        except ValueError as exc:
+            raise PlyError(f"{path}: bad face line in ASCII body: {exc}") from exc
+        if len(ftab) == face.count and all(len(r) == 4 and r[0] == 3 for r in ftab):
+            triangles = np.array([r[1:] for r in ftab], dtype=np.int64).reshape(-1, 3)
+    return PlyData(vertices, _checked_triangles(path, triangles, vertex.count))
 
 
-def write_ply_vertices(path: str | Path, properties: dict[str, np.ndarray], *, faces: np.ndarray | None = None) -> None:
+def write_ply_vertices(
+    path: str | Path, properties: dict[str, np.ndarray], *, faces: np.ndarray | None = None
+) -> None:
     """Write a binary little-endian PLY with the given vertex properties (and optional triangles).
 
     Used by tests and by tools that export labelled point clouds; property types follow the
@@ -139,7 +198,16 @@ def write_ply_vertices(path: str | Path, properties: dict[str, np.ndarray], *, f
     if not names:
         raise ValueError("need at least one vertex property")
     n = len(properties[names[0]])
-    inv = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint", "f4": "float", "f8": "double"}
+    inv = {
+        "i1": "char",
+        "u1": "uchar",
+        "i2": "short",
+        "u2": "ushort",
+        "i4": "int",
+        "u4": "uint",
+        "f4": "float",
+        "f8": "double",
+    }
     lines = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
     fields = []
     for name in names:
