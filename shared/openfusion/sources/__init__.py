@@ -3,8 +3,27 @@
 Every source yields ``openfusion.frame.Frame`` in the canonical convention (metres, OpenCV
 camera axes, camera-to-world ``T_world_cam``); each reader module says in its docstring what
 it converted from. See docs/ARCHITECTURE.md, "Sources".
+
+=====================  =====================================================================
+module                 what
+=====================  =====================================================================
+``base``               ``FrameSource``, ``SourceStats``, skip counting
+``registry``           ``open_source(spec, **options)``
+``scannet``            ScanNet export reader (+ label tsv, instance categories)
+``scannet_writer``     ``write_scannet_layout``: any source -> ScanNet layout on disk
+``replica``            Replica (NICE-SLAM release)
+``tum``                TUM RGB-D (timestamp association, pose interpolation)
+``redwood``            Redwood / Open3D captures (``trajectory.log``)
+``folder``             any folder described by ``openfusion_source.json``
+``synthetic``          the embedded furnished-room world (ray-cast RGB-D + ground truth)
+``sync``               image/pose time pairing, T265 axes, downsampling (live sources)
+``live``               Azure Kinect + Intel T265 (optional extra ``live``)
+``cdr``, ``ros2``      ROS 2 messages over Zenoh, decoded without ROS
+``record``             ``FrameRecorder`` / ``ReplaySource`` (length-prefixed RgbdFrame files)
+=====================  =====================================================================
 """
 
-from openfusion.sources.base import FrameSource, IndexedFrameSource, SourceStats
+from openfusion.sources.base import FrameSource, IndexedFrameSource, Skip, SkipFrame, SourceStats
+from openfusion.sources.registry import SCHEMES, open_source
 
-__all__ = ["FrameSource", "IndexedFrameSource", "SourceStats"]
+__all__ = ["SCHEMES", "FrameSource", "IndexedFrameSource", "Skip", "SkipFrame", "SourceStats", "open_source"]

@@ -37,17 +37,16 @@ def read_color(path: Path, *, size: tuple[int, int] | None = None) -> np.ndarray
     JPEGs larger than ``size`` are decoded at a reduced DCT scale first (Pillow ``draft``),
     which is several times faster than decoding full resolution and then shrinking.
     """
-    img = _open(path, "color")
-    try:
-        if size is not None and img.format == "JPEG" and img.size != size:
-            img.draft("RGB", size)
-        img = img.convert("RGB")
-        if size is not None and img.size != size:
-            img = img.resize(size, Image.Resampling.BILINEAR)
-        arr = np.asarray(img)
-    except _PIL_ERRORS as exc:
-        raise SkipFrame("unreadable_color", f"cannot decode color image {path}: {exc}") from exc
-    return arr
+    with _open(path, "color") as img:
+        try:
+            if size is not None and img.format == "JPEG" and img.size != size:
+                img.draft("RGB", size)
+            rgb = img.convert("RGB")
+            if size is not None and rgb.size != size:
+                rgb = rgb.resize(size, Image.Resampling.BILINEAR)
+            return np.asarray(rgb)
+        except _PIL_ERRORS as exc:
+            raise SkipFrame("unreadable_color", f"cannot decode color image {path}: {exc}") from exc
 
 
 def _gray_to_array(img: Image.Image, path: Path, what: str) -> np.ndarray:
@@ -67,10 +66,10 @@ def _gray_to_array(img: Image.Image, path: Path, what: str) -> np.ndarray:
 
 def read_depth_u16(path: Path, *, size: tuple[int, int] | None = None) -> np.ndarray:
     """HxW uint16 raw depth from a 16-bit single-channel image; checks ``size=(width, height)``."""
-    img = _open(path, "depth")
-    if size is not None and img.size != size:
-        raise SkipFrame("depth_size", f"depth image {path} is {img.size[0]}x{img.size[1]}, expected {size[0]}x{size[1]}")
-    return _gray_to_array(img, path, "depth")
+    with _open(path, "depth") as img:
+        if size is not None and img.size != size:
+            raise SkipFrame("depth_size", f"depth image {path} is {img.size[0]}x{img.size[1]}, expected {size[0]}x{size[1]}")
+        return _gray_to_array(img, path, "depth")
 
 
 def read_label_image(path: Path, *, what: str, size: tuple[int, int] | None = None) -> np.ndarray:
@@ -78,17 +77,17 @@ def read_label_image(path: Path, *, what: str, size: tuple[int, int] | None = No
 
     Resized with nearest neighbour to ``size=(width, height)`` (labels must never be blended).
     """
-    img = _open(path, what)
-    try:
-        img.load()
-    except _PIL_ERRORS as exc:
-        raise SkipFrame(f"unreadable_{what}", f"cannot decode {what} image {path}: {exc}") from exc
-    if img.mode in ("L", "P"):
-        arr = np.asarray(img).astype(np.int32)
-    elif img.mode.startswith("I"):
-        arr = _gray_to_array(img, path, what).astype(np.int32)
-    else:
-        raise SkipFrame(f"{what}_dtype", f"{what} image {path} has mode {img.mode!r}, expected 8/16-bit single channel")
+    with _open(path, what) as img:
+        try:
+            img.load()
+        except _PIL_ERRORS as exc:
+            raise SkipFrame(f"unreadable_{what}", f"cannot decode {what} image {path}: {exc}") from exc
+        if img.mode in ("L", "P"):
+            arr = np.asarray(img).astype(np.int32)
+        elif img.mode.startswith("I"):
+            arr = _gray_to_array(img, path, what).astype(np.int32)
+        else:
+            raise SkipFrame(f"{what}_dtype", f"{what} image {path} has mode {img.mode!r}, expected 8/16-bit single channel")
     if size is not None and (arr.shape[1], arr.shape[0]) != size:
         arr = resize_nearest(arr, size)
     return arr

@@ -388,6 +388,7 @@ class SyntheticWorld:
         self._furnish(rng)
         self.categories: dict[int, str] = {o.instance_id: o.category for o in self.objects}
         self._lut_built = False
+        self._gt_cache: dict[tuple[float, bool], GroundTruthSurface] = {}
 
     # ---------------------------------------------------------------- construction helpers
 
@@ -743,6 +744,16 @@ class SyntheticWorld:
         """
         if not (spacing_m > 0 and math.isfinite(spacing_m)):
             raise ValueError(f"spacing_m must be positive, got {spacing_m}")
+        key = (float(spacing_m), bool(visible_only))
+        cached = self._gt_cache.get(key)
+        if cached is None:
+            cached = self._sample_surface(float(spacing_m), visible_only)
+            self._gt_cache[key] = cached
+        return GroundTruthSurface(cached.points.copy(), cached.instance_ids.copy(), dict(cached.categories))
+
+    def _sample_surface(self, spacing_m: float, visible_only: bool) -> GroundTruthSurface:
+        if spacing_m < 0.002:
+            raise ValueError(f"spacing_m {spacing_m} would sample more than 10^7 points per 40 m^2; use >= 0.002")
         rng = np.random.default_rng([self.seed, 11])
         pts, ids, nrm = [], [], []
         for obj in self.objects:
@@ -773,10 +784,11 @@ class SyntheticWorld:
         return GroundTruthSurface(points.astype(np.float32), instance_ids.astype(np.int32), cats)
 
     def _viewpoints(self) -> np.ndarray:
+        """Viewpoints on a ~1.1 m grid at four heights, outside every object, centre first."""
         W, D, H = self.room_size_m
-        xs = np.linspace(0.4, W - 0.4, max(3, int(round(W / 0.9))))
-        ys = np.linspace(0.4, D - 0.4, max(3, int(round(D / 0.9))))
-        zs = [0.35, 1.0, 1.6, min(2.3, H - 0.3)]
+        xs = np.linspace(0.4, W - 0.4, max(3, int(round(W / 1.1))))
+        ys = np.linspace(0.4, D - 0.4, max(3, int(round(D / 1.1))))
+        zs = [1.5, 0.4, 1.0, min(2.3, H - 0.3)]
         out = []
         for z in zs:
             for x in xs:
@@ -790,25 +802,30 @@ class SyntheticWorld:
                     )
                     if not inside:
                         out.append((x, y, z))
-        return np.array(out, dtype=np.float64)
+        vp = np.array(out, dtype=np.float32)
+        centre = np.array([W / 2, D / 2, 1.5], dtype=np.float32)
+        return vp[np.argsort(np.linalg.norm(vp - centre, axis=1), kind="stable")]
 
     def _visible(self, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        nrm = normals.astype(np.float32)
+        origin = (points + 0.004 * normals).astype(np.float32)
+        # a surface within 1.5 cm in front of the point hides it (faces resting on other faces)
+        free = self.cast(origin, nrm)["t_hit"] > 0.015
+        todo = np.flatnonzero(free)
         visible = np.zeros(len(points), dtype=bool)
         for v in self._viewpoints():
-            todo = np.flatnonzero(~visible)
             if todo.size == 0:
                 break
-            d = v - points[todo]
-            facing = np.einsum("nc,nc->n", d, normals[todo]) > 0
-            todo = todo[facing]
-            if todo.size == 0:
+            d = v - origin[todo]
+            facing = np.einsum("nc,nc->n", d, nrm[todo]) > 0
+            sub, d = todo[facing], d[facing]
+            if sub.size == 0:
                 continue
-            d = (v - points[todo]).astype(np.float32)
             length = np.linalg.norm(d, axis=1)
-            origin = (points[todo] + 0.004 * normals[todo]).astype(np.float32)
-            ans = self.cast(origin, d)
             # t_hit is in units of |d|: a hit before reaching the viewpoint blocks the view
-            visible[todo] = ans["t_hit"] * length >= length - 0.01
+            seen = self.cast(origin[sub], d)["t_hit"] * length >= length - 0.01
+            visible[sub[seen]] = True
+            todo = todo[~visible[todo]]
         return visible
 
 
@@ -973,29 +990,38 @@ class SyntheticSource(IndexedFrameSource):
         )
 
 
-def open_synthetic(options: dict[str, str], **kwargs) -> SyntheticSource:
-    """Build a source from ``synthetic:seed=N,frames=N,width=W,height=H,noise=0|1,fps=F`` options."""
-    known = {"seed", "frames", "width", "height", "noise", "fps", "lap"}
-    unknown = set(options) - known
-    if unknown:
-        raise ValueError(f"unknown synthetic option(s) {sorted(unknown)}; known: {sorted(known)}")
-    try:
-        seed = int(options.get("seed", kwargs.pop("seed", 0)))
-        frames = int(options.get("frames", kwargs.pop("num_frames", 300)))
-        width = int(options.get("width", kwargs.pop("width_px", 640)))
-        height = int(options.get("height", kwargs.pop("height_px", 480)))
-        fps = float(options.get("fps", kwargs.pop("fps", 30.0)))
-        lap = options.get("lap")
-        noise_opt = options.get("noise")
-    except ValueError as exc:
-        raise ValueError(f"synthetic options must be numbers ({exc})") from exc
-    if noise_opt is not None:
-        if noise_opt not in ("0", "1", "true", "false"):
-            raise ValueError(f"synthetic option noise must be 0/1/true/false, got {noise_opt!r}")
-        kwargs["depth_noise"] = noise_opt in ("1", "true")
-    if lap is not None:
-        kwargs["frames_per_lap"] = int(lap)
-    return SyntheticSource(SyntheticWorld(seed), frames, width, height, fps=fps, **kwargs)
+_SPEC_KEYS = {
+    "seed": ("seed", int),
+    "frames": ("num_frames", int),
+    "width": ("width_px", int),
+    "height": ("height_px", int),
+    "fps": ("fps", float),
+    "lap": ("frames_per_lap", int),
+    "noise": ("depth_noise", None),
+}
+
+
+def open_synthetic(spec_options: dict[str, str] | None = None, **kwargs) -> SyntheticSource:
+    """A ``SyntheticSource`` from ``synthetic:seed=N,frames=N,width=W,height=H,fps=F,noise=0|1,lap=N``
+    options (strings) plus keyword arguments of ``SyntheticSource`` (and ``seed``)."""
+    merged = dict(kwargs)
+    for key, text in (spec_options or {}).items():
+        if key not in _SPEC_KEYS:
+            raise ValueError(f"unknown synthetic option {key!r}; known: {', '.join(sorted(_SPEC_KEYS))}")
+        name, conv = _SPEC_KEYS[key]
+        if name in merged:
+            raise ValueError(f"synthetic option {key!r} is given both in the spec and as the keyword {name!r}")
+        if conv is None:
+            if text.lower() not in ("0", "1", "true", "false"):
+                raise ValueError(f"synthetic option noise must be 0/1/true/false, got {text!r}")
+            merged[name] = text.lower() in ("1", "true")
+            continue
+        try:
+            merged[name] = conv(text)
+        except ValueError:
+            raise ValueError(f"synthetic option {key}={text!r} is not a valid {conv.__name__}") from None
+    seed = int(merged.pop("seed", 0))
+    return SyntheticSource(SyntheticWorld(seed), **merged)
 
 
 def __getattr__(name: str):

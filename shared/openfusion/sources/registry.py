@@ -1,0 +1,116 @@
+"""``open_source(spec, **options)``: one entry point from a spec string to a ``FrameSource``.
+
+Specs::
+
+    synthetic[:seed=N,frames=N,width=W,height=H,fps=F,noise=0|1,lap=N]
+    scannet:PATH   replica:PATH   tum:PATH   redwood:PATH   folder:PATH   replay:FILE
+
+``options`` are keyword arguments of the reader class (e.g. ``stride=2``, ``max_frames=100``,
+``intrinsics=...``); readers are imported only when their scheme is used.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from openfusion.sources.base import FrameSource
+
+logger = logging.getLogger(__name__)
+
+
+def _synthetic(rest: str, options: dict[str, Any]) -> FrameSource:
+    from openfusion.sources.synthetic import open_synthetic
+
+    return open_synthetic(parse_key_values(rest, scheme="synthetic"), **options)
+
+
+def _path_reader(module: str, cls: str) -> Callable[[str, dict[str, Any]], FrameSource]:
+    def build(rest: str, options: dict[str, Any]) -> FrameSource:
+        import importlib
+
+        if not rest:
+            raise ValueError(f"source spec needs a path after the scheme, e.g. {module}:/data/scene")
+        path = Path(rest).expanduser()
+        if not path.exists():
+            raise FileNotFoundError(f"{module} source: {path} does not exist (check the path after '{module}:')")
+        reader = getattr(importlib.import_module(f"openfusion.sources.{module}"), cls)
+        return reader(path, **options)
+
+    return build
+
+
+def _replay(rest: str, options: dict[str, Any]) -> FrameSource:
+    from openfusion.sources.record import ReplaySource
+
+    if not rest:
+        raise ValueError("source spec needs a file after the scheme, e.g. replay:/data/run.ofrec")
+    path = Path(rest).expanduser()
+    if not path.is_file():
+        raise FileNotFoundError(f"replay source: recording {path} does not exist (record one with FrameRecorder)")
+    return ReplaySource(path, **options)
+
+
+_SCHEMES: dict[str, Callable[[str, dict[str, Any]], FrameSource]] = {
+    "synthetic": _synthetic,
+    "scannet": _path_reader("scannet", "ScanNetSource"),
+    "replica": _path_reader("replica", "ReplicaSource"),
+    "tum": _path_reader("tum", "TumSource"),
+    "redwood": _path_reader("redwood", "RedwoodSource"),
+    "folder": _path_reader("folder", "FolderSource"),
+    "replay": _replay,
+}
+
+SCHEMES: tuple[str, ...] = tuple(_SCHEMES)
+
+
+def parse_key_values(text: str, *, scheme: str) -> dict[str, str]:
+    """``a=1,b=2`` -> {"a": "1", "b": "2"}; ValueError naming the bad item."""
+    out: dict[str, str] = {}
+    for item in filter(None, (part.strip() for part in text.split(","))):
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip() or not value.strip():
+            raise ValueError(f"{scheme} option {item!r} must look like key=value (e.g. {scheme}:seed=1,frames=100)")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def _guess_scheme(path: Path) -> str | None:
+    if not path.exists():
+        return None
+    if path.is_file():
+        return "replay"
+    if (path / "pose").is_dir() and (path / "depth").is_dir():
+        return "scannet"
+    if (path / "traj.txt").is_file() and (path / "results").is_dir():
+        return "replica"
+    if (path / "groundtruth.txt").is_file() and (path / "rgb.txt").is_file():
+        return "tum"
+    if (path / "trajectory.log").is_file():
+        return "redwood"
+    if (path / "openfusion_source.json").is_file():
+        return "folder"
+    return None
+
+
+def open_source(spec: str, **options: Any) -> FrameSource:
+    """Open a frame source from ``scheme:argument`` (see module docstring).
+
+    Raises ValueError for an unknown scheme or bad options, FileNotFoundError for a missing path.
+    """
+    if not isinstance(spec, str) or not spec.strip():
+        raise ValueError(f"source spec must be a non-empty string like 'synthetic' or 'scannet:PATH', got {spec!r}")
+    spec = spec.strip()
+    scheme, sep, rest = spec.partition(":")
+    scheme = scheme.lower()
+    if scheme not in _SCHEMES:
+        hint = ""
+        guess = _guess_scheme(Path(spec).expanduser())
+        if guess is not None:
+            hint = f"; {spec!r} looks like a {guess} source: use '{guess}:{spec}'"
+        raise ValueError(f"unknown source scheme {scheme!r} in {spec!r}; known: {', '.join(SCHEMES)}{hint}")
+    source = _SCHEMES[scheme](rest if sep else "", options)
+    logger.info("opened source %s from spec %r", source.name, spec)
+    return source
