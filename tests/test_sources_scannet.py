@@ -8,11 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
-
 from openfusion.sources import SkipFrame, open_source
 from openfusion.sources.imageio import read_depth_u16
 from openfusion.sources.scannet import LABEL_TSV_COLUMNS, ScanNetSource, majority_labels, read_label_tsv
+from PIL import Image
 
 DEPTH_W, DEPTH_H = 64, 48
 COLOR_W, COLOR_H = 96, 72  # ScanNet color is larger than depth (1296x968 vs 640x480)
