@@ -662,11 +662,12 @@ class SyntheticWorld:
         middle at about 1.45 m, always looking across the room at the furniture.
 
         Position and look-at target are sums of sinusoids in the frame index, so both the
-        path and the orientation are smooth; ``frames_per_lap`` (default max(num_frames, 240))
+        path and the orientation are smooth; ``frames_per_lap`` (default max(num_frames, 360),
+        about 0.8 m/s at 30 fps)
         is the number of frames of one lap.
         """
         W, D, _ = self.room_size_m
-        lap = frames_per_lap if frames_per_lap is not None else max(num_frames, 240)
+        lap = frames_per_lap if frames_per_lap is not None else max(num_frames, 360)
         if lap < 2:
             raise ValueError(f"frames_per_lap must be >= 2, got {lap}")
         phase0 = (self.seed % 97) / 97.0 * 2 * math.pi
