@@ -26,7 +26,8 @@ A service is a :class:`ServiceRunner` (see ``openfusion.demo_service`` for the p
 
     sys.exit(run_service(config, "demo", setup))
 
-It declares the liveliness token ``{prefix}/{map}/health/{service}``, publishes
+After ``setup`` has declared the service's entities it declares the liveliness token
+``{prefix}/{map}/health/{service}`` (so "alive" means "ready to answer"), publishes
 :class:`HealthStats` there every ``config.health_period_s`` (and answers queries on that key with
 the latest stats), stops on SIGINT/SIGTERM, undeclares everything, closes the session and
 returns exit code 0.
@@ -711,8 +712,10 @@ class HealthReporter:
 
 
 class ServiceRunner:
-    """Owns a service's session and entities: health + liveliness on start, signal-driven stop,
-    everything undeclared (newest first) and the session closed on :meth:`close`."""
+    """Owns a service's session and entities: :meth:`start` opens the session, the service
+    declares its entities, :meth:`ready` declares liveliness + health; signals call :meth:`stop`;
+    :meth:`close` undeclares everything (health first, then entities newest first) and closes
+    the session."""
 
     def __init__(self, config: ServiceConfig, service: str) -> None:
         self.config = config
@@ -728,16 +731,19 @@ class ServiceRunner:
 
     # lifecycle
     def start(self) -> ServiceRunner:
+        """Open the session. Declare entities next, then call :meth:`ready`."""
         self.session = open_session(self.config)
-        try:
-            self.health = HealthReporter(
-                self.session, self.keys, self.service, self.stats, period_s=self.config.health_period_s
-            )
-        except BaseException:
-            self.session.close()
-            raise
         logger.info("%s: session %s on map %r", self.service, self.session.zid(), self.keys.map_id)
         return self
+
+    def ready(self) -> None:
+        """Declare the liveliness token and start health stats: the service is now visible as
+        alive, so call this after declaring the entities it serves (no caller sees a token
+        before the queryables behind it exist)."""
+        if self.health is None:
+            self.health = HealthReporter(
+                self._require_session(), self.keys, self.service, self.stats, period_s=self.config.health_period_s
+            )
 
     def __enter__(self) -> ServiceRunner:
         return self.start()
@@ -807,11 +813,11 @@ class ServiceRunner:
             return
         self._closed = True
         self._stop.set()
+        if self.health is not None:
+            self.health.close()
         for entity in reversed(self._entities):
             entity.close()
         self._entities.clear()
-        if self.health is not None:
-            self.health.close()
         if self.session is not None:
             self.session.close()
         for signum, previous in self._previous_handlers.items():
@@ -832,6 +838,7 @@ def run_service(
     with ServiceRunner(config, service) as runner:
         runner.install_signal_handlers()
         setup(runner)
+        runner.ready()
         logger.info("%s: ready on %s", service, runner.keys.base)
         if loop is not None:
             loop(runner)
