@@ -19,6 +19,7 @@ import shutil
 import socket
 import stat
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -564,3 +565,77 @@ def test_health_check_reads_tokens_and_stats_through_the_router(router: Router) 
             assert len(stats_queries.items) == 2
         finally:
             token.undeclare()
+
+
+def _rewrite_paths(source: Path, target: Path, bundle: Bundle) -> Path:
+    """Copy a committed/generated config with the container paths pointed at the test files."""
+    text = source.read_text()
+    assert "/etc/openfusion/certs/" in text
+    text = text.replace("/etc/openfusion/certs/", f"{bundle.certs}/")
+    text = text.replace("/etc/openfusion/secrets/", f"{bundle.secrets}/")
+    target.write_text(text)
+    return target
+
+
+def _openfusion(*args: str, timeout_s: float = 30.0) -> subprocess.CompletedProcess[str]:
+    code = "import sys; from openfusion.cli import main; sys.exit(main())"
+    return subprocess.run(
+        [sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=timeout_s, check=False
+    )
+
+
+def test_openfusion_router_runs_the_prod_config_and_health_checks_pass_through_it(
+    bundle: Bundle, tmp_path: Path
+) -> None:
+    """The real CLI, as in deploy/two-host/robot.compose.yml: `openfusion router --listen tls/…
+    --zenoh-config prod/router.json5` and `openfusion health --zenoh-config client-<id>.json5
+    --connect tls/… --mode client --no-multicast` (the compose health check). A service identity
+    sees the live geometry service; a query client sees nothing (exit 1). Bad input guarded: a
+    prod config the CLI cannot start a router from, a health check the ACL blocks."""
+    port = _free_port()
+    endpoint = f"tls/127.0.0.1:{port}"
+    router_file = _rewrite_paths(PROD / "router.json5", tmp_path / "router.json5", bundle)
+    code = "import sys; from openfusion.cli import main; sys.exit(main())"
+    router_process = subprocess.Popen(
+        [sys.executable, "-c", code, "router", "--listen", endpoint, "--zenoh-config", str(router_file)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+
+        def accepting() -> bool:
+            assert router_process.poll() is None, "openfusion router exited early"
+            with socket.socket() as probe:
+                return probe.connect_ex(("127.0.0.1", port)) == 0
+
+        assert _wait_until(accepting, timeout_s=20.0)
+        fake_router = Router(port=port, bundle=bundle)
+        with _client("geometry", fake_router) as geometry:
+            token = geometry.liveliness().declare_token(_key("health", "geometry"))
+            try:
+                results = {}
+                for identity in ("robot-sensor", "query-client"):
+                    config = _rewrite_paths(
+                        bundle.secrets / f"client-{identity}.json5",
+                        tmp_path / f"client-{identity}.json5",
+                        bundle,
+                    )
+                    results[identity] = _openfusion(
+                        "health", "--map", MAP, "--zenoh-config", str(config), "--connect", endpoint,
+                        "--mode", "client", "--no-multicast", "--timeout", "2",
+                    )  # fmt: skip
+            finally:
+                token.undeclare()
+        assert results["robot-sensor"].returncode == 0, results["robot-sensor"].stderr
+        assert "geometry" in results["robot-sensor"].stdout
+        assert results["query-client"].returncode == 1
+        assert "no live services" in results["query-client"].stderr
+    finally:
+        router_process.terminate()
+        try:
+            _out, router_err = router_process.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            router_process.kill()
+            _out, router_err = router_process.communicate(timeout=5)
+    assert router_process.returncode == 0, router_err
