@@ -43,13 +43,13 @@ def _path_reader(module: str, cls: str) -> Callable[[str, dict[str, Any]], Frame
 
 
 def _replay(rest: str, options: dict[str, Any]) -> FrameSource:
-    from openfusion.sources.record import ReplaySource
-
     if not rest:
         raise ValueError("source spec needs a file after the scheme, e.g. replay:/data/run.ofrec")
     path = Path(rest).expanduser()
     if not path.is_file():
         raise FileNotFoundError(f"replay source: recording {path} does not exist (record one with FrameRecorder)")
+    from openfusion.sources.record import ReplaySource
+
     return ReplaySource(path, **options)
 
 
