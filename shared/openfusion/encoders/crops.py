@@ -6,7 +6,7 @@ Two entry points:
   ``size`` (bicubic), center-crop ``size`` x ``size``, scale to [0, 1], normalise per channel.
 - :func:`region_crops`: one crop per region mask: the mask's bounding box (scaled from the mask
   grid to the image, grown by ``padding`` of its longer side), pixels outside the mask replaced
-  by the mean color (so they normalise to 0) when ``mask_background``, padded to a square with the
+  by the mean color (they normalise to exactly 0) when ``mask_background``, padded to a square with the
   mean color, resized to ``size`` x ``size``, normalised.
 
 Both return float32 arrays in NCHW layout ready for a model.
@@ -49,10 +49,15 @@ class CropSpec:
 
 
 def _normalise(images_u8: np.ndarray, spec: CropSpec) -> np.ndarray:
-    """(n, S, S, 3) uint8 -> (n, 3, S, S) float32 normalised."""
-    x = images_u8.astype(np.float32) / 255.0
-    x = (x - np.asarray(spec.mean, np.float32)) / np.asarray(spec.std, np.float32)
-    return np.ascontiguousarray(x.transpose(0, 3, 1, 2))
+    """(n, S, S, 3) uint8 -> (n, 3, S, S) float32 normalised (one table lookup per channel)."""
+    lut = (np.arange(256, dtype=np.float32)[None, :] / 255.0 - np.asarray(spec.mean, np.float32)[:, None]) / np.asarray(
+        spec.std, np.float32
+    )[:, None]
+    n, s = images_u8.shape[0], images_u8.shape[1]
+    out = np.empty((n, 3, s, s), np.float32)
+    for c in range(3):
+        out[:, c] = lut[c][images_u8[..., c]]
+    return out
 
 
 def preprocess_image(rgb: np.ndarray, spec: CropSpec) -> np.ndarray:
@@ -111,20 +116,31 @@ def region_crops(color: np.ndarray, masks: np.ndarray, spec: CropSpec) -> tuple[
     fill = spec.mean_rgb_u8
     out = np.empty((n, s, s, 3), np.uint8)
     kept: list[int] = []
+    inside: list[np.ndarray] = []
     for i, box in enumerate(region_boxes(masks, (H, W), spec.padding)):
         if box is None:
             continue
         y0, x0, y1, x1 = box
-        patch = color[y0:y1, x0:x1]
-        if spec.mask_background:
-            rows = np.minimum(((np.arange(y0, y1) + 0.5) * h / H).astype(np.int64), h - 1)
-            cols = np.minimum(((np.arange(x0, x1) + 0.5) * w / W).astype(np.int64), w - 1)
-            inside = masks[i][rows[:, None], cols[None, :]] >= 0.5
-            patch = np.where(inside[..., None], patch, np.asarray(fill, np.uint8))
-        ph, pw = patch.shape[:2]
+        ph, pw = y1 - y0, x1 - x0
         side = max(ph, pw)
+        oy, ox = (side - ph) // 2, (side - pw) // 2
         canvas = Image.new("RGB", (side, side), fill)
-        canvas.paste(Image.fromarray(np.ascontiguousarray(patch)), ((side - pw) // 2, (side - ph) // 2))
-        out[len(kept)] = np.asarray(canvas.resize((s, s), Image.Resampling.BICUBIC, reducing_gap=2.0))
+        canvas.paste(Image.fromarray(np.ascontiguousarray(color[y0:y1, x0:x1])), (ox, oy))
+        crop = np.asarray(canvas.resize((s, s), Image.Resampling.BICUBIC, reducing_gap=2.0))
+        if spec.mask_background:
+            # mask the resized crop: each crop pixel -> image pixel -> mask cell (cheap at S x S)
+            pos = (np.arange(s) + 0.5) * side / s
+            py = np.floor(pos - oy).astype(np.int64)
+            px = np.floor(pos - ox).astype(np.int64)
+            in_y = (py >= 0) & (py < ph)
+            in_x = (px >= 0) & (px < pw)
+            cell_y = np.minimum(((y0 + np.clip(py, 0, ph - 1) + 0.5) * h / H).astype(np.int64), h - 1)
+            cell_x = np.minimum(((x0 + np.clip(px, 0, pw - 1) + 0.5) * w / W).astype(np.int64), w - 1)
+            inside.append((masks[i][cell_y[:, None], cell_x[None, :]] >= 0.5) & in_y[:, None] & in_x[None, :])
+        out[len(kept)] = crop
         kept.append(i)
-    return _normalise(out[: len(kept)], spec), np.asarray(kept, np.int64)
+    normalised = _normalise(out[: len(kept)], spec)
+    if spec.mask_background and kept:
+        # outside the mask -> exactly the normalised mean color, 0
+        normalised *= np.stack(inside)[:, None, :, :]
+    return normalised, np.asarray(kept, np.int64)
