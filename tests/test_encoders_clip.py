@@ -119,3 +119,19 @@ def test_real_clip_if_cached(frame):
     assert e[1] @ e[0] > e[1] @ e[2]
     obs = make_region_encoder("clip-regions", model=DEFAULT_CLIP_MODEL, device="cpu").encode(frame)
     obs.validate(dim=512)
+
+
+def test_export_script_cli(clip_dir, tmp_path, capsys):
+    """scripts/export_clip_onnx.py: exports a folder model (exit 0, files written) and reports a
+    model it cannot load with exit 1 and a message instead of a traceback."""
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "export_clip_onnx.py"
+    spec = importlib.util.spec_from_file_location("export_clip_onnx", script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.main([str(clip_dir), str(tmp_path / "out")]) == 0
+    assert {p.name for p in (tmp_path / "out").iterdir()} >= {"clip_image.onnx", "clip_text.onnx", "tokenizer.json"}
+    assert module.main([str(tmp_path / "missing"), str(tmp_path / "out2")]) == 1
+    assert "export failed" in capsys.readouterr().err
