@@ -1,0 +1,178 @@
+"""Bridge service: plays a frame source onto ``{prefix}/{map}/sensor/rgbd``.
+
+| key | direction | message |
+|---|---|---|
+| ``…/sensor/rgbd`` | publishes | :class:`~openfusion.messages.RgbdFrame` |
+| ``…/health/bridge`` | liveliness + stats | counters ``frames_read``, ``frames_published``, ``skipped_<reason>``, ``playback_done`` |
+
+Rates: ``rate_hz = 0`` publishes as fast as the source produces; ``rate_hz > 0`` paces at that
+rate; unset (None) follows the frames' own timestamps (recorded rate). ``loop`` replays the
+source forever. Before the first frame the bridge waits up to ``wait_for_subscribers_s`` for a
+subscriber (so a geometry service started at the same time does not miss the start).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from typing import Any
+
+from pydantic import Field
+
+from openfusion.bus import Publisher, ServiceRunner
+from openfusion.codec import EncodeError
+from openfusion.config import ConfigSection, ServiceConfig
+from openfusion.frame import Frame
+from openfusion.messages import RgbdFrame
+from openfusion.services.common import ServiceDefinition
+from openfusion.sources import FrameSource, open_source
+
+logger = logging.getLogger(__name__)
+
+
+class BridgeSection(ConfigSection):
+    source: str = "synthetic"
+    rate_hz: float | None = Field(default=None, ge=0)
+    loop: bool = False
+    max_frames: int | None = Field(default=None, ge=0)
+    wait_for_subscribers_s: float = Field(default=10.0, ge=0)
+    progress: bool = False
+
+
+class BridgeConfig(ServiceConfig):
+    bridge: BridgeSection = Field(default_factory=BridgeSection)
+
+
+class Pacer:
+    """Sleeps so frames go out at ``rate_hz`` (0 = no pacing) or at their own timestamps (None)."""
+
+    def __init__(self, rate_hz: float | None) -> None:
+        self.rate_hz = rate_hz
+        self._t0_wall: float | None = None
+        self._t0_stamp_ns: int | None = None
+        self._count = 0
+
+    def due_s(self, stamp_ns: int) -> float:
+        """Seconds to wait before publishing a frame with ``stamp_ns`` (0 when late)."""
+        now = time.monotonic()
+        if self._t0_wall is None:
+            self._t0_wall, self._t0_stamp_ns = now, stamp_ns
+        if self.rate_hz == 0:
+            target = now
+        elif self.rate_hz is None:
+            target = self._t0_wall + max(0, stamp_ns - (self._t0_stamp_ns or 0)) / 1e9
+        else:
+            target = self._t0_wall + self._count / self.rate_hz
+        self._count += 1
+        return max(0.0, target - now)
+
+
+class BridgeService:
+    """Publishes every frame of ``source``; counts read, skipped (by reason) and published."""
+
+    def __init__(self, config: BridgeConfig, *, source: FrameSource | None = None) -> None:
+        self.config = config
+        self.section = config.bridge
+        self.source = source if source is not None else open_source(self.section.source)
+        if self.section.max_frames is not None:
+            self.source.max_frames = self.section.max_frames
+        self._pub: Publisher | None = None
+
+    def setup(self, runner: ServiceRunner) -> None:
+        self._pub = runner.publisher(runner.keys.sensor_rgbd)
+
+    def _publish(self, runner: ServiceRunner, frame: Frame) -> None:
+        assert self._pub is not None
+        started = time.monotonic()
+        try:
+            self._pub.put(RgbdFrame.from_frame(frame))
+        except (EncodeError, ValueError) as exc:
+            logger.warning("bridge: frame %d not published: %s", frame.frame_id, exc)
+            runner.stats.add_error()
+            runner.stats.incr("skipped_unencodable")
+            return
+        runner.stats.record(time.monotonic() - started)
+        runner.stats.incr("frames_published")
+
+    def _sync_source_stats(self, runner: ServiceRunner) -> None:
+        st = self.source.stats
+        runner.stats.set("frames_read_pass", st.read)
+        for reason, n in st.skipped.items():
+            runner.stats.set(f"skipped_{reason}", n)
+
+    def loop(self, runner: ServiceRunner) -> None:
+        assert self._pub is not None
+        if self.section.wait_for_subscribers_s > 0 and not self._pub.wait_for_subscribers(
+            self.section.wait_for_subscribers_s
+        ):
+            logger.warning("bridge: no subscriber on %s after %.1f s; publishing anyway", self._pub.key,
+                           self.section.wait_for_subscribers_s)
+        progress = _progress(self.source, enabled=self.section.progress)
+        runner.stats.set("playback_done", 0)
+        passes = 0
+        while not runner.stopping:
+            pacer = Pacer(self.section.rate_hz)
+            for frame in self.source:
+                if runner.stopping:
+                    break
+                runner.stats.incr("frames_read")
+                wait_s = pacer.due_s(frame.stamp_ns)
+                if wait_s > 0 and runner.wait(wait_s):
+                    break
+                self._publish(runner, frame)
+                self._sync_source_stats(runner)
+                if progress is not None:
+                    progress.update(1)
+            self._sync_source_stats(runner)
+            passes += 1
+            if not self.section.loop:
+                break
+        if progress is not None:
+            progress.close()
+        runner.stats.set("playback_done", 1)
+        runner.stats.set("passes", passes)
+        logger.info("bridge: playback done (%d pass(es), %s)", passes, self.source.stats)
+        runner.wait()
+
+    def close(self) -> None:
+        close = getattr(self.source, "close", None)
+        if callable(close):
+            close()
+
+
+def _progress(source: FrameSource, *, enabled: bool) -> Any:
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    try:
+        total: int | None = len(source)
+    except TypeError:
+        total = None
+    return tqdm(total=total, desc=f"bridge {source.name}", unit="frame")
+
+
+def _add_options(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("bridge")
+    g.add_argument("--source", help="frame source spec: synthetic[:seed=N,...], scannet:PATH, replica:PATH, "
+                   "tum:PATH, redwood:PATH, folder:PATH, replay:FILE (default synthetic)")
+    g.add_argument("--rate-hz", type=float, help="publish rate; 0 = as fast as possible; default: the frames' timestamps")
+    g.add_argument("--loop", action="store_true", default=None, help="replay the source forever")
+    g.add_argument("--max-frames", type=int, help="stop after N frames")
+    g.add_argument("--progress", action="store_true", default=None, help="show a progress bar")
+
+
+def _options(args: argparse.Namespace) -> dict[str, Any]:
+    return {"bridge": {"source": args.source, "rate_hz": args.rate_hz, "loop": args.loop,
+                       "max_frames": args.max_frames, "progress": args.progress}}
+
+
+DEFINITION = ServiceDefinition(
+    name="bridge",
+    help="publish RGB-D frames from a dataset, the synthetic scene, a recording or live sensors",
+    config_model=BridgeConfig,
+    add_options=_add_options,
+    options_to_config=_options,
+    build=BridgeService,
+)

@@ -1,0 +1,308 @@
+"""Geometry service: owns the semantic TSDF volume (the only writer of voxels).
+
+| key | direction | message |
+|---|---|---|
+| ``…/sensor/rgbd`` | subscribes (every frame, bounded queue) | :class:`~openfusion.messages.RgbdFrame` |
+| ``…/semantic/update`` | subscribes | :class:`~openfusion.messages.SemanticUpdate` |
+| ``…/semantic/dictionary/delta`` | subscribes (replica for checkpoints) | :class:`~openfusion.messages.DictionaryDelta` |
+| ``…/geometry/render`` | queryable | RenderRequest → RenderReply |
+| ``…/geometry/points`` | queryable | PointsRequest → PointsReply (capped) |
+| ``…/geometry/mesh`` | queryable | MeshRequest → MeshReply |
+| ``…/geometry/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot (what the last checkpoint + deltas hold) |
+| ``…/control/{save,load,reset}`` | queryable (admin) | ControlRequest → ControlReply |
+| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``capacity_refused``, ``num_blocks`` |
+
+Checkpoints go to ``{map_dir}/{map_id}`` every ``checkpoint_period_s`` (when something changed)
+and on ``control/save``; on start the service loads that checkpoint when it exists, so a restart
+loses nothing that was saved. Every bad message is counted and dropped before it reaches the
+volume; a bad request is answered with ``reply_err`` naming the limit or field.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from openfusion.bus import RequestError, ServiceRunner
+from openfusion.config import ConfigSection, ServiceConfig
+from openfusion.mapping import CapacityError, SemanticVolume, VolumeParams, load_map, save_map
+from openfusion.messages import (
+    ControlReply,
+    ControlRequest,
+    DictionaryDelta,
+    DictionaryRequest,
+    DictionarySnapshot,
+    MeshReply,
+    MeshRequest,
+    PointsReply,
+    PointsRequest,
+    RenderReply,
+    RenderRequest,
+    RgbdFrame,
+    SemanticUpdate,
+)
+from openfusion.services.common import ServiceDefinition
+from openfusion.services.dictionary_sync import DictionaryReplica
+
+logger = logging.getLogger(__name__)
+
+
+class GeometrySection(ConfigSection):
+    map_dir: Path | None = None
+    checkpoint_period_s: float = Field(default=30.0, ge=0)
+    voxel_size_m: float = Field(default=0.02, gt=0)
+    block_resolution: int = Field(default=8, gt=0)
+    trunc_voxels: float = Field(default=4.0, gt=0)
+    depth_min_m: float = Field(default=0.1, ge=0)
+    depth_max_m: float = Field(default=6.0, gt=0)
+    max_blocks: int | None = Field(default=None, gt=0)
+    device: str = "CPU:0"
+    frame_queue_size: int = Field(default=64, gt=0)
+    max_points_reply: int = Field(default=500_000, gt=0)
+    max_render_pixels: int = Field(default=640 * 480, gt=0)
+    load_on_start: bool = True
+
+    def volume_params(self) -> VolumeParams:
+        return VolumeParams(
+            voxel_size_m=self.voxel_size_m,
+            block_resolution=self.block_resolution,
+            trunc_voxels=self.trunc_voxels,
+            depth_min_m=self.depth_min_m,
+            depth_max_m=self.depth_max_m,
+            max_blocks=self.max_blocks,
+            device=self.device,
+        )
+
+
+class GeometryConfig(ServiceConfig):
+    geometry: GeometrySection = Field(default_factory=GeometrySection)
+
+
+def check_update(msg: SemanticUpdate) -> None:
+    """Refuse an update that would corrupt the map (keys below -1, confidences outside [0, 1])."""
+    if msg.key_map.size and int(msg.key_map.min()) < -1:
+        raise ValueError(f"key_map holds keys below -1 (min {int(msg.key_map.min())})")
+    conf = msg.conf_map
+    if conf.size and (not np.isfinite(conf).all() or float(conf.min()) < 0.0 or float(conf.max()) > 1.0):
+        raise ValueError("conf_map must be finite and within [0, 1]")
+
+
+class GeometryService:
+    """The geometry service's logic; every handler is a plain method tests call without a bus."""
+
+    def __init__(self, config: GeometryConfig) -> None:
+        self.config = config
+        self.section = config.geometry
+        self._lock = threading.RLock()
+        self.volume = SemanticVolume(self.section.volume_params())
+        self.replica = DictionaryReplica()
+        self.frames_integrated = 0
+        self.updates_applied = 0
+        self._dirty = False
+        self._last_checkpoint = time.monotonic()
+        self.checkpoint_dir: Path | None = (
+            self.section.map_dir / config.map_id if self.section.map_dir is not None else None
+        )
+        self._runner: ServiceRunner | None = None
+        if self.section.load_on_start and self.checkpoint_dir is not None and self.checkpoint_dir.exists():
+            self._load(self.checkpoint_dir)
+
+    # ------------------------------------------------------------------ state changes
+    def _load(self, path: Path) -> None:
+        loaded = load_map(path, device=self.section.device)
+        with self._lock:
+            self.volume = loaded.volume
+            self.replica.reset(loaded.dictionary)
+            self._dirty = False
+        logger.info("geometry: loaded map %s (%d blocks, %d regions)", path, self.volume.num_blocks,
+                    len(loaded.dictionary) if loaded.dictionary is not None else 0)
+
+    def save(self, path: Path | None = None) -> Path:
+        target = path or self.checkpoint_dir
+        if target is None:
+            raise RequestError("no_map_dir", "no path given and the geometry service has no map_dir configured")
+        with self._lock:
+            save_map(target, self.volume, self.replica.dictionary,
+                     meta={"map_id": self.config.map_id, "frames_integrated": self.frames_integrated})
+            self._dirty = False
+        self._last_checkpoint = time.monotonic()
+        self._count("checkpoints")
+        logger.info("geometry: saved map to %s", target)
+        return target
+
+    def _count(self, name: str, by: float = 1.0) -> None:
+        if self._runner is not None:
+            self._runner.stats.incr(name, by)
+
+    # ---------------------------------------------------------------------- handlers
+    def on_frame(self, msg: RgbdFrame) -> None:
+        frame = msg.to_frame()
+        started = time.monotonic()
+        try:
+            with self._lock:
+                self.volume.integrate(frame)
+                self.frames_integrated += 1
+                self._dirty = True
+        except CapacityError as exc:
+            logger.warning("geometry: frame %d refused: %s", frame.frame_id, exc)
+            self._count("capacity_refused")
+            return
+        if self._runner is not None:
+            elapsed = time.monotonic() - started
+            self._runner.stats.record(elapsed)
+            self._runner.stats.incr("integrate_busy_s", elapsed)
+            self._runner.stats.set("frames_integrated", self.frames_integrated)
+            self._runner.stats.set("num_blocks", self.volume.num_blocks)
+            self._runner.stats.set("last_frame_id", frame.frame_id)
+
+    def on_update(self, msg: SemanticUpdate) -> None:
+        check_update(msg)
+        with self._lock:
+            self.volume.apply_update(msg.T_world_cam, msg.intrinsics(), msg.key_map, msg.conf_map)
+            self.updates_applied += 1
+            self._dirty = True
+        self._count("updates_applied")
+        if self._runner is not None:
+            self._runner.stats.set("last_update_frame_id", msg.frame_id)
+
+    def on_delta(self, msg: DictionaryDelta) -> None:
+        if not self.replica.apply_delta(msg):
+            self._count("dictionary_resyncs")
+            self._resync_dictionary()
+        with self._lock:
+            self._dirty = True
+
+    def _resync_dictionary(self) -> None:
+        if self._runner is None:
+            return
+        snapshot = self.replica.fetch_snapshot(self._runner.session, self._runner.keys.semantic_dictionary)
+        if snapshot is not None:
+            self.replica.apply_snapshot(snapshot)
+
+    def handle_render(self, req: RenderRequest) -> RenderReply:
+        pixels = req.width_px * req.height_px
+        if pixels > self.section.max_render_pixels:
+            raise RequestError(
+                "too_large", f"render of {req.width_px}x{req.height_px} exceeds max_render_pixels={self.section.max_render_pixels}"
+            )
+        with self._lock:
+            view = self.volume.render(req.T_world_cam, req.intrinsics())
+        return RenderReply(frame_id=req.frame_id, key_map=view.key_map, conf_map=view.conf_map, depth_m=view.depth_m)
+
+    def _points_cap(self, requested: int | None) -> int:
+        cap = self.section.max_points_reply
+        if requested is not None and requested > cap:
+            raise RequestError("too_large", f"max_points={requested} exceeds the service limit max_points_reply={cap}")
+        return requested or cap
+
+    def handle_points(self, req: PointsRequest) -> PointsReply:
+        cap = self._points_cap(req.max_points)
+        with self._lock:
+            pts = self.volume.extract_points(keys=req.keys, max_points=None)
+        n = len(pts.points)
+        if n > cap:
+            idx = np.sort(np.random.default_rng(0).choice(n, size=cap, replace=False))
+            return PointsReply(points=pts.points[idx], colors=pts.colors[idx], keys=pts.keys[idx], truncated=True)
+        return PointsReply(points=pts.points, colors=pts.colors, keys=pts.keys, truncated=False)
+
+    def handle_mesh(self, req: MeshRequest) -> MeshReply:
+        with self._lock:
+            mesh = self.volume.extract_mesh(keys=req.keys)
+        if len(mesh.vertices) > self.section.max_points_reply:
+            raise RequestError(
+                "too_large",
+                f"mesh has {len(mesh.vertices)} vertices, over max_points_reply={self.section.max_points_reply}; "
+                "ask for fewer keys",
+            )
+        return MeshReply(vertices=mesh.vertices, triangles=mesh.triangles, vertex_colors=mesh.vertex_colors,
+                         vertex_keys=mesh.vertex_keys)
+
+    def handle_dictionary(self, _req: DictionaryRequest) -> DictionarySnapshot:
+        snap = self.replica.snapshot_message()
+        if snap is None:
+            raise RequestError("no_dictionary", "the geometry service holds no dictionary yet")
+        return snap
+
+    def handle_control(self, req: ControlRequest, *, action: str) -> ControlReply:
+        if req.action != action:
+            raise RequestError("bad_request", f"this key takes action {action!r}, got {req.action!r}")
+        if action == "save":
+            path = self.save(Path(req.path) if req.path else None)
+            return ControlReply(ok=True, message=f"saved to {path}")
+        if action == "load":
+            path = Path(req.path) if req.path else self.checkpoint_dir
+            if path is None or not path.exists():
+                raise RequestError("not_found", f"no map at {path}")
+            self._load(path)
+            return ControlReply(ok=True, message=f"loaded {path}")
+        with self._lock:
+            self.volume = SemanticVolume(self.section.volume_params())
+            self.replica.reset(None)
+            self.frames_integrated = 0
+            self._dirty = True
+        return ControlReply(ok=True, message="map reset")
+
+    # ------------------------------------------------------------------------ wiring
+    def setup(self, runner: ServiceRunner) -> None:
+        self._runner = runner
+        keys = runner.keys
+        runner.subscriber(keys.sensor_rgbd, RgbdFrame, self.on_frame, queue_size=self.section.frame_queue_size)
+        runner.subscriber(keys.semantic_update, SemanticUpdate, self.on_update, queue_size=64)
+        runner.subscriber(keys.semantic_dictionary_delta, DictionaryDelta, self.on_delta, queue_size=256)
+        runner.queryable(keys.geometry_render, RenderRequest, self.handle_render)
+        runner.queryable(keys.geometry_points, PointsRequest, self.handle_points)
+        runner.queryable(keys.geometry_mesh, MeshRequest, self.handle_mesh)
+        runner.queryable(keys.geometry_dictionary, DictionaryRequest, self.handle_dictionary)
+        for action in ("save", "load", "reset"):
+            runner.queryable(keys.control(action), ControlRequest,
+                             lambda req, action=action: self.handle_control(req, action=action))
+        runner.stats.set("frames_integrated", self.frames_integrated)
+        runner.stats.set("num_blocks", self.volume.num_blocks)
+
+    def loop(self, runner: ServiceRunner) -> None:
+        period = self.section.checkpoint_period_s
+        while not runner.wait(min(period, 1.0) if period > 0 else None):
+            if (period > 0 and self._dirty and self.checkpoint_dir is not None
+                    and time.monotonic() - self._last_checkpoint >= period):
+                try:
+                    self.save()
+                except (OSError, RequestError) as exc:
+                    logger.error("geometry: periodic checkpoint failed: %s", exc)
+                    runner.stats.add_error()
+
+    def close(self) -> None:
+        if self._dirty and self.checkpoint_dir is not None:
+            try:
+                self.save()
+            except (OSError, RequestError) as exc:
+                logger.error("geometry: final checkpoint failed: %s", exc)
+
+
+def _add_options(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("geometry")
+    g.add_argument("--map-dir", type=Path, help="checkpoint folder (the map is saved to MAP_DIR/MAP_ID)")
+    g.add_argument("--checkpoint-period-s", type=float, help="seconds between checkpoints (0 = only on control/save)")
+    g.add_argument("--voxel-size-m", type=float, help="voxel size in metres (default 0.02)")
+    g.add_argument("--device", help="Open3D device, e.g. CPU:0 or CUDA:0")
+
+
+def _options(args: argparse.Namespace) -> dict[str, Any]:
+    return {"geometry": {"map_dir": args.map_dir, "checkpoint_period_s": args.checkpoint_period_s,
+                         "voxel_size_m": args.voxel_size_m, "device": args.device}}
+
+
+DEFINITION = ServiceDefinition(
+    name="geometry",
+    help="integrate frames into the semantic TSDF, render region keys, serve points/meshes, checkpoint",
+    config_model=GeometryConfig,
+    add_options=_add_options,
+    options_to_config=_options,
+    build=GeometryService,
+)

@@ -1,0 +1,257 @@
+"""Query service: text / image / 3D-point queries → ranked regions, for remote clients.
+
+| key | direction | message |
+|---|---|---|
+| ``…/semantic/dictionary`` | queries (snapshot on start and after a gap) | DictionaryRequest → DictionarySnapshot |
+| ``…/semantic/dictionary/delta`` | subscribes | :class:`~openfusion.messages.DictionaryDelta` |
+| ``…/geometry/points`` | queries (points of the top regions) | PointsRequest → PointsReply |
+| ``…/query/text`` | queryable | TextQuery → QueryReply |
+| ``…/query/image`` | queryable | ImageQuery → QueryReply (encoders with an image tower only) |
+| ``…/query/point`` | queryable | PointQuery → QueryReply |
+| ``…/health/query`` | liveliness + stats | counters ``queries``, ``regions``, ``dictionary_resyncs`` |
+
+It answers from the latest dictionary it has and never blocks mapping. A query whose
+embedding space differs from the map's is refused with ``reply_err`` (code
+``embedding_space_mismatch``) naming both spaces.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+import time
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from openfusion.bus import QueryError, RequestError, ServiceRunner, get
+from openfusion.config import ConfigSection, ServiceConfig
+from openfusion.encoders import make_text_encoder
+from openfusion.messages import (
+    DictionaryDelta,
+    ImageQuery,
+    PointQuery,
+    PointsReply,
+    PointsRequest,
+    QueryReply,
+    RegionHit,
+    TextQuery,
+)
+from openfusion.services.common import ServiceDefinition
+from openfusion.services.dictionary_sync import DictionaryReplica
+
+logger = logging.getLogger(__name__)
+
+
+class QuerySection(ConfigSection):
+    text_encoder: str = "minilm"
+    model_path: str | None = None
+    device: str = "auto"
+    max_text_chars: int = Field(default=512, gt=0)
+    max_top_k: int = Field(default=100, gt=0)
+    max_points_reply: int = Field(default=200_000, gt=0)
+    geometry_timeout_s: float = Field(default=5.0, gt=0)
+    resync_period_s: float = Field(default=5.0, gt=0)
+
+
+class QueryConfig(ServiceConfig):
+    query: QuerySection = Field(default_factory=QuerySection)
+
+
+def region_hits(
+    ranked: list[tuple[int, float]],
+    labels: dict[int, str],
+    points: PointsReply | None,
+    *,
+    with_points: bool,
+    max_points: int,
+) -> list[RegionHit]:
+    """Ranked (key, score) pairs + the points of those keys → :class:`RegionHit` list (bbox, counts)."""
+    hits = []
+    for key, score in ranked:
+        if points is not None and len(points.keys):
+            mask = points.keys == key
+            pts = points.points[mask]
+        else:
+            pts = np.zeros((0, 3), np.float32)
+        if len(pts):
+            bbox_min, bbox_max = pts.min(axis=0), pts.max(axis=0)
+        else:
+            bbox_min = bbox_max = np.zeros(3, np.float32)
+        kept = pts[:max_points] if with_points else None
+        hits.append(RegionHit(key=int(key), score=float(score), label=labels.get(int(key)) or None,
+                              bbox_min=bbox_min.astype(np.float32), bbox_max=bbox_max.astype(np.float32),
+                              num_points=int(len(pts)), points=kept))
+    return hits
+
+
+class QueryService:
+    """Dictionary replica + text encoder; handlers are plain methods (tests call them without a bus)."""
+
+    def __init__(self, config: QueryConfig, *, text_encoder: Any = None) -> None:
+        self.config = config
+        self.section = config.query
+        opts: dict[str, Any] = {}
+        if self.section.model_path:
+            opts["model_path" if self.section.text_encoder == "onnx" else "model"] = self.section.model_path
+        self.text_encoder = text_encoder if text_encoder is not None else make_text_encoder(
+            self.section.text_encoder, **opts)
+        self.replica = DictionaryReplica()
+        self._runner: ServiceRunner | None = None
+        self._resync_lock = threading.Lock()
+
+    # ----------------------------------------------------------------- dictionary
+    def resync(self) -> bool:
+        if self._runner is None:
+            return False
+        with self._resync_lock:
+            snap = self.replica.fetch_snapshot(self._runner.session, self._runner.keys.semantic_dictionary)
+            if snap is None:
+                return False
+            self.replica.apply_snapshot(snap)
+            self._runner.stats.incr("dictionary_resyncs")
+            self._runner.stats.set("regions", len(self.replica))
+            return True
+
+    def on_delta(self, msg: DictionaryDelta) -> None:
+        if not self.replica.apply_delta(msg):
+            self.resync()
+        if self._runner is not None:
+            self._runner.stats.set("regions", len(self.replica))
+
+    # -------------------------------------------------------------------- queries
+    def _check_space(self, requested: str | None) -> str:
+        space = self.replica.embedding_space
+        if space is None:
+            raise RequestError("no_map", "the query service has no dictionary yet: is the semantic service running?")
+        if requested is not None and requested != space:
+            raise RequestError("embedding_space_mismatch",
+                               f"query asks for embedding space {requested!r} but the map is in {space!r}")
+        return space
+
+    def _check_text_space(self, space: str) -> None:
+        if self.text_encoder.embedding_space != space:
+            raise RequestError("embedding_space_mismatch",
+                               f"the query service's text encoder is {self.text_encoder.embedding_space!r} but the "
+                               f"map is in {space!r}: start the query service with the matching --text-encoder")
+
+    def _check_limits(self, top_k: int, max_points: int) -> None:
+        if top_k > self.section.max_top_k:
+            raise RequestError("too_large", f"top_k={top_k} exceeds max_top_k={self.section.max_top_k}")
+        if max_points > self.section.max_points_reply:
+            raise RequestError("too_large",
+                               f"max_points={max_points} exceeds max_points_reply={self.section.max_points_reply}")
+
+    def _points_of(self, keys: list[int] | None, max_points: int) -> PointsReply | None:
+        if self._runner is None or (keys is not None and not keys):
+            return None
+        try:
+            return get(self._runner.session, self._runner.keys.geometry_points,
+                       PointsRequest(keys=keys, max_points=max_points), PointsReply,
+                       timeout_s=self.section.geometry_timeout_s, service="geometry")
+        except QueryError as exc:
+            logger.warning("query: no points from geometry (%s); answering without geometry", exc.reason)
+            return None
+
+    def _rank(self, vector: np.ndarray, *, top_k: int, with_points: bool, max_points: int,
+              space: str, query: str) -> QueryReply:
+        ranked = self.replica.top_k(vector, top_k)
+        points = self._points_of([k for k, _ in ranked], self.section.max_points_reply)
+        hits = region_hits(ranked, self.replica.labels(), points, with_points=with_points, max_points=max_points)
+        return QueryReply(embedding_space=space, query=query, regions=hits)
+
+    def handle_text(self, req: TextQuery) -> QueryReply:
+        started = time.monotonic()
+        if len(req.text) > self.section.max_text_chars:
+            raise RequestError("too_large", f"text of {len(req.text)} characters exceeds max_text_chars="
+                               f"{self.section.max_text_chars}")
+        self._check_limits(req.top_k, req.max_points)
+        space = self._check_space(req.embedding_space)
+        self._check_text_space(space)
+        vector = self.text_encoder.encode([req.text])[0]
+        reply = self._rank(vector, top_k=req.top_k, with_points=req.with_points, max_points=req.max_points,
+                           space=space, query=req.text)
+        self._note(started)
+        return reply
+
+    def handle_image(self, req: ImageQuery) -> QueryReply:
+        started = time.monotonic()
+        self._check_limits(req.top_k, req.max_points)
+        space = self._check_space(req.embedding_space)
+        encode_image = getattr(self.text_encoder, "encode_image", None)
+        if encode_image is None:
+            raise RequestError("unsupported", f"the {self.text_encoder.embedding_space!r} encoder has no image "
+                               "tower: image queries need a CLIP-style encoder (--text-encoder clip-regions)")
+        self._check_text_space(space)
+        vector = np.asarray(encode_image(req.image), np.float32).reshape(-1)
+        reply = self._rank(vector, top_k=req.top_k, with_points=req.with_points, max_points=req.max_points,
+                           space=space, query=f"image {req.image.shape[1]}x{req.image.shape[0]}")
+        self._note(started)
+        return reply
+
+    def handle_point(self, req: PointQuery) -> QueryReply:
+        started = time.monotonic()
+        self._check_limits(req.top_k, req.max_points)
+        space = self._check_space(None)
+        points = self._points_of(None, self.section.max_points_reply)
+        if points is None:
+            raise RequestError("no_geometry", "the geometry service did not answer: is it running?")
+        dist = np.linalg.norm(points.points.astype(np.float64) - req.point_world[None, :], axis=1)
+        near = (dist <= req.radius_m) & (points.keys >= 0)
+        keys, counts = np.unique(points.keys[near], return_counts=True)
+        order = np.argsort(-counts)[: req.top_k]
+        total = max(int(near.sum()), 1)
+        ranked = [(int(keys[i]), float(counts[i]) / total) for i in order]
+        hits = region_hits(ranked, self.replica.labels(), points, with_points=req.with_points,
+                           max_points=req.max_points)
+        self._note(started)
+        x, y, z = (float(v) for v in req.point_world)
+        return QueryReply(embedding_space=space, query=f"point ({x:.3f}, {y:.3f}, {z:.3f}) r={req.radius_m:g} m",
+                          regions=hits)
+
+    def _note(self, started: float) -> None:
+        if self._runner is not None:
+            self._runner.stats.incr("queries")
+
+    # ------------------------------------------------------------------------ wiring
+    def setup(self, runner: ServiceRunner) -> None:
+        self._runner = runner
+        keys = runner.keys
+        runner.subscriber(keys.semantic_dictionary_delta, DictionaryDelta, self.on_delta, queue_size=256)
+        self.resync()
+        runner.queryable(keys.query_text, TextQuery, self.handle_text)
+        runner.queryable(keys.query_image, ImageQuery, self.handle_image)
+        runner.queryable(keys.query_point, PointQuery, self.handle_point)
+        runner.stats.set("regions", len(self.replica))
+
+    def loop(self, runner: ServiceRunner) -> None:
+        while not runner.wait(self.section.resync_period_s):
+            if self.replica.embedding_space is None:
+                self.resync()
+
+    def close(self) -> None:
+        return None
+
+
+def _add_options(parser: argparse.ArgumentParser) -> None:
+    g = parser.add_argument_group("query")
+    g.add_argument("--text-encoder", help="text encoder matching the map's space: minilm (gt maps), clip-regions, onnx")
+    g.add_argument("--model-path", help="model for clip-regions / onnx text encoders")
+
+
+def _options(args: argparse.Namespace) -> dict[str, Any]:
+    return {"query": {"text_encoder": args.text_encoder, "model_path": args.model_path}}
+
+
+DEFINITION = ServiceDefinition(
+    name="query",
+    help="answer text, image and 3D-point queries with ranked regions",
+    config_model=QueryConfig,
+    add_options=_add_options,
+    options_to_config=_options,
+    build=QueryService,
+)
+
+

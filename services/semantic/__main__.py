@@ -1,0 +1,7 @@
+"""``python -m openfusion.services.semantic`` = ``openfusion service semantic``."""
+
+import sys
+
+from openfusion.services.semantic.service import DEFINITION
+
+sys.exit(DEFINITION.main())

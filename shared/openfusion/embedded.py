@@ -1,0 +1,337 @@
+"""``openfusion run``: the embedded default — every service on this machine, one command.
+
+The command opens a Zenoh session in router mode on a free loopback port (multicast off), starts
+geometry, semantic and query as separate processes in peer mode connected to it, waits until they
+are alive, then starts the bridge on the chosen source (the built-in synthetic scene by default).
+It shows progress from the services' health stats, waits until geometry has integrated every
+published frame and semantics has caught up, saves the map to ``OUT/map``, runs example queries,
+writes the mesh and query results, writes ``OUT/run.json`` and stops the services (SIGTERM).
+
+``--in-process`` runs the same pipeline in this process (no bus), for notebooks and debugging.
+
+Outputs in ``--out DIR`` (default ``out``): ``map/`` (the saved map), ``mesh.ply``,
+``queries.json``, ``query_<i>.ply`` (points of the best region of each query), ``run.json``,
+``logs/<service>.log``.
+
+Speed figures in run.json: ``rec_fps`` (3D-Rec) = frames integrated / time the geometry
+service spent integrating them; ``sem_rec_fps`` (Sem-3D-Rec) = 1 / (integration time per frame +
+semantic step time per semantic frame), i.e. the rate of a pipeline that runs semantics on every
+frame, from the same measurements.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from openfusion.config import ServiceConfig, ZenohSettings
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_QUERIES = ("chair", "table", "something to sit on", "a plant", "monitor")
+SERVICE_START_TIMEOUT_S = 180.0
+
+
+class RunError(RuntimeError):
+    """The embedded run cannot continue (a service died or did not come up)."""
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class ServiceProcess:
+    name: str
+    proc: subprocess.Popen[bytes]
+    log_path: Path
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def tail(self, lines: int = 15) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return ""
+
+
+@dataclass
+class Cluster:
+    """Service processes of one embedded run, connected to a router session of this process."""
+
+    map_id: str
+    endpoint: str
+    log_dir: Path
+    processes: dict[str, ServiceProcess] = field(default_factory=dict)
+
+    def base_args(self) -> list[str]:
+        return ["--map", self.map_id, "--mode", "peer", "--connect", self.endpoint, "--no-multicast",
+                "--listen", "tcp/127.0.0.1:0"]
+
+    def start(self, name: str, extra: list[str], env: dict[str, str] | None = None) -> ServiceProcess:
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        log_path = self.log_dir / f"{name}.log"
+        log = open(log_path, "ab")  # noqa: SIM115 - closed when the process ends (child keeps its fd)
+        cmd = [sys.executable, "-m", "openfusion.cli", "service", name, *self.base_args(), *extra]
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                env={**os.environ, **(env or {})})
+        log.close()
+        sp = ServiceProcess(name, proc, log_path)
+        self.processes[name] = sp
+        return sp
+
+    def check_alive(self) -> None:
+        for sp in self.processes.values():
+            if not sp.alive():
+                raise RunError(f"the {sp.name} service exited with code {sp.proc.returncode}; "
+                               f"last lines of {sp.log_path}:\n{sp.tail()}")
+
+    def stop(self, name: str | None = None, *, timeout_s: float = 15.0) -> None:
+        targets = [self.processes[name]] if name else list(self.processes.values())
+        for sp in targets:
+            if sp.alive():
+                sp.proc.send_signal(signal.SIGTERM)
+        for sp in targets:
+            try:
+                sp.proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                logger.warning("%s did not stop within %.0f s; killing it", sp.name, timeout_s)
+                sp.proc.kill()
+                sp.proc.wait(5)
+
+
+def _counter(stats: dict[str, Any], service: str, name: str, default: float = 0.0) -> float:
+    s = stats.get(service)
+    return float(s.counters.get(name, default)) if s is not None else default
+
+
+def wait_for_services(client: Any, cluster: Cluster, names: set[str], timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        cluster.check_alive()
+        live = set(client.live_services(timeout_s=1.0))
+        if names <= live:
+            return
+        if time.monotonic() > deadline:
+            raise RunError(f"services {sorted(names - live)} did not come up within {timeout_s:.0f} s "
+                           f"(logs in {cluster.log_dir})")
+        time.sleep(0.3)
+
+
+def _write_outputs(out: Path, *, queries: list[dict[str, Any]], mesh: Any | None) -> None:
+    from openfusion.eval.ply import write_ply_vertices
+
+    (out / "queries.json").write_text(json.dumps(queries, indent=2))
+    if mesh is not None and len(mesh.vertices):
+        write_ply_vertices(out / "mesh.ply", {
+            "x": mesh.vertices[:, 0], "y": mesh.vertices[:, 1], "z": mesh.vertices[:, 2],
+            "red": mesh.vertex_colors[:, 0], "green": mesh.vertex_colors[:, 1], "blue": mesh.vertex_colors[:, 2],
+            "key": mesh.vertex_keys.astype("int32")}, faces=mesh.triangles)
+
+
+def _query_record(text: str, reply: Any, out: Path, index: int) -> dict[str, Any]:
+    from openfusion.eval.ply import write_ply_vertices
+
+    regions = []
+    for r in reply.regions:
+        regions.append({"key": r.key, "score": round(r.score, 4), "label": r.label, "num_points": r.num_points,
+                        "bbox_min": [round(float(v), 3) for v in r.bbox_min],
+                        "bbox_max": [round(float(v), 3) for v in r.bbox_max]})
+    record: dict[str, Any] = {"query": text, "embedding_space": reply.embedding_space, "regions": regions}
+    if reply.regions and reply.regions[0].points is not None and len(reply.regions[0].points):
+        p = reply.regions[0].points
+        path = out / f"query_{index}.ply"
+        write_ply_vertices(path, {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2]})
+        record["points_file"] = path.name
+    return record
+
+
+def run_services(args: argparse.Namespace) -> dict[str, Any]:
+    """The multi-process embedded run; returns the run summary (also written to run.json)."""
+    import zenoh
+
+    from openfusion.bus import open_session
+    from openfusion.client import OpenFusionClient
+
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    router_cfg = ServiceConfig(map_id=args.map_id, zenoh=ZenohSettings(mode="router", listen=[endpoint],
+                                                                        multicast_scouting=False))
+    router = open_session(router_cfg)
+    cluster = Cluster(args.map_id, endpoint, out / "logs")
+    client_cfg = ServiceConfig(map_id=args.map_id, zenoh=ZenohSettings(mode="client", connect=[endpoint],
+                                                                        multicast_scouting=False))
+    client = OpenFusionClient.from_config(client_cfg, timeout_s=30.0)
+    started = time.monotonic()
+    try:
+        cluster.start("geometry", ["--map-dir", str(out / "checkpoints"), "--checkpoint-period-s", "0",
+                                   "--set", "geometry.load_on_start=false"])
+        semantic_args = ["--encoder", args.encoder, "--semantic-every", str(args.semantic_every)]
+        if args.noise:
+            semantic_args += ["--noise", args.noise]
+        cluster.start("semantic", semantic_args)
+        cluster.start("query", ["--text-encoder", args.text_encoder])
+        _say(args, f"starting services on {endpoint} (logs in {cluster.log_dir})")
+        wait_for_services(client, cluster, {"geometry", "semantic", "query"}, SERVICE_START_TIMEOUT_S)
+        bridge_args = ["--source", args.source, "--max-frames", str(args.frames)]
+        if args.rate_hz is not None:
+            bridge_args += ["--rate-hz", str(args.rate_hz)]
+        cluster.start("bridge", bridge_args)
+        stats = _follow_progress(args, client, cluster)
+        _say(args, "saving the map")
+        client.control("save", str((out / "map").resolve()))
+        queries = []
+        for i, text in enumerate(args.queries):
+            reply = client.query_text(text, top_k=args.top_k, with_points=True, max_points=50_000)
+            queries.append(_query_record(text, reply, out, i))
+            best = reply.regions[0] if reply.regions else None
+            _say(args, f"query {text!r}: " + (f"region {best.key} ({best.label or '?'}) score {best.score:.3f}, "
+                                                f"{best.num_points} points" if best else "no region"))
+        mesh = client.mesh()
+        _write_outputs(out, queries=queries, mesh=mesh)
+        summary = _summary(args, stats, time.monotonic() - started)
+    finally:
+        cluster.stop()
+        client.close()
+        try:
+            router.close()
+        except zenoh.ZError as exc:
+            logger.debug("router close: %s", exc)
+    (out / "run.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster) -> dict[str, Any]:
+    from tqdm import tqdm
+
+    from openfusion.bus import collect_health
+
+    bar = tqdm(total=args.frames, desc="frames integrated", unit="frame", disable=args.quiet)
+    stable_since: float | None = None
+    last_key: tuple[float, ...] = ()
+    stats: dict[str, Any] = {}
+    deadline = time.monotonic() + args.timeout_s
+    while True:
+        cluster.check_alive()
+        stats = collect_health(client.session, client.keys, timeout_s=1.0) or stats
+        integrated = _counter(stats, "geometry", "frames_integrated")
+        bar.n = int(integrated)
+        bar.set_postfix(semantic=int(_counter(stats, "semantic", "semantic_frames")),
+                        regions=int(_counter(stats, "semantic", "regions")))
+        bar.refresh()
+        done = _counter(stats, "bridge", "playback_done") >= 1
+        published = _counter(stats, "bridge", "frames_published")
+        key = (integrated, _counter(stats, "semantic", "semantic_frames"), _counter(stats, "geometry", "updates_applied"))
+        if done and integrated >= published:
+            if key == last_key and stable_since is not None and time.monotonic() - stable_since > 2.0:
+                break
+            if key != last_key:
+                stable_since = time.monotonic()
+        last_key = key
+        if time.monotonic() > deadline:
+            bar.close()
+            raise RunError(f"the run did not finish within {args.timeout_s:.0f} s "
+                           f"(integrated {integrated:.0f} of {published:.0f} published frames)")
+        time.sleep(0.5)
+    bar.close()
+    return stats
+
+
+def _summary(args: argparse.Namespace, stats: dict[str, Any], wall_s: float) -> dict[str, Any]:
+    def c(service: str, name: str) -> float:
+        return _counter(stats, service, name)
+
+    integrated = c("geometry", "frames_integrated")
+    integrate_s = c("geometry", "integrate_busy_s")
+    semantic_frames = c("semantic", "semantic_frames")
+    semantic_s = c("semantic", "busy_s")
+    per_frame = integrate_s / integrated if integrated else 0.0
+    per_sem = semantic_s / semantic_frames if semantic_frames else 0.0
+    bridge = stats.get("bridge")
+    skipped = {k.removeprefix("skipped_"): int(v) for k, v in (bridge.counters.items() if bridge else [])
+               if k.startswith("skipped_")}
+    return {
+        "source": args.source,
+        "encoder": args.encoder,
+        "noise": args.noise or "off",
+        "semantic_every": args.semantic_every,
+        "frames_read": int(c("bridge", "frames_read")),
+        "frames_skipped": skipped,
+        "frames_published": int(c("bridge", "frames_published")),
+        "frames_integrated": int(integrated),
+        "semantic_frames": int(semantic_frames),
+        "regions": int(c("semantic", "regions")),
+        "rec_fps": round(1.0 / per_frame, 2) if per_frame else None,
+        "sem_rec_fps": round(1.0 / (per_frame + per_sem), 2) if per_sem else None,
+        "wall_s": round(wall_s, 1),
+        "map_dir": "map",
+    }
+
+
+def _say(args: argparse.Namespace, text: str) -> None:
+    if not args.quiet:
+        print(text, file=sys.stderr, flush=True)
+
+
+class RunCommand:
+    """Registry entry for ``openfusion run``."""
+
+    @staticmethod
+    def add_arguments(parser: argparse.ArgumentParser) -> None:
+        parser.add_argument("--out", type=Path, default=Path("out"), help="output folder (default ./out)")
+        parser.add_argument("--source", default="synthetic", help="frame source spec (default the built-in synthetic "
+                            "scene); scannet:PATH, replica:PATH, tum:PATH, redwood:PATH, folder:PATH, replay:FILE")
+        parser.add_argument("--encoder", default="gt", help="region encoder: gt (default), onnx, clip-regions")
+        parser.add_argument("--text-encoder", default="minilm", help="text encoder of the map's space (default minilm)")
+        parser.add_argument("--frames", type=int, default=120, help="frames to play (default 120)")
+        parser.add_argument("--semantic-every", type=int, default=1, help="semantics on every k-th frame (0 = off)")
+        parser.add_argument("--noise", default=None, help="gt encoder noise profile: off, standard, heavy")
+        parser.add_argument("--rate-hz", type=float, default=None,
+                            help="playback rate (default the frames' timestamps; 0 = as fast as possible)")
+        parser.add_argument("--map", dest="map_id", default="demo", help="map id (default demo)")
+        parser.add_argument("--query", dest="queries", action="append", default=None,
+                            help="example query (repeatable; default a few furniture queries)")
+        parser.add_argument("--top-k", type=int, default=3, help="regions per query (default 3)")
+        parser.add_argument("--timeout-s", type=float, default=900.0, help="give up after this many seconds")
+        parser.add_argument("--in-process", action="store_true", help="run the pipeline in this process (no bus)")
+        parser.add_argument("--quiet", action="store_true", help="no progress output")
+
+    @staticmethod
+    def run(args: argparse.Namespace) -> int:
+        from openfusion.cli import CliError
+        from openfusion.keys import validate_map_id
+
+        validate_map_id(args.map_id)
+        if args.frames <= 0:
+            raise CliError(f"--frames must be positive, got {args.frames}", 2)
+        if args.semantic_every < 0:
+            raise CliError(f"--semantic-every must be >= 0, got {args.semantic_every}", 2)
+        args.queries = args.queries or list(DEFAULT_QUERIES)
+        logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+        try:
+            if args.in_process:
+                from openfusion.pipeline import run_in_process
+
+                summary = run_in_process(args)
+            else:
+                summary = run_services(args)
+        except RunError as exc:
+            raise CliError(str(exc)) from None
+        print(json.dumps(summary, indent=2))
+        _say(args, f"outputs in {args.out.resolve()}")
+        return 0
