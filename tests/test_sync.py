@@ -191,14 +191,14 @@ def test_t265_axes_and_extrinsic() -> None:
     np.testing.assert_allclose(sync.camera_pose(fwd)[:3, 3], [0, 1, 0], atol=1e-12)
     ext = T265_FROM_OPENCV.copy()
     ext[0, 3] = 0.1
-    sync = FrameSynchronizer(SyncConfig(output_size=None, T_t265_cam=tuple(map(tuple, ext))), K)
+    sync = FrameSynchronizer(SyncConfig(output_size=None, T_tracker_cam=tuple(map(tuple, ext))), K)
     left = np.eye(4)
     left[:3, :3] = Rotation.from_rotvec([0, np.pi / 2, 0]).as_matrix()  # yaw left about T265 y-up
     T = sync.camera_pose(left)
     np.testing.assert_allclose(T[:3, 3], [0, 0.1, 0], atol=1e-12)
     np.testing.assert_allclose(T[:3, 2], [-1, 0, 0], atol=1e-12)  # optical axis points left (-x)
     with pytest.raises(ValueError, match="rigid"):
-        SyncConfig(T_t265_cam=((2, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 1)))
+        SyncConfig(T_tracker_cam=((2, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 1)))
 
 
 def test_downsample_to_paper_size() -> None:

@@ -30,13 +30,14 @@ Disorder
 
 Frames (what is converted)
     A T265 reports the pose of its body in its world, both with axes x right, y up, z back.
-    ``T_world_cam = A_world @ T_t265world_t265body @ T_t265_cam`` where ``T_t265_cam`` is the
+    ``T_world_cam = A_world @ T_t265world_t265body @ T_tracker_cam`` where ``T_tracker_cam`` is the
     camera-to-T265 extrinsic from config (the camera's pose in the T265 body frame, camera axes
     OpenCV). Its default is the pure axis change ``diag(1, -1, -1)``: camera at the T265,
     looking the same way. ``A_world`` turns the T265 world into a z-up world (x right,
     y forward, z up at the start pose) when ``world_axes="z_up"`` (default), identity for
     ``"t265"``. For a tracker that already reports OpenCV-axes camera poses set
-    ``pose_axes="opencv"`` (then ``T_world_cam = T @ T_t265_cam`` with an identity default).
+    ``pose_axes="opencv"`` (then ``T_world_cam = T @ T_tracker_cam`` with an identity default);
+    the ROS 2 source uses that form with the camera's pose in the odometry body frame.
 
 Size
     Frames are downsampled to ``output_size=(width, height)`` (the paper runs at 640 x 360):
@@ -83,7 +84,7 @@ class SyncConfig:
     reorder_window_ns: int = 50_000_000
     pose_history_ns: int = 2_000_000_000
     max_wait_ns: int = 200_000_000
-    T_t265_cam: tuple[tuple[float, ...], ...] | None = None
+    T_tracker_cam: tuple[tuple[float, ...], ...] | None = None
     pose_axes: Literal["t265", "opencv"] = "t265"
     world_axes: Literal["z_up", "t265"] = "z_up"
     output_size: tuple[int, int] | None = (640, 360)
@@ -95,17 +96,17 @@ class SyncConfig:
             raise ValueError("max_dt_ns, max_pose_gap_ns and max_wait_ns must be positive")
         if self.reorder_window_ns < 0 or self.pose_history_ns <= self.reorder_window_ns:
             raise ValueError("need 0 <= reorder_window_ns < pose_history_ns")
-        if self.T_t265_cam is not None:
-            T = np.asarray(self.T_t265_cam, dtype=np.float64)
+        if self.T_tracker_cam is not None:
+            T = np.asarray(self.T_tracker_cam, dtype=np.float64)
             R = T[:3, :3] if T.shape == (4, 4) else None
             if R is None or not np.isfinite(T).all() or not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
-                raise ValueError("T_t265_cam must be a finite 4x4 rigid transform (camera pose in the T265 frame)")
+                raise ValueError("T_tracker_cam must be a finite 4x4 rigid transform (camera pose in the T265 frame)")
         if self.output_size is not None and (self.output_size[0] <= 0 or self.output_size[1] <= 0):
             raise ValueError(f"output_size must be (width, height) > 0, got {self.output_size}")
 
     def extrinsic(self) -> np.ndarray:
-        if self.T_t265_cam is not None:
-            return np.asarray(self.T_t265_cam, dtype=np.float64)
+        if self.T_tracker_cam is not None:
+            return np.asarray(self.T_tracker_cam, dtype=np.float64)
         return T265_FROM_OPENCV.copy() if self.pose_axes == "t265" else np.eye(4)
 
     def world_transform(self) -> np.ndarray:
