@@ -1,0 +1,411 @@
+"""Region dictionary: key -> embedding (running mean), observation count, label text.
+
+Storage is dense (rows of a float32 matrix), so ranking 10,000 regions against a query is one
+matrix-vector product. Keys are allocated from 0 upwards and never reused (a merged-away key stays
+dead), so a key seen in the volume always means the same region.
+
+Versioning: ``version`` increments once per change batch (one :meth:`RegionDictionary.batch`
+block, or one call of a mutating method outside a batch). ``delta_since(v)`` returns what changed
+after version ``v`` (upserted rows, removed keys, merges), ``apply_delta`` replays it on a replica,
+and ``snapshot`` / ``from_snapshot`` copy the whole dictionary. Deltas and snapshots hold plain
+numpy arrays and lists only, so the bus layer can wrap them in messages.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from openfusion.mapping.errors import EmbeddingSpaceError, StaleVersionError
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class DictionarySnapshot:
+    """The whole dictionary at ``version``; ``mean_embeddings`` are the un-normalised running means."""
+
+    embedding_space: str
+    dim: int
+    version: int
+    next_key: int
+    keys: np.ndarray  # (k,) int64
+    mean_embeddings: np.ndarray  # (k, d) float32
+    counts: np.ndarray  # (k,) int64
+    labels: list[str | None] = field(default_factory=list)
+
+
+@dataclass
+class DictionaryDelta:
+    """Changes between ``from_version`` (exclusive) and ``to_version`` (inclusive).
+
+    ``keys``/``mean_embeddings``/``counts``/``labels`` are the current rows of every key added or
+    changed; ``removed_keys`` are keys that no longer exist; ``merges`` (r, 2) holds
+    ``[merged_key, into_key]`` pairs so the volume can relabel voxels.
+    """
+
+    embedding_space: str
+    dim: int
+    from_version: int
+    to_version: int
+    next_key: int
+    keys: np.ndarray  # (k,) int64
+    mean_embeddings: np.ndarray  # (k, d) float32
+    counts: np.ndarray  # (k,) int64
+    labels: list[str | None]
+    removed_keys: np.ndarray  # (r,) int64
+    merges: np.ndarray  # (m, 2) int64
+
+    @property
+    def is_empty(self) -> bool:
+        return len(self.keys) == 0 and len(self.removed_keys) == 0
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    norm = np.linalg.norm(v, axis=-1, keepdims=True)
+    return (v / np.maximum(norm, 1e-12)).astype(np.float32)
+
+
+class RegionDictionary:
+    """Region embeddings of one map, in one named embedding space of dimension ``dim``."""
+
+    def __init__(self, embedding_space: str, dim: int, *, initial_capacity: int = 256) -> None:
+        if not embedding_space or not isinstance(embedding_space, str):
+            raise ValueError(f"embedding_space must be a non-empty string, got {embedding_space!r}")
+        if not isinstance(dim, (int, np.integer)) or dim < 1:
+            raise ValueError(f"dim must be a positive int, got {dim!r}")
+        self.embedding_space = embedding_space
+        self.dim = int(dim)
+        cap = max(int(initial_capacity), 1)
+        self._means = np.zeros((cap, self.dim), np.float32)
+        self._units = np.zeros((cap, self.dim), np.float32)
+        self._counts = np.zeros(cap, np.int64)
+        self._keys = np.zeros(cap, np.int64)
+        self._labels: list[str | None] = []
+        self._row_of: dict[int, int] = {}
+        self._size = 0
+        self.next_key = 0
+        self.version = 0
+        self._history_start = 0  # deltas can be produced from this version on
+        self._changed_at: dict[int, int] = {}  # key -> version of its last change
+        self._removed_at: dict[int, int] = {}  # key -> version it was removed
+        self._merges: list[tuple[int, int, int]] = []  # (merged, into, version)
+        self._batch_depth = 0
+        self._batch_dirty = False
+
+    # ------------------------------------------------------------------ basics
+    def __len__(self) -> int:
+        return self._size
+
+    def __contains__(self, key: object) -> bool:
+        return isinstance(key, (int, np.integer)) and int(key) in self._row_of
+
+    @property
+    def keys(self) -> np.ndarray:
+        """Live keys (k,) int64, in row order."""
+        return self._keys[: self._size].copy()
+
+    def unit_embeddings(self) -> np.ndarray:
+        """(k, d) unit-norm embeddings in row order (a view; do not modify)."""
+        return self._units[: self._size]
+
+    def embedding(self, key: int) -> np.ndarray:
+        """Unit-norm embedding of ``key``."""
+        return self._units[self._row(key)].copy()
+
+    def mean_embedding(self, key: int) -> np.ndarray:
+        return self._means[self._row(key)].copy()
+
+    def count(self, key: int) -> int:
+        return int(self._counts[self._row(key)])
+
+    def label(self, key: int) -> str | None:
+        return self._labels[self._row(key)]
+
+    def _row(self, key: int) -> int:
+        try:
+            return self._row_of[int(key)]
+        except KeyError:
+            raise KeyError(f"region key {key} is not in the dictionary") from None
+
+    def check_space(self, embedding_space: str | None, dim: int | None = None) -> None:
+        """Raise :class:`EmbeddingSpaceError` when the space (or dimension) differs from this map's."""
+        if embedding_space is not None and embedding_space != self.embedding_space:
+            raise EmbeddingSpaceError(
+                f"embedding space {embedding_space!r} does not match the map's {self.embedding_space!r}"
+            )
+        if dim is not None and dim != self.dim:
+            raise EmbeddingSpaceError(f"embedding dimension {dim} does not match the map's {self.dim}")
+
+    def _check_vector(self, vector: np.ndarray, what: str = "embedding") -> np.ndarray:
+        v = np.asarray(vector, dtype=np.float32).reshape(-1)
+        if v.shape[0] != self.dim:
+            raise EmbeddingSpaceError(f"{what} has dimension {v.shape[0]}, the map's space has {self.dim}")
+        if not np.isfinite(v).all():
+            raise ValueError(f"{what} contains NaN or inf")
+        if float(np.linalg.norm(v)) < 1e-12:
+            raise ValueError(f"{what} has zero norm")
+        return v
+
+    # ------------------------------------------------------------------ change batches
+    @contextlib.contextmanager
+    def batch(self) -> Iterator[RegionDictionary]:
+        """Group changes into one version increment."""
+        self._batch_depth += 1
+        try:
+            yield self
+        finally:
+            self._batch_depth -= 1
+            if self._batch_depth == 0 and self._batch_dirty:
+                self._batch_dirty = False
+
+    def _begin_change(self) -> int:
+        """Version number the current change belongs to."""
+        if self._batch_depth > 0:
+            if not self._batch_dirty:
+                self.version += 1
+                self._batch_dirty = True
+            return self.version
+        self.version += 1
+        return self.version
+
+    def _grow(self) -> None:
+        cap = len(self._keys) * 2
+        for name in ("_means", "_units"):
+            old = getattr(self, name)
+            new = np.zeros((cap, self.dim), np.float32)
+            new[: self._size] = old[: self._size]
+            setattr(self, name, new)
+        for name in ("_counts", "_keys"):
+            old = getattr(self, name)
+            new = np.zeros(cap, np.int64)
+            new[: self._size] = old[: self._size]
+            setattr(self, name, new)
+
+    # ------------------------------------------------------------------ mutation
+    def add(self, embedding: np.ndarray, *, label: str | None = None, count: int = 1) -> int:
+        """New region with this embedding; returns its key."""
+        v = self._check_vector(embedding)
+        if count < 1:
+            raise ValueError(f"count must be >= 1, got {count}")
+        version = self._begin_change()
+        key = self.next_key
+        self.next_key += 1
+        self._insert_row(key, v, int(count), label)
+        self._changed_at[key] = version
+        return key
+
+    def _insert_row(self, key: int, mean: np.ndarray, count: int, label: str | None) -> None:
+        if self._size == len(self._keys):
+            self._grow()
+        row = self._size
+        self._means[row] = mean
+        self._units[row] = _unit(mean)
+        self._counts[row] = count
+        self._keys[row] = key
+        self._labels.append(label)
+        self._row_of[key] = row
+        self._size += 1
+
+    def observe(self, key: int, embedding: np.ndarray, *, label: str | None = None) -> None:
+        """A matched observation: running mean of embeddings, count + 1 (label set if none yet)."""
+        row = self._row(key)
+        v = self._check_vector(embedding)
+        version = self._begin_change()
+        n = self._counts[row]
+        mean = self._means[row] + (v - self._means[row]) / np.float32(n + 1)
+        self._means[row] = mean
+        self._units[row] = _unit(mean)
+        self._counts[row] = n + 1
+        if label is not None and self._labels[row] is None:
+            self._labels[row] = label
+        self._changed_at[int(key)] = version
+
+    def set_label(self, key: int, label: str | None) -> None:
+        row = self._row(key)
+        version = self._begin_change()
+        self._labels[row] = label
+        self._changed_at[int(key)] = version
+
+    def _remove_row(self, key: int) -> None:
+        row = self._row_of.pop(key)
+        last = self._size - 1
+        if row != last:
+            self._means[row] = self._means[last]
+            self._units[row] = self._units[last]
+            self._counts[row] = self._counts[last]
+            self._keys[row] = self._keys[last]
+            self._labels[row] = self._labels[last]
+            self._row_of[int(self._keys[row])] = row
+        self._labels.pop()
+        self._size -= 1
+
+    def remove(self, key: int) -> None:
+        """Delete a region (its voxels should be cleared with ``volume.relabel_keys({key: -1})``)."""
+        self._row(key)
+        version = self._begin_change()
+        self._remove_row(int(key))
+        self._changed_at.pop(int(key), None)
+        self._removed_at[int(key)] = version
+
+    def merge(self, a: int, b: int) -> int:
+        """Merge region ``b`` into ``a`` (count-weighted mean, counts summed); ``b`` disappears.
+
+        Returns ``a``. The caller relabels voxels with ``volume.relabel_keys({b: a})``
+        (``SemanticMapper.merge_regions`` does both).
+        """
+        a, b = int(a), int(b)
+        if a == b:
+            raise ValueError(f"cannot merge region {a} with itself")
+        ra, rb = self._row(a), self._row(b)
+        version = self._begin_change()
+        na, nb = self._counts[ra], self._counts[rb]
+        mean = (self._means[ra] * na + self._means[rb] * nb) / np.float32(na + nb)
+        self._means[ra] = mean
+        self._units[ra] = _unit(mean)
+        self._counts[ra] = na + nb
+        if self._labels[ra] is None:
+            self._labels[ra] = self._labels[rb]
+        self._changed_at[a] = version
+        self._remove_row(b)
+        self._changed_at.pop(b, None)
+        self._removed_at[b] = version
+        self._merges.append((b, a, version))
+        return a
+
+    # ------------------------------------------------------------------ queries
+    def top_k(self, vector: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Keys (k,) and cosine scores (k,) of the ``k`` regions most similar to ``vector``, best first."""
+        if k < 1:
+            raise ValueError(f"k must be >= 1, got {k}")
+        v = _unit(self._check_vector(vector, "query vector"))
+        n = self._size
+        if n == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.float32)
+        scores = self._units[:n] @ v
+        k = min(int(k), n)
+        if k < n:
+            part = np.argpartition(-scores, k - 1)[:k]
+        else:
+            part = np.arange(n)
+        order = part[np.lexsort((self._keys[part], -scores[part]))]
+        return self._keys[order].copy(), scores[order].astype(np.float32)
+
+    def similarities(self, vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(keys (k,), cosine matrix (k, c)) of every region against ``c`` vectors."""
+        V = np.asarray(vectors, np.float32)
+        if V.ndim != 2 or V.shape[1] != self.dim:
+            raise EmbeddingSpaceError(f"vectors must be (c, {self.dim}), got {V.shape}")
+        return self.keys, self._units[: self._size] @ _unit(V).T
+
+    # ------------------------------------------------------------------ deltas / snapshots
+    def snapshot(self) -> DictionarySnapshot:
+        n = self._size
+        return DictionarySnapshot(
+            embedding_space=self.embedding_space,
+            dim=self.dim,
+            version=self.version,
+            next_key=self.next_key,
+            keys=self._keys[:n].copy(),
+            mean_embeddings=self._means[:n].copy(),
+            counts=self._counts[:n].copy(),
+            labels=list(self._labels),
+        )
+
+    @classmethod
+    def from_snapshot(cls, snapshot: DictionarySnapshot) -> RegionDictionary:
+        """A replica equal to the snapshot; raises ``ValueError`` on inconsistent arrays."""
+        keys = np.asarray(snapshot.keys, np.int64).reshape(-1)
+        means = np.asarray(snapshot.mean_embeddings, np.float32)
+        counts = np.asarray(snapshot.counts, np.int64).reshape(-1)
+        k = len(keys)
+        if means.shape != (k, int(snapshot.dim)) or counts.shape != (k,) or len(snapshot.labels) != k:
+            raise ValueError(
+                f"snapshot arrays disagree: keys {keys.shape}, embeddings {means.shape}, counts {counts.shape}, "
+                f"labels {len(snapshot.labels)} for dim {snapshot.dim}"
+            )
+        if k and (len(np.unique(keys)) != k or keys.min() < 0 or keys.max() >= snapshot.next_key):
+            raise ValueError("snapshot keys must be unique, >= 0 and below next_key")
+        if k and (counts.min() < 1 or not np.isfinite(means).all()):
+            raise ValueError("snapshot counts must be >= 1 and embeddings finite")
+        d = cls(snapshot.embedding_space, int(snapshot.dim), initial_capacity=max(k, 1))
+        for i in range(k):
+            d._insert_row(int(keys[i]), means[i], int(counts[i]), snapshot.labels[i])
+        d.next_key = int(snapshot.next_key)
+        d.version = int(snapshot.version)
+        d._history_start = d.version
+        d._changed_at = {int(key): d.version for key in keys}
+        return d
+
+    def delta_since(self, version: int) -> DictionaryDelta:
+        """Everything that changed after ``version``; raises :class:`StaleVersionError` if this
+        dictionary's history does not reach back that far (the replica should fetch a snapshot)."""
+        version = int(version)
+        if version > self.version:
+            raise StaleVersionError(f"version {version} is newer than the dictionary's {self.version}")
+        if version < self._history_start:
+            raise StaleVersionError(
+                f"history starts at version {self._history_start}; cannot build a delta from {version}"
+            )
+        changed = sorted(k for k, v in self._changed_at.items() if v > version)
+        rows = np.array([self._row_of[k] for k in changed], np.int64)
+        removed = sorted(k for k, v in self._removed_at.items() if v > version)
+        merges = [(b, a) for b, a, v in self._merges if v > version]
+        return DictionaryDelta(
+            embedding_space=self.embedding_space,
+            dim=self.dim,
+            from_version=version,
+            to_version=self.version,
+            next_key=self.next_key,
+            keys=np.array(changed, np.int64),
+            mean_embeddings=self._means[rows].copy() if len(rows) else np.zeros((0, self.dim), np.float32),
+            counts=self._counts[rows].copy() if len(rows) else np.zeros(0, np.int64),
+            labels=[self._labels[r] for r in rows],
+            removed_keys=np.array(removed, np.int64),
+            merges=np.array(merges, np.int64).reshape(-1, 2),
+        )
+
+    def apply_delta(self, delta: DictionaryDelta) -> None:
+        """Replay a delta on a replica. Raises :class:`StaleVersionError` when versions between this
+        replica and the delta are missing, :class:`EmbeddingSpaceError` for another space."""
+        self.check_space(delta.embedding_space, int(delta.dim))
+        if delta.from_version > self.version:
+            raise StaleVersionError(
+                f"delta starts at version {delta.from_version} but the replica is at {self.version}; "
+                "fetch a snapshot"
+            )
+        if delta.to_version <= self.version:
+            return  # already applied
+        keys = np.asarray(delta.keys, np.int64).reshape(-1)
+        means = np.asarray(delta.mean_embeddings, np.float32)
+        counts = np.asarray(delta.counts, np.int64).reshape(-1)
+        if (
+            means.shape != (len(keys), self.dim)
+            or counts.shape != keys.shape
+            or len(delta.labels) != len(keys)
+        ):
+            raise ValueError("delta arrays disagree in length or dimension")
+        for key in np.asarray(delta.removed_keys, np.int64).reshape(-1):
+            if int(key) in self._row_of:
+                self._remove_row(int(key))
+                self._changed_at.pop(int(key), None)
+            self._removed_at[int(key)] = int(delta.to_version)
+        for i, key in enumerate(keys):
+            key = int(key)
+            if key in self._row_of:
+                row = self._row_of[key]
+                self._means[row] = means[i]
+                self._units[row] = _unit(means[i])
+                self._counts[row] = counts[i]
+                self._labels[row] = delta.labels[i]
+            else:
+                self._insert_row(key, means[i], int(counts[i]), delta.labels[i])
+            self._changed_at[key] = int(delta.to_version)
+        for b, a in np.asarray(delta.merges, np.int64).reshape(-1, 2):
+            self._merges.append((int(b), int(a), int(delta.to_version)))
+        self.next_key = max(self.next_key, int(delta.next_key))
+        self.version = int(delta.to_version)

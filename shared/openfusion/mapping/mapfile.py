@@ -1,0 +1,226 @@
+"""One self-describing, versioned map file: volume blocks, dictionary, embedding space, parameters.
+
+Format (``FORMAT_VERSION`` 1): an uncompressed ``.npz`` (zip of ``.npy`` arrays, no pickles) with
+
+- ``format`` (the string ``openfusion-z-map``), ``format_version`` (int),
+- ``meta_json``: JSON with the volume parameters, the dictionary's embedding space, dimension,
+  version, next key and labels, the caller's ``meta``, and shape/dtype/CRC-32 of every array,
+- ``volume_block_coords`` (N, 3) int32, ``volume_tsdf`` / ``volume_weight`` / ``volume_conf``
+  (N, r, r, r) float32, ``volume_color`` (N, r, r, r, 3) float32, ``volume_key`` (N, r, r, r)
+  int32 (-1 = none),
+- ``dict_keys`` (k,) int64, ``dict_mean_embeddings`` (k, d) float32, ``dict_counts`` (k,) int64.
+
+Writing goes to a temporary file in the target folder, is fsynced and then renamed over the
+target (``os.replace``), so a crash leaves the old map or the new one, never half of one. Loading
+checks every array against the CRC-32 in the metadata and builds fresh objects; any problem
+raises one :class:`MapFormatError` and nothing is returned.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import tempfile
+import time
+import zipfile
+import zlib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from openfusion.mapping.dictionary import DictionarySnapshot, RegionDictionary
+from openfusion.mapping.errors import MapFormatError
+from openfusion.mapping.params import VolumeParams
+from openfusion.mapping.volume import SemanticVolume
+
+logger = logging.getLogger(__name__)
+
+FORMAT_NAME = "openfusion-z-map"
+FORMAT_VERSION = 1
+MAP_FILE_NAME = "map.ofz.npz"
+
+_VOLUME_ARRAYS = ("block_coords", "tsdf", "weight", "color", "key", "conf")
+_DICT_ARRAYS = ("keys", "mean_embeddings", "counts")
+
+
+@dataclass
+class LoadedMap:
+    volume: SemanticVolume
+    dictionary: RegionDictionary
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+def resolve_map_path(path: str | os.PathLike[str]) -> Path:
+    """A path ending in ``.npz`` is the map file; anything else is a folder holding ``map.ofz.npz``."""
+    p = Path(path)
+    return p if p.suffix == ".npz" else p / MAP_FILE_NAME
+
+
+def _crc(arr: np.ndarray) -> int:
+    return zlib.crc32(np.ascontiguousarray(arr).view(np.uint8).reshape(-1)) & 0xFFFFFFFF
+
+
+def save_map(
+    path: str | os.PathLike[str],
+    volume: SemanticVolume,
+    dictionary: RegionDictionary,
+    meta: dict[str, Any] | None = None,
+) -> Path:
+    """Write the map atomically; returns the file written. ``meta`` must be JSON-serialisable."""
+    user_meta = dict(meta or {})
+    try:
+        json.dumps(user_meta)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"meta must be JSON-serialisable: {exc}") from exc
+    target = resolve_map_path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    arrays: dict[str, np.ndarray] = {f"volume_{k}": v for k, v in volume.to_arrays().items()}
+    snap = dictionary.snapshot()
+    arrays["dict_keys"] = snap.keys.astype(np.int64)
+    arrays["dict_mean_embeddings"] = snap.mean_embeddings.astype(np.float32)
+    arrays["dict_counts"] = snap.counts.astype(np.int64)
+    header = {
+        "format": FORMAT_NAME,
+        "format_version": FORMAT_VERSION,
+        "created_unix_s": time.time(),
+        "volume_params": volume.params.to_dict(),
+        "dictionary": {
+            "embedding_space": snap.embedding_space,
+            "dim": snap.dim,
+            "version": snap.version,
+            "next_key": snap.next_key,
+            "labels": snap.labels,
+        },
+        "meta": user_meta,
+        "arrays": {
+            name: {"shape": list(a.shape), "dtype": a.dtype.str, "crc32": _crc(a)}
+            for name, a in arrays.items()
+        },
+    }
+    payload = {
+        "format": np.array(FORMAT_NAME),
+        "format_version": np.array(FORMAT_VERSION, np.int64),
+        "meta_json": np.array(json.dumps(header)),
+        **arrays,
+    }
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            np.savez(fh, **payload)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp_name, target)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp_name)
+        raise
+    _fsync_dir(target.parent)
+    logger.info(
+        "saved map %s: %d blocks, %d regions (%.1f MB)",
+        target,
+        len(arrays["volume_block_coords"]),
+        len(snap.keys),
+        target.stat().st_size / 1e6,
+    )
+    return target
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        logger.debug("fsync of folder %s not supported", folder)
+    finally:
+        os.close(fd)
+
+
+def load_map(path: str | os.PathLike[str], *, device: str | None = None) -> LoadedMap:
+    """Read a map written by :func:`save_map` (optionally onto another ``device``).
+
+    Raises :class:`MapFormatError` for a missing, truncated, corrupt, unknown-version or
+    inconsistent file; nothing is half-loaded.
+    """
+    target = resolve_map_path(path)
+    if not target.is_file():
+        raise MapFormatError(f"{target}: no map file there")
+    try:
+        return _load(target, device)
+    except MapFormatError:
+        raise
+    except (
+        OSError,
+        EOFError,
+        zipfile.BadZipFile,
+        ValueError,
+        KeyError,
+        TypeError,
+        json.JSONDecodeError,
+    ) as exc:
+        raise MapFormatError(f"{target}: unreadable map file ({type(exc).__name__}: {exc})") from exc
+
+
+def _load(target: Path, device: str | None) -> LoadedMap:
+    with np.load(target, allow_pickle=False) as npz:
+        names = set(npz.files)
+        for required in ("format", "format_version", "meta_json"):
+            if required not in names:
+                raise MapFormatError(f"{target}: not an OpenFusion-Z map (missing {required!r})")
+        fmt = str(npz["format"][()])
+        if fmt != FORMAT_NAME:
+            raise MapFormatError(f"{target}: format {fmt!r} is not {FORMAT_NAME!r}")
+        version = int(npz["format_version"][()])
+        if version != FORMAT_VERSION:
+            raise MapFormatError(
+                f"{target}: map format version {version} is not supported (this build reads {FORMAT_VERSION})"
+            )
+        header = json.loads(str(npz["meta_json"][()]))
+        specs = header["arrays"]
+        arrays: dict[str, np.ndarray] = {}
+        expected = [f"volume_{n}" for n in _VOLUME_ARRAYS] + [f"dict_{n}" for n in _DICT_ARRAYS]
+        for name in expected:
+            if name not in names or name not in specs:
+                raise MapFormatError(f"{target}: array {name!r} is missing")
+            arr = npz[name]
+            spec = specs[name]
+            if list(arr.shape) != list(spec["shape"]) or arr.dtype.str != spec["dtype"]:
+                raise MapFormatError(
+                    f"{target}: array {name!r} is {arr.dtype.str} {arr.shape}, header says "
+                    f"{spec['dtype']} {tuple(spec['shape'])}"
+                )
+            if _crc(arr) != int(spec["crc32"]):
+                raise MapFormatError(f"{target}: array {name!r} fails its CRC-32 check (corrupt file)")
+            arrays[name] = arr
+    params = VolumeParams.from_dict(header["volume_params"])
+    if device is not None:
+        params = replace(params, device=device)
+    volume = SemanticVolume.from_arrays(params, {n: arrays[f"volume_{n}"] for n in _VOLUME_ARRAYS})
+    d = header["dictionary"]
+    snapshot = DictionarySnapshot(
+        embedding_space=str(d["embedding_space"]),
+        dim=int(d["dim"]),
+        version=int(d["version"]),
+        next_key=int(d["next_key"]),
+        keys=arrays["dict_keys"],
+        mean_embeddings=arrays["dict_mean_embeddings"],
+        counts=arrays["dict_counts"],
+        labels=list(d["labels"]),
+    )
+    dictionary = RegionDictionary.from_snapshot(snapshot)
+    used = arrays["volume_key"]
+    unknown = np.setdiff1d(np.unique(used[used >= 0]), snapshot.keys)
+    if len(unknown):
+        logger.warning(
+            "%s: %d voxel keys have no dictionary entry (e.g. %s)", target, len(unknown), unknown[:5]
+        )
+    meta = dict(header.get("meta", {}))
+    meta.setdefault("created_unix_s", header.get("created_unix_s"))
+    logger.info("loaded map %s: %d blocks, %d regions", target, volume.num_blocks, len(dictionary))
+    return LoadedMap(volume, dictionary, meta)

@@ -1,0 +1,104 @@
+"""The in-process semantic step: render -> match -> dictionary -> update.
+
+The services run the same pieces on different machines: geometry renders and applies updates
+(``SemanticVolume.render`` / ``apply_update``), semantic plans and owns the dictionary
+(``plan_update``). :class:`SemanticMapper` chains them for the in-process pipeline and tests.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from openfusion.frame import CameraIntrinsics
+from openfusion.mapping.dictionary import RegionDictionary
+from openfusion.mapping.matching import DEFAULT_MIN_IOU, PlannedUpdate, plan_update
+from openfusion.mapping.volume import SemanticVolume, UpdateStats
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class StepStats:
+    """What one semantic step did, with its timings in milliseconds."""
+
+    num_regions: int
+    matched: int
+    new: int
+    skipped: int
+    regions_in_view: int
+    voxels_updated: int
+    render_ms: float
+    plan_ms: float
+    update_ms: float
+    dictionary_version: int
+
+    @property
+    def total_ms(self) -> float:
+        return self.render_ms + self.plan_ms + self.update_ms
+
+
+class SemanticMapper:
+    """Owns nothing but wiring: a volume, a dictionary and the matching options."""
+
+    def __init__(
+        self,
+        volume: SemanticVolume,
+        dictionary: RegionDictionary,
+        *,
+        min_iou: float = DEFAULT_MIN_IOU,
+        min_pixel_conf: float = 0.05,
+    ) -> None:
+        if not 0.0 <= min_iou <= 1.0:
+            raise ValueError(f"min_iou must be within [0, 1], got {min_iou}")
+        self.volume = volume
+        self.dictionary = dictionary
+        self.min_iou = min_iou
+        self.min_pixel_conf = min_pixel_conf
+        self.last_plan: PlannedUpdate | None = None
+        self.last_update: UpdateStats | None = None
+
+    def step(self, obs: Any, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> StepStats:
+        """Fuse one region observation taken at ``T_world_cam``.
+
+        ``intrinsics`` may be those of the full frame: they are rescaled to the observation's size.
+        """
+        conf_maps = np.asarray(obs.conf_maps)
+        if conf_maps.ndim != 3:
+            raise ValueError(f"obs.conf_maps must be (n, h, w), got {conf_maps.shape}")
+        h, w = conf_maps.shape[1:]
+        intr = (
+            intrinsics if (intrinsics.width_px, intrinsics.height_px) == (w, h) else intrinsics.scaled(w, h)
+        )
+        t0 = time.perf_counter()
+        rendered = self.volume.render(T_world_cam, intr)
+        t1 = time.perf_counter()
+        plan = plan_update(
+            obs, rendered, self.dictionary, min_iou=self.min_iou, min_pixel_conf=self.min_pixel_conf
+        )
+        t2 = time.perf_counter()
+        update = self.volume.apply_update(T_world_cam, intr, plan.key_map, plan.conf_map, rendered=rendered)
+        t3 = time.perf_counter()
+        self.last_plan, self.last_update = plan, update
+        in_view = len(plan.match.rendered_keys) if plan.match is not None else 0
+        return StepStats(
+            num_regions=len(conf_maps),
+            matched=len(plan.matched),
+            new=len(plan.new_keys),
+            skipped=len(plan.skipped),
+            regions_in_view=in_view,
+            voxels_updated=update.voxels_updated,
+            render_ms=(t1 - t0) * 1e3,
+            plan_ms=(t2 - t1) * 1e3,
+            update_ms=(t3 - t2) * 1e3,
+            dictionary_version=plan.dictionary_version,
+        )
+
+    def merge_regions(self, a: int, b: int) -> int:
+        """Merge region ``b`` into ``a`` in the dictionary and relabel ``b``'s voxels; returns voxels changed."""
+        self.dictionary.merge(a, b)
+        return self.volume.relabel_keys({int(b): int(a)})

@@ -1,0 +1,190 @@
+"""Region matching (soft IoU + Jonker-Volgenant) and the planned semantic update of one frame.
+
+Soft IoU
+    For confidence maps ``a`` and ``b`` (values in [0, 1]) we use the weighted Jaccard (Ruzicka)
+    similarity ``sum(min(a, b)) / sum(max(a, b))``: 1 for identical maps, 0 for disjoint ones,
+    and equal to the ordinary IoU for binary masks. Rendered maps of different keys never overlap
+    (one key per pixel), which :func:`match_regions` uses to compute all n x m values in one pass
+    over the labelled pixels; :func:`soft_iou_matrix` is the general (dense) form.
+
+Assignment
+    ``scipy.optimize.linear_sum_assignment`` (a Jonker-Volgenant solver) maximises the total soft
+    IoU; assigned pairs below ``min_iou`` (default 0.10) are dropped, so those regions count as new.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from openfusion.mapping.dictionary import RegionDictionary
+from openfusion.mapping.volume import RenderedView
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_MIN_IOU = 0.10
+
+
+def region_conf_maps(rendered: RenderedView) -> tuple[np.ndarray, np.ndarray]:
+    """Keys (m,) int64 of the regions in view and their confidence maps (m, h, w) float32."""
+    keys = np.unique(rendered.key_map[rendered.key_map >= 0]).astype(np.int64)
+    maps = np.zeros((len(keys),) + rendered.key_map.shape, np.float32)
+    for j, key in enumerate(keys):
+        on = rendered.key_map == key
+        maps[j][on] = rendered.conf_map[on]
+    return keys, maps
+
+
+def soft_iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Dense soft IoU ``sum(min)/sum(max)`` between maps a (n, h, w) and b (m, h, w) -> (n, m)."""
+    a = np.asarray(a, np.float32).reshape(len(a), -1)
+    b = np.asarray(b, np.float32).reshape(len(b), -1)
+    out = np.zeros((len(a), len(b)), np.float32)
+    for j in range(len(b)):
+        inter = np.minimum(a, b[j]).sum(axis=1)
+        union = np.maximum(a, b[j]).sum(axis=1)
+        out[:, j] = np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0)
+    return out
+
+
+@dataclass
+class MatchResult:
+    """Soft IoU of every frame region against every rendered region, and the kept assignment."""
+
+    iou: np.ndarray  # (n, m) float32
+    rendered_keys: np.ndarray  # (m,) int64
+    frame_indices: np.ndarray  # (k,) int64, matched frame regions
+    keys: np.ndarray  # (k,) int64, the map key each is matched to
+    pair_iou: np.ndarray  # (k,) float32
+
+    @property
+    def pairs(self) -> list[tuple[int, int]]:
+        return [(int(i), int(k)) for i, k in zip(self.frame_indices, self.keys, strict=True)]
+
+
+def _check_conf_maps(frame_conf: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    frame_conf = np.asarray(frame_conf)
+    if frame_conf.ndim != 3 or frame_conf.shape[1:] != shape:
+        raise ValueError(f"frame confidence maps must be (n, {shape[0]}, {shape[1]}), got {frame_conf.shape}")
+    frame_conf = frame_conf.astype(np.float32, copy=False)
+    if frame_conf.size and (
+        not np.isfinite(frame_conf).all() or frame_conf.min() < 0 or frame_conf.max() > 1
+    ):
+        raise ValueError("frame confidence maps must be finite and within [0, 1]")
+    return frame_conf
+
+
+def match_regions(
+    frame_conf: np.ndarray, rendered: RenderedView, min_iou: float = DEFAULT_MIN_IOU
+) -> MatchResult:
+    """Match the frame's n regions to the m map regions in view (soft IoU, Jonker-Volgenant)."""
+    if not 0.0 <= min_iou <= 1.0:
+        raise ValueError(f"min_iou must be within [0, 1], got {min_iou}")
+    frame_conf = _check_conf_maps(frame_conf, rendered.key_map.shape)
+    n = len(frame_conf)
+    flat_keys = rendered.key_map.reshape(-1)
+    flat_conf = rendered.conf_map.reshape(-1).astype(np.float32)
+    labelled = np.flatnonzero((flat_keys >= 0) & (flat_conf > 0))
+    if n == 0 or len(labelled) == 0:
+        rkeys = np.unique(flat_keys[labelled]).astype(np.int64)
+        empty = np.zeros(0, np.int64)
+        return MatchResult(
+            np.zeros((n, len(rkeys)), np.float32), rkeys, empty, empty, np.zeros(0, np.float32)
+        )
+    order = labelled[np.argsort(flat_keys[labelled], kind="stable")]
+    sorted_keys = flat_keys[order]
+    starts = np.flatnonzero(np.r_[True, sorted_keys[1:] != sorted_keys[:-1]])
+    rkeys = sorted_keys[starts].astype(np.int64)
+    b = flat_conf[order]
+    A = frame_conf.reshape(n, -1)
+    inter = np.add.reduceat(np.minimum(A[:, order], b[None, :]), starts, axis=1)
+    sum_a = A.sum(axis=1)
+    sum_b = np.add.reduceat(b, starts)
+    union = sum_a[:, None] + sum_b[None, :] - inter
+    iou = np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0).astype(np.float32)
+    rows, cols = linear_sum_assignment(-iou)
+    keep = iou[rows, cols] >= min_iou
+    rows, cols = rows[keep], cols[keep]
+    return MatchResult(iou, rkeys, rows.astype(np.int64), rkeys[cols], iou[rows, cols])
+
+
+@dataclass
+class PlannedUpdate:
+    """Per-pixel keys/confidences to fuse, and what happened to each frame region."""
+
+    key_map: np.ndarray  # (h, w) int32, -1 = leave voxels alone
+    conf_map: np.ndarray  # (h, w) float32
+    matched: list[tuple[int, int]] = field(default_factory=list)  # (frame region index, key)
+    new_keys: list[tuple[int, int]] = field(default_factory=list)  # (frame region index, new key)
+    skipped: list[int] = field(default_factory=list)  # frame regions that won no pixel
+    match: MatchResult | None = None
+    dictionary_version: int = 0
+
+
+def plan_update(
+    obs: Any,
+    rendered: RenderedView,
+    dictionary: RegionDictionary,
+    *,
+    min_iou: float = DEFAULT_MIN_IOU,
+    min_pixel_conf: float = 0.05,
+) -> PlannedUpdate:
+    """Match the observation to the rendered map and update the dictionary (one version batch).
+
+    ``obs`` is any object with ``conf_maps`` (n, h, w), ``embeddings`` (n, d), ``labels`` (list or
+    None) and optionally ``embedding_space`` (checked against the dictionary's).
+
+    Each pixel takes the frame region with the highest confidence there (pixels below
+    ``min_pixel_conf`` take none). Regions that win no pixel are skipped. A matched region
+    updates its key's running-mean embedding and count; an unmatched one gets a new key.
+    """
+    conf_maps = _check_conf_maps(obs.conf_maps, rendered.key_map.shape)
+    embeddings = np.asarray(obs.embeddings, np.float32)
+    n = len(conf_maps)
+    if embeddings.shape != (n, dictionary.dim):
+        raise ValueError(f"embeddings must be ({n}, {dictionary.dim}), got {embeddings.shape}")
+    dictionary.check_space(getattr(obs, "embedding_space", None))
+    labels = getattr(obs, "labels", None)
+    if labels is not None and len(labels) != n:
+        raise ValueError(f"labels has {len(labels)} entries for {n} regions")
+    h, w = rendered.key_map.shape
+    if n == 0:
+        return PlannedUpdate(
+            np.full((h, w), -1, np.int32), np.zeros((h, w), np.float32), dictionary_version=dictionary.version
+        )
+    winner = conf_maps.argmax(axis=0)
+    best_conf = np.take_along_axis(conf_maps, winner[None], axis=0)[0]
+    covered = best_conf >= max(min_pixel_conf, 1e-12)
+    pixels_won = np.bincount(winner[covered], minlength=n)
+    match = match_regions(conf_maps, rendered, min_iou)
+    key_of = np.full(n, -1, np.int64)
+    plan = PlannedUpdate(np.full((h, w), -1, np.int32), np.zeros((h, w), np.float32), match=match)
+    with dictionary.batch():
+        for i, key in zip(match.frame_indices, match.keys, strict=True):
+            if pixels_won[i] == 0:
+                continue
+            if int(key) not in dictionary:
+                logger.warning("rendered key %d is not in the dictionary; region %d gets a new key", key, i)
+                continue
+            dictionary.observe(int(key), embeddings[i], label=labels[i] if labels is not None else None)
+            key_of[i] = key
+            plan.matched.append((int(i), int(key)))
+        for i in range(n):
+            if key_of[i] >= 0:
+                continue
+            if pixels_won[i] == 0:
+                plan.skipped.append(i)
+                continue
+            key = dictionary.add(embeddings[i], label=labels[i] if labels is not None else None)
+            key_of[i] = key
+            plan.new_keys.append((i, key))
+    pixel_keys = key_of[winner]
+    use = covered & (pixel_keys >= 0)
+    plan.key_map[use] = pixel_keys[use]
+    plan.conf_map[use] = best_conf[use]
+    plan.dictionary_version = dictionary.version
+    return plan
