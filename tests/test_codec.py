@@ -172,12 +172,59 @@ def test_unknown_unexpected_and_version_mismatched_schemas() -> None:
 
 
 def test_array_byte_count_disagreeing_with_shape_is_array_size_mismatch() -> None:
-    """A depth image whose data is shorter/longer than dtype x shape is refused."""
+    """A depth image whose inline data is shorter/longer than dtype x shape, or whose offset and
+    size run past the end of arraydata, is refused."""
     wire = _wire(_frame_msg())
-    data = wire["body"]["depth"]["data"]
-    for bad_data in (data[:-2], data + b"\x00\x00", data[:-1], b""):
-        wire["body"]["depth"]["data"] = bad_data
+    depth = np.zeros((6, 8), np.uint16).tobytes()
+    for bad_data in (depth[:-2], depth + b"\x00\x00", depth[:-1], b""):
+        wire["body"]["depth"] = {"dtype": "uint16", "shape": [6, 8], "data": bad_data}
         assert _reason(_pack(wire)) == "array_size_mismatch"
+    blob_len = len(wire["arraydata"])
+    for offset, shape in ((blob_len - 2, [2]), (0, [blob_len]), (blob_len, [1, 1])):
+        wire["body"]["depth"] = {"dtype": "uint16", "shape": shape, "offset": offset}
+        assert _reason(_pack(wire)) == "array_size_mismatch"
+
+
+def test_array_offsets_need_valid_arraydata() -> None:
+    """Offsets that are negative or not ints, offsets without arraydata, and an arraydata that is
+    not bytes are refused."""
+    wire = _wire(_frame_msg())
+    for offset in (-16, "0", 1.5):
+        bad = {**wire, "body": {**wire["body"], "depth": {**wire["body"]["depth"], "offset": offset}}}
+        assert _reason(_pack(bad)) == "invalid_fields"
+    no_blob = {k: v for k, v in wire.items() if k != "arraydata"}
+    assert _reason(_pack(no_blob)) == "invalid_fields"
+    assert _reason(_pack({**wire, "arraydata": "text"})) == "bad_envelope"
+
+
+def test_generic_msgpack_writers_are_understood() -> None:
+    """Another writer's key order (arraydata last) and inline array data decode to the same
+    message as encode()'s own layout."""
+    msg = _frame_msg()
+    wire = _wire(msg)
+    reordered = {"schema": wire["schema"], "version": wire["version"], "body": wire["body"], "arraydata": wire["arraydata"]}
+    inline = {k: v for k, v in wire.items() if k != "arraydata"}
+    inline["body"] = {
+        name: codec.array_to_wire(getattr(msg, name)) if isinstance(v, dict) and "offset" in v else v
+        for name, v in wire["body"].items()
+    }
+    assert "offset" not in str(inline)
+    for data in (_pack(reordered), _pack(inline)):
+        out = decode(data, expected=RgbdFrame)
+        np.testing.assert_array_equal(out.color, msg.color)
+        np.testing.assert_array_equal(out.depth, msg.depth)
+
+
+def test_arrays_are_views_on_the_payload_and_aligned() -> None:
+    """Decoding does not copy array bytes: changing the payload buffer changes the array; every
+    array starts 16-byte aligned inside the payload."""
+    msg = _frame_msg()
+    payload = bytearray(encode(msg))
+    out = decode(payload, expected=RgbdFrame)
+    offset = _wire(msg)["body"]["depth"]["offset"]
+    assert offset % codec.ARRAY_ALIGN == 0 and _wire(msg)["body"]["color"]["offset"] % codec.ARRAY_ALIGN == 0
+    payload[16 + offset : 16 + offset + 2] = (4242).to_bytes(2, "little")
+    assert out.depth[0, 0] == 4242
 
 
 @pytest.mark.parametrize("dtype", ["object", "complex64", ">u2", "<u2", "int64", "", 7])
@@ -187,8 +234,8 @@ def test_dtypes_outside_the_whitelist_or_field_are_bad_dtype(dtype: Any) -> None
     wire = _wire(_frame_msg())
     depth = dict(wire["body"]["depth"])
     depth["dtype"] = dtype
-    if dtype == "int64":
-        depth["data"] = np.zeros(depth["shape"], np.int64).tobytes()
+    if dtype == "int64":  # a whitelisted dtype, with the right number of bytes, on the wrong field
+        depth = {"dtype": dtype, "shape": [6, 8], "data": np.zeros((6, 8), np.int64).tobytes()}
     wire["body"]["depth"] = depth
     assert _reason(_pack(wire)) == "bad_dtype"
 

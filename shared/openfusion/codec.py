@@ -1,13 +1,18 @@
 """The wire codec: pydantic messages <-> msgpack bytes, numpy arrays as raw bytes.
 
-Wire format (one msgpack map, readable by any msgpack library)::
+Wire format: ONE msgpack map, readable by any msgpack library::
 
-    {"schema": "sensor.rgbd", "version": 1, "body": {...fields...}}
+    {"arraydata": <bin>, "schema": "sensor.rgbd", "version": 1, "body": {...fields...}}
 
 Inside ``body`` every numpy array field is a map ``{"dtype": "uint16", "shape": [480, 640],
-"data": <bin>}``: ``data`` is the C-contiguous, little-endian bytes of the array, ``dtype`` one
-of :data:`ALLOWED_DTYPES` (names, byte order always little-endian). Dict keys travel as
-strings (msgpack maps with ``strict_map_key``); int keys come back through pydantic.
+"offset": 1024}``: its C-contiguous, little-endian bytes are at ``offset`` in ``arraydata``
+(each array starts at a multiple of :data:`ARRAY_ALIGN` bytes). ``dtype`` is one of
+:data:`ALLOWED_DTYPES` (names; byte order always little-endian). Writers may instead inline the
+bytes as ``{"dtype", "shape", "data": <bin>}`` and omit ``arraydata``; decoders accept both.
+:func:`encode` writes ``arraydata`` first, so the array bytes start at offset 16 of the payload
+and :func:`decode` hands out arrays that are views on the payload without copying them
+(only the small rest of the map goes through msgpack). Dict keys travel as strings (msgpack
+maps with ``strict_map_key``); int keys come back through pydantic.
 
 Payloads come from the network, so decoding never runs code: msgpack with ``raw=False``,
 ``strict_map_key=True`` and an ``ext_hook`` that refuses every extension type; no pickle. Bytes
@@ -27,8 +32,8 @@ of :data:`DECODE_REASONS`:
 ``invalid_fields``     fields missing, unknown or of the wrong type/shape (pydantic's message)
 =====================  ======================================================================
 
-Decoded arrays are zero-copy views (``np.frombuffer``) on the bytes msgpack produced for the
-``data`` field: they are READ-ONLY. Copy (``arr.copy()``) before writing into one.
+Decoded arrays are zero-copy views (``np.frombuffer``) on the payload: they are READ-ONLY and
+keep the payload alive. Copy (``arr.copy()``) before writing into one.
 """
 
 from __future__ import annotations
@@ -55,6 +60,14 @@ DEFAULT_MAX_ARRAY_ELEMENTS = 32 * 1024 * 1024
 
 MAX_ARRAY_NDIM = 8
 
+ARRAY_ALIGN = 16
+"""Each array in ``arraydata`` starts at a multiple of this many bytes (as does ``arraydata``)."""
+
+_ARRAYDATA = "arraydata"
+# What encode() writes first: a map of 4 entries, key "arraydata", then a bin32 header; the
+# 4-byte length follows, so the array bytes start at offset 16 of the payload.
+_FAST_PREFIX = b"\x84\xa9" + _ARRAYDATA.encode() + b"\xc6"
+
 ALLOWED_DTYPES: tuple[str, ...] = (
     "bool",
     "int8",
@@ -70,6 +83,16 @@ ALLOWED_DTYPES: tuple[str, ...] = (
     "float64",
 )
 _WIRE_DTYPES: dict[str, np.dtype] = {name: np.dtype(name).newbyteorder("<") for name in ALLOWED_DTYPES}
+# dtype -> name for native and little-endian dtypes (``dtype.name`` is slow on the hot path).
+_DTYPE_NAMES: dict[np.dtype, str] = {
+    **{np.dtype(name): name for name in ALLOWED_DTYPES},
+    **{dt: name for name, dt in _WIRE_DTYPES.items()},
+}
+
+
+def _dtype_name(dtype: np.dtype) -> str:
+    name = _DTYPE_NAMES.get(dtype)
+    return name if name is not None else dtype.name
 
 DECODE_REASONS: tuple[str, ...] = (
     "too_large",
@@ -143,7 +166,9 @@ class ArraySpec:
         elif isinstance(value, Mapping):
             context = info.context or {}
             arr = array_from_wire(
-                value, max_elements=context.get("max_array_elements", DEFAULT_MAX_ARRAY_ELEMENTS)
+                value,
+                max_elements=context.get("max_array_elements", DEFAULT_MAX_ARRAY_ELEMENTS),
+                arraydata=context.get("arraydata"),
             )
         elif isinstance(value, (list, tuple)) and len(self.dtypes) == 1:
             try:
@@ -158,14 +183,14 @@ class ArraySpec:
                 "ndarray_type", "expected a numpy {spec}, got {type}",
                 {"spec": self.describe(), "type": type(value).__name__},
             )
-        if arr.dtype.name not in ALLOWED_DTYPES:
+        name = _dtype_name(arr.dtype)
+        if name not in _WIRE_DTYPES:
             raise PydanticCustomError(
                 "bad_dtype", "array dtype {dtype} is not allowed on the wire", {"dtype": str(arr.dtype)}
             )
-        if self.dtypes and arr.dtype.name not in self.dtypes:
+        if self.dtypes and name not in self.dtypes:
             raise PydanticCustomError(
-                "bad_dtype", "expected a {spec}, got dtype {dtype}",
-                {"spec": self.describe(), "dtype": arr.dtype.name},
+                "bad_dtype", "expected a {spec}, got dtype {dtype}", {"spec": self.describe(), "dtype": name}
             )
         if self.shape is not None and (
             arr.ndim != len(self.shape) or any(w is not None and w != s for w, s in zip(self.shape, arr.shape, strict=True))
@@ -182,9 +207,28 @@ def ndarray(*dtypes: str, shape: tuple[int | None, ...] | None = None) -> Any:
     return Annotated[np.ndarray, ArraySpec(tuple(dtypes), shape)]
 
 
-def array_to_wire(arr: np.ndarray) -> dict[str, Any]:
-    """The wire map of ``arr`` (little-endian, C-contiguous; copies only when it must)."""
-    name = arr.dtype.name
+class _Chunks:
+    """Array bytes collected for the ``arraydata`` blob, each start aligned to :data:`ARRAY_ALIGN`."""
+
+    def __init__(self) -> None:
+        self.parts: list[Any] = []
+        self.size = 0
+
+    def add(self, data: Any, nbytes: int) -> int:
+        pad = (-self.size) % ARRAY_ALIGN
+        if pad:
+            self.parts.append(bytes(pad))
+            self.size += pad
+        offset = self.size
+        self.parts.append(data)
+        self.size += nbytes
+        return offset
+
+
+def array_to_wire(arr: np.ndarray, chunks: _Chunks | None = None) -> dict[str, Any]:
+    """The wire map of ``arr`` (little-endian, C-contiguous; copies only when it must): inline
+    ``{dtype, shape, data}``, or ``{dtype, shape, offset}`` with the bytes added to ``chunks``."""
+    name = _dtype_name(arr.dtype)
     if name not in _WIRE_DTYPES:
         raise EncodeError(f"array dtype {arr.dtype} cannot go on the wire (allowed: {', '.join(ALLOWED_DTYPES)})")
     wire_dtype = _WIRE_DTYPES[name]
@@ -192,17 +236,28 @@ def array_to_wire(arr: np.ndarray) -> dict[str, Any]:
         arr = arr.astype(wire_dtype)
     shape = list(arr.shape)  # before ascontiguousarray, which makes 0-d arrays 1-d
     data = np.ascontiguousarray(arr).reshape(-1).view(np.uint8).data if arr.size else b""
-    return {"dtype": name, "shape": shape, "data": data}
+    if chunks is None:
+        return {"dtype": name, "shape": shape, "data": data}
+    return {"dtype": name, "shape": shape, "offset": chunks.add(data, arr.nbytes)}
 
 
-def array_from_wire(value: Mapping[str, Any], *, max_elements: int = DEFAULT_MAX_ARRAY_ELEMENTS) -> np.ndarray:
-    """The (read-only, zero-copy) array of a wire map; PydanticCustomError naming the reason."""
-    if set(value.keys()) != {"dtype", "shape", "data"}:
+def array_from_wire(
+    value: Mapping[str, Any],
+    *,
+    max_elements: int = DEFAULT_MAX_ARRAY_ELEMENTS,
+    arraydata: memoryview | None = None,
+) -> np.ndarray:
+    """The (read-only, zero-copy) array of a wire map; PydanticCustomError naming the reason.
+
+    ``{dtype, shape, data}`` carries its bytes inline; ``{dtype, shape, offset}`` points into
+    the message's ``arraydata`` blob."""
+    keys = set(value.keys())
+    if keys not in ({"dtype", "shape", "data"}, {"dtype", "shape", "offset"}):
         raise PydanticCustomError(
-            "ndarray_wire", "an array must be a map with keys dtype, shape, data; got keys {keys}",
-            {"keys": str(sorted(map(str, value.keys())))},
+            "ndarray_wire", "an array must be a map with keys dtype, shape and data or offset; got keys {keys}",
+            {"keys": str(sorted(map(str, keys)))},
         )
-    dtype_name, shape, data = value["dtype"], value["shape"], value["data"]
+    dtype_name, shape = value["dtype"], value["shape"]
     if not isinstance(dtype_name, str) or dtype_name not in _WIRE_DTYPES:
         raise PydanticCustomError(
             "bad_dtype", "array dtype {dtype!r} is not one of the allowed dtypes", {"dtype": str(dtype_name)[:40]}
@@ -216,8 +271,6 @@ def array_from_wire(value: Mapping[str, Any], *, max_elements: int = DEFAULT_MAX
             "ndarray_wire", "array shape must be a list of at most {n} non-negative ints, got {shape}",
             {"n": MAX_ARRAY_NDIM, "shape": str(shape)[:80]},
         )
-    if not isinstance(data, (bytes, bytearray, memoryview)):
-        raise PydanticCustomError("ndarray_wire", "array data must be bytes, got {type}", {"type": type(data).__name__})
     count = math.prod(shape)
     if count > max_elements or any(d > max_elements for d in shape):
         raise PydanticCustomError(
@@ -225,12 +278,31 @@ def array_from_wire(value: Mapping[str, Any], *, max_elements: int = DEFAULT_MAX
             {"shape": str(tuple(shape)), "limit": max_elements},
         )
     dtype = _WIRE_DTYPES[dtype_name]
-    if len(data) != count * dtype.itemsize:
-        raise PydanticCustomError(
-            "array_size_mismatch", "array {dtype} {shape} needs {need} bytes, got {got}",
-            {"dtype": dtype_name, "shape": str(tuple(shape)), "need": count * dtype.itemsize, "got": len(data)},
-        )
-    arr = np.frombuffer(data, dtype=dtype).reshape(shape)
+    need = count * dtype.itemsize
+    if "data" in value:
+        data = value["data"]
+        if not isinstance(data, (bytes, bytearray, memoryview)):
+            raise PydanticCustomError("ndarray_wire", "array data must be bytes, got {type}", {"type": type(data).__name__})
+        if len(data) != need:
+            raise PydanticCustomError(
+                "array_size_mismatch", "array {dtype} {shape} needs {need} bytes, got {got}",
+                {"dtype": dtype_name, "shape": str(tuple(shape)), "need": need, "got": len(data)},
+            )
+        arr = np.frombuffer(data, dtype=dtype).reshape(shape)
+    else:
+        offset = value["offset"]
+        if type(offset) is not int or offset < 0:
+            raise PydanticCustomError("ndarray_wire", "array offset must be a non-negative int, got {offset}",
+                                      {"offset": str(offset)[:40]})
+        if arraydata is None:
+            raise PydanticCustomError("ndarray_wire", "array points into arraydata but the message has none", {})
+        if offset + need > len(arraydata):
+            raise PydanticCustomError(
+                "array_size_mismatch", "array {dtype} {shape} needs bytes {start}..{end} of arraydata, which has {got}",
+                {"dtype": dtype_name, "shape": str(tuple(shape)), "start": offset, "end": offset + need,
+                 "got": len(arraydata)},
+            )
+        arr = np.frombuffer(arraydata, dtype=dtype, count=count, offset=offset).reshape(shape)
     if sys.byteorder != "little":  # keep native dtypes for the rest of the code
         arr = arr.astype(dtype.newbyteorder("="))
     return arr
@@ -239,15 +311,15 @@ def array_from_wire(value: Mapping[str, Any], *, max_elements: int = DEFAULT_MAX
 # -------------------------------------------------------------------------------- encode/decode
 
 
-def _to_wire(value: Any) -> Any:
+def _to_wire(value: Any, chunks: _Chunks) -> Any:
     if isinstance(value, np.ndarray):
-        return array_to_wire(value)
+        return array_to_wire(value, chunks)
     if isinstance(value, BaseModel):
-        return {name: _to_wire(getattr(value, name)) for name in type(value).model_fields}
+        return {name: _to_wire(getattr(value, name), chunks) for name in type(value).model_fields}
     if isinstance(value, (list, tuple)):
-        return [_to_wire(v) for v in value]
+        return [_to_wire(v, chunks) for v in value]
     if isinstance(value, dict):
-        return {(k if isinstance(k, str) else str(k)): _to_wire(v) for k, v in value.items()}
+        return {(k if isinstance(k, str) else str(k)): _to_wire(v, chunks) for k, v in value.items()}
     if isinstance(value, np.generic):
         return value.item()
     return value
@@ -259,15 +331,19 @@ def encode(msg: Message, *, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> bytes
     version = getattr(type(msg), "schema_version", None)
     if not isinstance(msg, BaseModel) or not isinstance(schema, str) or not isinstance(version, int):
         raise TypeError(f"encode needs an openfusion.messages.Message with a schema name, got {type(msg).__name__}")
+    chunks = _Chunks()
     try:
-        data = msgpack.packb({"schema": schema, "version": version, "body": _to_wire(msg)}, use_bin_type=True)
+        body = _to_wire(msg, chunks)
+        tail = msgpack.packb({"schema": schema, "version": version, "body": body}, use_bin_type=True)
+    except EncodeError:
+        raise
     except (TypeError, ValueError, OverflowError) as exc:
-        if isinstance(exc, EncodeError):
-            raise
         raise EncodeError(f"cannot encode {schema}: {exc}") from exc
-    if len(data) > max_bytes:
-        raise EncodeError(f"{schema} message is {len(data)} bytes, over the limit of {max_bytes} bytes")
-    return data
+    size = len(_FAST_PREFIX) + 4 + chunks.size + len(tail) - 1
+    if size > max_bytes or chunks.size >= 2**32:
+        raise EncodeError(f"{schema} message is {size} bytes, over the limit of {max_bytes} bytes")
+    # One map of 4: "arraydata" (bin32, first so its bytes start at offset 16) + the 3 entries of tail.
+    return b"".join((_FAST_PREFIX, chunks.size.to_bytes(4, "big"), *chunks.parts, memoryview(tail)[1:]))
 
 
 def _refuse_ext(code: int, data: bytes) -> Any:
@@ -283,19 +359,9 @@ def _as_buffer(data: Any) -> bytes | bytearray | memoryview:
     raise TypeError(f"decode needs bytes (or zenoh.ZBytes), got {type(data).__name__}")
 
 
-def unpack_envelope(
-    data: Any, *, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
-) -> tuple[str, int, dict[str, Any]]:
-    """``(schema, version, body)`` of wire bytes, without validating the body."""
-    buf = _as_buffer(data)
-    if len(buf) > max_bytes:
-        raise DecodeError("too_large", f"payload is {len(buf)} bytes, over the limit of {max_bytes} bytes")
-    if len(buf) == 0:
-        raise DecodeError("truncated", "payload is empty")
+def _unpackb(buf: Any, total: int) -> Any:
     try:
-        envelope = msgpack.unpackb(
-            buf, raw=False, strict_map_key=True, ext_hook=_refuse_ext
-        )
+        return msgpack.unpackb(buf, raw=False, strict_map_key=True, ext_hook=_refuse_ext)
     except msgpack.ExtraData:
         raise DecodeError("not_msgpack", "trailing bytes after the msgpack message") from None
     except (ValueError, TypeError, msgpack.UnpackException) as exc:
@@ -303,17 +369,50 @@ def unpack_envelope(
         # msgpack bounds declared lengths by the buffer size ("3 exceeds max_map_len(0)"):
         # a length the rest of the buffer cannot hold means the payload was cut off.
         if "incomplete input" in text or "exceeds max_" in text:
-            raise DecodeError("truncated", f"payload of {len(buf)} bytes is cut off") from None
+            raise DecodeError("truncated", f"payload of {total} bytes is cut off") from None
         raise DecodeError("not_msgpack", f"payload is not valid msgpack ({type(exc).__name__}: {text})") from None
+
+
+def unpack_envelope(
+    data: Any, *, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
+) -> tuple[str, int, dict[str, Any], memoryview | None]:
+    """``(schema, version, body, arraydata)`` of wire bytes, without validating the body.
+
+    Fast path for what :func:`encode` writes (``arraydata`` first): only the small rest of the
+    map goes through msgpack and ``arraydata`` is a view on ``data``. Any other key order (other
+    msgpack writers) is decoded generically.
+    """
+    buf = _as_buffer(data)
+    total = len(buf)
+    if total > max_bytes:
+        raise DecodeError("too_large", f"payload is {total} bytes, over the limit of {max_bytes} bytes")
+    if total == 0:
+        raise DecodeError("truncated", "payload is empty")
+    arraydata: memoryview | None = None
+    head = len(_FAST_PREFIX) + 4
+    if total >= head and buf[: len(_FAST_PREFIX)] == _FAST_PREFIX:
+        view = memoryview(buf)
+        n = int.from_bytes(view[len(_FAST_PREFIX) : head], "big")
+        if head + n > total:
+            raise DecodeError("truncated", f"payload of {total} bytes is cut off (arraydata needs {n} bytes)")
+        arraydata = view[head : head + n]
+        envelope = _unpackb(b"\x83" + view[head + n :].tobytes(), total)
+    else:
+        envelope = _unpackb(buf, total)
+        if isinstance(envelope, dict) and _ARRAYDATA in envelope:
+            blob = envelope.pop(_ARRAYDATA)
+            if not isinstance(blob, bytes):
+                raise DecodeError("bad_envelope", f"{_ARRAYDATA} must be bytes, got {type(blob).__name__}")
+            arraydata = memoryview(blob)
     if not isinstance(envelope, dict) or set(envelope.keys()) != {"schema", "version", "body"}:
-        got = sorted(envelope.keys()) if isinstance(envelope, dict) else type(envelope).__name__
-        raise DecodeError("bad_envelope", f"expected a map with keys schema, version, body; got {got}")
+        got = sorted(map(str, envelope.keys())) if isinstance(envelope, dict) else type(envelope).__name__
+        raise DecodeError("bad_envelope", f"expected a map with keys schema, version, body (and {_ARRAYDATA}); got {got}")
     schema, version, body = envelope["schema"], envelope["version"], envelope["body"]
     if not isinstance(schema, str) or type(version) is not int:
         raise DecodeError("bad_envelope", "schema must be a string and version an int")
     if not isinstance(body, dict):
         raise DecodeError("invalid_fields", f"body must be a map, got {type(body).__name__}", schema=schema)
-    return schema, version, body
+    return schema, version, body, arraydata
 
 
 def decode(
@@ -330,7 +429,7 @@ def decode(
     """
     from openfusion.messages import message_class
 
-    schema, version, body = unpack_envelope(data, max_bytes=max_bytes)
+    schema, version, body, arraydata = unpack_envelope(data, max_bytes=max_bytes)
     if expected is not None and schema != expected.schema_name:
         raise DecodeError(
             "unexpected_schema", f"expected {expected.schema_name} v{expected.schema_version}, got {schema}",
@@ -345,7 +444,8 @@ def decode(
             schema=schema,
         )
     try:
-        return cls.model_validate(body, context={"max_array_elements": max_array_elements})  # type: ignore[return-value]
+        context = {"max_array_elements": max_array_elements, "arraydata": arraydata}
+        return cls.model_validate(body, context=context)  # type: ignore[return-value]
     except ValidationError as exc:
         errors = exc.errors(include_url=False, include_input=False)
         for err in errors:
