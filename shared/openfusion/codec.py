@@ -373,7 +373,14 @@ def _unpackb(buf: Any, total: int) -> Any:
         raise DecodeError("not_msgpack", f"payload is not valid msgpack ({type(exc).__name__}: {text})") from None
 
 
-def unpack_envelope(
+def unpack_envelope(data: Any, *, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> tuple[str, int, dict[str, Any]]:
+    """``(schema, version, body)`` of wire bytes, without validating the body (a cheap peek at
+    the schema; array fields are left as their wire maps)."""
+    schema, version, body, _ = _unpack(data, max_bytes=max_bytes)
+    return schema, version, body
+
+
+def _unpack(
     data: Any, *, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES
 ) -> tuple[str, int, dict[str, Any], memoryview | None]:
     """``(schema, version, body, arraydata)`` of wire bytes, without validating the body.
@@ -429,7 +436,7 @@ def decode(
     """
     from openfusion.messages import message_class
 
-    schema, version, body, arraydata = unpack_envelope(data, max_bytes=max_bytes)
+    schema, version, body, arraydata = _unpack(data, max_bytes=max_bytes)
     if expected is not None and schema != expected.schema_name:
         raise DecodeError(
             "unexpected_schema", f"expected {expected.schema_name} v{expected.schema_version}, got {schema}",
