@@ -4,6 +4,7 @@ Specs::
 
     synthetic[:seed=N,frames=N,width=W,height=H,fps=F,noise=0|1,lap=N]
     scannet:PATH   replica:PATH   tum:PATH   redwood:PATH   folder:PATH   replay:FILE
+    live:kinect-t265   (Azure Kinect + T265; optional extra 'live')
 
 ``options`` are keyword arguments of the reader class (e.g. ``stride=2``, ``max_frames=100``,
 ``intrinsics=...``); readers are imported only when their scheme is used.
@@ -53,6 +54,14 @@ def _replay(rest: str, options: dict[str, Any]) -> FrameSource:
     return ReplaySource(path, **options)
 
 
+def _live(rest: str, options: dict[str, Any]) -> FrameSource:
+    if rest not in ("", "kinect-t265"):
+        raise ValueError(f"unknown live device set {rest!r}; supported: live:kinect-t265")
+    from openfusion.sources.live import KinectT265Source
+
+    return KinectT265Source(**options)
+
+
 _SCHEMES: dict[str, Callable[[str, dict[str, Any]], FrameSource]] = {
     "synthetic": _synthetic,
     "scannet": _path_reader("scannet", "ScanNetSource"),
@@ -61,6 +70,7 @@ _SCHEMES: dict[str, Callable[[str, dict[str, Any]], FrameSource]] = {
     "redwood": _path_reader("redwood", "RedwoodSource"),
     "folder": _path_reader("folder", "FolderSource"),
     "replay": _replay,
+    "live": _live,
 }
 
 SCHEMES: tuple[str, ...] = tuple(_SCHEMES)
