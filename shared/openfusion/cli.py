@@ -243,7 +243,9 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from openfusion.bus import BusError, QueryError
     from openfusion.codec import DecodeError
 
-    return (CliError, ConfigError, BusError, QueryError, DecodeError, zenoh.ZError)
+    # ValueError / OSError: the library's way of refusing bad input (an unknown source spec, a
+    # missing file, a port in use); shown as one line, with OPENFUSION_DEBUG=1 for the traceback.
+    return (CliError, ConfigError, BusError, QueryError, DecodeError, zenoh.ZError, ValueError, OSError)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -264,6 +266,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         code = exc.exit_code if isinstance(exc, CliError) else 2 if isinstance(exc, ConfigError) else 1
         message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        if not isinstance(exc, _user_errors()[:6]):  # a generic ValueError/OSError: say how to see more
+            message += " (OPENFUSION_DEBUG=1 shows the traceback)"
         print(f"openfusion {args.command}: error: {message}", file=sys.stderr)
         return code
 
