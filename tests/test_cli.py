@@ -128,3 +128,28 @@ def test_registry_skips_missing_modules_and_loads_only_the_chosen_one(monkeypatc
     code = "import sys; from openfusion.cli import main; main(['version']); print('torch' in sys.modules)"
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=subprocess_env())
     assert proc.stdout.strip().splitlines()[-1] == "False"
+
+
+class _FailingCommand:
+    """A subcommand whose library call refuses bad input with a plain ValueError."""
+
+    @staticmethod
+    def add_arguments(parser) -> None:
+        parser.add_argument("--spec", default="nosuch:/x")
+
+    @staticmethod
+    def run(args) -> int:
+        raise ValueError(f"unknown source scheme in {args.spec!r}")
+
+
+def test_library_value_errors_are_one_line_with_a_debug_hint(monkeypatch, capsys) -> None:
+    """A ValueError from library code (bad user input) ends as one stderr line, exit 1, and
+    OPENFUSION_DEBUG=1 brings the traceback back."""
+    monkeypatch.setattr(cli, "SUBCOMMANDS", [cli.Subcommand("failing", f"{__name__}:_FailingCommand", "fails")])
+    monkeypatch.delenv("OPENFUSION_DEBUG", raising=False)
+    assert cli.main(["failing"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["openfusion failing: error: unknown source scheme in 'nosuch:/x' (OPENFUSION_DEBUG=1 shows the traceback)"]
+    monkeypatch.setenv("OPENFUSION_DEBUG", "1")
+    with pytest.raises(ValueError, match="unknown source scheme"):
+        cli.main(["failing"])
