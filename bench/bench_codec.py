@@ -289,7 +289,9 @@ def bench_two_processes(mode: str, duration_s: float) -> dict[str, Any]:
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="CI-sized run")
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_true", help="CI-sized run")
+    size.add_argument("--full", action="store_true", help="full-size run (the default)")
     parser.add_argument("--role", choices=["main", "pub", "sub"], default="main", help=argparse.SUPPRESS)
     parser.add_argument("--mode", choices=["codec", "raw"], default="codec", help=argparse.SUPPRESS)
     parser.add_argument("--port", type=int, default=0, help=argparse.SUPPRESS)
