@@ -66,11 +66,11 @@ EXAMPLES: dict[str, m.Message] = {
     ),
     "semantic.dictionary_request": m.DictionaryRequest(),
     "semantic.dictionary": m.DictionarySnapshot(
-        embedding_space="minilm-l6-v2", dim=4, version=9, keys=np.array([1, 2], np.int32),
+        embedding_space="minilm-l6-v2", dim=4, version=9, next_key=3, keys=np.array([1, 2], np.int32),
         embeddings=_f32(2, 4), counts=np.array([3, 1], np.int64), labels=["chair", ""],
     ),
     "semantic.dictionary_delta": m.DictionaryDelta(
-        embedding_space="minilm-l6-v2", dim=4, version=10, prev_version=9, keys=np.array([2], np.int32),
+        embedding_space="minilm-l6-v2", dim=4, version=10, prev_version=9, next_key=7, keys=np.array([2], np.int32),
         embeddings=_f32(1, 4), counts=np.array([2], np.int64), labels=["table"],
         removed_keys=np.array([5, 6], np.int32), merged_into=np.array([2, -1], np.int32),
     ),

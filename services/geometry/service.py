@@ -32,7 +32,8 @@ from pydantic import Field
 
 from openfusion.bus import RequestError, ServiceRunner
 from openfusion.config import ConfigSection, ServiceConfig
-from openfusion.mapping import CapacityError, SemanticVolume, VolumeParams, load_map, save_map
+from openfusion.mapping import CapacityError, RegionDictionary, SemanticVolume, VolumeParams, load_map, save_map
+from openfusion.mapping.mapfile import resolve_map_path
 from openfusion.messages import (
     ControlReply,
     ControlRequest,
@@ -52,6 +53,8 @@ from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_sync import DictionaryReplica
 
 logger = logging.getLogger(__name__)
+
+NO_EMBEDDING_SPACE = "none"
 
 
 class GeometrySection(ConfigSection):
@@ -111,7 +114,8 @@ class GeometryService:
             self.section.map_dir / config.map_id if self.section.map_dir is not None else None
         )
         self._runner: ServiceRunner | None = None
-        if self.section.load_on_start and self.checkpoint_dir is not None and self.checkpoint_dir.exists():
+        if (self.section.load_on_start and self.checkpoint_dir is not None
+                and resolve_map_path(self.checkpoint_dir).exists()):
             self._load(self.checkpoint_dir)
 
     # ------------------------------------------------------------------ state changes
@@ -119,7 +123,8 @@ class GeometryService:
         loaded = load_map(path, device=self.section.device)
         with self._lock:
             self.volume = loaded.volume
-            self.replica.reset(loaded.dictionary)
+            has_semantics = loaded.dictionary.embedding_space != NO_EMBEDDING_SPACE
+            self.replica.reset(loaded.dictionary if has_semantics else None)
             self._dirty = False
         logger.info("geometry: loaded map %s (%d blocks, %d regions)", path, self.volume.num_blocks,
                     len(loaded.dictionary) if loaded.dictionary is not None else 0)
@@ -129,13 +134,15 @@ class GeometryService:
         if target is None:
             raise RequestError("no_map_dir", "no path given and the geometry service has no map_dir configured")
         with self._lock:
-            save_map(target, self.volume, self.replica.dictionary,
-                     meta={"map_id": self.config.map_id, "frames_integrated": self.frames_integrated})
+            # A geometry-only map (semantics off) is saved with an empty placeholder dictionary.
+            dictionary = self.replica.dictionary or RegionDictionary(NO_EMBEDDING_SPACE, 1)
+            written = save_map(target, self.volume, dictionary,
+                               meta={"map_id": self.config.map_id, "frames_integrated": self.frames_integrated})
             self._dirty = False
         self._last_checkpoint = time.monotonic()
         self._count("checkpoints")
-        logger.info("geometry: saved map to %s", target)
-        return target
+        logger.info("geometry: saved map to %s", written)
+        return written
 
     def _count(self, name: str, by: float = 1.0) -> None:
         if self._runner is not None:
@@ -165,7 +172,7 @@ class GeometryService:
     def on_update(self, msg: SemanticUpdate) -> None:
         check_update(msg)
         with self._lock:
-            self.volume.apply_update(msg.T_world_cam, msg.intrinsics(), msg.key_map, msg.conf_map)
+            self.volume.apply_update(msg.T_world_cam, msg.intrinsics, msg.key_map, msg.conf_map)
             self.updates_applied += 1
             self._dirty = True
         self._count("updates_applied")
@@ -173,10 +180,13 @@ class GeometryService:
             self._runner.stats.set("last_update_frame_id", msg.frame_id)
 
     def on_delta(self, msg: DictionaryDelta) -> None:
+        merges = self.replica.merges_of(msg)
         if not self.replica.apply_delta(msg):
             self._count("dictionary_resyncs")
             self._resync_dictionary()
         with self._lock:
+            if merges:
+                self.volume.relabel_keys(merges)
             self._dirty = True
 
     def _resync_dictionary(self) -> None:
@@ -193,7 +203,7 @@ class GeometryService:
                 "too_large", f"render of {req.width_px}x{req.height_px} exceeds max_render_pixels={self.section.max_render_pixels}"
             )
         with self._lock:
-            view = self.volume.render(req.T_world_cam, req.intrinsics())
+            view = self.volume.render(req.T_world_cam, req.intrinsics)
         return RenderReply(frame_id=req.frame_id, key_map=view.key_map, conf_map=view.conf_map, depth_m=view.depth_m)
 
     def _points_cap(self, requested: int | None) -> int:
@@ -221,8 +231,8 @@ class GeometryService:
                 f"mesh has {len(mesh.vertices)} vertices, over max_points_reply={self.section.max_points_reply}; "
                 "ask for fewer keys",
             )
-        return MeshReply(vertices=mesh.vertices, triangles=mesh.triangles, vertex_colors=mesh.vertex_colors,
-                         vertex_keys=mesh.vertex_keys)
+        return MeshReply(vertices=mesh.vertices, triangles=mesh.triangles, vertex_colors=mesh.colors,
+                         vertex_keys=mesh.keys)
 
     def handle_dictionary(self, _req: DictionaryRequest) -> DictionarySnapshot:
         snap = self.replica.snapshot_message()
@@ -238,7 +248,7 @@ class GeometryService:
             return ControlReply(ok=True, message=f"saved to {path}")
         if action == "load":
             path = Path(req.path) if req.path else self.checkpoint_dir
-            if path is None or not path.exists():
+            if path is None or not resolve_map_path(path).exists():
                 raise RequestError("not_found", f"no map at {path}")
             self._load(path)
             return ControlReply(ok=True, message=f"loaded {path}")

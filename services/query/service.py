@@ -159,7 +159,7 @@ class QueryService:
               space: str, query: str) -> QueryReply:
         ranked = self.replica.top_k(vector, top_k)
         points = self._points_of([k for k, _ in ranked], self.section.max_points_reply)
-        hits = region_hits(ranked, self.replica.labels(), points, with_points=with_points, max_points=max_points)
+        hits = region_hits(ranked, self.replica.labels_for([k for k, _ in ranked]), points, with_points=with_points, max_points=max_points)
         return QueryReply(embedding_space=space, query=query, regions=hits)
 
     def handle_text(self, req: TextQuery) -> QueryReply:
@@ -204,7 +204,7 @@ class QueryService:
         order = np.argsort(-counts)[: req.top_k]
         total = max(int(near.sum()), 1)
         ranked = [(int(keys[i]), float(counts[i]) / total) for i in order]
-        hits = region_hits(ranked, self.replica.labels(), points, with_points=req.with_points,
+        hits = region_hits(ranked, self.replica.labels_for([k for k, _ in ranked]), points, with_points=req.with_points,
                            max_points=req.max_points)
         self._note(started)
         x, y, z = (float(v) for v in req.point_world)

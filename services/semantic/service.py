@@ -24,6 +24,8 @@ import logging
 import time
 from typing import Any
 
+import numpy as np
+
 from pydantic import Field
 
 from openfusion.bus import Publisher, QueryError, ServiceRunner, Subscriber, get
@@ -149,7 +151,8 @@ class SemanticService:
             self._published_version = self.dictionary.version
         self._update_pub.put(SemanticUpdate(
             frame_id=frame.frame_id, T_world_cam=frame.T_world_cam, **SemanticUpdate.intrinsics_fields(K_small),
-            key_map=planned.key_map, conf_map=planned.conf_map, new_keys=planned.new_keys))
+            key_map=planned.key_map, conf_map=planned.conf_map,
+            new_keys=np.array([key for _, key in planned.new_keys], np.int32)))
         stats = runner.stats
         stats.record(time.monotonic() - started)
         stats.incr("semantic_frames")

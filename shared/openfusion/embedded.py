@@ -131,32 +131,45 @@ def wait_for_services(client: Any, cluster: Cluster, names: set[str], timeout_s:
         time.sleep(0.3)
 
 
-def _write_outputs(out: Path, *, queries: list[dict[str, Any]], mesh: Any | None) -> None:
+def write_query_outputs(
+    out: Path,
+    replies: list[tuple[str, str, list[Any]]],
+    mesh: tuple[Any, Any, Any, Any] | Any | None,
+    *,
+    say: Any = None,
+) -> list[dict[str, Any]]:
+    """Write ``queries.json``, ``query_<i>.ply`` (points of each query's best region) and
+    ``mesh.ply`` (vertex colour + region key). ``replies``: (query, embedding space, ranked hits with
+    key/score/label/bbox_min/bbox_max/num_points/points); ``mesh``: a SurfaceMesh-like object or
+    (vertices, triangles, colors, keys)."""
     from openfusion.eval.ply import write_ply_vertices
 
-    (out / "queries.json").write_text(json.dumps(queries, indent=2))
-    if mesh is not None and len(mesh.vertices):
-        write_ply_vertices(out / "mesh.ply", {
-            "x": mesh.vertices[:, 0], "y": mesh.vertices[:, 1], "z": mesh.vertices[:, 2],
-            "red": mesh.vertex_colors[:, 0], "green": mesh.vertex_colors[:, 1], "blue": mesh.vertex_colors[:, 2],
-            "key": mesh.vertex_keys.astype("int32")}, faces=mesh.triangles)
-
-
-def _query_record(text: str, reply: Any, out: Path, index: int) -> dict[str, Any]:
-    from openfusion.eval.ply import write_ply_vertices
-
-    regions = []
-    for r in reply.regions:
-        regions.append({"key": r.key, "score": round(r.score, 4), "label": r.label, "num_points": r.num_points,
-                        "bbox_min": [round(float(v), 3) for v in r.bbox_min],
-                        "bbox_max": [round(float(v), 3) for v in r.bbox_max]})
-    record: dict[str, Any] = {"query": text, "embedding_space": reply.embedding_space, "regions": regions}
-    if reply.regions and reply.regions[0].points is not None and len(reply.regions[0].points):
-        p = reply.regions[0].points
-        path = out / f"query_{index}.ply"
-        write_ply_vertices(path, {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2]})
-        record["points_file"] = path.name
-    return record
+    records = []
+    for i, (text, space, hits) in enumerate(replies):
+        regions = [{"key": int(r.key), "score": round(float(r.score), 4), "label": r.label,
+                    "num_points": int(r.num_points),
+                    "bbox_min": [round(float(v), 3) for v in r.bbox_min],
+                    "bbox_max": [round(float(v), 3) for v in r.bbox_max]} for r in hits]
+        record: dict[str, Any] = {"query": text, "embedding_space": space, "regions": regions}
+        if hits and hits[0].points is not None and len(hits[0].points):
+            p = hits[0].points
+            write_ply_vertices(out / f"query_{i}.ply", {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2]})
+            record["points_file"] = f"query_{i}.ply"
+        records.append(record)
+        if say is not None:
+            best = hits[0] if hits else None
+            say(f"query {text!r}: " + (f"region {best.key} ({best.label or '?'}) score {best.score:.3f}, "
+                                        f"{best.num_points} points" if best else "no region"))
+    (out / "queries.json").write_text(json.dumps(records, indent=2))
+    if mesh is not None:
+        vertices, triangles, colors, keys = (mesh if isinstance(mesh, tuple)
+                                             else (mesh.vertices, mesh.triangles, mesh.colors, mesh.keys))
+        if len(vertices):
+            write_ply_vertices(out / "mesh.ply", {
+                "x": vertices[:, 0], "y": vertices[:, 1], "z": vertices[:, 2],
+                "red": colors[:, 0], "green": colors[:, 1], "blue": colors[:, 2],
+                "key": keys.astype("int32")}, faces=triangles)
+    return records
 
 
 def run_services(args: argparse.Namespace) -> dict[str, Any]:
@@ -195,15 +208,13 @@ def run_services(args: argparse.Namespace) -> dict[str, Any]:
         stats = _follow_progress(args, client, cluster)
         _say(args, "saving the map")
         client.control("save", str((out / "map").resolve()))
-        queries = []
-        for i, text in enumerate(args.queries):
+        replies = []
+        for text in args.queries:
             reply = client.query_text(text, top_k=args.top_k, with_points=True, max_points=50_000)
-            queries.append(_query_record(text, reply, out, i))
-            best = reply.regions[0] if reply.regions else None
-            _say(args, f"query {text!r}: " + (f"region {best.key} ({best.label or '?'}) score {best.score:.3f}, "
-                                                f"{best.num_points} points" if best else "no region"))
+            replies.append((text, reply.embedding_space, reply.regions))
         mesh = client.mesh()
-        _write_outputs(out, queries=queries, mesh=mesh)
+        write_query_outputs(out, replies, (mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys),
+                            say=None if args.quiet else (lambda t: _say(args, t)))
         summary = _summary(args, stats, time.monotonic() - started)
     finally:
         cluster.stop()

@@ -321,7 +321,8 @@ class DictionaryRequest(Message):
 
 
 class DictionarySnapshot(Message):
-    """The whole region dictionary: key -> running-mean embedding, observation count, label ("" = none)."""
+    """The whole region dictionary: key -> running-mean embedding (not normalised), observation
+    count, label ("" = none); ``next_key`` is the key the owner allocates next."""
 
     schema_name: ClassVar[str] = "semantic.dictionary"
     schema_version: ClassVar[int] = 1
@@ -329,6 +330,7 @@ class DictionarySnapshot(Message):
     embedding_space: str = Field(min_length=1)
     dim: int = Field(gt=0)
     version: int = Field(ge=0)
+    next_key: int = Field(ge=0)
     keys: KeyList
     embeddings: ndarray("float32", shape=(None, None))
     counts: ndarray("int64", shape=(None,))
@@ -353,6 +355,7 @@ class DictionaryDelta(Message):
     dim: int = Field(gt=0)
     version: int = Field(ge=0)
     prev_version: int = Field(ge=0)
+    next_key: int = Field(ge=0)
     keys: KeyList
     embeddings: ndarray("float32", shape=(None, None))
     counts: ndarray("int64", shape=(None,))
