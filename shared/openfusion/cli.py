@@ -73,8 +73,9 @@ SUBCOMMANDS: list[Subcommand] = [
     Subcommand("version", "openfusion.cli:VersionCommand", "print the version of openfusion-z and its bus"),
     Subcommand("router", "openfusion.cli:RouterCommand", "run a Zenoh router (Python session in router mode)"),
     Subcommand("health", "openfusion.cli:HealthCommand", "list the live services of a map and their stats"),
-    # Later subcommands register here (their modules are imported only when chosen), e.g.
-    # Subcommand("service", "openfusion.services.cli:ServiceCommand", "run one service"),
+    Subcommand("service", "openfusion.services.cli:ServiceCommand", "run one service (bridge, geometry, semantic, query)"),
+    Subcommand("run", "openfusion.embedded:RunCommand", "run everything on this machine: services, synthetic scene, queries"),
+    # Later subcommands register here (their modules are imported only when chosen).
 ]
 
 
@@ -157,6 +158,10 @@ class HealthCommand:
         add_config_arguments(parser)
         parser.add_argument("--timeout", type=float, default=3.0, metavar="S", help="wait up to S seconds (default 3)")
         parser.add_argument("--json", action="store_true", help="print JSON")
+        parser.add_argument(
+            "--require", action="append", default=[], metavar="SERVICE",
+            help="exit 0 only when this service is alive (repeatable; for container health checks)",
+        )
 
     @staticmethod
     def run(args: argparse.Namespace) -> int:
@@ -174,7 +179,8 @@ class HealthCommand:
             while True:
                 remaining = deadline - time.monotonic()
                 live = live_services(session, keys, timeout_s=max(0.1, min(1.0, remaining)))
-                if live or time.monotonic() >= deadline:
+                satisfied = set(args.require) <= set(live) if args.require else bool(live)
+                if satisfied or time.monotonic() >= deadline:
                     break
                 time.sleep(0.1)
             stats = collect_health(session, keys, timeout_s=max(0.5, deadline - time.monotonic())) if live else {}
@@ -190,6 +196,9 @@ class HealthCommand:
             print(_health_table(live, stats))
         if not live:
             raise CliError(f"no live services on map {keys.map_id!r} (waited {args.timeout:g} s)")
+        missing = sorted(set(args.require) - set(live))
+        if missing:
+            raise CliError(f"required service(s) not alive on map {keys.map_id!r}: {', '.join(missing)}")
         return 0
 
 

@@ -157,6 +157,12 @@ class KeySpace:
         """queryable: MeshRequest -> MeshReply."""
         return self.key("geometry", "mesh")
 
+    @property
+    def geometry_dictionary(self) -> str:
+        """queryable: DictionaryRequest -> DictionarySnapshot of the dictionary the geometry
+        service checkpoints with the volume (the semantic service recovers from it on restart)."""
+        return self.key("geometry", "dictionary")
+
     # semantic
     @property
     def semantic_update(self) -> str:
