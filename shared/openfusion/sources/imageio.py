@@ -82,15 +82,14 @@ def read_label_image(path: Path, *, what: str, size: tuple[int, int] | None = No
             img.load()
         except _PIL_ERRORS as exc:
             raise SkipFrame(f"unreadable_{what}", f"cannot decode {what} image {path}: {exc}") from exc
-        if img.mode in ("L", "P"):
-            arr = np.asarray(img).astype(np.int32)
-        elif img.mode.startswith("I"):
-            arr = _gray_to_array(img, path, what).astype(np.int32)
-        else:
+        if img.mode not in ("L", "P") and not img.mode.startswith("I"):
             raise SkipFrame(f"{what}_dtype", f"{what} image {path} has mode {img.mode!r}, expected 8/16-bit single channel")
-    if size is not None and (arr.shape[1], arr.shape[0]) != size:
-        arr = resize_nearest(arr, size)
-    return arr
+        if size is not None and img.size != size:
+            # Pillow's nearest uses the same pixel-centre mapping as resize_nearest, in C
+            img = img.resize(size, Image.Resampling.NEAREST)
+        if img.mode in ("L", "P"):
+            return np.asarray(img).astype(np.int32)
+        return _gray_to_array(img, path, what).astype(np.int32)
 
 
 def resize_nearest(arr: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -93,21 +93,28 @@ def find_label_tsv(scene_dir: Path) -> Path | None:
 
 def majority_labels(instance: np.ndarray, label: np.ndarray) -> dict[int, int]:
     """Instance id -> most frequent label over its pixels (label 0 only if nothing else)."""
-    inst = instance.ravel().astype(np.int64)
-    lab = label.ravel().astype(np.int64)
-    mask = inst > 0
-    if not mask.any():
+    inst = instance.ravel()
+    lab = label.ravel()
+    if inst.size == 0 or inst.max() <= 0:
         return {}
-    inst, lab = inst[mask], lab[mask]
-    ids, inst_idx = np.unique(inst, return_inverse=True)
+    if inst.min() < 0 or lab.min() < 0:
+        raise ValueError("instance and label ids must be >= 0")
+    # dense index per instance id present (no sort: bincount + look-up table)
+    present = np.flatnonzero(np.bincount(inst))
+    present = present[present > 0]
+    dense = np.full(int(inst.max()) + 1, -1, dtype=np.int64)
+    dense[present] = np.arange(present.size)
+    idx = dense[inst]
+    mask = idx >= 0
     n_labels = int(lab.max()) + 1
-    counts = np.bincount(inst_idx * n_labels + lab, minlength=len(ids) * n_labels).reshape(len(ids), n_labels)
+    counts = np.bincount(idx[mask] * n_labels + lab[mask], minlength=present.size * n_labels)
+    counts = counts.reshape(present.size, n_labels)
     if n_labels > 1:
-        counts_annotated = counts[:, 1:]
-        best = np.where(counts_annotated.max(axis=1) > 0, counts_annotated.argmax(axis=1) + 1, 0)
+        annotated = counts[:, 1:]
+        best = np.where(annotated.max(axis=1) > 0, annotated.argmax(axis=1) + 1, 0)
     else:
-        best = np.zeros(len(ids), dtype=np.int64)
-    return {int(i): int(b) for i, b in zip(ids, best, strict=True)}
+        best = np.zeros(present.size, dtype=np.int64)
+    return {int(i): int(b) for i, b in zip(present, best, strict=True)}
 
 
 def _stems(folder: Path, exts: tuple[str, ...]) -> dict[int, Path]:
