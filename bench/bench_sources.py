@@ -24,6 +24,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 from PIL import Image
 
 COLOR_SIZE = (1296, 968)
@@ -105,7 +106,6 @@ def bench_scannet(root: Path, frames: int, repeats: int) -> list[tuple[str, floa
 
 
 def bench_synthetic(frames: int, repeats: int) -> list[tuple[str, float, str, float]]:
-    import open3d as o3d
     from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld, _pixel_rays
 
     world = SyntheticWorld(0)
@@ -124,7 +124,8 @@ def bench_synthetic(frames: int, repeats: int) -> list[tuple[str, float, str, fl
             clean.frame_at(i)
         return frames
 
-    dirs, _ = _pixel_rays(src.intrinsics)
+    ux, uy, _ = _pixel_rays(src.intrinsics)
+    dirs = np.stack([ux, uy, np.ones_like(ux)], axis=-1)
     rays = []
     for T in src.poses:
         r = np.empty((480, 640, 6), np.float32)

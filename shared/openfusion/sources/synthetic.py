@@ -610,7 +610,7 @@ class SyntheticWorld:
 
     def _build_luts(self) -> None:
         """One Embree geometry with every triangle; per-triangle look-up tables for shading."""
-        verts, tris, inst, rgb, tex = [], [], [], [], []
+        verts, tris, inst, part_ids, tex, part_rgb = [], [], [], [], [], []
         offset = 0
         for obj in self.objects:
             for part in obj.parts:
@@ -619,7 +619,8 @@ class SyntheticWorld:
                 offset += len(part.vertices)
                 n = len(part.triangles)
                 inst.append(np.full(n, obj.instance_id, dtype=np.int32))
-                rgb.append(np.tile(np.asarray(part.rgb, dtype=np.float32) * 255.0, (n, 1)))
+                part_ids.append(np.full(n, len(part_rgb), dtype=np.int32))
+                part_rgb.append(part.rgb)
                 tex.append(np.full(n, _TEXTURES.index(part.texture), dtype=np.int32))
         V = np.concatenate(verts)
         F = np.concatenate(tris)
@@ -632,7 +633,13 @@ class SyntheticWorld:
         light /= np.linalg.norm(light)
         # the last entry of every table stands for "miss" (primitive id INVALID_ID clipped to it)
         self._lut_instance = np.concatenate(inst + [np.zeros(1, np.int32)])
-        self._lut_rgb = np.concatenate(rgb + [np.zeros((1, 3), np.float32)])
+        # color = table[part, intensity level]: one uint8 gather per pixel instead of float math;
+        # levels are intensity in steps of 1/128 (intensity runs from 0 to about 1.6)
+        self._lut_part = np.concatenate(part_ids + [np.full(1, len(part_rgb), np.int32)]) * np.int32(_LEVELS)
+        base = np.array(part_rgb + [(0.0, 0.0, 0.0)], dtype=np.float64) * 255.0
+        levels = np.arange(_LEVELS, dtype=np.float64) / _LEVEL_SCALE
+        table = np.clip(base[:, None, :] * levels[None, :, None] + 0.5, 0, 255).astype(np.uint8)
+        self._color_table = table.reshape(-1, 3)
         self._lut_tex = np.concatenate(tex + [np.zeros(1, np.int32)]) * np.int32(_TEX_SIZE * _TEX_SIZE)
         self._lut_axis = np.append(np.argmax(np.abs(normals), axis=1), 2).astype(np.int8)
         self._lut_lambert = np.append(0.55 + 0.30 * np.maximum(normals @ light, 0.0), 0.0).astype(np.float32)
@@ -688,14 +695,18 @@ class SyntheticWorld:
     def render(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> RenderedView:
         """Noise-free render from ``T_world_cam`` (OpenCV camera axes)."""
         scene = self.scene
-        dirs_cam, inv_len = _pixel_rays(intrinsics)
+        ux, uy, inv_len = _pixel_rays(intrinsics)
         T = np.asarray(T_world_cam, dtype=np.float64)
         R = T[:3, :3].astype(np.float32)
         origin = T[:3, 3].astype(np.float32)
         h, w = intrinsics.height_px, intrinsics.width_px
         rays = np.empty((h, w, 6), dtype=np.float32)
         rays[..., :3] = origin
-        np.matmul(dirs_cam, R.T, out=rays[..., 3:])
+        for k in range(3):
+            plane = ux * R[k, 0]
+            plane += uy * R[k, 1]
+            plane += R[k, 2]
+            rays[..., 3 + k] = plane
         ans = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
         tri = np.minimum(ans["primitive_ids"].numpy(), np.uint32(len(self._lut_instance) - 1))
         t_hit = ans["t_hit"].numpy()
@@ -717,9 +728,11 @@ class SyntheticWorld:
         u += v
         u += self._lut_tex[tri]
         intensity = self._atlas[u] * (self._lut_lambert[tri] + np.float32(0.15) * view_cos)
-        rgb = self._lut_rgb[tri] * intensity[..., None]
-        np.minimum(rgb, np.float32(255.0), out=rgb)
-        color = rgb.astype(np.uint8)
+        intensity *= np.float32(_LEVEL_SCALE)
+        np.minimum(intensity, np.float32(_LEVELS - 1), out=intensity)
+        index = intensity.astype(np.int32)
+        index += self._lut_part[tri]
+        color = self._color_table[index]
         return RenderedView(color=color, depth_m=depth, instance=self._lut_instance[tri], view_cos=view_cos)
 
     # ----------------------------------------------------------------------- ground truth
@@ -832,6 +845,8 @@ class SyntheticWorld:
 
 _TEX_SIZE = 256
 _TEXEL_M = 0.01
+_LEVELS = 256
+_LEVEL_SCALE = 128.0
 
 
 def _smooth_noise(rng: np.random.Generator, cells: int) -> np.ndarray:
@@ -872,19 +887,20 @@ def _texture_atlas() -> np.ndarray:
     return np.stack([np.broadcast_to(out[name], (_TEX_SIZE, _TEX_SIZE)) for name in _TEXTURES]).astype(np.float32)
 
 
-_RAY_CACHE: dict[CameraIntrinsics, tuple[np.ndarray, np.ndarray]] = {}
+_RAY_CACHE: dict[CameraIntrinsics, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
 
-def _pixel_rays(intrinsics: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """(h, w, 3) float32 camera-frame ray directions with z = 1 (so t_hit is the z depth) and
-    the (h, w) inverse of their lengths (rotation keeps lengths, so it holds in the world)."""
+def _pixel_rays(intrinsics: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera-frame ray directions ``(ux, uy, 1)`` per pixel (z = 1, so t_hit is the z depth):
+    contiguous (h, w) float32 ``ux``, ``uy`` and the inverse ray lengths (rotation keeps
+    lengths, so they hold in the world too)."""
     cached = _RAY_CACHE.get(intrinsics)
     if cached is None:
         u = (np.arange(intrinsics.width_px, dtype=np.float64) - intrinsics.cx) / intrinsics.fx
         v = (np.arange(intrinsics.height_px, dtype=np.float64) - intrinsics.cy) / intrinsics.fy
         uu, vv = np.meshgrid(u, v)
-        rays = np.stack([uu, vv, np.ones_like(uu)], axis=-1)
-        cached = (rays.astype(np.float32), (1.0 / np.linalg.norm(rays, axis=-1)).astype(np.float32))
+        inv_len = 1.0 / np.sqrt(uu * uu + vv * vv + 1.0)
+        cached = (uu.astype(np.float32), vv.astype(np.float32), inv_len.astype(np.float32))
         if len(_RAY_CACHE) > 8:
             _RAY_CACHE.clear()
         _RAY_CACHE[intrinsics] = cached
@@ -975,8 +991,8 @@ class SyntheticSource(IndexedFrameSource):
         else:
             depth_m = np.where((view.depth_m >= DEPTH_MIN_M) & (view.depth_m <= DEPTH_MAX_M), view.depth_m, 0.0)
         depth = np.round(depth_m * DEPTH_SCALE).astype(np.uint16)
-        ids = np.unique(view.instance)
-        cats = {int(i): self.world.categories[int(i)] for i in ids if i != 0}
+        present = np.flatnonzero(np.bincount(view.instance.ravel()))
+        cats = {int(i): self.world.categories[int(i)] for i in present if i != 0}
         return Frame(
             frame_id=index,
             stamp_ns=int(round(index * 1e9 / self.fps)),
