@@ -52,6 +52,7 @@ class SemanticMapper:
         *,
         min_iou: float = DEFAULT_MIN_IOU,
         min_pixel_conf: float = 0.05,
+        min_embedding_cos: float | None = None,
     ) -> None:
         if not 0.0 <= min_iou <= 1.0:
             raise ValueError(f"min_iou must be within [0, 1], got {min_iou}")
@@ -59,13 +60,23 @@ class SemanticMapper:
         self.dictionary = dictionary
         self.min_iou = min_iou
         self.min_pixel_conf = min_pixel_conf
+        self.min_embedding_cos = min_embedding_cos
         self.last_plan: PlannedUpdate | None = None
         self.last_update: UpdateStats | None = None
 
-    def step(self, obs: Any, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> StepStats:
+    def step(
+        self,
+        obs: Any,
+        T_world_cam: np.ndarray,
+        intrinsics: CameraIntrinsics,
+        *,
+        depth_m: np.ndarray | None = None,
+    ) -> StepStats:
         """Fuse one region observation taken at ``T_world_cam``.
 
         ``intrinsics`` may be those of the full frame: they are rescaled to the observation's size.
+        ``depth_m`` (the frame's depth in metres, any size) enables the update's depth gate, which
+        keeps silhouette labels off the background (see ``SemanticVolume.apply_update``).
         """
         conf_maps = np.asarray(obs.conf_maps)
         if conf_maps.ndim != 3:
@@ -81,7 +92,9 @@ class SemanticMapper:
             obs, rendered, self.dictionary, min_iou=self.min_iou, min_pixel_conf=self.min_pixel_conf
         )
         t2 = time.perf_counter()
-        update = self.volume.apply_update(T_world_cam, intr, plan.key_map, plan.conf_map, rendered=rendered)
+        update = self.volume.apply_update(
+            T_world_cam, intr, plan.key_map, plan.conf_map, rendered=rendered, observed_depth_m=depth_m
+        )
         t3 = time.perf_counter()
         self.last_plan, self.last_update = plan, update
         in_view = len(plan.match.rendered_keys) if plan.match is not None else 0

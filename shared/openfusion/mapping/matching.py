@@ -15,6 +15,7 @@ Assignment
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -79,9 +80,17 @@ def _check_conf_maps(frame_conf: np.ndarray, shape: tuple[int, int]) -> np.ndarr
 
 
 def match_regions(
-    frame_conf: np.ndarray, rendered: RenderedView, min_iou: float = DEFAULT_MIN_IOU
+    frame_conf: np.ndarray,
+    rendered: RenderedView,
+    min_iou: float = DEFAULT_MIN_IOU,
+    *,
+    allowed: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> MatchResult:
-    """Match the frame's n regions to the m map regions in view (soft IoU, Jonker-Volgenant)."""
+    """Match the frame's n regions to the m map regions in view (soft IoU, Jonker-Volgenant).
+
+    ``allowed`` maps the rendered keys (m,) to an (n, m) boolean matrix of pairs that may match
+    (e.g. an embedding-similarity gate); other pairs are treated as IoU 0 by the assignment.
+    """
     if not 0.0 <= min_iou <= 1.0:
         raise ValueError(f"min_iou must be within [0, 1], got {min_iou}")
     frame_conf = _check_conf_maps(frame_conf, rendered.key_map.shape)
@@ -106,8 +115,9 @@ def match_regions(
     sum_b = np.add.reduceat(b, starts)
     union = sum_a[:, None] + sum_b[None, :] - inter
     iou = np.where(union > 0, inter / np.maximum(union, 1e-12), 0.0).astype(np.float32)
-    rows, cols = linear_sum_assignment(-iou)
-    keep = iou[rows, cols] >= min_iou
+    score = iou if allowed is None else np.where(allowed(rkeys), iou, 0.0)
+    rows, cols = linear_sum_assignment(-score)
+    keep = (score[rows, cols] >= min_iou) & (score[rows, cols] > 0)
     rows, cols = rows[keep], cols[keep]
     return MatchResult(iou, rkeys, rows.astype(np.int64), rkeys[cols], iou[rows, cols])
 
@@ -132,6 +142,7 @@ def plan_update(
     *,
     min_iou: float = DEFAULT_MIN_IOU,
     min_pixel_conf: float = 0.05,
+    min_embedding_cos: float | None = None,
 ) -> PlannedUpdate:
     """Match the observation to the rendered map and update the dictionary (one version batch).
 
@@ -141,6 +152,9 @@ def plan_update(
     Each pixel takes the frame region with the highest confidence there (pixels below
     ``min_pixel_conf`` take none). Regions that win no pixel are skipped. A matched region
     updates its key's running-mean embedding and count; an unmatched one gets a new key.
+    With ``min_embedding_cos``, a pair may only match when the cosine similarity of the frame
+    region's embedding and the key's embedding reaches it (off by default: geometry alone, as in
+    the paper).
     """
     conf_maps = _check_conf_maps(obs.conf_maps, rendered.key_map.shape)
     embeddings = np.asarray(obs.embeddings, np.float32)
@@ -160,7 +174,18 @@ def plan_update(
     best_conf = np.take_along_axis(conf_maps, winner[None], axis=0)[0]
     covered = best_conf >= max(min_pixel_conf, 1e-12)
     pixels_won = np.bincount(winner[covered], minlength=n)
-    match = match_regions(conf_maps, rendered, min_iou)
+    gate = None
+    if min_embedding_cos is not None:
+        unit = embeddings / np.maximum(np.linalg.norm(embeddings, axis=1, keepdims=True), 1e-12)
+
+        def gate(rkeys: np.ndarray) -> np.ndarray:
+            allowed = np.zeros((n, len(rkeys)), bool)
+            for j, key in enumerate(rkeys):
+                if int(key) in dictionary:
+                    allowed[:, j] = unit @ dictionary.embedding(int(key)) >= min_embedding_cos
+            return allowed
+
+    match = match_regions(conf_maps, rendered, min_iou, allowed=gate)
     key_of = np.full(n, -1, np.int64)
     plan = PlannedUpdate(np.full((h, w), -1, np.int32), np.zeros((h, w), np.float32), match=match)
     with dictionary.batch():

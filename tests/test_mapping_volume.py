@@ -1,0 +1,362 @@
+"""Semantic TSDF volume: geometry accuracy, key encoding, capacity, depth-tested render/update.
+
+Scenes are analytic (exact ray/box depth), so reconstructions are compared with the true surface.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from openfusion.frame import CameraIntrinsics
+from openfusion.mapping import (
+    CapacityError,
+    SemanticVolume,
+    VolumeParams,
+    fuse_semantics,
+)
+from openfusion.mapping.analytic_scene import AnalyticScene, Box, Room, look_at
+
+K_FULL = CameraIntrinsics(320, 240, 262.5, 262.5, 159.5, 119.5)
+K_SMALL = K_FULL.scaled(160, 120)
+VOXEL_M = 0.02
+
+
+def two_box_scene() -> AnalyticScene:
+    return AnalyticScene(
+        room=Room(size_m=(3.0, 3.0, 2.5)),
+        boxes=[
+            Box((1.0, 1.8, 0.0), (1.6, 2.3, 0.8), 10, "chair"),
+            Box((1.9, 1.5, 0.0), (2.6, 2.1, 0.5), 11, "table"),
+        ],
+    )
+
+
+POSES = [
+    look_at((1.5, 0.3, 1.4), (1.5, 2.0, 0.4)),
+    look_at((0.4, 0.5, 1.4), (1.6, 2.0, 0.4)),
+    look_at((2.6, 0.5, 1.4), (1.6, 2.0, 0.4)),
+]
+
+
+def integrated_volume(
+    params: VolumeParams | None = None, scene: AnalyticScene | None = None
+) -> SemanticVolume:
+    scene = scene or two_box_scene()
+    volume = SemanticVolume(params or VolumeParams())
+    for i, T in enumerate(POSES):
+        volume.integrate(scene.make_frame(T, K_FULL, frame_id=i))
+    return volume
+
+
+@pytest.fixture(scope="module")
+def scene() -> AnalyticScene:
+    return two_box_scene()
+
+
+@pytest.fixture(scope="module")
+def volume() -> SemanticVolume:
+    return integrated_volume()
+
+
+# ---------------------------------------------------------------- parameters
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("voxel_size_m", 0.0),
+        ("voxel_size_m", float("nan")),
+        ("block_resolution", 1),
+        ("trunc_voxels", -1.0),
+        ("depth_max_m", 0.05),
+        ("initial_block_count", 0),
+        ("max_blocks", 0),
+        ("when_full", "explode"),
+        ("device", "GPU:0"),
+    ],
+)
+def test_params_reject_bad_values(field: str, value: object) -> None:
+    """Bad parameter values: each raises ValueError naming the field."""
+    with pytest.raises(ValueError, match=field.split("_")[0]):
+        VolumeParams(**{field: value})
+
+
+def test_params_device_normalised_and_cuda_refused_without_cuda() -> None:
+    """'cpu' is accepted as CPU:0; asking for CUDA on a CPU-only Open3D is a clear error, not a crash."""
+    import open3d.core as o3c
+
+    assert VolumeParams(device="cpu").device == "CPU:0"
+    if not o3c.cuda.is_available():
+        with pytest.raises(ValueError, match="CUDA"):
+            SemanticVolume(VolumeParams(device="cuda"))
+
+
+# ---------------------------------------------------------------- geometry
+
+
+def test_reconstructed_surface_matches_analytic_surface(volume: SemanticVolume, scene: AnalyticScene) -> None:
+    """Surface points lie on the true surface: median distance 0 to 1/4 voxel (zero crossings are
+    interpolated exactly on planes), 95 % within one voxel (2 cm; convex box edges bulge by up to
+    about a voxel because truncated SDFs of two faces blend there)."""
+    points = volume.extract_points()
+    assert len(points) > 20_000
+    dist = scene.surface_distance(points.points.astype(np.float64))
+    assert np.median(dist) <= 0.25 * VOXEL_M
+    assert np.percentile(dist, 95) <= VOXEL_M
+
+
+def test_render_depth_matches_analytic_depth(volume: SemanticVolume, scene: AnalyticScene, capfd) -> None:
+    """Render at encoder size: depth within one voxel (median; Open3D's ray march samples the TSDF at
+    the voxel grid), the view complete (no range-map holes), and no Open3D range-map warnings."""
+    rendered = volume.render(POSES[0], K_SMALL)
+    truth, _, _ = scene.render(POSES[0], K_SMALL)
+    assert rendered.key_map.shape == (120, 160) and rendered.key_map.dtype == np.int32
+    assert rendered.conf_map.dtype == np.float32
+    hit = (rendered.depth_m > 0) & (truth > 0)
+    assert hit.mean() > 0.97
+    assert np.median(np.abs(rendered.depth_m[hit] - truth[hit])) <= VOXEL_M
+    out, err = capfd.readouterr()
+    assert "range map" not in out + err
+
+
+def test_truncation_is_passed_to_open3d(scene: AnalyticScene) -> None:
+    """trunc_voxels reaches Open3D (whose default is 8): a voxel 6 voxels behind a wall is observed
+    with 8-voxel truncation and left empty with 4."""
+    T = look_at((1.5, 1.5, 1.25), (1.5, 3.0, 1.25))  # facing the y = 3 m wall
+    frame = scene.make_frame(T, K_FULL)
+    weights = {}
+    for trunc in (4.0, 8.0):
+        vol = SemanticVolume(VolumeParams(trunc_voxels=trunc, depth_max_m=6.0))
+        vol.integrate(frame)
+        arrays = vol.to_arrays()
+        centres = (arrays["block_coords"][:, None, None, None, :] * 8 + _voxel_offsets()) * VOXEL_M
+        behind = np.linalg.norm(centres - np.array([1.5, 3.0 + 6 * VOXEL_M, 1.24]), axis=-1)
+        weights[(trunc, "behind")] = arrays["weight"][behind < 0.5 * VOXEL_M + 1e-6]
+    assert weights[(8.0, "behind")].size and weights[(8.0, "behind")].max() > 0
+    assert weights[(4.0, "behind")].size == 0 or weights[(4.0, "behind")].max() == 0
+
+
+def _voxel_offsets() -> np.ndarray:
+    z, y, x = np.meshgrid(np.arange(8), np.arange(8), np.arange(8), indexing="ij")
+    return np.stack([x, y, z], axis=-1)
+
+
+def test_empty_frame_is_counted_not_fatal(scene: AnalyticScene) -> None:
+    """A frame with no depth (sensor dropout) changes nothing and is counted."""
+    vol = SemanticVolume()
+    frame = scene.make_frame(POSES[0], K_FULL)
+    frame.depth[:] = 0
+    stats = vol.integrate(frame)
+    assert stats.empty and vol.stats.frames_empty == 1 and vol.num_blocks == 0
+
+
+def test_integrate_rejects_inconsistent_frame(scene: AnalyticScene) -> None:
+    """A frame whose pose is not a rigid transform is refused with a clear error."""
+    frame = scene.make_frame(POSES[0], K_FULL)
+    frame.T_world_cam = frame.T_world_cam * 2.0
+    with pytest.raises(ValueError, match="T_world_cam"):
+        SemanticVolume().integrate(frame)
+
+
+# ---------------------------------------------------------------- key encoding and capacity
+
+
+def test_unlabelled_voxels_read_minus_one_also_after_growth(scene: AnalyticScene) -> None:
+    """Open3D zero-fills new blocks; keys are stored +1 so never-labelled voxels read -1 — also for
+    blocks allocated after the grid grew (re-hash), while labels written before survive it."""
+    vol = SemanticVolume(VolumeParams(initial_block_count=64))
+    vol.integrate(scene.make_frame(POSES[0], K_FULL))
+    assert (vol.to_arrays()["key"] == -1).all()
+    assert (vol.render(POSES[0], K_SMALL).key_map == -1).all()
+    keys = np.full((120, 160), 7, np.int32)
+    vol.apply_update(POSES[0], K_SMALL, keys, np.full((120, 160), 0.5, np.float32))
+    labelled_before = int((vol.to_arrays()["key"] == 7).sum())
+    assert labelled_before > 1000
+    capacity_before = vol.capacity_blocks
+    for i, T in enumerate(POSES[1:]):
+        vol.integrate(scene.make_frame(T, K_FULL, frame_id=i + 1))
+    assert vol.capacity_blocks > capacity_before and vol.stats.grow_events >= 1
+    keys_after = vol.to_arrays()["key"]
+    assert set(np.unique(keys_after)) == {-1, 7}
+    assert int((keys_after == 7).sum()) == labelled_before
+    again = vol.render(POSES[0], K_SMALL)
+    assert (again.key_map[again.depth_m > 0] == 7).mean() > 0.95
+
+
+def test_capacity_refusal_is_typed_counted_and_leaves_map_unchanged(scene: AnalyticScene) -> None:
+    """max_blocks reached: CapacityError, counter +1, volume untouched; mapping continues afterwards."""
+    first = scene.make_frame(POSES[0], K_FULL)
+    probe = SemanticVolume()
+    probe.integrate(first)
+    budget = probe.num_blocks + 10
+    vol = SemanticVolume(VolumeParams(max_blocks=budget, initial_block_count=budget))
+    vol.integrate(first)
+    before = vol.to_arrays()
+    with pytest.raises(CapacityError, match="max_blocks") as info:
+        vol.integrate(scene.make_frame(POSES[1], K_FULL, frame_id=1))
+    assert info.value.blocks_needed > info.value.blocks_free == 10
+    assert vol.stats.capacity_refusals == 1 and vol.stats.blocks_refused > 0
+    after = vol.to_arrays()
+    for name in before:
+        np.testing.assert_array_equal(before[name], after[name])
+    vol.integrate(first)  # the same view needs no new blocks: still works
+    assert vol.stats.frames_integrated == 2
+
+
+def test_capacity_drop_new_integrates_existing_blocks_only(scene: AnalyticScene) -> None:
+    """when_full='drop_new': no exception, block count stays within the budget, refusals counted."""
+    first = scene.make_frame(POSES[0], K_FULL)
+    probe = SemanticVolume()
+    probe.integrate(first)
+    budget = probe.num_blocks + 10
+    vol = SemanticVolume(VolumeParams(max_blocks=budget, when_full="drop_new"))
+    vol.integrate(first)
+    weight_before = vol.to_arrays()["weight"].sum()
+    stats = vol.integrate(scene.make_frame(POSES[1], K_FULL, frame_id=1))
+    assert stats.blocks_refused > 0 and vol.num_blocks <= budget
+    assert vol.stats.capacity_refusals == 1
+    assert vol.to_arrays()["weight"].sum() > weight_before  # existing blocks were updated
+
+
+# ---------------------------------------------------------------- update rule
+
+
+def test_fuse_semantics_rule() -> None:
+    """The written rule: new label; same key -> weighted average; other key -> loses confidence,
+    switches (with the remaining evidence) only when the new confidence exceeds the stored one."""
+    old_key1 = np.array([0, 3, 3, 3], np.int32)  # stored key+1: none, key 2, key 2, key 2
+    old_conf = np.array([0.0, 0.6, 0.6, 0.3], np.float32)
+    new_key1 = np.array([5, 3, 9, 9], np.int32)
+    new_conf = np.array([0.7, 0.2, 0.4, 0.9], np.float32)
+    key1, conf, counts = fuse_semantics(old_key1, old_conf, new_key1, new_conf, history_weight=3.0)
+    np.testing.assert_array_equal(key1, [5, 3, 3, 9])
+    np.testing.assert_allclose(conf, [0.7, (3 * 0.6 + 0.2) / 4, 0.2, 0.6], atol=1e-6)
+    assert counts == (1, 1, 1, 1)
+
+
+def test_apply_update_rule_through_the_volume(volume: SemanticVolume) -> None:
+    """Same key twice averages; a stronger other key takes over; pixels with key -1 change nothing."""
+    vol = integrated_volume()
+    ones = np.ones((120, 160), np.float32)
+    vol.apply_update(POSES[0], K_SMALL, np.full((120, 160), 4, np.int32), 0.8 * ones)
+    vol.apply_update(POSES[0], K_SMALL, np.full((120, 160), 4, np.int32), 0.4 * ones)
+    r = vol.render(POSES[0], K_SMALL)
+    seen = r.depth_m > 0
+    np.testing.assert_allclose(np.median(r.conf_map[seen]), (3 * 0.8 + 0.4) / 4, atol=1e-5)
+    left = np.full((120, 160), -1, np.int32)
+    left[:, :80] = 9
+    stats = vol.apply_update(POSES[0], K_SMALL, left, 0.95 * ones)
+    assert stats.voxels_switched > 0
+    r = vol.render(POSES[0], K_SMALL)
+    assert (r.key_map[:, :70][seen[:, :70]] == 9).mean() > 0.95
+    assert (r.key_map[:, 90:][seen[:, 90:]] == 4).mean() > 0.95
+    np.testing.assert_allclose(np.median(r.conf_map[:, :70][seen[:, :70]]), 0.95 - 0.7, atol=1e-5)
+
+
+def test_occluded_region_is_not_updated(scene: AnalyticScene) -> None:
+    """The box hides part of the back wall from pose A. Labelling *every* pixel from A must not
+    reach the wall voxels in the box's shadow (ray casting stops at the first surface)."""
+    T_a = look_at((1.3, 0.4, 0.4), (1.3, 3.0, 0.4))  # low, straight at the chair box and the wall
+    vol = SemanticVolume()
+    for i, T in enumerate([*POSES, T_a]):
+        vol.integrate(scene.make_frame(T, K_FULL, frame_id=i))
+    vol.apply_update(T_a, K_SMALL, np.full((120, 160), 3, np.int32), np.full((120, 160), 0.9, np.float32))
+    arrays = vol.to_arrays()
+    centres = (arrays["block_coords"][:, None, None, None, :] * 8 + _voxel_offsets()) * VOXEL_M
+    keys = arrays["key"]
+    wall_band = np.abs(centres[..., 1] - 3.0) <= 2 * VOXEL_M
+    # Shadow of the box on the wall from T_a: |x - 1.3| < 0.41, z < 0.95; seen from POSES[0] above 0.55.
+    shadow = (
+        wall_band
+        & (np.abs(centres[..., 0] - 1.3) < 0.15)
+        & (centres[..., 2] > 0.6)
+        & (centres[..., 2] < 0.85)
+    )
+    box_front = (np.abs(centres[..., 1] - 1.8) <= VOXEL_M) & (np.abs(centres[..., 0] - 1.3) < 0.2)
+    box_front &= (centres[..., 2] > 0.1) & (centres[..., 2] < 0.7)
+    assert (keys[box_front] == 3).sum() > 50
+    assert shadow.sum() > 50 and (keys[shadow] == -1).all()
+
+
+def test_apply_update_rejects_bad_maps(volume: SemanticVolume) -> None:
+    """Wrong size, NaN confidences, out-of-range keys and a non-rigid pose: clear ValueErrors."""
+    good_keys = np.zeros((120, 160), np.int32)
+    good_conf = np.ones((120, 160), np.float32)
+    with pytest.raises(ValueError, match="must both be"):
+        volume.apply_update(POSES[0], K_SMALL, good_keys[:60], good_conf)
+    bad_conf = good_conf.copy()
+    bad_conf[0, 0] = np.nan
+    with pytest.raises(ValueError, match="conf_map"):
+        volume.apply_update(POSES[0], K_SMALL, good_keys, bad_conf)
+    with pytest.raises(ValueError, match="key_map"):
+        volume.apply_update(POSES[0], K_SMALL, good_keys - 5, good_conf)
+    with pytest.raises(ValueError, match="T_world_cam"):
+        volume.apply_update(np.eye(3), K_SMALL, good_keys, good_conf)
+
+
+def test_tensor_path_matches_numpy_path(scene: AnalyticScene) -> None:
+    """The Open3D-tensor attribute path (used on CUDA) writes and reads exactly what the CPU
+    numpy-view path does (run here on CPU by switching paths)."""
+    results = []
+    for use_views in (True, False):
+        vol = integrated_volume()
+        vol._use_numpy_views = use_views
+        keys = np.where(np.arange(160)[None, :] < 80, 2, 5).repeat(120, axis=0).astype(np.int32)
+        vol.apply_update(POSES[0], K_SMALL, keys, np.full((120, 160), 0.6, np.float32))
+        vol.relabel_keys({5: 6})
+        r = vol.render(POSES[1], K_SMALL)
+        results.append((r.key_map, r.conf_map, vol.to_arrays()["key"]))
+    for a, b in zip(results[0], results[1], strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+# ---------------------------------------------------------------- extraction
+
+
+def test_extract_points_and_mesh_restricted_to_keys(scene: AnalyticScene) -> None:
+    """Labelled chair pixels -> extracted chair points and mesh; filtering by key keeps only those.
+
+    Also the depth gate: chair-mask pixels on the chair's silhouette whose ray hits the wall behind
+    must not label that wall when the frame's depth is given."""
+    _, inst, _ = scene.render(POSES[0], K_SMALL)
+    keys = np.where(inst == 10, 1, np.where(inst == 11, 2, -1)).astype(np.int32)
+    conf = np.full((120, 160), 0.9, np.float32)
+    ungated = integrated_volume()
+    ungated.apply_update(POSES[0], K_SMALL, keys, conf)
+    leaked = ungated.extract_points(keys=[1])
+    vol = integrated_volume()
+    frame = scene.make_frame(POSES[0], K_FULL)
+    stats = vol.apply_update(POSES[0], K_SMALL, keys, conf, observed_depth_m=frame.depth_m())
+    assert stats.pixels_depth_rejected > 0
+    all_points = vol.extract_points()
+    chair = vol.extract_points(keys=[1])
+    assert 0 < len(chair) < len(all_points) and (chair.keys == 1).all()
+    on_chair = (scene.instance_at(chair.points.astype(np.float64)) == 10).mean()
+    assert on_chair > 0.97
+    assert on_chair > (scene.instance_at(leaked.points.astype(np.float64)) == 10).mean()
+    sub = vol.extract_points(max_points=500, seed=3)
+    assert len(sub) == 500
+    np.testing.assert_array_equal(sub.points, vol.extract_points(max_points=500, seed=3).points)
+    mesh = vol.extract_mesh(keys=[1])
+    assert len(mesh.triangles) > 100 and (mesh.keys == 1).all()
+    assert mesh.triangles.max() < len(mesh.vertices)
+    full = vol.extract_mesh()
+    assert len(full.triangles) > len(mesh.triangles)
+
+
+def test_relabel_keys_moves_and_clears(volume: SemanticVolume) -> None:
+    """relabel {a: b} rewrites every voxel of a; {b: -1} clears them back to unlabelled."""
+    vol = integrated_volume()
+    vol.apply_update(
+        POSES[0], K_SMALL, np.full((120, 160), 3, np.int32), np.full((120, 160), 0.9, np.float32)
+    )
+    n3 = int((vol.to_arrays()["key"] == 3).sum())
+    assert vol.relabel_keys({3: 8}) == n3
+    keys = vol.to_arrays()["key"]
+    assert (keys == 3).sum() == 0 and (keys == 8).sum() == n3
+    assert vol.relabel_keys({8: -1}) == n3
+    arrays = vol.to_arrays()
+    assert (arrays["key"] == -1).all() and (arrays["conf"] == 0).all()
+    with pytest.raises(ValueError, match="relabel"):
+        vol.relabel_keys({-1: 2})
