@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
+
 from openfusion.frame import CameraIntrinsics
 from openfusion.sources import open_source
 from openfusion.sources.folder import FolderSource
@@ -15,7 +17,6 @@ from openfusion.sources.poses import matrix_to_quat, quat_to_matrix, rotation_an
 from openfusion.sources.redwood import RedwoodSource
 from openfusion.sources.replica import REPLICA_INTRINSICS, ReplicaSource
 from openfusion.sources.tum import TumSource, associate
-from PIL import Image
 
 DW, DH = 40, 30
 

@@ -8,6 +8,7 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
+
 from openfusion.frame import CameraIntrinsics
 from openfusion.sources import open_source
 from openfusion.sources.live import (

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from openfusion.codec import encode
 from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.messages import RgbdFrame, TextQuery

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation, Slerp
+
 from openfusion.frame import CameraIntrinsics
 from openfusion.sources.poses import (
     interpolate_pose,
@@ -19,7 +21,6 @@ from openfusion.sources.sync import (
     SyncConfig,
     downsample_rgbd,
 )
-from scipy.spatial.transform import Rotation, Slerp
 
 MS = 1_000_000
 AXIS = np.array([0.2, 1.0, 0.4]) / np.linalg.norm([0.2, 1.0, 0.4])

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
+
 from openfusion.eval.ply import read_ply_vertices
 from openfusion.sources import open_source
 from openfusion.sources.poses import rotation_angle_deg
@@ -18,7 +20,6 @@ from openfusion.sources.synthetic import (
     default_intrinsics,
     write_scannet_layout,
 )
-from scipy.spatial import cKDTree
 
 W, H = 160, 120
 
