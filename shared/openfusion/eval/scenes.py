@@ -99,6 +99,21 @@ def _parse_options(item: str, text: str) -> dict[str, str]:
     return out
 
 
+def check_scene_inputs(specs: Iterable[SceneSpec]) -> None:
+    """Cheap up-front checks (before any model loads): ScanNet folders exist and hold their GT mesh."""
+    for spec in specs:
+        if spec.kind != "scannet":
+            continue
+        path = Path(spec.path or "")
+        if not path.is_dir():
+            raise ValueError(f"{spec.name}: scene folder {path} does not exist")
+        if not list(path.glob("*_vh_clean_2.labels.ply")):
+            raise ValueError(
+                f"{spec.name}: no <scene>_vh_clean_2.labels.ply ground-truth mesh in {path} "
+                "(copy it from the ScanNet release next to the exported frames)"
+            )
+
+
 @dataclass
 class OpenedScene:
     """A scene's frame source and its ground truth."""

@@ -1,0 +1,97 @@
+#!/usr/bin/env python3
+"""Evaluation benchmark: quality, geometry, speed and memory of the region map against the
+per-point-feature map (ConceptFusion-style) and the 16-samples-per-block storage policy, all
+measured in the same run with the gt encoder on synthetic scenes, noise off and standard.
+
+    python bench/bench_eval.py            # --quick (default): 2 scenes x 2 noise profiles, CI-sized
+    python bench/bench_eval.py --full     # 3 scenes, 640x480, 150-frame laps
+    python bench/bench_eval.py --out DIR  # also write results.json / results.md per noise profile
+
+Prints markdown tables (the ratios are to the region map). Exit 0 always unless it crashes;
+targets are reported, not asserted (use ``openfusion eval --check-targets`` for that).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from openfusion.eval.report import render_markdown, write_results
+from openfusion.eval.runner import FULL, QUICK, run_eval
+from openfusion.eval.scenes import parse_scene_specs
+
+QUICK_SCENES = "synthetic:seed=1,synthetic:seed=2"
+FULL_SCENES = "synthetic:seed=1,synthetic:seed=2,synthetic:seed=3"
+QUICK_FRAMES = 30
+
+
+def _f(v: float | None, fmt: str = "{:.3f}") -> str:
+    return "n/a" if v is None else fmt.format(v)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_true", help="CI-sized run (default)")
+    size.add_argument("--full", action="store_true", help="full-size run")
+    parser.add_argument(
+        "--noise", default="off,standard", help="comma-separated gt noise profiles (default off,standard)"
+    )
+    parser.add_argument(
+        "--scenes", default=None, help=f"scene specs (default {QUICK_SCENES}; --full {FULL_SCENES})"
+    )
+    parser.add_argument("--text-encoder", default="minilm", help="minilm (default) or hash")
+    parser.add_argument("--out", default=None, help="folder for results.json/results.md per noise profile")
+    parser.add_argument("--details", action="store_true", help="print the full results.md of every profile")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+
+    base = FULL if args.full else replace(QUICK, frames=QUICK_FRAMES)
+    base = replace(base, text_encoder=args.text_encoder)
+    specs = parse_scene_specs([args.scenes or (FULL_SCENES if args.full else QUICK_SCENES)])
+    profiles = [p.strip() for p in args.noise.split(",") if p.strip()]
+
+    runs = {}
+    for noise in profiles:
+        t0 = time.perf_counter()
+        results = run_eval(specs, replace(base, noise=noise))
+        results["wall_s"] = time.perf_counter() - t0
+        runs[noise] = results
+        if args.out:
+            write_results(results, Path(args.out) / f"noise-{noise}")
+
+    size_name = "full" if args.full else "quick"
+    print(f"### Evaluation ({size_name}: {len(specs)} synthetic scenes, {base.frames} frames at "
+          f"{base.width_px}x{base.height_px}, voxel {base.voxel_size_m * 100:.0f} cm, gt encoder + {base.text_encoder})")  # fmt: skip
+    print()
+    print(
+        "| noise | f-mIoU | mAcc | accuracy (voxels) | completeness | 3D-Rec fps | Sem-3D-Rec fps | wall (s) |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for noise, r in runs.items():
+        s = r["summary"]
+        m = s["quality"]["region_map"]["metrics"]
+        print(
+            f"| {noise} | {_f(m['f_mIoU'])} | {_f(m['mAcc'])} | {_f(s['geometry']['accuracy_vox'], '{:.2f}')} | "
+            f"{_f(s['geometry']['completeness'])} | {_f(s['speed']['rec3d_fps'], '{:.1f}')} | "
+            f"{_f(s['speed']['sem_rec3d_fps'], '{:.1f}')} | {r['wall_s']:.0f} |"
+        )
+    print()
+    for noise, r in runs.items():
+        md = render_markdown(r)
+        if args.details:
+            print(md.replace("# OpenFusion-Z evaluation", f"### Details, noise {noise}"))
+            continue
+        # Only the baselines and targets sections.
+        start = md.index("## Baselines")
+        print(md[start:].replace("## ", f"#### noise {noise}: ", 2).rstrip())
+        print()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
