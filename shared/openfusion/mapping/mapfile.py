@@ -168,36 +168,45 @@ def load_map(path: str | os.PathLike[str], *, device: str | None = None) -> Load
 
 
 def _load(target: Path, device: str | None) -> LoadedMap:
-    with np.load(target, allow_pickle=False) as npz:
-        names = set(npz.files)
-        for required in ("format", "format_version", "meta_json"):
-            if required not in names:
-                raise MapFormatError(f"{target}: not an OpenFusion-Z map (missing {required!r})")
-        fmt = str(npz["format"][()])
-        if fmt != FORMAT_NAME:
-            raise MapFormatError(f"{target}: format {fmt!r} is not {FORMAT_NAME!r}")
-        version = int(npz["format_version"][()])
-        if version != FORMAT_VERSION:
+    # Open the file ourselves: np.load leaks its own handle when the zip directory is unreadable.
+    with open(target, "rb") as fh:
+        loaded = np.load(fh, allow_pickle=False)
+        if not isinstance(loaded, np.lib.npyio.NpzFile):
+            raise MapFormatError(f"{target}: not an OpenFusion-Z map (a single array, not an archive)")
+        with loaded as npz:
+            return _load_archive(target, npz, device)
+
+
+def _load_archive(target: Path, npz: np.lib.npyio.NpzFile, device: str | None) -> LoadedMap:
+    names = set(npz.files)
+    for required in ("format", "format_version", "meta_json"):
+        if required not in names:
+            raise MapFormatError(f"{target}: not an OpenFusion-Z map (missing {required!r})")
+    fmt = str(npz["format"][()])
+    if fmt != FORMAT_NAME:
+        raise MapFormatError(f"{target}: format {fmt!r} is not {FORMAT_NAME!r}")
+    version = int(npz["format_version"][()])
+    if version != FORMAT_VERSION:
+        raise MapFormatError(
+            f"{target}: map format version {version} is not supported (this build reads {FORMAT_VERSION})"
+        )
+    header = json.loads(str(npz["meta_json"][()]))
+    specs = header["arrays"]
+    arrays: dict[str, np.ndarray] = {}
+    expected = [f"volume_{n}" for n in _VOLUME_ARRAYS] + [f"dict_{n}" for n in _DICT_ARRAYS]
+    for name in expected:
+        if name not in names or name not in specs:
+            raise MapFormatError(f"{target}: array {name!r} is missing")
+        arr = npz[name]
+        spec = specs[name]
+        if list(arr.shape) != list(spec["shape"]) or arr.dtype.str != spec["dtype"]:
             raise MapFormatError(
-                f"{target}: map format version {version} is not supported (this build reads {FORMAT_VERSION})"
+                f"{target}: array {name!r} is {arr.dtype.str} {arr.shape}, header says "
+                f"{spec['dtype']} {tuple(spec['shape'])}"
             )
-        header = json.loads(str(npz["meta_json"][()]))
-        specs = header["arrays"]
-        arrays: dict[str, np.ndarray] = {}
-        expected = [f"volume_{n}" for n in _VOLUME_ARRAYS] + [f"dict_{n}" for n in _DICT_ARRAYS]
-        for name in expected:
-            if name not in names or name not in specs:
-                raise MapFormatError(f"{target}: array {name!r} is missing")
-            arr = npz[name]
-            spec = specs[name]
-            if list(arr.shape) != list(spec["shape"]) or arr.dtype.str != spec["dtype"]:
-                raise MapFormatError(
-                    f"{target}: array {name!r} is {arr.dtype.str} {arr.shape}, header says "
-                    f"{spec['dtype']} {tuple(spec['shape'])}"
-                )
-            if _crc(arr) != int(spec["crc32"]):
-                raise MapFormatError(f"{target}: array {name!r} fails its CRC-32 check (corrupt file)")
-            arrays[name] = arr
+        if _crc(arr) != int(spec["crc32"]):
+            raise MapFormatError(f"{target}: array {name!r} fails its CRC-32 check (corrupt file)")
+        arrays[name] = arr
     params = VolumeParams.from_dict(header["volume_params"])
     if device is not None:
         params = replace(params, device=device)

@@ -12,6 +12,10 @@ from openfusion.mapping.volume import SemanticVolume
 
 logger = logging.getLogger(__name__)
 
+# Region boxes use the 1st/99th percentile per axis: labels of silhouette pixels can leave a few
+# stray points on the surface just behind an object, which would inflate a min/max box.
+BBOX_PERCENTILE = 1.0
+
 
 @dataclass
 class RegionResult:
@@ -20,8 +24,8 @@ class RegionResult:
     key: int
     score: float
     label: str | None
-    bbox_min: np.ndarray  # (3,) float32 metres; NaN when the region has no surface points
-    bbox_max: np.ndarray  # (3,) float32
+    bbox_min: np.ndarray  # (3,) float32 metres, 1st percentile per axis; NaN without points
+    bbox_max: np.ndarray  # (3,) float32 metres, 99th percentile per axis
     num_points: int
     points: np.ndarray | None = None  # (p, 3) float32 when requested
 
@@ -40,7 +44,7 @@ def query_regions(
 
     ``embedding_space`` names the space the query vector came from; a different space than the
     map's raises :class:`~openfusion.mapping.errors.EmbeddingSpaceError`. With a ``volume``, each
-    result carries its surface-point count and bounding box (and up to ``max_points`` points when
+    result carries its surface-point count and robust bounding box (1st-99th percentile) (and up to ``max_points`` points when
     ``with_points``); with ``volume=None`` only the ranking is returned (NaN boxes, 0 points).
     """
     dictionary.check_space(embedding_space)
@@ -64,8 +68,8 @@ def query_regions(
         pts = surface.points[sel]
         res.num_points = int(len(pts))
         if len(pts):
-            res.bbox_min = pts.min(axis=0).astype(np.float32)
-            res.bbox_max = pts.max(axis=0).astype(np.float32)
+            res.bbox_min = np.percentile(pts, BBOX_PERCENTILE, axis=0).astype(np.float32)
+            res.bbox_max = np.percentile(pts, 100.0 - BBOX_PERCENTILE, axis=0).astype(np.float32)
         if with_points:
             if len(pts) > max_points:
                 rng = np.random.default_rng(res.key)

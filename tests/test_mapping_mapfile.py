@@ -1,0 +1,171 @@
+"""Map files: save -> load gives the same map and the same answers; bad files are refused whole."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from openfusion.frame import CameraIntrinsics
+from openfusion.mapping import (
+    MapFormatError,
+    RegionDictionary,
+    SemanticMapper,
+    SemanticVolume,
+    VolumeParams,
+    load_map,
+    query_regions,
+    save_map,
+    segment_points,
+)
+from openfusion.mapping.analytic_scene import (
+    AnalyticScene,
+    Box,
+    Room,
+    category_embedding,
+    look_at,
+    observation_from_instances,
+)
+from openfusion.mapping.mapfile import MAP_FILE_NAME
+
+K_FULL = CameraIntrinsics(160, 120, 131.25, 131.25, 79.5, 59.5)
+DIM = 16
+
+
+@pytest.fixture(scope="module")
+def mapper() -> SemanticMapper:
+    scene = AnalyticScene(
+        room=Room(size_m=(3.0, 3.0, 2.5)),
+        boxes=[
+            Box((0.8, 1.8, 0.0), (1.4, 2.3, 0.8), 10, "chair"),
+            Box((1.8, 1.6, 0.0), (2.5, 2.2, 0.5), 11, "table"),
+        ],
+    )
+    params = VolumeParams(voxel_size_m=0.04, initial_block_count=256)
+    m = SemanticMapper(SemanticVolume(params), RegionDictionary("analytic-test", DIM))
+    for i, T in enumerate(
+        [look_at((1.5, 0.3, 1.4), (1.5, 2.0, 0.4)), look_at((0.5, 0.5, 1.3), (1.5, 2.0, 0.4))]
+    ):
+        frame = scene.make_frame(T, K_FULL, frame_id=i)
+        m.volume.integrate(frame)
+        obs = observation_from_instances(
+            frame.instance, frame.instance_categories, out_size=(60, 80), dim=DIM
+        )
+        m.step(obs, T, K_FULL, depth_m=frame.depth_m())
+    return m
+
+
+def answers(volume: SemanticVolume, dictionary: RegionDictionary) -> list[tuple]:
+    out = []
+    for name in ("chair", "table", "wall"):
+        for r in query_regions(dictionary, volume, category_embedding(name, DIM), top_k=3):
+            out.append(
+                (r.key, round(r.score, 6), r.label, r.num_points, tuple(r.bbox_min), tuple(r.bbox_max))
+            )
+    return out
+
+
+def test_save_load_round_trip_gives_identical_answers(mapper: SemanticMapper, tmp_path: Path) -> None:
+    """Everything survives: arrays, parameters, dictionary (keys, means, counts, labels, version),
+    meta; queries, segmentation and renders from the loaded map equal the original's."""
+    written = save_map(tmp_path / "site", mapper.volume, mapper.dictionary, {"map_id": "lab-1", "frames": 2})
+    assert written == tmp_path / "site" / MAP_FILE_NAME
+    loaded = load_map(tmp_path / "site")
+    assert loaded.meta["map_id"] == "lab-1" and loaded.meta["frames"] == 2
+    assert loaded.volume.params == mapper.volume.params
+    original, restored = mapper.volume.to_arrays(), loaded.volume.to_arrays()
+    order_o = np.lexsort(original["block_coords"].T)
+    order_r = np.lexsort(restored["block_coords"].T)
+    for name in original:
+        np.testing.assert_array_equal(original[name][order_o], restored[name][order_r])
+    d0, d1 = mapper.dictionary, loaded.dictionary
+    assert (d1.embedding_space, d1.dim, d1.version, d1.next_key) == (
+        d0.embedding_space,
+        d0.dim,
+        d0.version,
+        d0.next_key,
+    )
+    assert answers(loaded.volume, d1) == answers(mapper.volume, d0)
+    classes = np.stack([category_embedding(c, DIM) for c in ("wall", "floor", "chair", "table")])
+    p0, l0 = segment_points(mapper.volume, d0, classes)
+    p1, l1 = segment_points(loaded.volume, d1, classes)
+    np.testing.assert_array_equal(p0, p1)
+    np.testing.assert_array_equal(l0, l1)
+    T = look_at((1.5, 0.3, 1.4), (1.5, 2.0, 0.4))
+    r0, r1 = mapper.volume.render(T, K_FULL), loaded.volume.render(T, K_FULL)
+    np.testing.assert_array_equal(r0.key_map, r1.key_map)
+    np.testing.assert_array_equal(r0.conf_map, r1.conf_map)
+
+
+def test_save_is_atomic_and_leaves_no_temp_files(mapper: SemanticMapper, tmp_path: Path) -> None:
+    """A second save replaces the file in one step; a save that fails (meta not JSON) leaves the
+    previous map intact and no temporary file behind."""
+    path = tmp_path / "m.npz"
+    save_map(path, mapper.volume, mapper.dictionary, {"v": 1})
+    with pytest.raises(ValueError, match="JSON"):
+        save_map(path, mapper.volume, mapper.dictionary, {"bad": object()})
+    assert load_map(path).meta["v"] == 1
+    save_map(path, mapper.volume, mapper.dictionary, {"v": 2})
+    assert load_map(path).meta["v"] == 2
+    assert sorted(os.listdir(tmp_path)) == ["m.npz"]
+
+
+def test_truncated_file_is_refused(mapper: SemanticMapper, tmp_path: Path) -> None:
+    """A file cut short (crash while copying) raises MapFormatError, not a zip/numpy error."""
+    path = save_map(tmp_path / "m.npz", mapper.volume, mapper.dictionary)
+    data = path.read_bytes()
+    for cut in (len(data) // 2, len(data) - 100, 10):
+        path.write_bytes(data[:cut])
+        with pytest.raises(MapFormatError, match="m.npz"):
+            load_map(path)
+
+
+def test_corrupt_bytes_are_refused(mapper: SemanticMapper, tmp_path: Path) -> None:
+    """Flipped bytes inside the TSDF data (same size, valid zip layout) fail the CRC check."""
+    path = save_map(tmp_path / "m.npz", mapper.volume, mapper.dictionary)
+    data = bytearray(path.read_bytes())
+    start = data.find(b"volume_tsdf.npy")
+    assert start > 0
+    offset = start + 4096  # well inside that member's array data
+    data[offset : offset + 8] = bytes(b ^ 0xFF for b in data[offset : offset + 8])
+    path.write_bytes(bytes(data))
+    with pytest.raises(MapFormatError, match="CRC|corrupt|unreadable"):
+        load_map(path)
+
+
+def test_incompatible_or_foreign_files_are_refused(mapper: SemanticMapper, tmp_path: Path) -> None:
+    """Another format version, a plain npz without our header, a missing file: one clear error each."""
+    path = save_map(tmp_path / "m.npz", mapper.volume, mapper.dictionary)
+    with np.load(path, allow_pickle=False) as npz:
+        members = {name: npz[name] for name in npz.files}
+    members["format_version"] = np.array(99, np.int64)
+    future = tmp_path / "future.npz"
+    np.savez(future, **members)
+    with pytest.raises(MapFormatError, match="version 99"):
+        load_map(future)
+    header = json.loads(str(members["meta_json"][()]))
+    header["arrays"]["dict_counts"]["shape"] = [12345]
+    members["format_version"] = np.array(1, np.int64)
+    members["meta_json"] = np.array(json.dumps(header))
+    inconsistent = tmp_path / "inconsistent.npz"
+    np.savez(inconsistent, **members)
+    with pytest.raises(MapFormatError, match="dict_counts"):
+        load_map(inconsistent)
+    foreign = tmp_path / "foreign.npz"
+    np.savez(foreign, x=np.zeros(3))
+    with pytest.raises(MapFormatError, match="not an OpenFusion-Z map"):
+        load_map(foreign)
+    with pytest.raises(MapFormatError, match="no map file"):
+        load_map(tmp_path / "nowhere")
+
+
+def test_single_array_file_is_refused(tmp_path: Path) -> None:
+    """A plain .npy renamed to .npz is not mistaken for a map (and leaves no open file behind)."""
+    path = tmp_path / "array.npz"
+    with open(path, "wb") as fh:
+        np.save(fh, np.arange(5))
+    with pytest.raises(MapFormatError, match="not an OpenFusion-Z map"):
+        load_map(path)

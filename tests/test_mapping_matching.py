@@ -1,0 +1,152 @@
+"""Soft-IoU matching, Jonker-Volgenant assignment and the planned update (no volume needed)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from openfusion.mapping import (
+    EmbeddingSpaceError,
+    RegionDictionary,
+    RenderedView,
+    match_regions,
+    plan_update,
+    region_conf_maps,
+    soft_iou_matrix,
+)
+from openfusion.mapping.analytic_scene import SimpleObservation
+
+H, W = 30, 40
+
+
+def rendered_from(key_map: np.ndarray, conf_map: np.ndarray) -> RenderedView:
+    return RenderedView(
+        key_map.astype(np.int32), conf_map.astype(np.float32), np.ones(key_map.shape, np.float32)
+    )
+
+
+def unit(v: np.ndarray) -> np.ndarray:
+    return (v / np.linalg.norm(v)).astype(np.float32)
+
+
+def test_fast_soft_iou_equals_dense_definition() -> None:
+    """The one-pass soft IoU over disjoint rendered regions equals sum(min)/sum(max) computed densely."""
+    rng = np.random.default_rng(1)
+    key_map = rng.integers(-1, 5, size=(H, W))
+    conf_map = rng.uniform(0.0, 1.0, size=(H, W))
+    rendered = rendered_from(key_map, conf_map)
+    frame = rng.uniform(0.0, 1.0, size=(6, H, W)).astype(np.float32) * (rng.uniform(size=(6, H, W)) > 0.5)
+    result = match_regions(frame, rendered, min_iou=0.0)
+    keys, maps = region_conf_maps(rendered)
+    np.testing.assert_array_equal(result.rendered_keys, keys)
+    np.testing.assert_allclose(result.iou, soft_iou_matrix(frame, maps), atol=1e-5)
+
+
+def test_region_conf_maps_split_the_rendered_view() -> None:
+    """One map per key in view, confidence where that key is rendered and 0 elsewhere."""
+    key_map = np.full((H, W), -1)
+    key_map[:10] = 4
+    key_map[20:] = 9
+    conf = np.full((H, W), 0.7)
+    keys, maps = region_conf_maps(rendered_from(key_map, conf))
+    np.testing.assert_array_equal(keys, [4, 9])
+    assert maps.shape == (2, H, W)
+    np.testing.assert_allclose(maps[0][:10], 0.7)
+    assert maps[0][10:].sum() == 0 and maps[1][:20].sum() == 0
+
+
+@pytest.mark.parametrize(("overlap", "matched"), [(0.09, False), (0.11, True)])
+def test_min_iou_threshold(overlap: float, matched: bool) -> None:
+    """A pair with soft IoU 0.09 is dropped (the region becomes new), 0.11 is kept.
+
+    The frame map equals ``overlap`` on exactly the rendered region (rendered conf 1), so its soft
+    IoU is sum(min)/sum(max) = overlap exactly."""
+    key_map = np.full((H, W), -1)
+    key_map[5:15, 5:15] = 3
+    rendered = rendered_from(key_map, np.where(key_map >= 0, 1.0, 0.0))
+    frame = np.zeros((1, H, W), np.float32)
+    frame[0][key_map == 3] = overlap
+    result = match_regions(frame, rendered, min_iou=0.10)
+    np.testing.assert_allclose(result.iou[0, 0], overlap, atol=1e-6)
+    assert (result.pairs == [(0, 3)]) is matched
+
+
+def test_assignment_is_global_not_greedy() -> None:
+    """Jonker-Volgenant maximises the total IoU: region 0 overlaps A best, but giving A to region 1
+    and B to region 0 is better overall (a greedy matcher would leave region 1 unmatched)."""
+    key_map = np.full((H, W), -1)
+    key_map[:, :20] = 1  # A
+    key_map[:, 20:30] = 2  # B
+    rendered = rendered_from(key_map, (key_map >= 0).astype(np.float32))
+    frame = np.zeros((2, H, W), np.float32)
+    frame[0][:, 5:30] = 1.0  # covers half of A and all of B
+    frame[1][:, :20] = 1.0  # exactly A
+    result = match_regions(frame, rendered, min_iou=0.1)
+    assert sorted(result.pairs) == [(0, 2), (1, 1)]
+
+
+def test_match_rejects_bad_frame_maps() -> None:
+    """Wrong map size or values outside [0, 1] are refused with a clear error."""
+    rendered = rendered_from(np.zeros((H, W)), np.ones((H, W)))
+    with pytest.raises(ValueError, match="must be"):
+        match_regions(np.zeros((2, H + 1, W)), rendered)
+    with pytest.raises(ValueError, match="within"):
+        match_regions(np.full((1, H, W), 1.5), rendered)
+
+
+def test_plan_update_matches_existing_and_adds_new_regions() -> None:
+    """Matched region: same key, running-mean embedding, count + 1. Unmatched: new key with its
+    embedding. Per pixel the most confident region wins; a region winning no pixel is skipped."""
+    d = RegionDictionary("test-space", 4)
+    e_old = unit(np.array([1.0, 0, 0, 0]))
+    k_old = d.add(e_old, label="chair")
+    key_map = np.full((H, W), -1)
+    key_map[:, :20] = k_old
+    rendered = rendered_from(key_map, (key_map >= 0) * 0.8)
+    conf = np.zeros((3, H, W), np.float32)
+    conf[0][:, :20] = 0.9  # the chair again
+    conf[1][:, 25:] = 0.7  # something new
+    conf[2][:, 25:] = 0.3  # weaker than region 1 everywhere: wins no pixel
+    e_new_view = unit(np.array([0.0, 1.0, 0, 0]))
+    emb = np.stack([e_new_view, unit(np.array([0, 0, 1.0, 0])), unit(np.array([0, 0, 0, 1.0]))])
+    obs = SimpleObservation(conf, emb, "test-space", ["chair", "table", "ghost"])
+    version_before = d.version
+    plan = plan_update(obs, rendered, d)
+    assert plan.matched == [(0, k_old)]
+    assert len(plan.new_keys) == 1 and plan.new_keys[0][0] == 1
+    new_key = plan.new_keys[0][1]
+    assert plan.skipped == [2]
+    assert d.version == version_before + 1 == plan.dictionary_version  # one batch
+    assert d.count(k_old) == 2
+    np.testing.assert_allclose(d.mean_embedding(k_old), (e_old + e_new_view) / 2, atol=1e-6)
+    np.testing.assert_allclose(d.embedding(k_old), unit(e_old + e_new_view), atol=1e-6)
+    assert d.label(new_key) == "table" and d.count(new_key) == 1
+    assert (plan.key_map[:, :20] == k_old).all() and (plan.key_map[:, 25:] == new_key).all()
+    assert (plan.key_map[:, 20:25] == -1).all()
+    np.testing.assert_allclose(plan.conf_map[:, 25:], 0.7)
+
+
+def test_plan_update_embedding_gate() -> None:
+    """With min_embedding_cos, a region overlapping a key whose embedding differs gets a new key."""
+    d = RegionDictionary("s", 2)
+    k = d.add(np.array([1.0, 0.0], np.float32))
+    key_map = np.full((H, W), k)
+    rendered = rendered_from(key_map, np.ones((H, W)))
+    obs = SimpleObservation(np.ones((1, H, W), np.float32), np.array([[0.0, 1.0]], np.float32), "s")
+    assert plan_update(obs, rendered, d).matched == [(0, k)]
+    d2 = RegionDictionary("s", 2)
+    k2 = d2.add(np.array([1.0, 0.0], np.float32))
+    plan = plan_update(obs, rendered_from(np.full((H, W), k2), np.ones((H, W))), d2, min_embedding_cos=0.5)
+    assert plan.matched == [] and len(plan.new_keys) == 1
+
+
+def test_plan_update_refuses_other_embedding_space_and_bad_shapes() -> None:
+    """Embeddings of another space, or of the wrong dimension/count, never reach the dictionary."""
+    d = RegionDictionary("clip-vit-b-32", 4)
+    rendered = rendered_from(np.full((H, W), -1), np.zeros((H, W)))
+    conf = np.ones((1, H, W), np.float32)
+    with pytest.raises(EmbeddingSpaceError, match="minilm"):
+        plan_update(SimpleObservation(conf, np.ones((1, 4), np.float32), "minilm-l6-v2"), rendered, d)
+    with pytest.raises(ValueError, match="embeddings"):
+        plan_update(SimpleObservation(conf, np.ones((1, 3), np.float32), "clip-vit-b-32"), rendered, d)
+    assert len(d) == 0 and d.version == 0
