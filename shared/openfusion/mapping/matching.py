@@ -72,9 +72,7 @@ def _check_conf_maps(frame_conf: np.ndarray, shape: tuple[int, int]) -> np.ndarr
     if frame_conf.ndim != 3 or frame_conf.shape[1:] != shape:
         raise ValueError(f"frame confidence maps must be (n, {shape[0]}, {shape[1]}), got {frame_conf.shape}")
     frame_conf = frame_conf.astype(np.float32, copy=False)
-    if frame_conf.size and (
-        not np.isfinite(frame_conf).all() or frame_conf.min() < 0 or frame_conf.max() > 1
-    ):
+    if not ((frame_conf >= 0) & (frame_conf <= 1)).all():  # NaN fails both comparisons
         raise ValueError("frame confidence maps must be finite and within [0, 1]")
     return frame_conf
 
@@ -93,7 +91,15 @@ def match_regions(
     """
     if not 0.0 <= min_iou <= 1.0:
         raise ValueError(f"min_iou must be within [0, 1], got {min_iou}")
-    frame_conf = _check_conf_maps(frame_conf, rendered.key_map.shape)
+    return _match_checked(_check_conf_maps(frame_conf, rendered.key_map.shape), rendered, min_iou, allowed)
+
+
+def _match_checked(
+    frame_conf: np.ndarray,
+    rendered: RenderedView,
+    min_iou: float,
+    allowed: Callable[[np.ndarray], np.ndarray] | None,
+) -> MatchResult:
     n = len(frame_conf)
     flat_keys = rendered.key_map.reshape(-1)
     flat_conf = rendered.conf_map.reshape(-1).astype(np.float32)
@@ -185,7 +191,9 @@ def plan_update(
                     allowed[:, j] = unit @ dictionary.embedding(int(key)) >= min_embedding_cos
             return allowed
 
-    match = match_regions(conf_maps, rendered, min_iou, allowed=gate)
+    if not 0.0 <= min_iou <= 1.0:
+        raise ValueError(f"min_iou must be within [0, 1], got {min_iou}")
+    match = _match_checked(conf_maps, rendered, min_iou, gate)
     key_of = np.full(n, -1, np.int64)
     plan = PlannedUpdate(np.full((h, w), -1, np.int32), np.zeros((h, w), np.float32), match=match)
     with dictionary.batch():

@@ -657,7 +657,7 @@ class SemanticVolume:
         if key_map.size and (key_map.min() < -1 or key_map.max() >= np.iinfo(np.int32).max):
             raise ValueError("key_map values must be -1 (none) or non-negative int32 region keys")
         conf_map = conf_map.astype(np.float32, copy=False)
-        if not np.isfinite(conf_map).all() or conf_map.min(initial=0.0) < 0 or conf_map.max(initial=0.0) > 1:
+        if not ((conf_map >= 0) & (conf_map <= 1)).all():  # NaN fails both comparisons
             raise ValueError("conf_map must be finite and within [0, 1]")
         stats = UpdateStats()
         pose_key = T.tobytes() + repr(intrinsics).encode()
