@@ -41,8 +41,8 @@ ensure_venv() {
         return
     fi
     local py="${PYTHON:-python3}"
-    "$py" -c 'import sys; assert sys.version_info >= (3, 10), "Python >= 3.10 needed"' || {
-        log "ERROR: $py is older than Python 3.10"; exit 1; }
+    "$py" -c 'import sys; assert sys.version_info >= (3, 11), "Python >= 3.11 needed"' || {
+        log "ERROR: $py is older than Python 3.11"; exit 1; }
     log "creating virtual environment in $venv (first run takes a few minutes)"
     "$py" -m venv "$venv"
     "$venv/bin/python" -m pip install -q --upgrade pip 2>&1 | grep -v '^WARNING: Location' >&2 || true

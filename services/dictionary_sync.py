@@ -12,9 +12,9 @@ import numpy as np
 import zenoh
 
 from openfusion.bus import QueryError, get
-from openfusion.mapping import EmbeddingSpaceError, RegionDictionary, StaleVersionError
 from openfusion.mapping import DictionaryDelta as LibDelta
 from openfusion.mapping import DictionarySnapshot as LibSnapshot
+from openfusion.mapping import EmbeddingSpaceError, RegionDictionary, StaleVersionError
 from openfusion.messages import DictionaryDelta, DictionaryRequest, DictionarySnapshot
 
 logger = logging.getLogger(__name__)

@@ -32,7 +32,14 @@ from pydantic import Field
 
 from openfusion.bus import RequestError, ServiceRunner
 from openfusion.config import ConfigSection, ServiceConfig
-from openfusion.mapping import CapacityError, RegionDictionary, SemanticVolume, VolumeParams, load_map, save_map
+from openfusion.mapping import (
+    CapacityError,
+    RegionDictionary,
+    SemanticVolume,
+    VolumeParams,
+    load_map,
+    save_map,
+)
 from openfusion.mapping.mapfile import resolve_map_path
 from openfusion.messages import (
     ControlReply,

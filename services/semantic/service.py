@@ -25,7 +25,6 @@ import time
 from typing import Any
 
 import numpy as np
-
 from pydantic import Field
 
 from openfusion.bus import Publisher, QueryError, ServiceRunner, Subscriber, get
@@ -54,9 +53,12 @@ class SemanticSection(ConfigSection):
     max_hz: float | None = Field(default=None, gt=0)
     min_iou: float = Field(default=0.10, ge=0, le=1)
     render_timeout_s: float = Field(default=5.0, gt=0)
-    recover_timeout_s: float = Field(default=3.0, ge=0)
+    recover_timeout_s: float = Field(default=10.0, ge=0)
     model_path: str | None = None
     device: str = "auto"
+    # Fault injection: sleep this long after every encoder call, as a slower encoder would
+    # (used by the "10x slower encoder" test; 0 in normal use).
+    simulate_latency_s: float = Field(default=0.0, ge=0, le=60)
 
 
 class SemanticConfig(ServiceConfig):
@@ -108,12 +110,19 @@ class SemanticService:
         """Take the dictionary geometry checkpointed (same space only). True when recovered."""
         if self.section.recover_timeout_s <= 0:
             return False
-        try:
-            snap = get(runner.session, runner.keys.geometry_dictionary, DictionaryRequest(), DictionarySnapshot,
-                       timeout_s=self.section.recover_timeout_s, service="geometry")
-        except QueryError as exc:
-            logger.info("semantic: no dictionary to recover (%s); starting empty", exc.reason)
-            return False
+        # Right after joining, routes to geometry's queryable may not be known yet: a get then
+        # finds nobody at once. Retry until the deadline; a refusal (no dictionary) is final.
+        deadline = time.monotonic() + self.section.recover_timeout_s
+        while True:
+            try:
+                snap = get(runner.session, runner.keys.geometry_dictionary, DictionaryRequest(), DictionarySnapshot,
+                           timeout_s=max(0.5, min(3.0, deadline - time.monotonic())), service="geometry")
+                break
+            except QueryError as exc:
+                if exc.code != "timeout" or time.monotonic() >= deadline:
+                    logger.info("semantic: no dictionary to recover (%s); starting empty", exc.reason)
+                    return False
+                time.sleep(0.3)
         if snap.embedding_space != self.dictionary.embedding_space:
             logger.error("semantic: the map's dictionary is in space %r but the encoder is %r; starting empty "
                          "(a new map id is safer)", snap.embedding_space, self.dictionary.embedding_space)
@@ -133,6 +142,8 @@ class SemanticService:
         started = time.monotonic()
         frame = msg.to_frame()
         obs = self.encoder.encode(frame)
+        if self.section.simulate_latency_s > 0:
+            time.sleep(self.section.simulate_latency_s)
         h, w = obs.conf_maps.shape[1:] if obs.conf_maps.ndim == 3 else self.encoder.output_size(
             frame.intrinsics.height_px, frame.intrinsics.width_px)
         K_small = frame.intrinsics.scaled(w, h)

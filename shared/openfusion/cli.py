@@ -75,6 +75,10 @@ SUBCOMMANDS: list[Subcommand] = [
     Subcommand("health", "openfusion.cli:HealthCommand", "list the live services of a map and their stats"),
     Subcommand("service", "openfusion.services.cli:ServiceCommand", "run one service (bridge, geometry, semantic, query)"),
     Subcommand("run", "openfusion.embedded:RunCommand", "run everything on this machine: services, synthetic scene, queries"),
+    Subcommand("query", "openfusion.query_cli:QueryCommand", "ask a running map (or --map-dir) in plain text"),
+    Subcommand("segment", "openfusion.query_cli:SegmentCommand", "label a saved map's surface points by class names"),
+    Subcommand("eval", "openfusion.eval.cli:EvalCommand", "evaluate mapping quality, geometry and speed"),
+    Subcommand("render", "openfusion.viz.render_cli:RenderCommand", "headless PNG render of a saved map"),
     # Later subcommands register here (their modules are imported only when chosen).
 ]
 

@@ -103,10 +103,10 @@ class Frame:
         T = np.asarray(self.T_world_cam)
         if T.shape != (4, 4) or not np.isfinite(T).all():
             raise ValueError("T_world_cam must be a finite 4x4 matrix")
-        if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6):
+        if np.abs(T[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-6:
             raise ValueError(f"T_world_cam last row must be [0 0 0 1], got {T[3]}")
         R = T[:3, :3]
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
+        if np.abs(R @ R.T - np.eye(3)).max() > 1e-3:
             raise ValueError("T_world_cam rotation is not orthonormal")
         if self.instance is not None and (self.instance.shape != (h, w) or self.instance.dtype != np.int32):
             raise ValueError(f"instance must be {h}x{w} int32, got {self.instance.dtype} {self.instance.shape}")

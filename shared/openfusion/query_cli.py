@@ -1,0 +1,145 @@
+"""``openfusion query`` and ``openfusion segment``: ask a running map or a saved one.
+
+    openfusion query "TEXT" [--map ID] [--connect EP] [--top-k K] [--json] [--out FILE.ply]
+    openfusion query "TEXT" --map-dir DIR [...]            # a saved map, no services needed
+    openfusion segment --map-dir DIR --classes "wall,floor,chair" --out seg.ply
+
+``segment`` writes a binary little-endian PLY of the map's surface points with float ``x y z``
+and int ``label`` (index into the class list, -1 where the point has no region).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from openfusion.config import add_config_arguments, config_from_args, setup_logging
+
+
+def _load_saved_map(map_dir: Path) -> Any:
+    from openfusion.cli import CliError
+    from openfusion.mapping import MapFormatError, load_map
+    from openfusion.mapping.mapfile import resolve_map_path
+
+    if not resolve_map_path(map_dir).exists():
+        raise CliError(f"no map at {map_dir} (expected {resolve_map_path(map_dir)}; make one with `openfusion run`)", 2)
+    try:
+        return load_map(map_dir)
+    except MapFormatError as exc:
+        raise CliError(f"cannot read the map at {map_dir}: {exc}", 2) from None
+
+
+def _text_encoder_for(space: str, name: str | None) -> Any:
+    from openfusion.cli import CliError
+    from openfusion.encoders import make_text_encoder
+
+    encoder = make_text_encoder(name or "minilm")
+    if encoder.embedding_space != space:
+        raise CliError(f"the map is in embedding space {space!r} but --text-encoder gives {encoder.embedding_space!r}", 2)
+    return encoder
+
+
+def _print_regions(text: str, space: str, regions: list[Any], *, as_json: bool) -> None:
+    rows = [{"key": int(r.key), "score": round(float(r.score), 4), "label": r.label, "num_points": int(r.num_points),
+             "bbox_min": [round(float(v), 3) for v in r.bbox_min], "bbox_max": [round(float(v), 3) for v in r.bbox_max]}
+            for r in regions]
+    if as_json:
+        print(json.dumps({"query": text, "embedding_space": space, "regions": rows}))
+        return
+    print(f"{text!r} in {space}:")
+    if not rows:
+        print("  no regions")
+    for r in rows:
+        print(f"  key {r['key']:>6}  score {r['score']:.3f}  {r['label'] or '-':<16} {r['num_points']:>7} points  "
+              f"bbox {r['bbox_min']} .. {r['bbox_max']}")
+
+
+def _write_points(path: Path, regions: list[Any]) -> int:
+    from openfusion.eval.ply import write_ply_vertices
+
+    chunks = [(r.points, r.key) for r in regions if r.points is not None and len(r.points)]
+    if not chunks:
+        return 0
+    pts = np.concatenate([c[0] for c in chunks]).astype(np.float32)
+    keys = np.concatenate([np.full(len(c[0]), c[1], np.int32) for c in chunks])
+    write_ply_vertices(path, {"x": pts[:, 0], "y": pts[:, 1], "z": pts[:, 2], "key": keys})
+    return len(pts)
+
+
+class QueryCommand:
+    @staticmethod
+    def add_arguments(parser: argparse.ArgumentParser) -> None:
+        parser.add_argument("text", help="what to look for, e.g. 'something to sit on'")
+        parser.add_argument("--map-dir", type=Path, help="query a saved map folder instead of running services")
+        parser.add_argument("--top-k", type=int, default=5, help="regions to return (default 5)")
+        parser.add_argument("--json", action="store_true", help="print JSON")
+        parser.add_argument("--out", type=Path, help="write the points of the returned regions to this PLY")
+        parser.add_argument("--text-encoder", help="text encoder (default: minilm, the gt encoder's space)")
+        parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the services")
+        add_config_arguments(parser)
+
+    @staticmethod
+    def run(args: argparse.Namespace) -> int:
+        from openfusion.cli import CliError
+
+        if args.top_k < 1:
+            raise CliError(f"--top-k must be >= 1, got {args.top_k}", 2)
+        with_points = args.out is not None
+        if args.map_dir is not None:
+            from openfusion.mapping import query_regions
+
+            loaded = _load_saved_map(args.map_dir)
+            space = loaded.dictionary.embedding_space
+            encoder = _text_encoder_for(space, args.text_encoder)
+            regions = query_regions(loaded.dictionary, loaded.volume, encoder.encode([args.text])[0], args.top_k,
+                                    with_points=with_points, max_points=200_000)
+        else:
+            from openfusion.bus import QueryError
+            from openfusion.client import OpenFusionClient
+
+            config = config_from_args(args)
+            setup_logging(config.log_level if args.log_level else "WARNING")
+            with OpenFusionClient.from_config(config, timeout_s=args.timeout) as client:
+                try:
+                    reply = client.query_text(args.text, top_k=args.top_k, with_points=with_points)
+                except QueryError as exc:
+                    raise CliError(str(exc)) from None
+            space, regions = reply.embedding_space, reply.regions
+        _print_regions(args.text, space, regions, as_json=args.json)
+        if args.out is not None:
+            n = _write_points(args.out, regions)
+            print(f"wrote {n} points to {args.out}", file=sys.stderr)
+        return 0
+
+
+class SegmentCommand:
+    @staticmethod
+    def add_arguments(parser: argparse.ArgumentParser) -> None:
+        parser.add_argument("--map-dir", type=Path, required=True, help="a saved map folder")
+        parser.add_argument("--classes", required=True, help="comma-separated class names, e.g. 'wall,floor,chair'")
+        parser.add_argument("--out", type=Path, required=True, help="output PLY (x y z float, label int)")
+        parser.add_argument("--text-encoder", help="text encoder (default minilm)")
+
+    @staticmethod
+    def run(args: argparse.Namespace) -> int:
+        from openfusion.cli import CliError
+        from openfusion.eval.ply import write_ply_vertices
+        from openfusion.mapping import segment_points
+
+        classes = [c.strip() for c in args.classes.split(",") if c.strip()]
+        if not classes:
+            raise CliError("--classes needs at least one class name", 2)
+        loaded = _load_saved_map(args.map_dir)
+        encoder = _text_encoder_for(loaded.dictionary.embedding_space, args.text_encoder)
+        points, labels = segment_points(loaded.volume, loaded.dictionary, encoder.encode(classes))
+        write_ply_vertices(args.out, {"x": points[:, 0].astype(np.float32), "y": points[:, 1].astype(np.float32),
+                                      "z": points[:, 2].astype(np.float32), "label": labels.astype(np.int32)})
+        counts = {name: int((labels == i).sum()) for i, name in enumerate(classes)}
+        counts["(none)"] = int((labels < 0).sum())
+        print(json.dumps({"points": int(len(points)), "classes": counts, "out": str(args.out)}))
+        return 0
