@@ -360,3 +360,42 @@ def test_relabel_keys_moves_and_clears(volume: SemanticVolume) -> None:
     assert (arrays["key"] == -1).all() and (arrays["conf"] == 0).all()
     with pytest.raises(ValueError, match="relabel"):
         vol.relabel_keys({-1: 2})
+
+
+def test_float_depth_frames_integrate_like_uint16(scene: AnalyticScene) -> None:
+    """A frame with float32 metres (depth_scale 1) gives the same surface as its uint16 twin."""
+    frame = scene.make_frame(POSES[0], K_FULL)
+    vol_u16 = SemanticVolume()
+    vol_u16.integrate(frame)
+    frame.depth = frame.depth_m()
+    frame.depth_scale = 1.0
+    vol_f32 = SemanticVolume()
+    vol_f32.integrate(frame)
+    a, b = vol_u16.extract_points(), vol_f32.extract_points()
+    assert abs(len(a) - len(b)) <= 0.01 * len(a)
+    np.testing.assert_allclose(np.median(a.points, axis=0), np.median(b.points, axis=0), atol=1e-3)
+    np.testing.assert_allclose(a.colors.mean(axis=0), b.colors.mean(axis=0), atol=1.0)
+
+
+def test_concurrent_render_and_integrate_are_serialised(scene: AnalyticScene) -> None:
+    """A render thread and an integrate thread on one volume (as in the geometry service) finish
+    without errors and the map ends up with every frame."""
+    import threading
+
+    vol = SemanticVolume(VolumeParams(initial_block_count=64))  # forces growth while rendering
+    vol.integrate(scene.make_frame(POSES[0], K_FULL))
+    errors: list[BaseException] = []
+
+    def render_loop() -> None:
+        try:
+            for _ in range(15):
+                vol.render(POSES[1], K_SMALL)
+        except BaseException as exc:  # collected and asserted below
+            errors.append(exc)
+
+    t = threading.Thread(target=render_loop)
+    t.start()
+    for i, T in enumerate(POSES * 2):
+        vol.integrate(scene.make_frame(T, K_FULL, frame_id=i))
+    t.join()
+    assert not errors and vol.stats.frames_integrated == 7 and vol.stats.renders == 15

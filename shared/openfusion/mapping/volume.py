@@ -41,9 +41,13 @@ Open3D ray-cast notes (open3d 0.20, measured)
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
 import numpy as np
 import open3d as o3d
@@ -212,6 +216,20 @@ def _invert_pose(T: np.ndarray) -> np.ndarray:
     return out
 
 
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def _locked(method: _F) -> _F:
+    """Serialise a public method on the volume's lock (Open3D's grid is not thread-safe)."""
+
+    @functools.wraps(method)
+    def wrapper(self: SemanticVolume, *args: Any, **kwargs: Any) -> Any:
+        with self._lock:
+            return method(self, *args, **kwargs)
+
+    return wrapper  # type: ignore[return-value]
+
+
 class _BlockLookup:
     """Block coordinate -> buffer index, dense over the active bounding box when that is small."""
 
@@ -251,7 +269,11 @@ class _BlockLookup:
 
 
 class SemanticVolume:
-    """Semantic TSDF volume; see the module docstring for storage, render and update rules."""
+    """Semantic TSDF volume; see the module docstring for storage, render and update rules.
+
+    Public methods are serialised on an internal lock, so a service may integrate on one thread
+    and answer render requests on another.
+    """
 
     def __init__(self, params: VolumeParams | None = None) -> None:
         self.params = params if params is not None else VolumeParams()
@@ -260,6 +282,7 @@ class SemanticVolume:
                 f"device {self.params.device} requested but this Open3D build has no CUDA; use device='CPU:0'"
             )
         self._device = o3c.Device(self.params.device)
+        self._lock = threading.RLock()
         self._use_numpy_views = self._device.get_type() == o3c.Device.DeviceType.CPU
         self.stats = VolumeStats()
         self._intrinsic_cache: dict[CameraIntrinsics, o3c.Tensor] = {}
@@ -334,6 +357,7 @@ class SemanticVolume:
         """The underlying grid (read-only use: writing to it bypasses the key encoding)."""
         return self._vbg
 
+    @_locked
     def clear(self) -> None:
         """Drop all geometry and semantics (counters are kept)."""
         self._reset_grid()
@@ -407,7 +431,9 @@ class SemanticVolume:
             depth_scale = 1.0
             if p.depth_min_m > 0:
                 depth = np.where(depth < p.depth_min_m, np.float32(0.0), depth)
-            color = frame.color.astype(np.float32)
+            color = frame.color.astype(np.float32) * np.float32(
+                1.0 / 255.0
+            )  # Open3D scales float color by 255
         depth_t = o3c.Tensor.from_numpy(np.ascontiguousarray(depth))
         color_t = o3c.Tensor.from_numpy(color)
         if not self._use_numpy_views:
@@ -415,6 +441,7 @@ class SemanticVolume:
             color_t = color_t.to(self._device)
         return o3d.t.geometry.Image(depth_t), o3d.t.geometry.Image(color_t), depth_scale
 
+    @_locked
     def integrate(self, frame: Frame) -> IntegrateStats:
         """Fuse one frame's depth and color (geometry only; semantics are untouched).
 
@@ -556,6 +583,7 @@ class SemanticVolume:
         self._fragment_capacity = total // 2
         logger.debug("ray-cast fragment buffer grown to >= %d fragments", self._fragment_capacity)
 
+    @_locked
     def ray_cast(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> RayHits:
         """Depth and the 8 voxels around the first surface hit of every pixel (depth-tested)."""
         T = _check_pose(T_world_cam)
@@ -597,6 +625,7 @@ class SemanticVolume:
         )
 
     # ------------------------------------------------------------------ render / update
+    @_locked
     def render(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> RenderedView:
         """Key, confidence and depth images of the map from ``T_world_cam`` at ``intrinsics``' size.
 
@@ -623,6 +652,7 @@ class SemanticVolume:
         self.stats.renders += 1
         return RenderedView(key_map, conf_map, hits.depth_m, hits)
 
+    @_locked
     def apply_update(
         self,
         T_world_cam: np.ndarray,
@@ -706,6 +736,7 @@ class SemanticVolume:
         self.stats.voxels_updated += stats.voxels_updated
         return stats
 
+    @_locked
     def relabel_keys(self, mapping: dict[int, int]) -> int:
         """Rewrite voxel keys (e.g. after a dictionary merge ``{b: a}``); ``{k: -1}`` clears a key.
 
@@ -781,6 +812,7 @@ class SemanticVolume:
         wanted_arr = np.asarray(list(wanted) if not isinstance(wanted, np.ndarray) else wanted, np.int64)
         return np.isin(keys, wanted_arr)
 
+    @_locked
     def extract_points(
         self,
         keys: np.ndarray | list[int] | None = None,
@@ -817,6 +849,7 @@ class SemanticVolume:
             points, colors, pkeys, pconf = points[sel], colors[sel], pkeys[sel], pconf[sel]
         return SurfacePoints(points, colors, pkeys, pconf)
 
+    @_locked
     def extract_mesh(self, keys: np.ndarray | list[int] | None = None) -> SurfaceMesh:
         """Surface mesh (marching cubes); with ``keys``, only triangles whose 3 vertices carry one of
         those keys (unreferenced vertices dropped)."""
@@ -862,6 +895,7 @@ class SemanticVolume:
         return SurfaceMesh(vertices, triangles, colors, normals, vkeys, vconf)
 
     # ------------------------------------------------------------------ arrays (save / load)
+    @_locked
     def to_arrays(self) -> dict[str, np.ndarray]:
         """All active blocks as plain arrays (``key`` holds real keys, -1 = none)."""
         coords, buf = self._active_blocks()
