@@ -1,9 +1,10 @@
 """Virtual cameras for pictures of a map: an overview from above and outside the map's box.
 
 The overview camera sits on a ray from the centre of the map's bounding box, ``azimuth_deg``
-around the up axis and ``elevation_deg`` above the horizontal, and looks at that centre. Its
-distance is the smallest at which every corner of the box lies inside the image (with
-``margin``), so the whole map fills the picture whatever its size. Combined with back-face
+around the up axis and ``elevation_deg`` above the horizontal, and looks at the map. Its
+distance is the smallest at which the map's points (all but a few outliers) lie inside the image
+(with ``margin``), and the look-at point is shifted so they sit in the middle: the map fills the
+picture whatever its size or shape. Combined with back-face
 culling in :mod:`openfusion.viz.render` this gives a "doll's house" view of a room scan: the
 ceiling and the walls between the camera and the room are seen from behind and disappear.
 
@@ -82,16 +83,26 @@ def _basis(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return a, b
 
 
-def _fits(T_world_cam: np.ndarray, intr: CameraIntrinsics, corners: np.ndarray, margin: float) -> bool:
+def _extent(T_world_cam: np.ndarray, intr: CameraIntrinsics, points: np.ndarray, quantile: float) -> np.ndarray | None:
+    """[u_lo, u_hi, v_lo, v_hi] of the points' image coordinates relative to the principal point, as
+    fractions of the half image size (inside the image: all within [-1, 1]), ignoring the ``quantile``
+    outermost on each side; None when more than that fraction of points is behind the camera."""
     T_cam_world = np.linalg.inv(T_world_cam)
-    pc = corners @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
-    if (pc[:, 2] <= 1e-3).any():
-        return False
-    u = intr.fx * pc[:, 0] / pc[:, 2]
-    v = intr.fy * pc[:, 1] / pc[:, 2]
-    half_w = intr.width_px / 2.0 / margin
-    half_h = intr.height_px / 2.0 / margin
-    return bool((np.abs(u) <= half_w).all() and (np.abs(v) <= half_h).all())
+    pc = points @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    front = pc[:, 2] > 1e-3
+    if (~front).sum() > quantile * len(pc):
+        return None
+    pc = pc[front]
+    u = intr.fx * pc[:, 0] / pc[:, 2] / (intr.width_px / 2.0)
+    v = intr.fy * pc[:, 1] / pc[:, 2] / (intr.height_px / 2.0)
+    return np.array(
+        [np.quantile(u, quantile), np.quantile(u, 1 - quantile), np.quantile(v, quantile), np.quantile(v, 1 - quantile)]
+    )
+
+
+def _fits(T_world_cam: np.ndarray, intr: CameraIntrinsics, points: np.ndarray, margin: float, quantile: float) -> bool:
+    ext = _extent(T_world_cam, intr, points, quantile)
+    return ext is not None and bool(np.abs(ext).max() <= 1.0 / margin)
 
 
 def overview_camera(
@@ -104,8 +115,14 @@ def overview_camera(
     elevation_deg: float = 55.0,
     fov_deg: float = 45.0,
     margin: float = 1.05,
+    outlier_quantile: float = 0.002,
+    max_fit_points: int = 20_000,
 ) -> VirtualCamera:
-    """A camera above and outside the bounding box of ``points`` looking at its centre (module docstring)."""
+    """A camera above and outside the bounding box of ``points`` looking at the map (module docstring).
+
+    The distance is the smallest at which all but ``outlier_quantile`` of the points (on each side)
+    fall inside the image with ``margin``; the view is then re-centred on them.
+    """
     if up not in UP_AXES:
         raise VizError(f"unknown up axis {up!r}; use one of {', '.join(UP_AXES)}")
     if not (math.isfinite(elevation_deg) and -89.0 <= elevation_deg <= 89.0):
@@ -115,30 +132,46 @@ def overview_camera(
     if not (math.isfinite(margin) and margin >= 1.0):
         raise VizError(f"margin must be >= 1, got {margin}")
     intr = pinhole(width_px, height_px, fov_deg=fov_deg)
-    lo, hi = robust_bounds(points)
-    centre = (lo + hi) / 2.0
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    lo, hi = robust_bounds(pts, quantile=outlier_quantile)
+    if len(pts) > max_fit_points:
+        pts = pts[np.random.default_rng(0).choice(len(pts), size=max_fit_points, replace=False)]
+    target = (lo + hi) / 2.0
     up_v = np.asarray(UP_AXES[up])
     a, b = _basis(up_v)
     az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
     direction = math.cos(el) * (math.cos(az) * a + math.sin(az) * b) + math.sin(el) * up_v
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
     radius = max(float(np.linalg.norm(hi - lo)) / 2.0, 0.05)
+    q = outlier_quantile
 
-    def pose_at(distance: float) -> np.ndarray:
+    def pose_at(centre: np.ndarray, distance: float) -> np.ndarray:
         return look_at(centre + direction * distance, centre, up=tuple(up_v))
 
-    near, far = radius * 0.1, radius * 2.0
-    while not _fits(pose_at(far), intr, corners, margin):
-        far *= 2.0
-        if far > radius * 1e4:  # cannot happen for a finite box; guard against a degenerate one
+    def fit_distance(centre: np.ndarray) -> float:
+        near, far = radius * 0.05, radius * 2.0
+        while not _fits(pose_at(centre, far), intr, pts, margin, q):
+            far *= 2.0
+            if far > radius * 1e4:  # a finite box always fits eventually; guard a degenerate one
+                break
+        for _ in range(40):
+            mid = (near + far) / 2.0
+            if _fits(pose_at(centre, mid), intr, pts, margin, q):
+                far = mid
+            else:
+                near = mid
+        return far
+
+    distance = fit_distance(target)
+    for _ in range(2):  # shift the look-at point so the points sit in the middle of the image
+        T = pose_at(target, distance)
+        ext = _extent(T, intr, pts, q)
+        if ext is None:
             break
-    for _ in range(40):
-        mid = (near + far) / 2.0
-        if _fits(pose_at(mid), intr, corners, margin):
-            far = mid
-        else:
-            near = mid
-    return VirtualCamera(pose_at(far), intr)
+        du = (ext[0] + ext[1]) / 2.0 * (intr.width_px / 2.0) / intr.fx * distance
+        dv = (ext[2] + ext[3]) / 2.0 * (intr.height_px / 2.0) / intr.fy * distance
+        target = target + T[:3, 0] * du + T[:3, 1] * dv
+        distance = fit_distance(target)
+    return VirtualCamera(pose_at(target, distance), intr)
 
 
 def camera_from_pose(T_world_cam: np.ndarray, *, width_px: int, height_px: int, fov_deg: float = 60.0) -> VirtualCamera:

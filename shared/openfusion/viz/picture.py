@@ -43,6 +43,9 @@ logger = logging.getLogger(__name__)
 
 BASE_COLOUR_MODES = ("rgb", "region", "label")
 MAX_LEGEND_LINES = 12
+#: Front faces closer than this many truncation distances behind a back face are TSDF noise inside
+#: a wall (see openfusion.viz.render); skipping them opens the near walls of a room seen from outside.
+PEEL_GAP_TRUNCATIONS = 1.25
 
 
 def open_map(map_dir: str | os.PathLike[str]) -> LoadedMap:
@@ -203,8 +206,15 @@ def picture_of_map(
             elevation_deg=view.elevation_deg,
             fov_deg=view.fov_deg,
         )
+    params = loaded.volume.params
     rendered = render_mesh(
-        mesh.vertices, mesh.triangles, colouring.colors, camera, vertex_normals=mesh.normals, supersample=view.supersample
+        mesh.vertices,
+        mesh.triangles,
+        colouring.colors,
+        camera,
+        vertex_normals=mesh.normals,
+        supersample=view.supersample,
+        peel_gap_m=PEEL_GAP_TRUNCATIONS * params.trunc_voxels * params.voxel_size_m,
     )
     rgb = rendered.rgb
     highlight = None

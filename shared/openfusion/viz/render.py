@@ -7,9 +7,16 @@ barycentric blend of its triangle's vertex colours, shaded by
     intensity = ambient + (1 - ambient) * max(0, n . l)
 
 with ``n`` the interpolated vertex normal (turned towards the camera) and ``l`` a fixed light
-above-left of the camera. Triangles seen from behind (their TSDF normal points away from the
-camera) are culled before casting, so from outside a room scan the ceiling and near walls vanish
-and the inside shows (a "doll's house" view).
+above-left of the camera.
+
+Visibility ("doll's house" view of a room scan seen from outside)
+    TSDF normals point to free space, so a face is a *front face* when the camera is on its normal
+    side. A ray passes back faces (the ceiling and near walls seen from behind vanish). It also
+    passes a front face met less than ``peel_gap_m`` after the last back face: depth noise leaves
+    small free-space pockets inside the truncation band behind a wall, whose far sides are front
+    faces; without this rule they show as speckle where the near walls were. The pocket is never
+    thicker than the band, so ``1.25 x truncation distance`` (what ``openfusion render`` uses)
+    removes them while anything a real gap of free space away is kept.
 
 ``supersample`` renders at ``s`` times the size and averages ``s x s`` blocks (anti-aliasing);
 the per-pixel triangle index and depth then come from the centre sample of each block.
@@ -61,8 +68,11 @@ class RenderedImage:
         return out
 
 
-def _face_normals(vertices: np.ndarray, triangles: np.ndarray, vertex_normals: np.ndarray | None) -> np.ndarray:
-    """Unit face normals, oriented like the vertex normals (the TSDF's free-space side) where known."""
+def _face_normals(
+    vertices: np.ndarray, triangles: np.ndarray, vertex_normals: np.ndarray | None, which: np.ndarray
+) -> np.ndarray:
+    """Unit normals of triangles ``which``, oriented like the vertex normals (the TSDF's free-space side) where known."""
+    triangles = triangles[which]
     v0, v1, v2 = (vertices[triangles[:, i]] for i in range(3))
     n = np.cross(v1 - v0, v2 - v0)
     if vertex_normals is not None:
@@ -80,6 +90,64 @@ def _pixel_rays(intr: CameraIntrinsics) -> np.ndarray:
     return np.stack([uu, vv, np.ones_like(uu)], axis=-1)  # z = 1: t_hit is the z depth
 
 
+def _first_visible_hits(
+    vertices: np.ndarray,
+    triangles: np.ndarray,
+    normals: np.ndarray | None,
+    origin: np.ndarray,
+    dirs: np.ndarray,
+    *,
+    cull: bool,
+    peel_gap_m: float,
+    max_layers: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(triangle, depth, barycentric uv, pixel) of every pixel's first visible surface.
+
+    Without culling this is the first hit. With culling, a ray passes back faces and, when
+    ``peel_gap_m`` > 0, front faces less than ``peel_gap_m`` (along the ray) behind the last back
+    face it passed; it stops at the first other front face.
+    """
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)), o3d.core.Tensor(triangles.astype(np.uint32)))
+    n_px = len(dirs)
+    ray_len = np.linalg.norm(dirs, axis=1)
+    t_start = np.zeros(n_px)  # where each active ray starts, in units of its direction
+    t_back = np.full(n_px, -np.inf)  # last back face passed
+    active = np.arange(n_px)
+    out_tri, out_t, out_uv, out_px = [], [], [], []
+    eps = 1e-4
+    for _layer in range(max_layers if cull else 1):
+        if len(active) == 0:
+            break
+        o = origin[None, :] + dirs[active] * t_start[active, None]
+        rays = np.concatenate([o, dirs[active]], axis=1).astype(np.float32)
+        ans = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
+        t_hit = ans["t_hit"].numpy().astype(np.float64)
+        hit = np.isfinite(t_hit)
+        active, t_hit = active[hit], t_hit[hit]
+        tri = ans["primitive_ids"].numpy()[hit].astype(np.int64)
+        uv = ans["primitive_uvs"].numpy()[hit]
+        t_abs = t_start[active] + t_hit
+        if not cull:
+            accept = np.ones(len(active), bool)
+        else:
+            face_n = _face_normals(vertices, triangles, normals, tri)
+            front = (face_n * dirs[active]).sum(axis=1) < 0.0
+            gap_m = (t_abs - t_back[active]) * ray_len[active]
+            accept = front & (gap_m >= peel_gap_m)
+            back = ~front
+            t_back[active[back]] = t_abs[back]
+        out_tri.append(tri[accept])
+        out_t.append(t_abs[accept])
+        out_uv.append(uv[accept])
+        out_px.append(active[accept])
+        t_start[active] = t_abs + eps
+        active = active[~accept]
+    if not out_px:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
+    return np.concatenate(out_tri), np.concatenate(out_t), np.concatenate(out_uv), np.concatenate(out_px)
+
+
 def render_mesh(
     vertices: np.ndarray,
     triangles: np.ndarray,
@@ -91,11 +159,15 @@ def render_mesh(
     ambient: float = 0.4,
     background_rgb: tuple[int, int, int] = BACKGROUND_RGB,
     supersample: int = 1,
+    peel_gap_m: float = 0.0,
+    max_layers: int = 8,
 ) -> RenderedImage:
     """Ray-cast and shade a vertex-coloured triangle mesh from ``camera`` (module docstring).
 
     ``vertex_normals`` (V, 3) orient faces for culling and smooth the shading; without them faces
-    are two-sided and flat-shaded.
+    are two-sided and flat-shaded. ``peel_gap_m`` > 0 also skips a front face met within that
+    distance after a back face (see the module docstring); ``max_layers`` bounds the surfaces one
+    ray may pass.
     """
     vertices = np.asarray(vertices, np.float64)
     triangles = np.asarray(triangles, np.int64)
@@ -127,32 +199,19 @@ def render_mesh(
             raise VizError(f"vertex normals must be (V, 3) like the vertices, got {normals.shape}")
         if not (np.linalg.norm(normals, axis=1) > 1e-6).any():
             normals = None
-    face_n = _face_normals(vertices, triangles, normals) if len(triangles) else np.zeros((0, 3))
-    keep = np.ones(len(triangles), bool)
-    if cull_back_faces and normals is not None and len(triangles):
-        centroid = vertices[triangles].mean(axis=1)
-        keep = ((centroid - origin) * face_n).sum(axis=1) < 0.0
-    kept = np.flatnonzero(keep)
+    cull = cull_back_faces and normals is not None
 
-    rays_cam = _pixel_rays(intr_s)
+    rays_cam = _pixel_rays(intr_s).reshape(-1, 3)
     dirs = rays_cam @ R.T
-    rgb = np.empty((h, w, 3), np.float32)
+    n_px = h * w
+    rgb = np.empty((n_px, 3), np.float32)
     rgb[:] = np.asarray(background_rgb, np.float32)
-    depth = np.zeros((h, w), np.float32)
-    tri_index = np.full((h, w), -1, np.int64)
-    if len(kept):
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(
-            o3d.core.Tensor(vertices.astype(np.float32)),
-            o3d.core.Tensor(triangles[kept].astype(np.uint32)),
+    depth = np.zeros(n_px, np.float32)
+    tri_index = np.full(n_px, -1, np.int64)
+    if len(triangles):
+        tri, t_hit, uv, px = _first_visible_hits(
+            vertices, triangles, normals, origin, dirs, cull=cull, peel_gap_m=peel_gap_m, max_layers=max_layers
         )
-        rays = np.concatenate([np.broadcast_to(origin, dirs.shape), dirs], axis=-1).astype(np.float32)
-        ans = scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
-        t_hit = ans["t_hit"].numpy()
-        hit = np.isfinite(t_hit)
-        prim = ans["primitive_ids"].numpy()[hit].astype(np.int64)
-        uv = ans["primitive_uvs"].numpy()[hit].astype(np.float32)
-        tri = kept[prim]
         bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
         corners = triangles[tri]
         col = (colors[corners].astype(np.float32) * bary[:, :, None]).sum(axis=1)
@@ -160,17 +219,20 @@ def render_mesh(
             n = (normals[corners] * bary[:, :, None]).sum(axis=1)
             n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         else:
-            n = face_n[tri]
-        ray_dir = dirs[hit]
+            n = _face_normals(vertices, triangles, None, tri)
+        ray_dir = dirs[px]
         facing = (n * ray_dir).sum(axis=1) > 0
         n[facing] *= -1.0  # shade the side the camera sees
         light = -R[:, 2] + 0.6 * (-R[:, 1]) - 0.3 * R[:, 0]
         light /= np.linalg.norm(light)
         lambert = np.clip(n @ light, 0.0, 1.0)
         intensity = ambient + (1.0 - ambient) * lambert
-        rgb[hit] = col * intensity[:, None].astype(np.float32)
-        depth[hit] = t_hit[hit]
-        tri_index[hit] = tri
+        rgb[px] = col * intensity[:, None].astype(np.float32)
+        depth[px] = t_hit
+        tri_index[px] = tri
+    rgb = rgb.reshape(h, w, 3)
+    depth = depth.reshape(h, w)
+    tri_index = tri_index.reshape(h, w)
     if s > 1:
         h0, w0 = intr.height_px, intr.width_px
         rgb = rgb.reshape(h0, s, w0, s, 3).mean(axis=(1, 3))
