@@ -286,4 +286,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # Run the imported module, not this __main__ copy, so exception classes such as CliError are
+    # the ones subcommand modules import from openfusion.cli.
+    from openfusion.cli import main as _main
+
+    sys.exit(_main())

@@ -327,7 +327,10 @@ class RunCommand:
         from openfusion.cli import CliError
         from openfusion.keys import validate_map_id
 
-        validate_map_id(args.map_id)
+        try:
+            validate_map_id(args.map_id)
+        except ValueError as exc:
+            raise CliError(str(exc), 2) from None
         if args.frames <= 0:
             raise CliError(f"--frames must be positive, got {args.frames}", 2)
         if args.semantic_every < 0:
