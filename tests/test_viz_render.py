@@ -238,3 +238,12 @@ def test_picture_refuses_a_map_without_regions_for_a_query(tmp_path):
         picture_of_map(loaded, view=ViewOptions(width_px=64, height_px=48), query="chair", text_encoder=make_text_encoder("hash"))
     pic = picture_of_map(loaded, view=ViewOptions(width_px=64, height_px=48))  # geometry alone renders
     assert pic.rendered.coverage > 0
+
+
+def test_overview_camera_does_not_depend_on_point_order():
+    """The same points in another order (Open3D's mesh order varies run to run) give the same camera."""
+    rng = np.random.default_rng(5)
+    pts = rng.uniform([0, 0, 0], [6, 4, 2.5], size=(30_000, 3))
+    a = overview_camera(pts, width_px=320, height_px=240, max_fit_points=5000)
+    b = overview_camera(pts[rng.permutation(len(pts))], width_px=320, height_px=240, max_fit_points=5000)
+    np.testing.assert_allclose(a.T_world_cam, b.T_world_cam, atol=1e-9)

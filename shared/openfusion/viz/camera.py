@@ -135,6 +135,8 @@ def overview_camera(
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     lo, hi = robust_bounds(pts, quantile=outlier_quantile)
     if len(pts) > max_fit_points:
+        # sorted first, so the same point set gives the same camera whatever order it came in
+        pts = pts[np.lexsort(pts.T[::-1])]
         pts = pts[np.random.default_rng(0).choice(len(pts), size=max_fit_points, replace=False)]
     target = (lo + hi) / 2.0
     up_v = np.asarray(UP_AXES[up])
