@@ -146,3 +146,25 @@ def test_delta_of_other_space_is_refused() -> None:
     with pytest.raises(EmbeddingSpaceError):
         replica.apply_delta(owner.delta_since(0))
     assert len(replica) == 0
+
+
+def test_observe_many_equals_repeated_observe() -> None:
+    """The vectorised update used per frame gives the same means, counts and labels as one by one."""
+    rng = np.random.default_rng(4)
+    start = rng.standard_normal((5, 8)).astype(np.float32)
+    a, b = RegionDictionary("s", 8), RegionDictionary("s", 8)
+    for v in start:
+        a.add(v)
+        b.add(v)
+    obs = rng.standard_normal((3, 8)).astype(np.float32)
+    keys = np.array([4, 0, 2])
+    a.observe_many(keys, obs, ["x", None, "z"])
+    for k, v, lab in zip(keys, obs, ["x", None, "z"], strict=True):
+        b.observe(int(k), v, label=lab)
+    for k in range(5):
+        np.testing.assert_allclose(a.mean_embedding(k), b.mean_embedding(k), atol=1e-6)
+        np.testing.assert_allclose(a.embedding(k), b.embedding(k), atol=1e-6)
+        assert a.count(k) == b.count(k) and a.label(k) == b.label(k)
+    assert a.version == 6  # one version for the batch
+    with pytest.raises(ValueError, match="distinct"):
+        a.observe_many(np.array([1, 1]), obs[:2])

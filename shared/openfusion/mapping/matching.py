@@ -197,15 +197,23 @@ def plan_update(
     key_of = np.full(n, -1, np.int64)
     plan = PlannedUpdate(np.full((h, w), -1, np.int32), np.zeros((h, w), np.float32), match=match)
     with dictionary.batch():
+        obs_idx, obs_keys = [], []
         for i, key in zip(match.frame_indices, match.keys, strict=True):
             if pixels_won[i] == 0:
                 continue
             if int(key) not in dictionary:
                 logger.warning("rendered key %d is not in the dictionary; region %d gets a new key", key, i)
                 continue
-            dictionary.observe(int(key), embeddings[i], label=labels[i] if labels is not None else None)
-            key_of[i] = key
-            plan.matched.append((int(i), int(key)))
+            obs_idx.append(int(i))
+            obs_keys.append(int(key))
+        if obs_idx:
+            dictionary.observe_many(
+                np.array(obs_keys, np.int64),
+                embeddings[obs_idx],
+                [labels[i] for i in obs_idx] if labels is not None else None,
+            )
+            key_of[obs_idx] = obs_keys
+            plan.matched.extend(zip(obs_idx, obs_keys, strict=True))
         for i in range(n):
             if key_of[i] >= 0:
                 continue
