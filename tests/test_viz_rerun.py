@@ -98,3 +98,15 @@ def test_log_mesh_refuses_unknown_colour_mode(tmp_path):
             log.log_mesh(mesh, colour="label")
         log.log_mesh(mesh, colour="region")
     assert (tmp_path / "m.rrd").stat().st_size > 0
+
+
+def test_serve_sink_hosts_a_grpc_proxy_on_the_given_port():
+    """serve:PORT starts an in-process server whose URL a viewer can connect to."""
+    pytest.importorskip("rerun", reason="rerun logging needs the optional rerun-sdk package")
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    with RerunLogger(f"serve:{port}") as log:
+        assert log.server_url == f"rerun+http://127.0.0.1:{port}/proxy"

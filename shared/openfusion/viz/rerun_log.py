@@ -149,7 +149,8 @@ class RerunLogger:
             else:
                 self.stream.connect_grpc(s.url)
         except (RuntimeError, OSError, ValueError) as exc:
-            raise VizError(f"cannot open the rerun sink {s.kind}: {exc}") from exc
+            first_line = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            raise VizError(f"cannot open the rerun sink {s.kind}: {first_line}") from exc
 
     # ------------------------------------------------------------------ context
     def __enter__(self) -> RerunLogger:
