@@ -104,6 +104,29 @@ def test_export_glb_and_points(map_dir, tmp_path, capsys):
     assert red.any() and (v["key"][red] == summary["hits"][0]["key"]).all()
 
 
+def test_export_colours_by_best_matching_class(map_dir, tmp_path, capsys):
+    """--colour label --classes: every region takes one of the given classes; colours follow the
+    order the classes were given in (first class -> first palette colour)."""
+    code, _, err = _run(
+        capsys, "export", "--map-dir", str(map_dir), "--out", str(tmp_path / "c.ply"),
+        "--colour", "label", "--classes", "chair, floor ,wall",
+    )  # fmt: skip
+    assert code == 0, err
+    legend = json.loads((tmp_path / "c.legend.json").read_text())
+    assert legend["title"] == "best-matching class"
+    labels = [e.get("label") for e in legend["entries"]]
+    assert labels[:3] == ["chair", "floor", "wall"] and set(labels) <= {"chair", "floor", "wall", "(no label)"}
+    from openfusion.viz.palette import index_colors
+
+    assert legend["entries"][0]["color_rgb"] == list(index_colors([0])[0])
+    floor = legend["entries"][1]
+    v = read_ply(tmp_path / "c.ply").vertices
+    rgb = np.stack([v["red"], v["green"], v["blue"]], 1)
+    painted = (rgb == floor["color_rgb"]).all(axis=1)
+    assert floor["count"] == int(painted.sum()) > 1000
+    assert set(np.unique(v["key"][painted]).tolist()) == set(floor["keys"])
+
+
 @pytest.mark.parametrize(
     ("case", "message"),
     [

@@ -105,6 +105,7 @@ def colour_mesh(
             class_emb = text_encoder.encode(names)
             labels = assign_classes(dictionary.keys, dictionary.unit_embeddings(), class_emb, names)
             base = colour_by_label(mesh.keys, labels, label_order=names)
+            base.title = "best-matching class"
         else:
             base = colour_by_label(mesh.keys, region_labels(dictionary))
     if hits is None:
