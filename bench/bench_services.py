@@ -64,12 +64,15 @@ def play_and_time(bus: Bus, recording: Path, n: int, rate_hz: float = 0.0) -> tu
     base = bus.counter("geometry", "frames_integrated")
     bus.cluster.start("bridge", ["--source", f"replay:{recording}", "--rate-hz", str(rate_hz)])
     t_first = None
+    last_change, last_done = time.monotonic(), -1.0
     while True:
         done = bus.counter("geometry", "frames_integrated") - base
         now = time.monotonic()
         if done >= 1 and t_first is None:
             t_first = now
-        if done >= n:
+        if done != last_done:
+            last_change, last_done = now, done
+        if done >= n or now - last_change > 10.0:  # all frames, or a frame was lost on the way
             break
         time.sleep(0.02)
     bus.cluster.stop("bridge")

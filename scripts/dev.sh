@@ -13,7 +13,7 @@ set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 venv="${OPENFUSION_VENV:-$root/.venv}"
 torch_spec="${OPENFUSION_TORCH_SPEC:-torch==2.13.0}"
-extras="${OPENFUSION_EXTRAS:-test}"
+extras="${OPENFUSION_EXTRAS:-test,viz}"
 
 log() { printf '[dev.sh] %s\n' "$*" >&2; }
 

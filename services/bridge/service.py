@@ -38,6 +38,10 @@ class BridgeSection(ConfigSection):
     max_frames: int | None = Field(default=None, ge=0)
     wait_for_subscribers_s: float = Field(default=10.0, ge=0)
     progress: bool = False
+    # Dataset playback must not lose frames: block (back-pressure) instead of letting Zenoh drop
+    # a frame when the link or a subscriber is congested. Set False for live sensors, where a
+    # stale frame is worth less than a fresh one.
+    block_when_congested: bool = True
 
 
 class BridgeConfig(ServiceConfig):
@@ -80,7 +84,10 @@ class BridgeService:
         self._pub: Publisher | None = None
 
     def setup(self, runner: ServiceRunner) -> None:
-        self._pub = runner.publisher(runner.keys.sensor_rgbd)
+        import zenoh
+
+        congestion = zenoh.CongestionControl.BLOCK if self.section.block_when_congested else zenoh.CongestionControl.DROP
+        self._pub = runner.publisher(runner.keys.sensor_rgbd, congestion_control=congestion)
 
     def _publish(self, runner: ServiceRunner, frame: Frame) -> None:
         assert self._pub is not None

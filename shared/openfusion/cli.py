@@ -79,6 +79,7 @@ SUBCOMMANDS: list[Subcommand] = [
     Subcommand("segment", "openfusion.query_cli:SegmentCommand", "label a saved map's surface points by class names"),
     Subcommand("eval", "openfusion.eval.cli:EvalCommand", "evaluate mapping quality, geometry and speed"),
     Subcommand("render", "openfusion.viz.render_cli:RenderCommand", "headless PNG render of a saved map"),
+    Subcommand("export", "openfusion.viz.export_cli:ExportCommand", "export a saved map as PLY/GLB, coloured"),
     # Later subcommands register here (their modules are imported only when chosen).
 ]
 
