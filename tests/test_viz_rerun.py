@@ -110,3 +110,25 @@ def test_serve_sink_hosts_a_grpc_proxy_on_the_given_port():
         port = s.getsockname()[1]
     with RerunLogger(f"serve:{port}") as log:
         assert log.server_url == f"rerun+http://127.0.0.1:{port}/proxy"
+
+
+def test_log_query_accepts_a_query_reply_message(tmp_path):
+    """A QueryReply from the query service (boxes, no points) is logged as boxes + a text line;
+    anything else without results is refused."""
+    pytest.importorskip("rerun", reason="rerun logging needs the optional rerun-sdk package")
+    from rerun.chunk import RrdReader
+
+    from openfusion.messages import QueryReply, RegionHit
+
+    hit = RegionHit(
+        key=3, score=0.8, label="chair", bbox_min=np.zeros(3, np.float32), bbox_max=np.ones(3, np.float32), num_points=10
+    )
+    reply = QueryReply(embedding_space="minilm-l6-v2", query="chair", regions=[hit])
+    path = tmp_path / "q.rrd"
+    with RerunLogger(f"save:{path}") as log:
+        log.log_query(reply)
+        with pytest.raises(VizError, match="QueryReply"):
+            log.log_query("chair")
+    entities = set(RrdReader(str(path)).store().schema().entity_paths())
+    assert "/world/query/1/box" in entities and "/log/queries" in entities
+    assert "/world/query/1/points" not in entities

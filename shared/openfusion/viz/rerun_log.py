@@ -20,7 +20,7 @@ Entities (world frame = the map's frame, metres; timeline ``frame`` = frame id, 
 - ``world/query/...``: query matches (:meth:`RerunLogger.log_query`) in the highlight colours, with
   bounding boxes; the query text goes to ``log/queries``.
 
-Pipeline hooks: ``log_frame(frame)``, ``log_mesh(mesh)``, ``log_query(text, results)``;
+Pipeline hooks: ``log_frame(frame)``, ``log_mesh(mesh)``, ``log_query(reply)`` (or ``(text, results)``);
 :meth:`RerunLogger.frame_hook` returns an ``on_frame(frame, stats)`` callback for
 ``openfusion.pipeline.map_scene`` that logs every frame and, every ``mesh_every`` frames, the mesh.
 """
@@ -261,18 +261,28 @@ class RerunLogger:
 
     def log_query(
         self,
-        text: str,
-        results: Sequence[Any],
+        query: Any,
+        results: Sequence[Any] | None = None,
         *,
         points: SurfacePoints | None = None,
         entity: str = "world/query",
     ) -> None:
-        """Matches of a text query: each result's points (``result.points`` when present, else taken
-        from ``points``) in its rank's highlight colour, its bounding box, and a text log line.
+        """Matches of a query: each region's points in its rank's highlight colour, its bounding box,
+        and a text log line; the previous query's entities are cleared.
 
-        ``results`` are :class:`openfusion.mapping.RegionResult` or :class:`~openfusion.viz.colouring.QueryHit`.
+        Call as ``log_query(reply)`` with a :class:`openfusion.messages.QueryReply` (``.query``,
+        ``.regions``) or ``log_query(text, results)`` with :class:`openfusion.mapping.RegionResult`
+        or :class:`~openfusion.viz.colouring.QueryHit` items. A region's points come from
+        ``result.points`` when present, else from ``points`` (the map's surface points); its box
+        from ``bbox_min``/``bbox_max`` when finite, else from its points.
         """
         self._check_open()
+        if results is None:
+            if not hasattr(query, "regions"):
+                raise VizError("log_query needs a QueryReply, or the query text and its results")
+            text, results = str(getattr(query, "query", "")), list(query.regions)
+        else:
+            text = str(query)
         rr = self._rr
         self.stream.log(entity, rr.Clear(recursive=True))
         lines = []
@@ -284,10 +294,14 @@ class RerunLogger:
                 pts = np.asarray(points.points)[np.asarray(points.keys) == key]
             name = f"{entity}/{rank + 1}"
             caption = f"#{rank + 1} {label or '(no label)'} {score:.2f}"
+            lo = np.asarray(getattr(res, "bbox_min", np.full(3, np.nan)), np.float32)
+            hi = np.asarray(getattr(res, "bbox_max", np.full(3, np.nan)), np.float32)
             if pts is not None and len(pts):
                 pts = np.asarray(pts, np.float32)
                 self.stream.log(f"{name}/points", rr.Points3D(pts, colors=[rgb], radii=0.015))
-                lo, hi = pts.min(axis=0), pts.max(axis=0)
+                if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+                    lo, hi = pts.min(axis=0), pts.max(axis=0)
+            if np.isfinite(lo).all() and np.isfinite(hi).all():
                 self.stream.log(f"{name}/box", rr.Boxes3D(mins=[lo], sizes=[hi - lo], colors=[rgb], labels=[caption]))
             lines.append(f"{caption} (key {key})")
         summary = f"query {text!r}: " + ("; ".join(lines) if lines else "no region")
