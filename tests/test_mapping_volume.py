@@ -399,3 +399,29 @@ def test_concurrent_render_and_integrate_are_serialised(scene: AnalyticScene) ->
         vol.integrate(scene.make_frame(T, K_FULL, frame_id=i))
     t.join()
     assert not errors and vol.stats.frames_integrated == 7 and vol.stats.renders == 15
+
+
+def test_update_reuses_render_only_while_buffers_are_valid(scene: AnalyticScene) -> None:
+    """apply_update reuses the render's ray cast for the same pose and size; after the grid grew
+    (voxel buffer indices moved) or for another pose it casts again instead of writing stale indices."""
+    vol = SemanticVolume(VolumeParams(initial_block_count=64))
+    vol.integrate(scene.make_frame(POSES[0], K_FULL))
+    keys = np.full((120, 160), 1, np.int32)
+    conf = np.full((120, 160), 0.5, np.float32)
+    rendered = vol.render(POSES[0], K_SMALL)
+    assert vol.apply_update(POSES[0], K_SMALL, keys, conf, rendered=rendered).reused_render
+    assert not vol.apply_update(POSES[1], K_SMALL, keys, conf, rendered=rendered).reused_render
+    generation = vol.generation
+    for i, T in enumerate(POSES[1:]):
+        vol.integrate(scene.make_frame(T, K_FULL, frame_id=i + 1))
+    assert vol.generation != generation
+    stats = vol.apply_update(
+        POSES[0],
+        K_SMALL,
+        np.full((120, 160), 2, np.int32),
+        np.full((120, 160), 0.9, np.float32),
+        rendered=rendered,
+    )
+    assert not stats.reused_render and stats.voxels_switched > 0
+    after = vol.render(POSES[0], K_SMALL)
+    assert (after.key_map[after.depth_m > 0] == 2).mean() > 0.95
