@@ -139,6 +139,7 @@ def test_export_colours_by_best_matching_class(map_dir, tmp_path, capsys):
         ("other-space", "embeds in space 'hash-trigram-256'"),
         ("bad-top-k", "--top-k must be >= 1"),
         ("classes-without-label", "--classes only applies"),
+        ("bad-export-suffix", "--export-mesh must end in .ply or .glb"),
     ],
 )
 def test_render_user_errors_are_one_line_without_traceback(case, message, map_dir, tmp_path, capsys):
@@ -167,6 +168,8 @@ def test_render_user_errors_are_one_line_without_traceback(case, message, map_di
         args += ["--query", "chair", "--top-k", "0"]
     elif case == "classes-without-label":
         args += ["--classes", "chair,table"]
+    elif case == "bad-export-suffix":
+        args += ["--export-mesh", str(tmp_path / "m.obj")]
     code, stdout, err = _run(capsys, *args)
     assert code == 2
     assert message in err
@@ -180,3 +183,9 @@ def test_export_without_trimesh_exits_1_naming_the_package(map_dir, tmp_path, ca
     code, _, err = _run(capsys, "export", "--map-dir", str(map_dir), "--out", str(tmp_path / "m.glb"))
     assert code == 1
     assert "trimesh" in err and "pip install" in err and len(err.strip().splitlines()) == 1
+    # render --export-mesh x.glb refuses before rendering: no picture is left behind
+    png = tmp_path / "v.png"
+    code, _, err = _run(
+        capsys, "render", "--map-dir", str(map_dir), "--out", str(png), "--export-mesh", str(tmp_path / "m.glb"),
+    )  # fmt: skip
+    assert code == 1 and "trimesh" in err and not png.exists()

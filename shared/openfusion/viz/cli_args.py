@@ -94,3 +94,17 @@ def make_text_encoder_for(args: argparse.Namespace, dictionary):  # noqa: ANN001
         return text_encoder_for_map(dictionary, name=args.text_encoder, model=args.text_model)
     except VizError as exc:
         raise cli_error(exc) from exc
+
+
+def check_export_target(path: Path, option: str) -> None:
+    """Refuse a mesh target we cannot write before any work is done: suffix, folder, trimesh for .glb."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in (".ply", ".glb"):
+        raise CliError(f"{option} must end in .ply or .glb, got {path}", EXIT_USAGE)
+    if not Path(path).parent.is_dir():
+        raise CliError(f"{option}: folder {Path(path).parent} does not exist", EXIT_USAGE)
+    if suffix == ".glb":
+        try:
+            import trimesh  # noqa: F401
+        except ImportError as exc:
+            raise cli_error(MissingDependencyError("trimesh", "GLB export")) from exc

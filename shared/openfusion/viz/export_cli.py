@@ -23,6 +23,7 @@ from openfusion.viz.cli_args import (
     add_colour_arguments,
     add_map_arguments,
     check_colour_arguments,
+    check_export_target,
     cli_error,
     make_text_encoder_for,
 )
@@ -57,8 +58,7 @@ class ExportCommand:
             raise CliError("--points writes a .ply point cloud; use an --out ending in .ply", EXIT_USAGE)
         if args.max_points is not None and (not args.points or args.max_points < 1):
             raise CliError("--max-points needs --points and a value >= 1", EXIT_USAGE)
-        if not out.parent.is_dir():
-            raise CliError(f"--out: folder {out.parent} does not exist", EXIT_USAGE)
+        check_export_target(out, "--out")
         classes = check_colour_arguments(args)
         try:
             loaded = open_map(args.map_dir)

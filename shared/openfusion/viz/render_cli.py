@@ -23,6 +23,7 @@ from openfusion.viz.cli_args import (
     add_map_arguments,
     add_view_arguments,
     check_colour_arguments,
+    check_export_target,
     cli_error,
     make_text_encoder_for,
 )
@@ -64,6 +65,8 @@ class RenderCommand:
         if not 1 <= args.supersample <= MAX_SUPERSAMPLE:
             raise CliError(f"--supersample must be 1..{MAX_SUPERSAMPLE}, got {args.supersample}", EXIT_USAGE)
         classes = check_colour_arguments(args)
+        if args.export_mesh is not None:
+            check_export_target(args.export_mesh, "--export-mesh")
         try:
             check_image_size(args.width, args.height)
             loaded = open_map(args.map_dir)
