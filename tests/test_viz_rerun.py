@@ -48,7 +48,7 @@ def test_recording_holds_frames_trajectory_mesh_regions_and_query(tmp_path, tmp_
     the camera, images, trajectory, mesh, region points and query entities; a closed logger refuses
     more data."""
     rr = pytest.importorskip("rerun", reason="rerun logging needs the optional rerun-sdk package")
-    from rerun.chunk import RrdReader
+    RrdReader = pytest.importorskip("rerun.chunk", reason="reading .rrd back needs rerun-sdk >= 0.41").RrdReader
 
     loaded = load_map(cached_synthetic_map(tmp_path_factory.getbasetemp()))
     from openfusion.encoders import make_text_encoder
@@ -116,7 +116,7 @@ def test_log_query_accepts_a_query_reply_message(tmp_path):
     """A QueryReply from the query service (boxes, no points) is logged as boxes + a text line;
     anything else without results is refused."""
     pytest.importorskip("rerun", reason="rerun logging needs the optional rerun-sdk package")
-    from rerun.chunk import RrdReader
+    RrdReader = pytest.importorskip("rerun.chunk", reason="reading .rrd back needs rerun-sdk >= 0.41").RrdReader
 
     from openfusion.messages import QueryReply, RegionHit
 
