@@ -26,11 +26,14 @@ from openfusion.eval.scenes import parse_scene_specs
 
 QUICK_SCENES = "synthetic:seed=1,synthetic:seed=2"
 FULL_SCENES = "synthetic:seed=1,synthetic:seed=2,synthetic:seed=3"
-QUICK_FRAMES = 30
 
 
 def _f(v: float | None, fmt: str = "{:.3f}") -> str:
     return "n/a" if v is None else fmt.format(v)
+
+
+def _ratio(v: float | None, base: float | None) -> str:
+    return "n/a" if v is None or not base else f"{v / base:.2f}x"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -50,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
-    base = FULL if args.full else replace(QUICK, frames=QUICK_FRAMES)
+    base = FULL if args.full else QUICK
     base = replace(base, text_encoder=args.text_encoder)
     specs = parse_scene_specs([args.scenes or (FULL_SCENES if args.full else QUICK_SCENES)])
     profiles = [p.strip() for p in args.noise.split(",") if p.strip()]
@@ -69,15 +72,18 @@ def main(argv: list[str] | None = None) -> int:
           f"{base.width_px}x{base.height_px}, voxel {base.voxel_size_m * 100:.0f} cm, gt encoder + {base.text_encoder})")  # fmt: skip
     print()
     print(
-        "| noise | f-mIoU | mAcc | accuracy (voxels) | completeness | 3D-Rec fps | Sem-3D-Rec fps | wall (s) |"
+        "| noise | f-mIoU | mAcc | accuracy (voxels) | completeness | 3D-Rec fps | raw Open3D fps (baseline) "
+        "| ratio | Sem-3D-Rec fps | wall (s) |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for noise, r in runs.items():
         s = r["summary"]
         m = s["quality"]["region_map"]["metrics"]
         print(
             f"| {noise} | {_f(m['f_mIoU'])} | {_f(m['mAcc'])} | {_f(s['geometry']['accuracy_vox'], '{:.2f}')} | "
             f"{_f(s['geometry']['completeness'])} | {_f(s['speed']['rec3d_fps'], '{:.1f}')} | "
+            f"{_f(s['speed'].get('raw_open3d_fps'), '{:.1f}')} | "
+            f"{_ratio(s['speed']['rec3d_fps'], s['speed'].get('raw_open3d_fps'))} | "
             f"{_f(s['speed']['sem_rec3d_fps'], '{:.1f}')} | {r['wall_s']:.0f} |"
         )
     print()

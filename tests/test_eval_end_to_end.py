@@ -26,7 +26,8 @@ SPEED_FIELDS = {
     "frames", "semantic_frames", "integrate_s", "encode_s", "semantic_step_s", "rec3d_fps",
     "sem_rec3d_fps", "encode_ms", "semantic_step_ms",
 }  # fmt: skip
-MAPS = {"region_map", "point_features", "block_samples_16"}
+MAPS = {"region_map", "region_map_nn_fill", "point_features", "block_samples_16"}
+STORED_MAPS = {"region_map", "point_features", "block_samples_16"}
 
 
 def test_cli_writes_documented_json_and_markdown(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -57,7 +58,7 @@ def test_cli_writes_documented_json_and_markdown(tmp_path: Path, capsys: pytest.
         assert GEOMETRY_FIELDS <= set(scene["geometry"])
         assert SPEED_FIELDS <= set(scene["speed"])
         assert scene["speed"]["frames"] == scene["speed"]["semantic_frames"] > 0
-        assert set(scene["memory"]) == MAPS and set(scene["query"]) == {"region_map", "point_features"}
+        assert set(scene["memory"]) == STORED_MAPS and set(scene["query"]) == {"region_map", "point_features"}
         assert scene["ground_truth"]["accuracy_reference"] == "mesh"
     summary = results["summary"]
     assert set(summary["quality"]) == MAPS
@@ -83,20 +84,21 @@ def test_cli_bad_scene_is_one_line_error(tmp_path: Path, capsys: pytest.CaptureF
 
 @pytest.mark.slow
 def test_small_noise_free_run_labels_the_scene(tmp_path: Path) -> None:
-    """20 frames at 160x120, gt encoder with MiniLM, no noise: the region map must label most of
-    the reconstruction correctly and beat nothing-special thresholds well below the full-size
-    targets (small images make boundaries coarse). Geometry must be within a voxel."""
+    """16 frames at 320x240, gt encoder with MiniLM, no noise. The thresholds are below the
+    full-size targets (at 320x240 the encoder's 80x60 regions make boundaries coarse) but far above
+    what a broken label mapping, axis flip or key mix-up gives (f-mIoU < 0.3). Geometry must be
+    within a voxel and complete; the region map must be far smaller than per-point features."""
     out = tmp_path / "eval"
     rc = main(
         [
             "--scenes",
             "synthetic:seed=1",
             "--frames",
-            "20",
+            "16",
             "--width",
-            "160",
+            "320",
             "--height",
-            "120",
+            "240",
             "--out",
             str(out),
         ]
@@ -104,5 +106,6 @@ def test_small_noise_free_run_labels_the_scene(tmp_path: Path) -> None:
     assert rc == 0
     s = json.loads((out / "results.json").read_text())["summary"]
     m = s["quality"]["region_map"]["metrics"]
-    assert m["f_mIoU"] > 0.6 and m["mAcc"] > 0.6
-    assert s["geometry"]["accuracy_vox"] < 1.0
+    assert m["f_mIoU"] > 0.7 and m["mAcc"] > 0.55
+    assert s["geometry"]["accuracy_vox"] < 1.0 and s["geometry"]["completeness"] > 0.9
+    assert s["memory_bytes"]["region_map"] * 5 < s["memory_bytes"]["point_features"]

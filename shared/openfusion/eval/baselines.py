@@ -24,6 +24,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import sparse
 from scipy.spatial import cKDTree
 
 from openfusion.frame import CameraIntrinsics
@@ -144,8 +145,10 @@ def fuse_point_features(
     if not records:
         raise ValueError("no frames recorded for the per-point baseline")
     d = records[0].embeddings.shape[1] if records[0].embeddings.ndim == 2 else 0
-    features = np.zeros((len(pts), d), np.float32)
-    weights = np.zeros(len(pts), np.float32)
+    # Accumulate a sparse (point x frame-region) confidence matrix W, then features = W @ E:
+    # the same running sum as adding conf * embedding per frame, in one sparse product.
+    rows, cols, vals = [], [], []
+    offset = 0
     for rec in records:
         if rec.embeddings.shape[1:] != (d,):
             raise ValueError(
@@ -155,11 +158,16 @@ def fuse_point_features(
         dm = rec.depth_m[v, u]
         r = rec.region_index[v, u].astype(np.int64)
         ok = (dm > 0) & (np.abs(z - dm) <= depth_tolerance_m) & (r >= 0)
-        idx, r = idx[ok], r[ok]
-        c = rec.region_conf[v[ok], u[ok]].astype(np.float32)
-        np.add.at(weights, idx, c)
-        # Rows of idx are unique per frame (one pixel per point), so fancy-index += is exact.
-        features[idx] += c[:, None] * rec.embeddings[r]
+        rows.append(idx[ok])
+        cols.append(offset + r[ok])
+        vals.append(rec.region_conf[v[ok], u[ok]].astype(np.float32))
+        offset += len(rec.embeddings)
+    W = sparse.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(len(pts), offset)
+    )
+    E = np.concatenate([rec.embeddings for rec in records]).astype(np.float32)
+    features = np.ascontiguousarray(W @ E, dtype=np.float32)
+    weights = np.asarray(W.sum(axis=1), dtype=np.float32).reshape(-1)
     covered = weights > 0
     norms = np.linalg.norm(features[covered], axis=1, keepdims=True)
     features[covered] /= np.maximum(norms, 1e-12)

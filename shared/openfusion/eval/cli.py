@@ -47,13 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--noise", default="off", choices=NOISE_CHOICES, help="gt encoder noise profile (default off)"
     )
-    parser.add_argument("--frames", type=int, default=None, help="frames per scene (default 40, --full 150)")
-    parser.add_argument(
-        "--width", type=int, default=None, help="synthetic image width (default 320, --full 640)"
-    )
-    parser.add_argument(
-        "--height", type=int, default=None, help="synthetic image height (default 240, --full 480)"
-    )
+    parser.add_argument("--frames", type=int, default=None, help="frames per scene (default 24, --full 150)")
+    parser.add_argument("--width", type=int, default=None, help="synthetic image width (default 640)")
+    parser.add_argument("--height", type=int, default=None, help="synthetic image height (default 480)")
     parser.add_argument("--voxel-size", type=float, default=None, help="voxel size in metres (default 0.02)")
     parser.add_argument(
         "--semantic-every", type=int, default=None, help="semantic step every k-th frame (default 1)"
@@ -83,9 +79,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--no-baselines", action="store_true", help="skip the per-point and 16-per-block baselines"
     )
-    parser.add_argument(
-        "--full", action="store_true", help="full size (640x480, 150 frames, 2 cm GT sampling)"
-    )
+    parser.add_argument("--full", action="store_true", help="full size (150-frame laps, 2 cm GT sampling)")
     parser.add_argument(
         "--check-targets", action="store_true", help="exit 1 when a quality or geometry target is missed"
     )
