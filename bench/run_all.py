@@ -40,9 +40,9 @@ class BenchResult:
     timed_out: bool = False
 
 
-def discover(only: list[str] | None) -> list[tuple[str, Path | None]]:
+def discover(only: list[str] | None, bench_dir: Path = BENCH_DIR) -> list[tuple[str, Path | None]]:
     """(name, path or None if missing) for the expected scripts plus any other bench_*.py."""
-    found = {p.stem.removeprefix("bench_"): p for p in sorted(BENCH_DIR.glob("bench_*.py"))}
+    found = {p.stem.removeprefix("bench_"): p for p in sorted(bench_dir.glob("bench_*.py"))}
     names = list(EXPECTED) + sorted(n for n in found if n not in EXPECTED)
     if only:
         unknown = [n for n in only if n not in names]
@@ -61,7 +61,7 @@ def run_one(
     try:
         proc = subprocess.run(
             [sys.executable, str(path), size_flag],
-            cwd=BENCH_DIR.parent,
+            cwd=path.parent.parent,
             env=env,
             capture_output=True,
             text=True,
@@ -112,7 +112,7 @@ def render_report(results: list[BenchResult], *, size: str) -> str:
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, *, bench_dir: Path = BENCH_DIR) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     size = parser.add_mutually_exclusive_group()
     size.add_argument("--quick", action="store_true", help="CI-sized runs (default)")
@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     )
 
     results = []
-    for name, path in discover(only):
+    for name, path in discover(only, bench_dir):
         if path is None:
             print(f"[run_all] {name}: missing (bench/bench_{name}.py)", file=sys.stderr)
             results.append(BenchResult(name, None, None))
