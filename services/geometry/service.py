@@ -102,6 +102,9 @@ def check_update(msg: SemanticUpdate) -> None:
     conf = msg.conf_map
     if conf.size and (not np.isfinite(conf).all() or float(conf.min()) < 0.0 or float(conf.max()) > 1.0):
         raise ValueError("conf_map must be finite and within [0, 1]")
+    depth = msg.depth_m
+    if depth is not None and depth.size and (not np.isfinite(depth).all() or float(depth.min()) < 0.0):
+        raise ValueError("depth_m must be finite and >= 0")
 
 
 class GeometryService:
@@ -179,7 +182,8 @@ class GeometryService:
     def on_update(self, msg: SemanticUpdate) -> None:
         check_update(msg)
         with self._lock:
-            self.volume.apply_update(msg.T_world_cam, msg.intrinsics, msg.key_map, msg.conf_map)
+            self.volume.apply_update(msg.T_world_cam, msg.intrinsics, msg.key_map, msg.conf_map,
+                                     observed_depth_m=msg.depth_m)
             self.updates_applied += 1
             self._dirty = True
         self._count("updates_applied")

@@ -31,6 +31,7 @@ from openfusion.bus import Publisher, QueryError, ServiceRunner, Subscriber, get
 from openfusion.config import ConfigSection, ServiceConfig
 from openfusion.encoders import make_region_encoder
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
+from openfusion.mapping.volume import resample_nearest
 from openfusion.messages import (
     DictionaryRequest,
     DictionarySnapshot,
@@ -163,7 +164,8 @@ class SemanticService:
         self._update_pub.put(SemanticUpdate(
             frame_id=frame.frame_id, T_world_cam=frame.T_world_cam, **SemanticUpdate.intrinsics_fields(K_small),
             key_map=planned.key_map, conf_map=planned.conf_map,
-            new_keys=np.array([key for _, key in planned.new_keys], np.int32)))
+            new_keys=np.array([key for _, key in planned.new_keys], np.int32),
+            depth_m=resample_nearest(frame.depth_m(), (h, w)).astype(np.float32)))
         stats = runner.stats
         stats.record(time.monotonic() - started)
         stats.incr("semantic_frames")

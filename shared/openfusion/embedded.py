@@ -336,6 +336,9 @@ class RunCommand:
         if args.semantic_every < 0:
             raise CliError(f"--semantic-every must be >= 0, got {args.semantic_every}", 2)
         args.queries = args.queries or list(DEFAULT_QUERIES)
+        if args.source == "synthetic":
+            # The built-in scene: one lap of the room in the frames played, so the map covers it.
+            args.source = f"synthetic:lap={args.frames}"
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
         try:
             if args.in_process:

@@ -292,12 +292,17 @@ class SemanticUpdate(PinholeMessage):
     key_map: KeyMap
     conf_map: FloatMap
     new_keys: KeyList
+    # The frame's depth resampled to the key map (metres, 0 = none): enables the update's depth
+    # gate, so labels of an object's outline do not land on the background behind it.
+    depth_m: FloatMap | None = None
 
     @model_validator(mode="after")
     def _check(self) -> SemanticUpdate:
         _check_pose(self.T_world_cam)
         self._check_image("key_map", self.key_map)
         self._check_image("conf_map", self.conf_map)
+        if self.depth_m is not None:
+            self._check_image("depth_m", self.depth_m)
         return self
 
 

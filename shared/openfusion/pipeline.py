@@ -93,7 +93,7 @@ def map_scene(
         if semantic_every and frame.frame_id % semantic_every == 0:
             obs = region_encoder.encode(frame)
             t2 = time.perf_counter()
-            mapper.step(obs, frame.T_world_cam, frame.intrinsics)
+            mapper.step(obs, frame.T_world_cam, frame.intrinsics, depth_m=frame.depth_m())
             t3 = time.perf_counter()
             stats.encode_s += t2 - t1
             stats.semantic_step_s += t3 - t2
