@@ -133,6 +133,7 @@ def _mark_cpu(cpu_at: list[float]) -> None:
 def run_subscriber(mode: str, port: int, timeout_s: float) -> dict[str, Any]:
     """Receive frames until the publisher's end marker; report processed frames/s."""
     import zenoh
+
     from openfusion.bus import Subscriber, open_session
     from openfusion.messages import RgbdFrame
 
@@ -208,6 +209,7 @@ def run_subscriber(mode: str, port: int, timeout_s: float) -> dict[str, Any]:
 def run_publisher(mode: str, port: int, duration_s: float) -> dict[str, Any]:
     """Publish frames as fast as the bus takes them (congestion control BLOCK) for ``duration_s``."""
     import zenoh
+
     from openfusion.bus import Publisher, open_session
 
     session = open_session(_config(port, listen=False))

@@ -22,6 +22,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+
 from openfusion.encoders import EncoderError, make_region_encoder, make_text_encoder, select_device
 from openfusion.encoders.clip_export import export_clip_to_onnx
 from openfusion.encoders.clip_regions import DEFAULT_CLIP_MODEL

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
+
 from openfusion.bus import open_session
 from openfusion.config import ServiceConfig
 

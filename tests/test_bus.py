@@ -11,6 +11,7 @@ from collections.abc import Iterator
 
 import pytest
 import zenoh
+
 from helpers_bus import ServiceProcess, loopback_args, loopback_config, open_pair, unique_map_id, wait_until
 from openfusion.bus import (
     Publisher,

@@ -9,9 +9,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-import openfusion
 import pytest
 import zenoh
+
+import openfusion
 from helpers_bus import (
     ROOT,
     ServiceProcess,

@@ -12,6 +12,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
+
 from openfusion import codec
 from openfusion.codec import ALLOWED_DTYPES, DecodeError, EncodeError, decode, encode, ndarray
 from openfusion.messages import Message, RgbdFrame, TextQuery

@@ -8,6 +8,8 @@ import json
 from pathlib import Path
 
 import pytest
+from pydantic import Field
+
 from openfusion.config import (
     ConfigError,
     ConfigSection,
@@ -17,7 +19,6 @@ from openfusion.config import (
     load_config,
     zenoh_config,
 )
-from pydantic import Field
 
 
 class _VolumeSection(ConfigSection):

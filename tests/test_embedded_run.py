@@ -12,12 +12,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
+
 from helpers_bus import ROOT, subprocess_env
 from openfusion.encoders import make_text_encoder
 from openfusion.eval.ply import read_ply
 from openfusion.mapping import load_map, query_regions
 from openfusion.sources.synthetic import SyntheticWorld
-from scipy.spatial import cKDTree
 
 SOURCE = "synthetic:seed=1,frames=40,width=320,height=240"
 

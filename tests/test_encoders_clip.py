@@ -6,6 +6,7 @@ import shutil
 
 import numpy as np
 import pytest
+
 from openfusion.encoders import EncoderError, make_region_encoder, make_text_encoder
 from openfusion.encoders.clip_export import export_clip_to_onnx
 from openfusion.encoders.clip_regions import DEFAULT_CLIP_MODEL, SPACE_FILE, ClipRegionEncoder

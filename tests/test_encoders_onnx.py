@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+
 from openfusion.encoders import EncoderError, make_region_encoder, make_text_encoder
 from openfusion.encoders.clip_export import set_onnx_metadata
 from openfusion.encoders.onnx_backend import OnnxRegionEncoder, _image_input

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from openfusion.encoders import EncoderError
 from openfusion.encoders.crops import CLIP_MEAN, CropSpec, preprocess_image, region_crops
 from openfusion.encoders.graph_segmentation import GraphSegmentationProposer, felzenszwalb_segment

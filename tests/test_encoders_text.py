@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from openfusion.encoders import EncoderError, make_region_encoder, make_text_encoder
 from openfusion.encoders.testing import Box, make_box_frame
 

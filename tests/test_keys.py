@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 import zenoh
+
 from openfusion.keys import KeySpace, health_all_maps, key_for, validate_map_id
 
 

@@ -7,10 +7,11 @@ from typing import Any, ClassVar
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
+
 from openfusion import messages as m
 from openfusion.codec import decode, encode
 from openfusion.frame import CameraIntrinsics, Frame
-from pydantic import ValidationError
 
 K = CameraIntrinsics(8, 6, 10.0, 10.0, 4.0, 3.0)
 K_FIELDS = m.PinholeMessage.intrinsics_fields(K)

@@ -9,7 +9,17 @@ import subprocess
 import sys
 
 import numpy as np
-from helpers_bus import ROOT, ServiceProcess, free_port, loopback_args, loopback_config, subprocess_env, unique_map_id, wait_until
+
+from helpers_bus import (
+    ROOT,
+    ServiceProcess,
+    free_port,
+    loopback_args,
+    loopback_config,
+    subprocess_env,
+    unique_map_id,
+    wait_until,
+)
 from openfusion.bus import Subscriber, collect_health, open_session
 from openfusion.messages import RgbdFrame
 from openfusion.sources import open_source
