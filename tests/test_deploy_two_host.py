@@ -1,0 +1,158 @@
+"""Two hosts on one machine: the semantic service runs in its own network namespace (its own
+address, joined to this host by a veth pair the test creates) and reaches the router by that
+address. Mapping and queries work across the link; cutting the link (veth down) leaves geometry
+and query serving; when the link returns the semantic service reconnects and mapping resumes.
+Traffic stays on this machine: loopback plus the test's own namespace addresses (10.231.x.0/30).
+
+Skipped with the reason when namespaces cannot be created (not root, no iproute2)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from helpers_bus import ROOT, subprocess_env, unique_map_id, wait_until
+from openfusion.bus import collect_health, live_services, open_session
+from openfusion.client import OpenFusionClient
+from openfusion.config import ServiceConfig, ZenohSettings
+from openfusion.embedded import Cluster, free_port, wait_for_services
+
+pytestmark = [pytest.mark.netns, pytest.mark.timeout(600)]
+
+
+def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(["ip", *args], capture_output=True, text=True, check=check, timeout=20)
+
+
+class NetNs:
+    """A namespace ``name`` with address ``ns_addr`` on a veth pair to this host's ``host_addr``."""
+
+    def __init__(self) -> None:
+        tag = uuid.uuid4().hex[:6]
+        self.name = f"ofz-{tag}"
+        self.host_if, self.ns_if = f"ofh{tag}", f"ofn{tag}"
+        octet = int(tag[:2], 16) % 250 + 1
+        self.host_addr, self.ns_addr = f"10.231.{octet}.1", f"10.231.{octet}.2"
+
+    def create(self) -> None:
+        _ip("netns", "add", self.name)
+        _ip("link", "add", self.host_if, "type", "veth", "peer", "name", self.ns_if)
+        _ip("link", "set", self.ns_if, "netns", self.name)
+        _ip("addr", "add", f"{self.host_addr}/30", "dev", self.host_if)
+        _ip("link", "set", self.host_if, "up")
+        for cmd in (["addr", "add", f"{self.ns_addr}/30", "dev", self.ns_if], ["link", "set", self.ns_if, "up"],
+                    ["link", "set", "lo", "up"]):
+            _ip("netns", "exec", self.name, "ip", *cmd)
+
+    def link(self, up: bool) -> None:
+        _ip("link", "set", self.host_if, "up" if up else "down")
+
+    def delete(self) -> None:
+        _ip("link", "del", self.host_if, check=False)
+        _ip("netns", "del", self.name, check=False)
+
+
+def _netns_unavailable() -> str | None:
+    if os.geteuid() != 0:
+        return "network namespaces need root"
+    if shutil.which("ip") is None:
+        return "iproute2 (`ip`) is not installed"
+    probe = NetNs()
+    try:
+        probe.create()
+    except (subprocess.CalledProcessError, OSError) as exc:
+        return f"cannot create a network namespace here: {getattr(exc, 'stderr', exc)}"
+    finally:
+        probe.delete()
+    return None
+
+
+@pytest.fixture
+def netns() -> Iterator[NetNs]:
+    reason = _netns_unavailable()
+    if reason:
+        pytest.skip(reason)
+    ns = NetNs()
+    ns.create()
+    try:
+        yield ns
+    finally:
+        ns.delete()
+
+
+def _counter(client: OpenFusionClient, service: str, name: str) -> float:
+    stats = collect_health(client.session, client.keys, timeout_s=1.5).get(service)
+    return float(stats.counters.get(name, 0.0)) if stats else 0.0
+
+
+def test_semantic_on_a_second_host_maps_survives_a_link_cut_and_reconnects(netns: NetNs, tmp_path: Path) -> None:
+    map_id = unique_map_id("twohost")
+    port = free_port()
+    local, remote = f"tcp/127.0.0.1:{port}", f"tcp/{netns.host_addr}:{port}"
+    router = open_session(ServiceConfig(map_id=map_id, zenoh=ZenohSettings(
+        mode="router", listen=[local, remote], multicast_scouting=False)))
+    cluster = Cluster(map_id, local, tmp_path / "logs")
+    client = OpenFusionClient.from_config(ServiceConfig(map_id=map_id, zenoh=ZenohSettings(
+        mode="client", connect=[local], multicast_scouting=False)), timeout_s=20)
+    env = subprocess_env(HF_HUB_OFFLINE="1")
+    log = open(tmp_path / "semantic-netns.log", "wb")  # noqa: SIM115 - closed in finally
+    semantic = subprocess.Popen(
+        ["ip", "netns", "exec", netns.name, sys.executable, "-m", "openfusion.cli", "service", "semantic",
+         "--map", map_id, "--mode", "client", "--connect", remote, "--no-multicast"],
+        stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
+    try:
+        cluster.start("geometry", ["--checkpoint-period-s", "0"], env=env)
+        cluster.start("query", [], env=env)
+        wait_for_services(client, cluster, {"geometry", "query"}, 240)
+        wait_until(lambda: "semantic" in live_services(client.session, client.keys), timeout_s=240)
+
+        def play(frames: int) -> None:
+            before = _counter(client, "geometry", "frames_integrated")
+            cluster.start("bridge", ["--source", f"synthetic:seed=2,frames={frames},width=320,height=240",
+                                     "--rate-hz", "8"], env=env)
+            wait_until(lambda: _counter(client, "geometry", "frames_integrated") >= before + frames, timeout_s=240)
+            cluster.stop("bridge")
+            cluster.processes.pop("bridge")
+
+        # Across the link: semantic maps, the query service answers from its dictionary.
+        play(16)
+        wait_until(lambda: _counter(client, "semantic", "semantic_frames") >= 2, timeout_s=60)
+        assert client.query_text("chair", top_k=1).regions
+
+        # Link cut: geometry keeps integrating and query keeps answering.
+        netns.link(up=False)
+        integrated = _counter(client, "geometry", "frames_integrated")
+        play(8)
+        assert _counter(client, "geometry", "frames_integrated") >= integrated + 8
+        assert client.query_text("table", top_k=1).regions
+        assert semantic.poll() is None, "the semantic service died while the link was down"
+        # The cut is real: once Zenoh's lease expires the router drops the semantic session.
+        wait_until(lambda: "semantic" not in live_services(client.session, client.keys), timeout_s=60)
+        assert client.query_text("chair", top_k=1).regions
+
+        # Link back: semantic reconnects (liveliness returns) and processes new frames again.
+        netns.link(up=True)
+        wait_until(lambda: "semantic" in live_services(client.session, client.keys), timeout_s=120)
+        before = _counter(client, "semantic", "semantic_frames")
+        deadline = time.monotonic() + 120
+        while _counter(client, "semantic", "semantic_frames") <= before and time.monotonic() < deadline:
+            play(6)
+        assert _counter(client, "semantic", "semantic_frames") > before
+    finally:
+        semantic.terminate()
+        try:
+            semantic.wait(20)
+        except subprocess.TimeoutExpired:
+            semantic.kill()
+        log.close()
+        cluster.stop()
+        client.close()
+        router.close()
