@@ -92,12 +92,16 @@ def main() -> None:
         for f in frames:
             rec.write(f)
 
-    # 1. in-process baseline
-    vol = SemanticVolume(VolumeParams())
-    t0 = time.perf_counter()
-    for f in frames:
-        vol.integrate(f)
-    inproc_fps = n_frames / (time.perf_counter() - t0)
+    def inproc_integrate_fps() -> float:
+        vol = SemanticVolume(VolumeParams())
+        t0 = time.perf_counter()
+        for f in frames:
+            vol.integrate(f)
+        return n_frames / (time.perf_counter() - t0)
+
+    # 1. in-process baseline, measured before and after the bus run (best of the two), so load
+    # from other processes on a shared machine hits candidate and baseline alike.
+    inproc_fps = inproc_integrate_fps()
 
     rows = []
     bus = Bus(tmp, "bench-geo")
@@ -109,6 +113,7 @@ def main() -> None:
         bus_fps = (done - 1) / dt if dt > 0 else float("nan")
     finally:
         bus.close()
+    inproc_fps = max(inproc_fps, inproc_integrate_fps())
     rows.append(("3D-Rec fps, 640x480, frames over Zenoh", f"{bus_fps:.1f}", "in-process integrate",
                  f"{inproc_fps:.1f}", f"{bus_fps / inproc_fps:.2f}", ">= 50 fps, >= 0.8"))
 
@@ -140,11 +145,16 @@ def main() -> None:
             dictionary.add(rng.standard_normal(text.dim).astype(np.float32), label=f"region {i}")
     snapshot = snapshot_message(dictionary)
     queries = [f"object number {i}" for i in range(n_queries)]
-    t_in = []
-    for q in queries:
-        t = time.perf_counter()
-        dictionary.top_k(text.encode([q])[0], 5)
-        t_in.append((time.perf_counter() - t) * 1e3)
+
+    def inproc_query_ms() -> list[float]:
+        out = []
+        for q in queries:
+            t = time.perf_counter()
+            dictionary.top_k(text.encode([q])[0], 5)
+            out.append((time.perf_counter() - t) * 1e3)
+        return out
+
+    text.encode(["warm up"])
     bus = Bus(tmp, "bench-query")
     session = open_session(ServiceConfig(map_id="bench-query", zenoh=ZenohSettings(
         mode="client", connect=[bus.endpoint], multicast_scouting=False)))
@@ -165,6 +175,7 @@ def main() -> None:
     finally:
         session.close()
         bus.close()
+    t_in = inproc_query_ms()  # after the services stopped: the same machine state as the bus run
     p50, p99 = np.percentile(lat, 50), np.percentile(lat, 99)
     b50 = np.percentile(t_in, 50)
     rows.append(("text query over Zenoh, 10,000 regions, p50 ms", f"{p50:.1f}", "in-process encode + top-k p50 ms",
