@@ -68,3 +68,17 @@ def test_embedded_run_refuses_bad_options_with_one_line(tmp_path: Path, args: li
     result = _run("--out", str(tmp_path / "o"), *args, timeout=120)
     assert result.returncode == 2, result.stderr
     assert "Traceback" not in result.stderr and needle in result.stderr
+
+
+def test_in_process_mode_writes_the_same_outputs_without_a_bus(tmp_path: Path) -> None:
+    out = tmp_path / "ip"
+    result = _run("--in-process", "--out", str(out), "--source", "synthetic:seed=1,frames=20,width=320,height=240",
+                  "--frames", "20", "--quiet")
+    assert result.returncode == 0, result.stderr[-3000:]
+    summary = json.loads((out / "run.json").read_text())
+    assert summary["mode"] == "in-process"
+    assert summary["frames_integrated"] == 20 and summary["semantic_frames"] == 20
+    assert summary["rec_fps"] > 0 and summary["sem_rec_fps"] > 0
+    assert (out / "mesh.ply").exists() and (out / "queries.json").exists()
+    loaded = load_map(out / "map")
+    assert len(loaded.dictionary) == summary["regions"] > 5
