@@ -5,6 +5,7 @@ Bad input tried: --frames 0 and a map id with a '/' (one clear line, exit 2, no 
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -48,7 +49,8 @@ def chair_iou(map_dir: Path, *, seed: int) -> float:
 
 def test_embedded_run_maps_the_scene_over_the_bus_and_answers_queries(tmp_path: Path) -> None:
     out = tmp_path / "out"
-    result = _run("--out", str(out), "--source", SOURCE, "--frames", "40", "--rate-hz", "6", "--quiet")
+    rerun_args = ["--rerun", f"save:{tmp_path / 'run.rrd'}"] if importlib.util.find_spec("rerun") else []
+    result = _run("--out", str(out), "--source", SOURCE, "--frames", "40", "--rate-hz", "6", "--quiet", *rerun_args)
     assert result.returncode == 0, result.stderr[-3000:]
     summary = json.loads((out / "run.json").read_text())
     assert summary["frames_read"] == 40 and summary["frames_integrated"] == 40
@@ -61,6 +63,8 @@ def test_embedded_run_maps_the_scene_over_the_bus_and_answers_queries(tmp_path: 
     mesh = read_ply(out / "mesh.ply")
     assert len(mesh.vertices["x"]) > 1000 and mesh.triangles is not None and len(mesh.triangles) > 1000
     assert chair_iou(out / "map", seed=1) >= 0.5
+    if rerun_args:  # frames from the bus, the mesh and the query results went to the recording
+        assert (tmp_path / "run.rrd").stat().st_size > 1_000_000
 
 
 @pytest.mark.parametrize(("args", "needle"), [(["--frames", "0"], "--frames"), (["--map", "a/b"], "a/b")])
@@ -72,8 +76,9 @@ def test_embedded_run_refuses_bad_options_with_one_line(tmp_path: Path, args: li
 
 def test_in_process_mode_writes_the_same_outputs_without_a_bus(tmp_path: Path) -> None:
     out = tmp_path / "ip"
+    rerun_args = ["--rerun", f"save:{tmp_path / 'run.rrd'}"] if importlib.util.find_spec("rerun") else []
     result = _run("--in-process", "--out", str(out), "--source", "synthetic:seed=1,frames=20,width=320,height=240",
-                  "--frames", "20", "--quiet")
+                  "--frames", "20", "--quiet", *rerun_args)
     assert result.returncode == 0, result.stderr[-3000:]
     summary = json.loads((out / "run.json").read_text())
     assert summary["mode"] == "in-process"
@@ -82,3 +87,5 @@ def test_in_process_mode_writes_the_same_outputs_without_a_bus(tmp_path: Path) -
     assert (out / "mesh.ply").exists() and (out / "queries.json").exists()
     loaded = load_map(out / "map")
     assert len(loaded.dictionary) == summary["regions"] > 5
+    if rerun_args:  # the viz extra is installed: the rerun recording was written
+        assert (tmp_path / "run.rrd").stat().st_size > 100_000

@@ -172,6 +172,30 @@ def write_query_outputs(
     return records
 
 
+def open_rerun(sink: str | None) -> Any:
+    """A :class:`openfusion.viz.rerun_log.RerunLogger` for ``--rerun SINK``, or None."""
+    if not sink:
+        return None
+    from openfusion.viz.rerun_log import RerunLogger
+
+    return RerunLogger(sink)
+
+
+def surface_mesh(vertices: Any, triangles: Any, colors: Any, keys: Any) -> Any:
+    """A :class:`openfusion.mapping.SurfaceMesh` (with vertex normals) from mesh arrays off the bus."""
+    import numpy as np
+    import open3d as o3d
+
+    from openfusion.mapping import SurfaceMesh
+
+    legacy = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.array(vertices, np.float64)),
+                                       o3d.utility.Vector3iVector(np.array(triangles, np.int32)))
+    legacy.compute_vertex_normals()
+    return SurfaceMesh(vertices=np.asarray(vertices, np.float32), triangles=np.asarray(triangles, np.int32),
+                       colors=np.asarray(colors, np.uint8), normals=np.asarray(legacy.vertex_normals, np.float32),
+                       keys=np.asarray(keys, np.int32), conf=np.ones(len(vertices), np.float32))
+
+
 def run_services(args: argparse.Namespace) -> dict[str, Any]:
     """The multi-process embedded run; returns the run summary (also written to run.json)."""
     import zenoh
@@ -190,8 +214,16 @@ def run_services(args: argparse.Namespace) -> dict[str, Any]:
     client_cfg = ServiceConfig(map_id=args.map_id, zenoh=ZenohSettings(mode="client", connect=[endpoint],
                                                                         multicast_scouting=False))
     client = OpenFusionClient.from_config(client_cfg, timeout_s=30.0)
+    rerun = open_rerun(args.rerun)
+    frames_sub = None
     started = time.monotonic()
     try:
+        if rerun is not None:
+            from openfusion.bus import Subscriber
+            from openfusion.messages import RgbdFrame
+
+            frames_sub = Subscriber(client.session, client.keys.sensor_rgbd, RgbdFrame,
+                                    lambda msg: rerun.log_frame(msg.to_frame()), latest_only=True)
         cluster.start("geometry", ["--map-dir", str(out / "checkpoints"), "--checkpoint-period-s", "0",
                                    "--set", "geometry.load_on_start=false"])
         semantic_args = ["--encoder", args.encoder, "--semantic-every", str(args.semantic_every)]
@@ -215,8 +247,16 @@ def run_services(args: argparse.Namespace) -> dict[str, Any]:
         mesh = client.mesh()
         write_query_outputs(out, replies, (mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys),
                             say=None if args.quiet else (lambda t: _say(args, t)))
+        if rerun is not None:
+            rerun.log_mesh(surface_mesh(mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys))
+            for text, _space, hits in replies:
+                rerun.log_query(text, hits)
         summary = _summary(args, stats, time.monotonic() - started)
     finally:
+        if frames_sub is not None:
+            frames_sub.close()
+        if rerun is not None:
+            rerun.close()
         cluster.stop()
         client.close()
         try:
@@ -320,6 +360,9 @@ class RunCommand:
         parser.add_argument("--top-k", type=int, default=3, help="regions per query (default 3)")
         parser.add_argument("--timeout-s", type=float, default=900.0, help="give up after this many seconds")
         parser.add_argument("--in-process", action="store_true", help="run the pipeline in this process (no bus)")
+        parser.add_argument("--rerun", metavar="SINK", default=None,
+                            help="log frames, trajectory, mesh and query results to rerun: save:FILE.rrd | spawn | "
+                            "serve (needs the viz extra)")
         parser.add_argument("--quiet", action="store_true", help="no progress output")
 
     @staticmethod

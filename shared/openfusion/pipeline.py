@@ -123,10 +123,21 @@ def run_in_process(args: argparse.Namespace) -> dict[str, Any]:
     source = open_source(args.source, max_frames=args.frames)
     options: dict[str, Any] = {"noise": args.noise} if (args.encoder == "gt" and args.noise) else {}
     encoder = make_region_encoder(args.encoder, **options)
+    from openfusion.embedded import open_rerun
+
+    rerun = open_rerun(getattr(args, "rerun", None))
+    log_frame = rerun.frame_hook() if rerun is not None else None
     bar = tqdm(total=args.frames, desc="frames integrated", unit="frame", disable=args.quiet)
-    result = map_scene(source, region_encoder=encoder, semantic_every=args.semantic_every,
-                       on_frame=lambda _f, _s: bar.update(1))
-    bar.close()
+
+    def on_frame(frame: Frame, stats: PipelineStats) -> None:
+        bar.update(1)
+        if log_frame is not None:
+            log_frame(frame, stats)
+
+    try:
+        result = map_scene(source, region_encoder=encoder, semantic_every=args.semantic_every, on_frame=on_frame)
+    finally:
+        bar.close()
     save_map(out / "map", result.volume, result.dictionary, meta={"map_id": args.map_id})
     text = make_text_encoder(args.text_encoder)
     from openfusion.embedded import write_query_outputs
@@ -138,6 +149,11 @@ def run_in_process(args: argparse.Namespace) -> dict[str, Any]:
                              embedding_space=text.embedding_space)
         replies.append((query, text.embedding_space, hits))
     write_query_outputs(out, replies, result.volume.extract_mesh(), say=None if args.quiet else print)
+    if rerun is not None:
+        rerun.log_map(result.volume, result.dictionary)
+        for query, _space, hits in replies:
+            rerun.log_query(query, hits)
+        rerun.close()
     summary = {"source": args.source, "encoder": args.encoder, "noise": args.noise or "off",
                "semantic_every": args.semantic_every, "mode": "in-process", **result.stats.as_dict(),
                "frames_published": result.stats.frames_integrated, "regions": len(result.dictionary),
