@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from openfusion.eval.baselines import SAMPLE_BYTES, block_sampled_keys, fuse_point_features, record_frame
 from openfusion.eval.protocol import classify_embeddings, labels_from_region_keys
 from openfusion.eval.scenes import parse_scene_specs

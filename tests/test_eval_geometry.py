@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from openfusion.eval.geometry import ObservedSurface, geometry_metrics
 from openfusion.frame import CameraIntrinsics
 

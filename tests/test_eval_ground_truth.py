@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from openfusion.eval.classes import NYU40_CLASSES, SYNTHETIC_CLASSES, class_for_category
 from openfusion.eval.ground_truth import (
     ground_truth_from_instances,

@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+
 from openfusion.eval.metrics import ConfusionMatrix, compute_metrics, sum_confusions
 
 CLASSES = ("wall", "chair", "table", "lamp")  # lamp never occurs in the ground truth
