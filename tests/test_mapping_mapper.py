@@ -156,3 +156,24 @@ def test_step_rejects_malformed_observation() -> None:
     with pytest.raises(ValueError, match="conf_maps"):
         mapper.step(Bad(), np.eye(4), K_FULL)
     assert len(mapper.dictionary) == 0
+
+
+def test_min_embedding_cos_refuses_a_match_whose_embedding_disagrees() -> None:
+    """The same chair seen twice, but the second observation's embedding is orthogonal to the first:
+    with ``min_embedding_cos=0.5`` the overlap alone must not match it (a new key appears); without
+    the gate it matches the existing key."""
+    scene = scene_two_objects()
+    outcomes = {}
+    for gate in (None, 0.5):
+        volume = SemanticVolume(VolumeParams())
+        mapper = SemanticMapper(volume, RegionDictionary(SPACE, DIM), min_embedding_cos=gate)
+        for i, T in enumerate(POSES[:2]):
+            frame = scene.make_frame(T, K_FULL, frame_id=i)
+            volume.integrate(frame)
+            obs = observation_from_instances(frame.instance, frame.instance_categories, out_size=OBS_HW, dim=DIM)
+            if i == 1:  # rotate every embedding into an orthogonal direction
+                obs.embeddings = np.roll(obs.embeddings, DIM // 2, axis=1)
+            step = mapper.step(obs, T, K_FULL, depth_m=frame.depth_m())
+        outcomes[gate] = step
+    assert outcomes[None].new == 0 and outcomes[None].matched > 0
+    assert outcomes[0.5].matched == 0 and outcomes[0.5].new > 0

@@ -89,7 +89,12 @@ class SemanticMapper:
         rendered = self.volume.render(T_world_cam, intr)
         t1 = time.perf_counter()
         plan = plan_update(
-            obs, rendered, self.dictionary, min_iou=self.min_iou, min_pixel_conf=self.min_pixel_conf
+            obs,
+            rendered,
+            self.dictionary,
+            min_iou=self.min_iou,
+            min_pixel_conf=self.min_pixel_conf,
+            min_embedding_cos=self.min_embedding_cos,
         )
         t2 = time.perf_counter()
         update = self.volume.apply_update(
