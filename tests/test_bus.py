@@ -209,8 +209,10 @@ def test_overloaded_queryable_drops_queries_instead_of_hanging_callers(sessions,
     a, b, _ = sessions
     key = keys.key("test", "slow")
     release = threading.Event()
+    busy = threading.Event()
 
     def slow(request: ControlRequest) -> ControlReply:
+        busy.set()
         release.wait(10)
         return ControlReply(ok=True)
 
@@ -227,7 +229,11 @@ def test_overloaded_queryable_drops_queries_instead_of_hanging_callers(sessions,
 
     threads = [threading.Thread(target=ask) for _ in range(5)]
     start = time.monotonic()
-    for t in threads:
+    # The first query occupies the handler before the others arrive, so exactly one more fits
+    # the queue (size 1) and three are dropped, whatever the thread timing.
+    threads[0].start()
+    assert busy.wait(10), "the first query never reached the handler"
+    for t in threads[1:]:
         t.start()
     wait_until(lambda: qbl.dropped >= 3, timeout_s=10)
     release.set()
