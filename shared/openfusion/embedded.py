@@ -131,6 +131,14 @@ def wait_for_services(client: Any, cluster: Cluster, names: set[str], timeout_s:
         time.sleep(0.3)
 
 
+def region_record(region: Any) -> dict[str, Any]:
+    """A ranked region (bus ``RegionHit`` or library ``RegionResult``) as a JSON-ready dict."""
+    return {"key": int(region.key), "score": round(float(region.score), 4), "label": region.label,
+            "num_points": int(region.num_points),
+            "bbox_min": [round(float(v), 3) for v in region.bbox_min],
+            "bbox_max": [round(float(v), 3) for v in region.bbox_max]}
+
+
 def write_query_outputs(
     out: Path,
     replies: list[tuple[str, str, list[Any]]],
@@ -146,10 +154,7 @@ def write_query_outputs(
 
     records = []
     for i, (text, space, hits) in enumerate(replies):
-        regions = [{"key": int(r.key), "score": round(float(r.score), 4), "label": r.label,
-                    "num_points": int(r.num_points),
-                    "bbox_min": [round(float(v), 3) for v in r.bbox_min],
-                    "bbox_max": [round(float(v), 3) for v in r.bbox_max]} for r in hits]
+        regions = [region_record(r) for r in hits]
         record: dict[str, Any] = {"query": text, "embedding_space": space, "regions": regions}
         if hits and hits[0].points is not None and len(hits[0].points):
             p = hits[0].points

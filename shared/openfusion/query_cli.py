@@ -45,9 +45,9 @@ def _text_encoder_for(space: str, name: str | None) -> Any:
 
 
 def _print_regions(text: str, space: str, regions: list[Any], *, as_json: bool) -> None:
-    rows = [{"key": int(r.key), "score": round(float(r.score), 4), "label": r.label, "num_points": int(r.num_points),
-             "bbox_min": [round(float(v), 3) for v in r.bbox_min], "bbox_max": [round(float(v), 3) for v in r.bbox_max]}
-            for r in regions]
+    from openfusion.embedded import region_record
+
+    rows = [region_record(r) for r in regions]
     if as_json:
         print(json.dumps({"query": text, "embedding_space": space, "regions": rows}))
         return
