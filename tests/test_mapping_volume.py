@@ -13,9 +13,9 @@ from openfusion.mapping import (
     CapacityError,
     SemanticVolume,
     VolumeParams,
-    fuse_semantics,
 )
 from openfusion.mapping.analytic_scene import AnalyticScene, Box, Room, look_at
+from openfusion.mapping.update_rule import fuse_semantics
 
 K_FULL = CameraIntrinsics(320, 240, 262.5, 262.5, 159.5, 119.5)
 K_SMALL = K_FULL.scaled(160, 120)

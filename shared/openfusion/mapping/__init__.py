@@ -25,6 +25,7 @@ from openfusion.mapping.matching import (
 )
 from openfusion.mapping.params import VolumeParams
 from openfusion.mapping.queries import RegionResult, classify_regions, query_regions, segment_points
+from openfusion.mapping.update_rule import fuse_semantics
 from openfusion.mapping.volume import (
     SEMANTIC_BYTES_PER_VOXEL,
     IntegrateStats,
@@ -35,7 +36,6 @@ from openfusion.mapping.volume import (
     SurfacePoints,
     UpdateStats,
     VolumeStats,
-    fuse_semantics,
 )
 
 __all__ = [

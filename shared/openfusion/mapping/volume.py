@@ -56,6 +56,7 @@ import open3d.core as o3c
 from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.mapping.errors import CapacityError
 from openfusion.mapping.params import VolumeParams
+from openfusion.mapping.update_rule import fuse_semantics
 
 logger = logging.getLogger(__name__)
 
@@ -986,34 +987,3 @@ def _nearest_per_voxel(voxel: np.ndarray, ratio: np.ndarray) -> np.ndarray:
     first = np.ones(n, bool)
     first[1:] = voxel_sorted[1:] != voxel_sorted[:-1]
     return packed[first] & ((1 << entry_bits) - 1)
-
-
-def fuse_semantics(
-    old_key1: np.ndarray,
-    old_conf: np.ndarray,
-    new_key1: np.ndarray,
-    new_conf: np.ndarray,
-    *,
-    history_weight: float,
-) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int]]:
-    """The per-voxel update rule on stored keys (key + 1, 0 = none); see the module docstring.
-
-    Returns the new stored keys, confidences and counts (labelled, reinforced, weakened, switched).
-    """
-    old_conf = old_conf.astype(np.float32, copy=False)
-    new_conf = new_conf.astype(np.float32, copy=False)
-    none = old_key1 <= 0
-    same = (old_key1 == new_key1) & ~none
-    other = ~none & ~same
-    diff = old_conf - new_conf
-    switched = other & (diff < 0)
-    weakened = other & ~switched
-    out_key1 = np.where(none | switched, new_key1, old_key1).astype(np.int32)
-    w = np.float32(history_weight)
-    out_conf = np.select(
-        [none, same, switched, weakened],
-        [new_conf, (w * old_conf + new_conf) / (w + 1), -diff, diff],
-        default=old_conf,
-    ).astype(np.float32)
-    counts = (int(none.sum()), int(same.sum()), int(weakened.sum()), int(switched.sum()))
-    return out_key1, out_conf, counts
