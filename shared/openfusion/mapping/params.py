@@ -39,6 +39,11 @@ class VolumeParams:
       has at least this many depth observations.
     - ``conf_history_weight``: in the semantic update rule, the weight of a voxel's stored confidence
       against one new observation of the same key (see ``openfusion.mapping.volume``).
+    - ``label_fill_radius_m``: when surface points are read out (queries, segmentation, exports), a
+      point with no labelled voxel among the 8 corners of its cell takes the key of the nearest
+      labelled surface point within this distance (0 turns it off). The update labels voxels at the
+      ray hits of the encoder-sized view (e.g. 160x120), so structures thinner than a pixel there
+      (lamp poles, plant stems, chair legs) are otherwise never labelled.
     - ``device``: ``"CPU:0"`` or ``"CUDA:0"`` (when the installed Open3D has CUDA).
     """
 
@@ -52,6 +57,7 @@ class VolumeParams:
     when_full: WhenFull = "raise"
     min_weight: float = 1.0
     conf_history_weight: float = 3.0
+    label_fill_radius_m: float = 0.06
     device: str = "CPU:0"
 
     def __post_init__(self) -> None:
@@ -79,6 +85,12 @@ class VolumeParams:
         finite_positive("min_weight", self.min_weight)
         if not (math.isfinite(self.conf_history_weight) and self.conf_history_weight >= 0):
             raise ValueError(f"conf_history_weight must be finite and >= 0, got {self.conf_history_weight}")
+        if not (
+            isinstance(self.label_fill_radius_m, (int, float))
+            and math.isfinite(self.label_fill_radius_m)
+            and self.label_fill_radius_m >= 0
+        ):
+            raise ValueError(f"label_fill_radius_m must be finite and >= 0, got {self.label_fill_radius_m!r}")
         object.__setattr__(self, "device", normalise_device(self.device))
 
     @property
