@@ -368,9 +368,12 @@ class SemanticVolume:
         """Writable numpy view of a 1-channel attribute over the whole buffer (CPU only)."""
         return self._vbg.attribute(name).numpy().reshape(-1)
 
-    def _gather(self, name: str, flat_index: np.ndarray) -> np.ndarray:
+    def _gather(self, name: str, flat_index: np.ndarray, *, clip: bool = False) -> np.ndarray:
+        """Values at flat voxel indices; ``clip`` clamps out-of-range indices (ray-cast neighbours
+        that do not exist carry index 0 today, but their values are masked out anyway)."""
         if self._use_numpy_views:
-            return self._attr_flat_view(name)[flat_index]
+            view = self._attr_flat_view(name)
+            return np.take(view, flat_index, mode="clip") if clip else view[flat_index]
         flat = self._vbg.attribute(name).reshape((-1,))
         return flat[o3c.Tensor(np.ascontiguousarray(flat_index, np.int64), device=self._device)].cpu().numpy()
 
@@ -634,21 +637,19 @@ class SemanticVolume:
         """
         hits = self.ray_cast(T_world_cam, intrinsics)
         h, w = hits.depth_m.shape
-        key_map = np.full((h, w), -1, np.int32)
+        # Stored keys (key + 1) of the 8 voxels around every pixel's hit; 0 where none / unobserved.
+        index = hits.index.reshape(h * w, 8)
+        stored = self._gather("key", index.reshape(-1), clip=True).reshape(h * w, 8)
+        stored *= hits.mask.reshape(h * w, 8)
+        labelled = stored > 0
+        # The labelled voxel with the largest trilinear weight (the nearest one) names the pixel.
+        best = np.where(labelled, hits.ratio.reshape(h * w, 8), -1.0).argmax(axis=1)[:, None]
+        best_key1 = np.take_along_axis(stored, best, axis=1)[:, 0]
+        px = np.flatnonzero(best_key1)
+        key_map = (best_key1 - 1).astype(np.int32, copy=False).reshape(h, w)
         conf_map = np.zeros((h, w), np.float32)
-        hit_px = np.flatnonzero(hits.mask.reshape(h * w, 8).any(axis=1))
-        if len(hit_px):
-            index = hits.index.reshape(h * w, 8)[hit_px]
-            mask = hits.mask.reshape(h * w, 8)[hit_px]
-            ratio = hits.ratio.reshape(h * w, 8)[hit_px]
-            stored = np.where(mask, self._gather("key", index.reshape(-1)).reshape(index.shape), 0)
-            labelled = stored > 0
-            best = np.where(labelled, ratio, -1.0).argmax(axis=1)
-            rows = np.arange(len(hit_px))
-            ok = labelled[rows, best]
-            px = hit_px[ok]
-            best_index = index[rows, best][ok]
-            key_map.reshape(-1)[px] = stored[rows, best][ok] - 1
+        if len(px):
+            best_index = np.take_along_axis(index, best, axis=1)[:, 0][px]
             conf_map.reshape(-1)[px] = self._gather("conf", best_index)
         self.stats.renders += 1
         return RenderedView(key_map, conf_map, hits.depth_m, hits)
@@ -708,17 +709,16 @@ class SemanticVolume:
             consistent = (observed > 0) & (np.abs(hits.depth_m - observed) <= tol)
             stats.pixels_depth_rejected = int((use & ~consistent).sum())
             use &= consistent
-        px = np.flatnonzero(use.reshape(-1))
-        stats.pixels_used = int(len(px))
+        stats.pixels_used = int(use.sum())
         self.stats.updates += 1
-        if len(px) == 0:
+        if stats.pixels_used == 0:
             return stats
-        mask = hits.mask.reshape(h * w, 8)[px]
-        voxel = hits.index.reshape(h * w, 8)[px][mask]
-        ratio = hits.ratio.reshape(h * w, 8)[px][mask]
-        pixel = np.repeat(px, mask.sum(axis=1))
-        if len(voxel) == 0:
+        entry = np.flatnonzero((hits.mask.reshape(h * w, 8) & use.reshape(h * w, 1)).reshape(-1))
+        if len(entry) == 0:
             return stats
+        voxel = hits.index.reshape(-1)[entry]
+        ratio = hits.ratio.reshape(-1)[entry]
+        pixel = entry >> 3
         # One observation per voxel: the pixel whose hit is nearest (largest trilinear weight).
         chosen = _nearest_per_voxel(voxel, ratio)
         voxel = voxel[chosen]
