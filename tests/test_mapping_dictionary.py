@@ -49,6 +49,23 @@ def test_top_k_matches_brute_force() -> None:
     assert len(d.top_k(q, 1000)[0]) == 300
 
 
+def test_top_k_equal_scores_rank_the_most_observed_region_first() -> None:
+    """Three regions with the same embedding (a chair seen whole 5 times, and two fragments seen
+    once, one with an older key): the main region ranks first, also when the tie sits at the k-th
+    place (the fragment with the older key must not take the only slot)."""
+    d = RegionDictionary("s", 3)
+    fragment_old = d.add(unit([1, 0, 0]))
+    other = d.add(unit([0, 1, 0]))
+    main = d.add(unit([1, 0, 0]))
+    fragment_new = d.add(unit([1, 0, 0]))
+    for _ in range(4):
+        d.observe(main, unit([1, 0, 0]))
+    keys, scores = d.top_k(unit([1, 0, 0]), 1)
+    assert list(keys) == [main] and scores[0] == pytest.approx(1.0)
+    keys, _ = d.top_k(unit([1, 0, 0]), 4)
+    assert list(keys) == [main, fragment_old, fragment_new, other]
+
+
 def test_top_k_rejects_wrong_dimension_and_zero_vectors() -> None:
     """A query from another embedding size, or an all-zero vector, is a clear error."""
     d = RegionDictionary("s", 4)

@@ -335,7 +335,8 @@ class RegionDictionary:
 
     # ------------------------------------------------------------------ queries
     def top_k(self, vector: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Keys (k,) and cosine scores (k,) of the ``k`` regions most similar to ``vector``, best first."""
+        """Keys (k,) and cosine scores (k,) of the ``k`` regions most similar to ``vector``, best first;
+        equal scores rank by observation count (most first), then key."""
         if k < 1:
             raise ValueError(f"k must be >= 1, got {k}")
         v = _unit(self._check_vector(vector, "query vector"))
@@ -347,9 +348,15 @@ class RegionDictionary:
         k = min(int(k), n)
         if k < n:
             part = np.argpartition(-scores, k - 1)[:k]
+            # Regions tying with the k-th score all compete for the last places (on count, below).
+            tied = np.flatnonzero(scores >= scores[part].min())
+            if len(tied) > k:
+                part = tied
         else:
             part = np.arange(n)
-        order = part[np.lexsort((self._keys[part], -scores[part]))]
+        # Best score first; equal scores: the most observed region first (a fragment seen once
+        # should not outrank the object's main region), then the older key.
+        order = part[np.lexsort((self._keys[part], -self._counts[part], -scores[part]))][:k]
         return self._keys[order].copy(), scores[order].astype(np.float32)
 
     def similarities(self, vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
