@@ -52,6 +52,7 @@ from typing import Any, TypeVar
 import numpy as np
 import open3d as o3d
 import open3d.core as o3c
+from scipy.spatial import cKDTree
 
 from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.mapping.errors import CapacityError
@@ -771,9 +772,13 @@ class SemanticVolume:
         return changed_total
 
     # ------------------------------------------------------------------ extraction
-    def _semantics_at_points(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _semantics_at_points(
+        self, points: np.ndarray, normals: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Key and confidence for surface points: the nearest labelled voxel among the 8 corners of
-        the voxel cell containing each point (surface points lie on cell edges)."""
+        the voxel cell containing each point (surface points lie on cell edges); points left
+        without one take the nearest labelled point's within ``params.label_fill_radius_m`` (facing
+        the same way when ``normals`` are given; see :func:`fill_nearest_labels`)."""
         n_pts = len(points)
         keys = np.full(n_pts, -1, np.int32)
         conf = np.zeros(n_pts, np.float32)
@@ -805,6 +810,7 @@ class SemanticVolume:
                     best_d2[sel] = d2[better]
                     keys[sel] = stored[better] - 1
                     conf[sel] = self._gather("conf", flat[better])
+        fill_nearest_labels(points, keys, conf, self.params.label_fill_radius_m, normals)
         return keys, conf
 
     def _key_filter(self, keys: np.ndarray, wanted: np.ndarray | list[int] | None) -> np.ndarray | None:
@@ -840,7 +846,8 @@ class SemanticVolume:
         # Open3D emits points in a thread-dependent order: sort so results are reproducible.
         order = np.lexsort((points[:, 2], points[:, 1], points[:, 0]))
         points, colors = points[order], colors[order]
-        pkeys, pconf = self._semantics_at_points(points)
+        normals = pcd.point.normals.cpu().numpy()[order] if "normals" in pcd.point else None
+        pkeys, pconf = self._semantics_at_points(points, _unit_rows(normals) if normals is not None else None)
         keep = self._key_filter(pkeys, keys)
         if keep is not None:
             points, colors, pkeys, pconf = points[keep], colors[keep], pkeys[keep], pconf[keep]
@@ -876,7 +883,9 @@ class SemanticVolume:
             if "normals" in mesh.vertex
             else np.zeros_like(vertices)
         )
-        vkeys, vconf = self._semantics_at_points(vertices)
+        vkeys, vconf = self._semantics_at_points(
+            vertices, _unit_rows(normals) if "normals" in mesh.vertex else None
+        )
         keep_vertex = self._key_filter(vkeys, keys)
         if keep_vertex is not None:
             tri_keep = keep_vertex[triangles].all(axis=1)
@@ -962,6 +971,55 @@ class SemanticVolume:
             volume._vbg.attribute(name)[buf_t] = o3c.Tensor(np.ascontiguousarray(arr), device=volume._device)
         volume._geometry_version += 1
         return volume
+
+
+def _unit_rows(v: np.ndarray) -> np.ndarray:
+    v = np.asarray(v, np.float32)
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+
+
+FILL_MIN_NORMAL_COS = 0.5  # a fill source must face within 60 degrees of the point it labels
+_FILL_CANDIDATES = 8
+
+
+def fill_nearest_labels(
+    points: np.ndarray,
+    keys: np.ndarray,
+    conf: np.ndarray,
+    radius_m: float,
+    normals: np.ndarray | None = None,
+) -> int:
+    """Give every unlabelled point (key -1) the key and confidence of the nearest labelled point
+    within ``radius_m``, in place; returns the number filled.
+
+    One pass from the originally labelled points only, so labels never creep further than
+    ``radius_m`` from a voxel the update actually labelled. With ``normals`` (unit, per point) a
+    source must face the same way (cosine >= ``FILL_MIN_NORMAL_COS``, among the 8 nearest): the
+    floor behind a table, hidden at encoder resolution, does not take the table's key from the
+    table's back face, while a thin pole still takes the key of the pole beside it.
+    """
+    if radius_m <= 0:
+        return 0
+    missing = np.flatnonzero(keys < 0)
+    labelled = np.flatnonzero(keys >= 0)
+    if len(missing) == 0 or len(labelled) == 0:
+        return 0
+    tree = cKDTree(points[labelled])
+    k = 1 if normals is None else min(_FILL_CANDIDATES, len(labelled))
+    dist, nearest = tree.query(points[missing], k=k, distance_upper_bound=radius_m)
+    dist = dist.reshape(len(missing), k)
+    nearest = nearest.reshape(len(missing), k)
+    ok = np.isfinite(dist)
+    if normals is not None:
+        src = labelled[np.where(ok, nearest, 0)]
+        facing = np.einsum("ij,ikj->ik", normals[missing], normals[src]) >= FILL_MIN_NORMAL_COS
+        ok &= facing
+    first = ok.argmax(axis=1)  # candidates come nearest first
+    found = ok[np.arange(len(missing)), first]
+    source = labelled[nearest[found, first[found]]]
+    keys[missing[found]] = keys[source]
+    conf[missing[found]] = conf[source]
+    return int(found.sum())
 
 
 def _nearest_per_voxel(voxel: np.ndarray, ratio: np.ndarray) -> np.ndarray:
