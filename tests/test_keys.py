@@ -16,6 +16,7 @@ def test_keyspace_builds_the_documented_keys() -> None:
     assert keys.geometry_render == "openfusion/lab-1/geometry/render"
     assert keys.geometry_points == "openfusion/lab-1/geometry/points"
     assert keys.geometry_mesh == "openfusion/lab-1/geometry/mesh"
+    assert keys.geometry_regions == "openfusion/lab-1/geometry/regions"
     assert keys.semantic_update == "openfusion/lab-1/semantic/update"
     assert keys.semantic_dictionary == "openfusion/lab-1/semantic/dictionary"
     assert keys.semantic_dictionary_delta == "openfusion/lab-1/semantic/dictionary/delta"
@@ -66,7 +67,11 @@ def test_every_key_is_a_canonical_zenoh_key_expression() -> None:
 )
 def test_invalid_map_ids_are_refused_naming_id_and_reason(map_id: str, why: str) -> None:
     """Each id that is not one safe key segment raises ValueError with the id and the reason."""
-    for build in (lambda: validate_map_id(map_id), lambda: KeySpace("openfusion", map_id), lambda: key_for(map_id, "x")):
+    for build in (
+        lambda: validate_map_id(map_id),
+        lambda: KeySpace("openfusion", map_id),
+        lambda: key_for(map_id, "x"),
+    ):
         with pytest.raises(ValueError, match=why) as info:
             build()
         assert repr(map_id) in str(info.value)
@@ -92,6 +97,10 @@ def test_service_names_are_parsed_back_from_health_keys() -> None:
     """The CLI turns liveliness keys back into service names; foreign keys are refused."""
     keys = KeySpace("openfusion", "lab")
     assert keys.service_from_health_key(keys.health("geometry")) == "geometry"
-    for foreign in ("openfusion/other/health/geometry", "openfusion/lab/health/a/b", "openfusion/lab/health/"):
+    for foreign in (
+        "openfusion/other/health/geometry",
+        "openfusion/lab/health/a/b",
+        "openfusion/lab/health/",
+    ):
         with pytest.raises(ValueError):
             keys.service_from_health_key(foreign)

@@ -45,11 +45,20 @@ class Env:
         self.map_id = unique_map_id("e2e")
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.map_dir = tmp / "maps"
-        self.router = open_session(ServiceConfig(map_id=self.map_id, zenoh=ZenohSettings(
-            mode="router", listen=[self.endpoint], multicast_scouting=False)))
+        self.router = open_session(
+            ServiceConfig(
+                map_id=self.map_id,
+                zenoh=ZenohSettings(mode="router", listen=[self.endpoint], multicast_scouting=False),
+            )
+        )
         self.cluster = Cluster(self.map_id, self.endpoint, tmp / "logs")
-        self.client = OpenFusionClient.from_config(ServiceConfig(map_id=self.map_id, zenoh=ZenohSettings(
-            mode="client", connect=[self.endpoint], multicast_scouting=False)), timeout_s=20.0)
+        self.client = OpenFusionClient.from_config(
+            ServiceConfig(
+                map_id=self.map_id,
+                zenoh=ZenohSettings(mode="client", connect=[self.endpoint], multicast_scouting=False),
+            ),
+            timeout_s=20.0,
+        )
 
     def start(self, name: str, *extra: str) -> None:
         if name == "geometry":
@@ -66,8 +75,11 @@ class Env:
     def play(self, frames: int, *extra: str, source: str = SOURCE) -> None:
         """Run a bridge for ``frames`` frames and wait until geometry integrated them all."""
         before = self.counter("geometry", "frames_integrated")
-        self.cluster.start("bridge", ["--source", source.format(n=frames), "--rate-hz", "0", *extra],
-                           env=subprocess_env(HF_HUB_OFFLINE="1"))
+        self.cluster.start(
+            "bridge",
+            ["--source", source.format(n=frames), "--rate-hz", "0", *extra],
+            env=subprocess_env(HF_HUB_OFFLINE="1"),
+        )
         wait_until(lambda: self.counter("geometry", "frames_integrated") >= before + frames, timeout_s=240)
         self.cluster.stop("bridge")
         self.cluster.processes.pop("bridge")
@@ -107,9 +119,29 @@ def _settled_dictionary(env: Env) -> DictionarySnapshot:
 
 def test_remote_query_from_a_separate_client_process_finds_the_chair(env: Env) -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "openfusion.cli", "query", "chair", "--map", env.map_id, "--mode", "client",
-         "--connect", env.endpoint, "--no-multicast", "--top-k", "3", "--json"],
-        capture_output=True, text=True, timeout=120, cwd=ROOT, env=subprocess_env(HF_HUB_OFFLINE="1"))
+        [
+            sys.executable,
+            "-m",
+            "openfusion.cli",
+            "query",
+            "chair",
+            "--map",
+            env.map_id,
+            "--mode",
+            "client",
+            "--connect",
+            env.endpoint,
+            "--no-multicast",
+            "--top-k",
+            "3",
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+        env=subprocess_env(HF_HUB_OFFLINE="1"),
+    )
     assert result.returncode == 0, result.stderr
     reply = json.loads(result.stdout)
     assert reply["embedding_space"] == "minilm-l6-v2"
@@ -148,9 +180,19 @@ def test_malformed_payloads_on_every_key_are_counted_and_change_nothing(env: Env
     for key in (keys.sensor_rgbd, keys.semantic_update, keys.semantic_dictionary_delta):
         for payload in [*garbage, encode(wrong)]:
             session.put(key, payload)
-    for key in (keys.geometry_render, keys.geometry_points, keys.geometry_mesh, keys.geometry_dictionary,
-                keys.semantic_dictionary, keys.query_text, keys.query_image, keys.query_point,
-                keys.control("save"), keys.control("reset")):
+    for key in (
+        keys.geometry_render,
+        keys.geometry_points,
+        keys.geometry_mesh,
+        keys.geometry_regions,
+        keys.geometry_dictionary,
+        keys.semantic_dictionary,
+        keys.query_text,
+        keys.query_image,
+        keys.query_point,
+        keys.control("save"),
+        keys.control("reset"),
+    ):
         for payload in garbage:
             replies = list(session.get(key, payload=payload, timeout=10))
             assert replies and replies[0].err is not None, f"{key} accepted garbage {payload!r}"
@@ -172,9 +214,13 @@ def test_render_answers_keys_of_the_map_with_a_depth_test(env: Env) -> None:
 
     frame = next(iter(open_source(SOURCE.format(n=1))))
     K = frame.intrinsics.scaled(80, 60)
-    reply = get(env.client.session, env.client.keys.geometry_render,
-                RenderRequest(frame_id=0, T_world_cam=frame.T_world_cam, **RenderRequest.intrinsics_fields(K)),
-                RenderReply, timeout_s=20)
+    reply = get(
+        env.client.session,
+        env.client.keys.geometry_render,
+        RenderRequest(frame_id=0, T_world_cam=frame.T_world_cam, **RenderRequest.intrinsics_fields(K)),
+        RenderReply,
+        timeout_s=20,
+    )
     assert reply.key_map.shape == (60, 80)
     assert (reply.key_map >= 0).mean() > 0.5
     dictionary = env.client.dictionary()
@@ -212,7 +258,9 @@ def test_kill_geometry_after_save_and_restart_loses_nothing_saved(env: Env) -> N
     restored = env.client.points(max_points=500_000)
     assert len(restored.points) == len(saved.points)
     np.testing.assert_array_equal(np.sort(restored.keys), np.sort(saved.keys))
-    snap = get(env.client.session, env.client.keys.geometry_dictionary, DictionaryRequest(), DictionarySnapshot)
+    snap = get(
+        env.client.session, env.client.keys.geometry_dictionary, DictionaryRequest(), DictionarySnapshot
+    )
     assert len(snap.keys) > 0
 
 

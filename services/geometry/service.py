@@ -8,14 +8,24 @@
 | ``…/geometry/render`` | queryable | RenderRequest → RenderReply |
 | ``…/geometry/points`` | queryable | PointsRequest → PointsReply (capped) |
 | ``…/geometry/mesh`` | queryable | MeshRequest → MeshReply |
+| ``…/geometry/regions`` | queryable | RegionSummaryRequest → RegionSummaryReply (per-region bbox + surface point count) |
 | ``…/geometry/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot (what the last checkpoint + deltas hold) |
 | ``…/control/{save,load,reset}`` | queryable (admin) | ControlRequest → ControlReply |
-| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``capacity_refused``, ``num_blocks`` |
+| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``capacity_refused``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC) |
 
 Checkpoints go to ``{map_dir}/{map_id}`` every ``checkpoint_period_s`` (when something changed)
 and on ``control/save``; on start the service loads that checkpoint when it exists, so a restart
 loses nothing that was saved. Every bad message is counted and dropped before it reaches the
 volume; a bad request is answered with ``reply_err`` naming the limit or field.
+
+Region summaries (``geometry/regions``, what the query service ranks with): computed from the
+same surface points as ``geometry/points`` and cached per ``map_version`` (a counter bumped by
+every integrated frame, semantic update, merge, load and reset). A request is answered from the
+cache while the map is unchanged, or when the cached summary is younger than
+``regions_min_interval_s`` (so many clients cannot make the service extract the surface over and
+over while it integrates); ``fresh=True`` always recomputes a summary of an older map version.
+The reply says its ``map_version``, ``age_s`` and ``key_horizon`` (every key below it is
+covered: a covered key that is not listed has no surface points).
 """
 
 from __future__ import annotations
@@ -51,6 +61,8 @@ from openfusion.messages import (
     MeshRequest,
     PointsReply,
     PointsRequest,
+    RegionSummaryReply,
+    RegionSummaryRequest,
     RenderReply,
     RenderRequest,
     RgbdFrame,
@@ -77,6 +89,7 @@ class GeometrySection(ConfigSection):
     frame_queue_size: int = Field(default=64, gt=0)
     max_points_reply: int = Field(default=500_000, gt=0)
     max_render_pixels: int = Field(default=640 * 480, gt=0)
+    regions_min_interval_s: float = Field(default=0.5, ge=0)
     load_on_start: bool = True
 
     def volume_params(self) -> VolumeParams:
@@ -107,6 +120,53 @@ def check_update(msg: SemanticUpdate) -> None:
         raise ValueError("depth_m must be finite and >= 0")
 
 
+def region_summaries(
+    keys: np.ndarray, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per-region (keys int32, bbox_min (n,3) float32, bbox_max (n,3) float32, num_points int64) of
+    surface points with region ``keys`` (-1 = none, ignored); keys ascending."""
+    labelled = keys >= 0
+    k, p = keys[labelled], points[labelled]
+    if not len(k):
+        return (
+            np.zeros(0, np.int32),
+            np.zeros((0, 3), np.float32),
+            np.zeros((0, 3), np.float32),
+            np.zeros(0, np.int64),
+        )
+    order = np.argsort(k, kind="stable")
+    k, p = k[order], p[order]
+    uniq, start, counts = np.unique(k, return_index=True, return_counts=True)
+    return (
+        uniq.astype(np.int32),
+        np.minimum.reduceat(p, start, axis=0).astype(np.float32),
+        np.maximum.reduceat(p, start, axis=0).astype(np.float32),
+        counts.astype(np.int64),
+    )
+
+
+class _Summary:
+    """A computed region summary of one map version (arrays of :func:`region_summaries`)."""
+
+    def __init__(self, map_version: int, key_horizon: int, arrays: tuple[np.ndarray, ...]) -> None:
+        self.map_version = map_version
+        self.key_horizon = key_horizon
+        self.keys, self.bbox_min, self.bbox_max, self.num_points = arrays
+        self.computed_at = time.monotonic()
+
+    def reply(self, keys: list[int] | None) -> RegionSummaryReply:
+        sel = slice(None) if keys is None else np.isin(self.keys, np.asarray(keys, np.int64))
+        return RegionSummaryReply(
+            map_version=self.map_version,
+            key_horizon=self.key_horizon,
+            age_s=max(0.0, time.monotonic() - self.computed_at),
+            keys=self.keys[sel],
+            bbox_min=self.bbox_min[sel],
+            bbox_max=self.bbox_max[sel],
+            num_points=self.num_points[sel],
+        )
+
+
 class GeometryService:
     """The geometry service's logic; every handler is a plain method tests call without a bus."""
 
@@ -118,14 +178,23 @@ class GeometryService:
         self.replica = DictionaryReplica()
         self.frames_integrated = 0
         self.updates_applied = 0
+        # Bumped by every change of the map (frames, updates, merges, load, reset): region
+        # summaries are cached per version. Keys below _key_horizon are ones this map has seen.
+        self.map_version = 0
+        self._key_horizon = 0
+        self._summary: _Summary | None = None
+        self._summary_lock = threading.Lock()
         self._dirty = False
         self._last_checkpoint = time.monotonic()
         self.checkpoint_dir: Path | None = (
             self.section.map_dir / config.map_id if self.section.map_dir is not None else None
         )
         self._runner: ServiceRunner | None = None
-        if (self.section.load_on_start and self.checkpoint_dir is not None
-                and resolve_map_path(self.checkpoint_dir).exists()):
+        if (
+            self.section.load_on_start
+            and self.checkpoint_dir is not None
+            and resolve_map_path(self.checkpoint_dir).exists()
+        ):
             self._load(self.checkpoint_dir)
 
     # ------------------------------------------------------------------ state changes
@@ -135,24 +204,41 @@ class GeometryService:
             self.volume = loaded.volume
             has_semantics = loaded.dictionary.embedding_space != NO_EMBEDDING_SPACE
             self.replica.reset(loaded.dictionary if has_semantics else None)
+            self._map_changed(reset_keys=True)
             self._dirty = False
-        logger.info("geometry: loaded map %s (%d blocks, %d regions)", path, self.volume.num_blocks,
-                    len(loaded.dictionary) if loaded.dictionary is not None else 0)
+        logger.info(
+            "geometry: loaded map %s (%d blocks, %d regions)",
+            path,
+            self.volume.num_blocks,
+            len(loaded.dictionary) if loaded.dictionary is not None else 0,
+        )
 
     def save(self, path: Path | None = None) -> Path:
         target = path or self.checkpoint_dir
         if target is None:
-            raise RequestError("no_map_dir", "no path given and the geometry service has no map_dir configured")
+            raise RequestError(
+                "no_map_dir", "no path given and the geometry service has no map_dir configured"
+            )
         with self._lock:
             # A geometry-only map (semantics off) is saved with an empty placeholder dictionary.
             dictionary = self.replica.dictionary or RegionDictionary(NO_EMBEDDING_SPACE, 1)
-            written = save_map(target, self.volume, dictionary,
-                               meta={"map_id": self.config.map_id, "frames_integrated": self.frames_integrated})
+            written = save_map(
+                target,
+                self.volume,
+                dictionary,
+                meta={"map_id": self.config.map_id, "frames_integrated": self.frames_integrated},
+            )
             self._dirty = False
         self._last_checkpoint = time.monotonic()
         self._count("checkpoints")
         logger.info("geometry: saved map to %s", written)
         return written
+
+    def _map_changed(self, *, reset_keys: bool = False) -> None:
+        """Call with ``self._lock`` held after any change of the volume."""
+        self.map_version += 1
+        if reset_keys:
+            self._key_horizon = 0
 
     def _count(self, name: str, by: float = 1.0) -> None:
         if self._runner is not None:
@@ -166,15 +252,18 @@ class GeometryService:
             with self._lock:
                 self.volume.integrate(frame)
                 self.frames_integrated += 1
+                self.map_version += 1
                 self._dirty = True
         except CapacityError as exc:
             logger.warning("geometry: frame %d refused: %s", frame.frame_id, exc)
             self._count("capacity_refused")
             return
         if self._runner is not None:
-            elapsed = time.monotonic() - started
+            ended = time.monotonic()
+            elapsed = ended - started
             self._runner.stats.record(elapsed)
             self._runner.stats.incr("integrate_busy_s", elapsed)
+            self._runner.stats.set("last_integrated_at_s", ended)
             self._runner.stats.set("frames_integrated", self.frames_integrated)
             self._runner.stats.set("num_blocks", self.volume.num_blocks)
             self._runner.stats.set("last_frame_id", frame.frame_id)
@@ -182,9 +271,13 @@ class GeometryService:
     def on_update(self, msg: SemanticUpdate) -> None:
         check_update(msg)
         with self._lock:
-            self.volume.apply_update(msg.T_world_cam, msg.intrinsics, msg.key_map, msg.conf_map,
-                                     observed_depth_m=msg.depth_m)
+            self.volume.apply_update(
+                msg.T_world_cam, msg.intrinsics, msg.key_map, msg.conf_map, observed_depth_m=msg.depth_m
+            )
             self.updates_applied += 1
+            self._map_changed()
+            if msg.key_map.size:
+                self._key_horizon = max(self._key_horizon, int(msg.key_map.max()) + 1)
             self._dirty = True
         self._count("updates_applied")
         if self._runner is not None:
@@ -198,6 +291,7 @@ class GeometryService:
         with self._lock:
             if merges:
                 self.volume.relabel_keys(merges)
+                self._map_changed()
             self._dirty = True
 
     def _resync_dictionary(self) -> None:
@@ -211,16 +305,21 @@ class GeometryService:
         pixels = req.width_px * req.height_px
         if pixels > self.section.max_render_pixels:
             raise RequestError(
-                "too_large", f"render of {req.width_px}x{req.height_px} exceeds max_render_pixels={self.section.max_render_pixels}"
+                "too_large",
+                f"render of {req.width_px}x{req.height_px} exceeds max_render_pixels={self.section.max_render_pixels}",
             )
         with self._lock:
             view = self.volume.render(req.T_world_cam, req.intrinsics)
-        return RenderReply(frame_id=req.frame_id, key_map=view.key_map, conf_map=view.conf_map, depth_m=view.depth_m)
+        return RenderReply(
+            frame_id=req.frame_id, key_map=view.key_map, conf_map=view.conf_map, depth_m=view.depth_m
+        )
 
     def _points_cap(self, requested: int | None) -> int:
         cap = self.section.max_points_reply
         if requested is not None and requested > cap:
-            raise RequestError("too_large", f"max_points={requested} exceeds the service limit max_points_reply={cap}")
+            raise RequestError(
+                "too_large", f"max_points={requested} exceeds the service limit max_points_reply={cap}"
+            )
         return requested or cap
 
     def handle_points(self, req: PointsRequest) -> PointsReply:
@@ -230,8 +329,28 @@ class GeometryService:
         n = len(pts.points)
         if n > cap:
             idx = np.sort(np.random.default_rng(0).choice(n, size=cap, replace=False))
-            return PointsReply(points=pts.points[idx], colors=pts.colors[idx], keys=pts.keys[idx], truncated=True)
+            return PointsReply(
+                points=pts.points[idx], colors=pts.colors[idx], keys=pts.keys[idx], truncated=True
+            )
         return PointsReply(points=pts.points, colors=pts.colors, keys=pts.keys, truncated=False)
+
+    def handle_regions(self, req: RegionSummaryRequest) -> RegionSummaryReply:
+        with self._summary_lock:  # one computation at a time; later askers get its result
+            cached = self._summary
+            if cached is None or (
+                cached.map_version != self.map_version
+                and (
+                    req.fresh or time.monotonic() - cached.computed_at >= self.section.regions_min_interval_s
+                )
+            ):
+                with self._lock:
+                    version, horizon = self.map_version, self._key_horizon
+                    pts = self.volume.extract_points()
+                arrays = region_summaries(pts.keys, pts.points)
+                if len(arrays[0]):  # keys present in the map (e.g. loaded from a checkpoint) are covered too
+                    horizon = max(horizon, int(arrays[0][-1]) + 1)
+                cached = self._summary = _Summary(version, horizon, arrays)
+        return cached.reply(req.keys)
 
     def handle_mesh(self, req: MeshRequest) -> MeshReply:
         with self._lock:
@@ -242,8 +361,9 @@ class GeometryService:
                 f"mesh has {len(mesh.vertices)} vertices, over max_points_reply={self.section.max_points_reply}; "
                 "ask for fewer keys",
             )
-        return MeshReply(vertices=mesh.vertices, triangles=mesh.triangles, vertex_colors=mesh.colors,
-                         vertex_keys=mesh.keys)
+        return MeshReply(
+            vertices=mesh.vertices, triangles=mesh.triangles, vertex_colors=mesh.colors, vertex_keys=mesh.keys
+        )
 
     def handle_dictionary(self, _req: DictionaryRequest) -> DictionarySnapshot:
         snap = self.replica.snapshot_message()
@@ -267,6 +387,7 @@ class GeometryService:
             self.volume = SemanticVolume(self.section.volume_params())
             self.replica.reset(None)
             self.frames_integrated = 0
+            self._map_changed(reset_keys=True)
             self._dirty = True
         return ControlReply(ok=True, message="map reset")
 
@@ -274,24 +395,34 @@ class GeometryService:
     def setup(self, runner: ServiceRunner) -> None:
         self._runner = runner
         keys = runner.keys
-        runner.subscriber(keys.sensor_rgbd, RgbdFrame, self.on_frame, queue_size=self.section.frame_queue_size)
+        runner.subscriber(
+            keys.sensor_rgbd, RgbdFrame, self.on_frame, queue_size=self.section.frame_queue_size
+        )
         runner.subscriber(keys.semantic_update, SemanticUpdate, self.on_update, queue_size=64)
         runner.subscriber(keys.semantic_dictionary_delta, DictionaryDelta, self.on_delta, queue_size=256)
         runner.queryable(keys.geometry_render, RenderRequest, self.handle_render)
         runner.queryable(keys.geometry_points, PointsRequest, self.handle_points)
         runner.queryable(keys.geometry_mesh, MeshRequest, self.handle_mesh)
+        runner.queryable(keys.geometry_regions, RegionSummaryRequest, self.handle_regions)
         runner.queryable(keys.geometry_dictionary, DictionaryRequest, self.handle_dictionary)
         for action in ("save", "load", "reset"):
-            runner.queryable(keys.control(action), ControlRequest,
-                             lambda req, action=action: self.handle_control(req, action=action))
+            runner.queryable(
+                keys.control(action),
+                ControlRequest,
+                lambda req, action=action: self.handle_control(req, action=action),
+            )
         runner.stats.set("frames_integrated", self.frames_integrated)
         runner.stats.set("num_blocks", self.volume.num_blocks)
 
     def loop(self, runner: ServiceRunner) -> None:
         period = self.section.checkpoint_period_s
         while not runner.wait(min(period, 1.0) if period > 0 else None):
-            if (period > 0 and self._dirty and self.checkpoint_dir is not None
-                    and time.monotonic() - self._last_checkpoint >= period):
+            if (
+                period > 0
+                and self._dirty
+                and self.checkpoint_dir is not None
+                and time.monotonic() - self._last_checkpoint >= period
+            ):
                 try:
                     self.save()
                 except (OSError, RequestError) as exc:
@@ -309,14 +440,22 @@ class GeometryService:
 def _add_options(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("geometry")
     g.add_argument("--map-dir", type=Path, help="checkpoint folder (the map is saved to MAP_DIR/MAP_ID)")
-    g.add_argument("--checkpoint-period-s", type=float, help="seconds between checkpoints (0 = only on control/save)")
+    g.add_argument(
+        "--checkpoint-period-s", type=float, help="seconds between checkpoints (0 = only on control/save)"
+    )
     g.add_argument("--voxel-size-m", type=float, help="voxel size in metres (default 0.02)")
     g.add_argument("--device", help="Open3D device, e.g. CPU:0 or CUDA:0")
 
 
 def _options(args: argparse.Namespace) -> dict[str, Any]:
-    return {"geometry": {"map_dir": args.map_dir, "checkpoint_period_s": args.checkpoint_period_s,
-                         "voxel_size_m": args.voxel_size_m, "device": args.device}}
+    return {
+        "geometry": {
+            "map_dir": args.map_dir,
+            "checkpoint_period_s": args.checkpoint_period_s,
+            "voxel_size_m": args.voxel_size_m,
+            "device": args.device,
+        }
+    }
 
 
 DEFINITION = ServiceDefinition(

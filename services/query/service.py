@@ -4,23 +4,46 @@
 |---|---|---|
 | ``…/semantic/dictionary`` | queries (snapshot on start and after a gap) | DictionaryRequest → DictionarySnapshot |
 | ``…/semantic/dictionary/delta`` | subscribes | :class:`~openfusion.messages.DictionaryDelta` |
-| ``…/geometry/points`` | queries (points of the top regions) | PointsRequest → PointsReply |
+| ``…/geometry/regions`` | queries (cached region summaries, see below) | RegionSummaryRequest → RegionSummaryReply |
+| ``…/geometry/points`` | queries (points of the top regions, ``with_points`` only; point queries) | PointsRequest → PointsReply |
 | ``…/query/text`` | queryable | TextQuery → QueryReply |
 | ``…/query/image`` | queryable | ImageQuery → QueryReply (encoders with an image tower only) |
 | ``…/query/point`` | queryable | PointQuery → QueryReply |
-| ``…/health/query`` | liveliness + stats | counters ``queries``, ``regions``, ``dictionary_resyncs`` |
+| ``…/health/query`` | liveliness + stats | counters ``queries``, ``regions``, ``dictionary_resyncs``, ``summary_fetches``, ``summary_failures`` |
 
 It answers from the latest dictionary it has and never blocks mapping. A query whose
 embedding space differs from the map's is refused with ``reply_err`` (code
 ``embedding_space_mismatch``) naming both spaces.
+
+Bounding boxes and point counts come from a cache of geometry's per-region summaries, so a
+text or image query without points makes no round trip to geometry. Staleness bound: a
+summary used in a reply was requested from geometry at most ``summary_max_age_s`` (default 2 s)
+before the query (plus geometry's own ``regions_min_interval_s``, 0.5 s, and one summary
+computation); while queries keep coming, the service refreshes it in the background every
+``summary_refresh_s`` (1 s), so queries do not wait for it; an older cache is refreshed before
+answering. A region newer than the cached summary (its key is at or above the summary's
+``key_horizon``) makes the query fetch a fresh summary first, at most once per
+``summary_recheck_s`` (0.25 s); a region that geometry still does not know then comes back
+with ``num_points`` 0 and a zero box. If geometry does not answer, the query is answered with
+what the cache holds (zero boxes when nothing) and the failure is logged and counted; the next
+synchronous try waits ``summary_max_age_s``. With ``with_points`` the box and count come from
+the points geometry returns (the current map).
+
+The text encoder runs with ``torch_threads`` intra-op threads (default 1: a one-sentence
+MiniLM forward gains little from a second thread and loses a lot when the other services keep
+the cores busy); a sentence-transformers model is called directly (tokenize + forward),
+skipping ``SentenceTransformer.encode``'s per-call bookkeeping, after checking at start that
+both give the same embeddings (otherwise ``encode`` is used).
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -37,6 +60,8 @@ from openfusion.messages import (
     PointsRequest,
     QueryReply,
     RegionHit,
+    RegionSummaryReply,
+    RegionSummaryRequest,
     TextQuery,
 )
 from openfusion.services.common import ServiceDefinition
@@ -54,10 +79,43 @@ class QuerySection(ConfigSection):
     max_points_reply: int = Field(default=200_000, gt=0)
     geometry_timeout_s: float = Field(default=5.0, gt=0)
     resync_period_s: float = Field(default=5.0, gt=0)
+    summary_max_age_s: float = Field(default=2.0, gt=0)
+    summary_refresh_s: float = Field(default=1.0, gt=0)
+    summary_recheck_s: float = Field(default=0.25, ge=0)
+    summary_keep_warm_s: float = Field(default=60.0, ge=0)
+    torch_threads: int = Field(default=1, ge=0)  # 0 = leave torch's default
 
 
 class QueryConfig(ServiceConfig):
     query: QuerySection = Field(default_factory=QuerySection)
+
+
+_ZERO3 = np.zeros(3, np.float32)
+
+
+class RegionSummaries:
+    """Geometry's per-region summaries (one :class:`RegionSummaryReply`) as a lookup table."""
+
+    def __init__(self, reply: RegionSummaryReply, fetched_at: float) -> None:
+        self.map_version = reply.map_version
+        self.key_horizon = reply.key_horizon
+        self.fetched_at = fetched_at  # monotonic time the request was sent
+        self._index = {int(k): i for i, k in enumerate(reply.keys.tolist())}
+        self._bbox_min, self._bbox_max, self._num_points = reply.bbox_min, reply.bbox_max, reply.num_points
+
+    def __len__(self) -> int:
+        return len(self._index)
+
+    def covers(self, key: int) -> bool:
+        """Whether the summary knows ``key`` (listed, or below the horizon: no surface points)."""
+        return key < self.key_horizon or key in self._index
+
+    def get(self, key: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """(bbox_min, bbox_max, num_points) of ``key``; zeros when it has no points (or is unknown)."""
+        i = self._index.get(int(key))
+        if i is None:
+            return _ZERO3, _ZERO3, 0
+        return self._bbox_min[i], self._bbox_max[i], int(self._num_points[i])
 
 
 def region_hits(
@@ -67,10 +125,26 @@ def region_hits(
     *,
     with_points: bool,
     max_points: int,
+    summaries: RegionSummaries | None = None,
 ) -> list[RegionHit]:
-    """Ranked (key, score) pairs + the points of those keys → :class:`RegionHit` list (bbox, counts)."""
+    """Ranked (key, score) pairs → :class:`RegionHit` list. Box and count come from ``points``
+    (the points of those keys) when given, else from ``summaries`` (zeros when neither knows)."""
     hits = []
     for key, score in ranked:
+        if points is None and summaries is not None:
+            bbox_min, bbox_max, n = summaries.get(key)
+            hits.append(
+                RegionHit(
+                    key=int(key),
+                    score=float(score),
+                    label=labels.get(int(key)) or None,
+                    bbox_min=bbox_min,
+                    bbox_max=bbox_max,
+                    num_points=n,
+                    points=None,
+                )
+            )
+            continue
         if points is not None and len(points.keys):
             mask = points.keys == key
             pts = points.points[mask]
@@ -81,9 +155,17 @@ def region_hits(
         else:
             bbox_min = bbox_max = np.zeros(3, np.float32)
         kept = pts[:max_points] if with_points else None
-        hits.append(RegionHit(key=int(key), score=float(score), label=labels.get(int(key)) or None,
-                              bbox_min=bbox_min.astype(np.float32), bbox_max=bbox_max.astype(np.float32),
-                              num_points=int(len(pts)), points=kept))
+        hits.append(
+            RegionHit(
+                key=int(key),
+                score=float(score),
+                label=labels.get(int(key)) or None,
+                bbox_min=bbox_min.astype(np.float32),
+                bbox_max=bbox_max.astype(np.float32),
+                num_points=int(len(pts)),
+                points=kept,
+            )
+        )
     return hits
 
 
@@ -96,11 +178,17 @@ class QueryService:
         opts: dict[str, Any] = {}
         if self.section.model_path:
             opts["model_path" if self.section.text_encoder == "onnx" else "model"] = self.section.model_path
-        self.text_encoder = text_encoder if text_encoder is not None else make_text_encoder(
-            self.section.text_encoder, **opts)
+        self.text_encoder = (
+            text_encoder if text_encoder is not None else make_text_encoder(self.section.text_encoder, **opts)
+        )
         self.replica = DictionaryReplica()
         self._runner: ServiceRunner | None = None
         self._resync_lock = threading.Lock()
+        self.summaries: RegionSummaries | None = None
+        self._summary_lock = threading.Lock()
+        self._summary_failed_at: float | None = None
+        self._last_query_at: float | None = None
+        self._encode_one = None  # fast single-text path, set up in setup()
 
     # ----------------------------------------------------------------- dictionary
     def resync(self) -> bool:
@@ -125,54 +213,153 @@ class QueryService:
     def _check_space(self, requested: str | None) -> str:
         space = self.replica.embedding_space
         if space is None:
-            raise RequestError("no_map", "the query service has no dictionary yet: is the semantic service running?")
+            raise RequestError(
+                "no_map", "the query service has no dictionary yet: is the semantic service running?"
+            )
         if requested is not None and requested != space:
-            raise RequestError("embedding_space_mismatch",
-                               f"query asks for embedding space {requested!r} but the map is in {space!r}")
+            raise RequestError(
+                "embedding_space_mismatch",
+                f"query asks for embedding space {requested!r} but the map is in {space!r}",
+            )
         return space
 
     def _check_text_space(self, space: str) -> None:
         if self.text_encoder.embedding_space != space:
-            raise RequestError("embedding_space_mismatch",
-                               f"the query service's text encoder is {self.text_encoder.embedding_space!r} but the "
-                               f"map is in {space!r}: start the query service with the matching --text-encoder")
+            raise RequestError(
+                "embedding_space_mismatch",
+                f"the query service's text encoder is {self.text_encoder.embedding_space!r} but the "
+                f"map is in {space!r}: start the query service with the matching --text-encoder",
+            )
 
     def _check_limits(self, top_k: int, max_points: int) -> None:
         if top_k > self.section.max_top_k:
             raise RequestError("too_large", f"top_k={top_k} exceeds max_top_k={self.section.max_top_k}")
         if max_points > self.section.max_points_reply:
-            raise RequestError("too_large",
-                               f"max_points={max_points} exceeds max_points_reply={self.section.max_points_reply}")
+            raise RequestError(
+                "too_large",
+                f"max_points={max_points} exceeds max_points_reply={self.section.max_points_reply}",
+            )
 
     def _points_of(self, keys: list[int] | None, max_points: int) -> PointsReply | None:
         if self._runner is None or (keys is not None and not keys):
             return None
         try:
-            return get(self._runner.session, self._runner.keys.geometry_points,
-                       PointsRequest(keys=keys, max_points=max_points), PointsReply,
-                       timeout_s=self.section.geometry_timeout_s, service="geometry")
+            return get(
+                self._runner.session,
+                self._runner.keys.geometry_points,
+                PointsRequest(keys=keys, max_points=max_points),
+                PointsReply,
+                timeout_s=self.section.geometry_timeout_s,
+                service="geometry",
+            )
         except QueryError as exc:
             logger.warning("query: no points from geometry (%s); answering without geometry", exc.reason)
             return None
 
-    def _rank(self, vector: np.ndarray, *, top_k: int, with_points: bool, max_points: int,
-              space: str, query: str) -> QueryReply:
+    # ------------------------------------------------------------- region summaries
+    def refresh_summaries(self, *, fresh: bool = False, newer_than: float | None = None) -> bool:
+        """Fetch geometry's region summaries into the cache; False when geometry did not answer.
+        ``newer_than``: skip when another thread fetched after that monotonic time meanwhile."""
+        if self._runner is None:
+            return False
+        with self._summary_lock:
+            cache = self.summaries
+            if newer_than is not None and cache is not None and cache.fetched_at >= newer_than:
+                return True
+            asked_at = time.monotonic()
+            try:
+                reply = get(
+                    self._runner.session,
+                    self._runner.keys.geometry_regions,
+                    RegionSummaryRequest(fresh=fresh),
+                    RegionSummaryReply,
+                    timeout_s=self.section.geometry_timeout_s,
+                    service="geometry",
+                )
+            except QueryError as exc:
+                self._summary_failed_at = time.monotonic()
+                self._runner.stats.incr("summary_failures")
+                logger.warning(
+                    "query: no region summaries from geometry (%s); answering from the cache", exc.reason
+                )
+                return False
+            self.summaries = RegionSummaries(reply, asked_at)
+            self._summary_failed_at = None
+            self._runner.stats.incr("summary_fetches")
+            return True
+
+    def _summaries_for(self, keys: list[int]) -> RegionSummaries | None:
+        """The cache, refreshed first when it is too old or does not know one of ``keys``."""
+        now = time.monotonic()
+        self._last_query_at = now
+        cache = self.summaries
+        if self._runner is None or not keys:
+            return cache
+        failed = self._summary_failed_at
+        if failed is not None and now - failed < self.section.summary_max_age_s:
+            return cache  # geometry did not answer a moment ago: do not make every query wait for it
+        if cache is None or now - cache.fetched_at > self.section.summary_max_age_s:
+            self.refresh_summaries(newer_than=now)
+        elif (
+            not all(cache.covers(k) for k in keys) and now - cache.fetched_at > self.section.summary_recheck_s
+        ):
+            self.refresh_summaries(fresh=True, newer_than=now)
+        return self.summaries
+
+    def _keep_summaries_warm(self) -> None:
+        """Background refresh (loop thread) while queries keep coming."""
+        now = time.monotonic()
+        last, cache = self._last_query_at, self.summaries
+        if last is None or now - last > self.section.summary_keep_warm_s:
+            return
+        if cache is None or now - cache.fetched_at >= self.section.summary_refresh_s:
+            self.refresh_summaries(newer_than=now)
+
+    def _rank(
+        self, vector: np.ndarray, *, top_k: int, with_points: bool, max_points: int, space: str, query: str
+    ) -> QueryReply:
         ranked = self.replica.top_k(vector, top_k)
-        points = self._points_of([k for k, _ in ranked], self.section.max_points_reply)
-        hits = region_hits(ranked, self.replica.labels_for([k for k, _ in ranked]), points, with_points=with_points, max_points=max_points)
+        keys = [k for k, _ in ranked]
+        summaries = None
+        points = None
+        if with_points:  # the points themselves: only geometry has them (box and count from them too)
+            points = self._points_of(keys, self.section.max_points_reply)
+        if points is None:
+            summaries = self._summaries_for(keys)
+        hits = region_hits(
+            ranked,
+            self.replica.labels_for(keys),
+            points,
+            with_points=with_points,
+            max_points=max_points,
+            summaries=summaries,
+        )
         return QueryReply(embedding_space=space, query=query, regions=hits)
+
+    def encode_text(self, text: str) -> np.ndarray:
+        if self._encode_one is not None:
+            return self._encode_one(text)
+        return self.text_encoder.encode([text])[0]
 
     def handle_text(self, req: TextQuery) -> QueryReply:
         started = time.monotonic()
         if len(req.text) > self.section.max_text_chars:
-            raise RequestError("too_large", f"text of {len(req.text)} characters exceeds max_text_chars="
-                               f"{self.section.max_text_chars}")
+            raise RequestError(
+                "too_large",
+                f"text of {len(req.text)} characters exceeds max_text_chars={self.section.max_text_chars}",
+            )
         self._check_limits(req.top_k, req.max_points)
         space = self._check_space(req.embedding_space)
         self._check_text_space(space)
-        vector = self.text_encoder.encode([req.text])[0]
-        reply = self._rank(vector, top_k=req.top_k, with_points=req.with_points, max_points=req.max_points,
-                           space=space, query=req.text)
+        vector = self.encode_text(req.text)
+        reply = self._rank(
+            vector,
+            top_k=req.top_k,
+            with_points=req.with_points,
+            max_points=req.max_points,
+            space=space,
+            query=req.text,
+        )
         self._note(started)
         return reply
 
@@ -182,12 +369,21 @@ class QueryService:
         space = self._check_space(req.embedding_space)
         encode_image = getattr(self.text_encoder, "encode_image", None)
         if encode_image is None:
-            raise RequestError("unsupported", f"the {self.text_encoder.embedding_space!r} encoder has no image "
-                               "tower: image queries need a CLIP-style encoder (--text-encoder clip-regions)")
+            raise RequestError(
+                "unsupported",
+                f"the {self.text_encoder.embedding_space!r} encoder has no image "
+                "tower: image queries need a CLIP-style encoder (--text-encoder clip-regions)",
+            )
         self._check_text_space(space)
         vector = np.asarray(encode_image(req.image), np.float32).reshape(-1)
-        reply = self._rank(vector, top_k=req.top_k, with_points=req.with_points, max_points=req.max_points,
-                           space=space, query=f"image {req.image.shape[1]}x{req.image.shape[0]}")
+        reply = self._rank(
+            vector,
+            top_k=req.top_k,
+            with_points=req.with_points,
+            max_points=req.max_points,
+            space=space,
+            query=f"image {req.image.shape[1]}x{req.image.shape[0]}",
+        )
         self._note(started)
         return reply
 
@@ -204,12 +400,20 @@ class QueryService:
         order = np.argsort(-counts)[: req.top_k]
         total = max(int(near.sum()), 1)
         ranked = [(int(keys[i]), float(counts[i]) / total) for i in order]
-        hits = region_hits(ranked, self.replica.labels_for([k for k, _ in ranked]), points, with_points=req.with_points,
-                           max_points=req.max_points)
+        hits = region_hits(
+            ranked,
+            self.replica.labels_for([k for k, _ in ranked]),
+            points,
+            with_points=req.with_points,
+            max_points=req.max_points,
+        )
         self._note(started)
         x, y, z = (float(v) for v in req.point_world)
-        return QueryReply(embedding_space=space, query=f"point ({x:.3f}, {y:.3f}, {z:.3f}) r={req.radius_m:g} m",
-                          regions=hits)
+        return QueryReply(
+            embedding_space=space,
+            query=f"point ({x:.3f}, {y:.3f}, {z:.3f}) r={req.radius_m:g} m",
+            regions=hits,
+        )
 
     def _note(self, started: float) -> None:
         if self._runner is not None:
@@ -218,6 +422,8 @@ class QueryService:
     # ------------------------------------------------------------------------ wiring
     def setup(self, runner: ServiceRunner) -> None:
         self._runner = runner
+        set_torch_threads(self.section.torch_threads)
+        self._encode_one = fast_single_text_encoder(self.text_encoder)
         keys = runner.keys
         runner.subscriber(keys.semantic_dictionary_delta, DictionaryDelta, self.on_delta, queue_size=256)
         self.resync()
@@ -227,17 +433,67 @@ class QueryService:
         runner.stats.set("regions", len(self.replica))
 
     def loop(self, runner: ServiceRunner) -> None:
-        while not runner.wait(self.section.resync_period_s):
-            if self.replica.embedding_space is None:
-                self.resync()
+        period = min(self.section.summary_refresh_s, self.section.resync_period_s)
+        last_resync_check = time.monotonic()
+        while not runner.wait(period):
+            self._keep_summaries_warm()
+            if time.monotonic() - last_resync_check >= self.section.resync_period_s:
+                last_resync_check = time.monotonic()
+                if self.replica.embedding_space is None:
+                    self.resync()
 
     def close(self) -> None:
         return None
 
 
+def set_torch_threads(n: int) -> None:
+    """Intra-op threads of torch in this process (when the text encoder uses torch; 0 = default)."""
+    torch = sys.modules.get("torch")
+    if n > 0 and torch is not None and torch.get_num_threads() != n:
+        torch.set_num_threads(n)
+        logger.info("query: torch uses %d intra-op thread(s)", n)
+
+
+def fast_single_text_encoder(encoder: Any) -> Callable[[str], np.ndarray] | None:
+    """One text -> unit-norm embedding by calling a sentence-transformers model directly
+    (tokenize + forward), or None when ``encoder`` does not wrap one or the direct call does
+    not reproduce ``encoder.encode`` on probe texts (then callers use ``encode``)."""
+    model = getattr(encoder, "_model", None)
+    st = sys.modules.get("sentence_transformers")
+    if model is None or st is None or not isinstance(model, st.SentenceTransformer):
+        return None
+    import torch
+    from sentence_transformers.util import batch_to_device
+
+    preprocess = getattr(model, "preprocess", None) or model.tokenize
+
+    def encode_one(text: str) -> np.ndarray:
+        with torch.inference_mode():
+            features = batch_to_device(preprocess([text]), model.device)
+            vec = model(features)["sentence_embedding"][0].float().cpu().numpy()
+        norm = float(np.linalg.norm(vec))
+        if not np.isfinite(norm) or norm == 0.0:
+            return encoder.encode([text])[0]  # let the encoder raise its own error
+        return (vec / norm).astype(np.float32, copy=False)
+
+    probes = ["a chair", "something to sit on near the window", "x"]
+    try:
+        expected = np.asarray(encoder.encode(probes), np.float32)
+        got = np.stack([encode_one(t) for t in probes])
+    except Exception as exc:  # any API difference: keep the encoder's own path
+        logger.info("query: direct sentence-transformers call unavailable (%s); using encode()", exc)
+        return None
+    if got.shape != expected.shape or not np.allclose(got, expected, atol=1e-4):
+        logger.info("query: direct sentence-transformers call differs from encode(); using encode()")
+        return None
+    return encode_one
+
+
 def _add_options(parser: argparse.ArgumentParser) -> None:
     g = parser.add_argument_group("query")
-    g.add_argument("--text-encoder", help="text encoder matching the map's space: minilm (gt maps), clip-regions, onnx")
+    g.add_argument(
+        "--text-encoder", help="text encoder matching the map's space: minilm (gt maps), clip-regions, onnx"
+    )
     g.add_argument("--model-path", help="model for clip-regions / onnx text encoders")
 
 
@@ -253,5 +509,3 @@ DEFINITION = ServiceDefinition(
     options_to_config=_options,
     build=QueryService,
 )
-
-

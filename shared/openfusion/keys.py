@@ -158,6 +158,11 @@ class KeySpace:
         return self.key("geometry", "mesh")
 
     @property
+    def geometry_regions(self) -> str:
+        """queryable: RegionSummaryRequest -> RegionSummaryReply (per-region bbox + point count)."""
+        return self.key("geometry", "regions")
+
+    @property
     def geometry_dictionary(self) -> str:
         """queryable: DictionaryRequest -> DictionarySnapshot of the dictionary the geometry
         service checkpoints with the volume (the semantic service recovers from it on restart)."""

@@ -64,7 +64,9 @@ class Message(Record):
         name = cls.schema_name
         previous = _REGISTRY.get(name)
         if previous is not None and previous.__qualname__ != cls.__qualname__:
-            raise TypeError(f"schema {name!r} is already registered by {previous.__module__}.{previous.__qualname__}")
+            raise TypeError(
+                f"schema {name!r} is already registered by {previous.__module__}.{previous.__qualname__}"
+            )
         # Same qualname: the module was imported twice (e.g. as __main__ and by name); keep the newest.
         _REGISTRY[name] = cls
 
@@ -241,7 +243,57 @@ class PointsReply(Message):
     def _check(self) -> PointsReply:
         n = len(self.points)
         if len(self.colors) != n or len(self.keys) != n:
-            raise ValueError(f"points ({n}), colors ({len(self.colors)}) and keys ({len(self.keys)}) differ in length")
+            raise ValueError(
+                f"points ({n}), colors ({len(self.colors)}) and keys ({len(self.keys)}) differ in length"
+            )
+        return self
+
+
+class RegionSummaryRequest(Message):
+    """Ask geometry for per-region summaries (bounding box, surface point count) of the map.
+
+    ``keys``: only these regions (None = all). ``fresh``: recompute from the current map even
+    when the service's cached summary is of an older map version (without it the service may
+    answer its cached summary; its ``map_version`` and ``age_s`` say how old it is)."""
+
+    schema_name: ClassVar[str] = "geometry.regions_request"
+    schema_version: ClassVar[int] = 1
+
+    keys: list[int] | None = None
+    fresh: bool = False
+
+
+class RegionSummaryReply(Message):
+    """Per-region summaries of the surface points of the map at ``map_version``: for each key,
+    the axis-aligned bounding box (world, metres) and the number of surface points (the same
+    points ``geometry/points`` serves). ``key_horizon``: every region key below it is covered,
+    so a key under the horizon that is not listed has no surface points in that map version; a
+    key at or above it is newer than the summary (unknown). ``age_s``: seconds between the
+    computation of the summary and the reply."""
+
+    schema_name: ClassVar[str] = "geometry.regions_reply"
+    schema_version: ClassVar[int] = 1
+
+    map_version: int = Field(ge=0)
+    key_horizon: int = Field(ge=0)
+    age_s: float = Field(default=0.0, ge=0)
+    keys: KeyList
+    bbox_min: Points3f
+    bbox_max: Points3f
+    num_points: ndarray("int64", shape=(None,))
+
+    @model_validator(mode="after")
+    def _check(self) -> RegionSummaryReply:
+        n = len(self.keys)
+        if len(self.bbox_min) != n or len(self.bbox_max) != n or len(self.num_points) != n:
+            raise ValueError(
+                f"keys ({n}), bbox_min ({len(self.bbox_min)}), bbox_max ({len(self.bbox_max)}) and num_points "
+                f"({len(self.num_points)}) differ in length"
+            )
+        if n and len(np.unique(self.keys)) != n:
+            raise ValueError("keys must be unique")
+        if n and int(self.num_points.min()) < 0:
+            raise ValueError("num_points must be >= 0")
         return self
 
 
@@ -371,7 +423,9 @@ class DictionaryDelta(Message):
     @model_validator(mode="after")
     def _check(self) -> DictionaryDelta:
         if self.version <= self.prev_version:
-            raise ValueError(f"version ({self.version}) must be greater than prev_version ({self.prev_version})")
+            raise ValueError(
+                f"version ({self.version}) must be greater than prev_version ({self.prev_version})"
+            )
         _check_dictionary_rows(
             dim=self.dim, keys=self.keys, embeddings=self.embeddings, counts=self.counts, labels=self.labels
         )

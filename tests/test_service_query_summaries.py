@@ -1,0 +1,300 @@
+"""Region summaries: geometry's per-region boxes/counts (``geometry/regions``) and the query
+service's cache of them. Services run in this process (geometry + query on ServiceRunners, a
+router session, a stand-in semantic queryable), with the hash text encoder (no model)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from helpers_bus import free_port, unique_map_id, wait_until
+from openfusion.bus import Queryable, ServiceRunner, collect_health, open_session
+from openfusion.client import OpenFusionClient
+from openfusion.config import ServiceConfig, ZenohSettings
+from openfusion.encoders import make_text_encoder
+from openfusion.frame import Frame
+from openfusion.mapping import RegionDictionary
+from openfusion.messages import (
+    ControlRequest,
+    DictionaryRequest,
+    RegionSummaryRequest,
+    RgbdFrame,
+    SemanticUpdate,
+)
+from openfusion.services.dictionary_sync import delta_message, snapshot_message
+from openfusion.services.geometry.service import (
+    GeometryConfig,
+    GeometrySection,
+    GeometryService,
+    region_summaries,
+)
+from openfusion.services.query.service import QueryConfig, QuerySection, QueryService
+from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld
+
+pytestmark = pytest.mark.timeout(120)
+
+WORLD = SyntheticWorld(0)
+FRAMES = list(SyntheticSource(WORLD, num_frames=6, width_px=160, height_px=120))
+TEXT = make_text_encoder("hash")
+
+
+def _dictionary(n_keys: int) -> RegionDictionary:
+    """Key i = instance id i + 1 of the synthetic world, embedded from its category name."""
+    d = RegionDictionary(TEXT.embedding_space, TEXT.dim)
+    for key in range(n_keys):
+        name = WORLD.categories[key + 1]
+        d.add(TEXT.encode([name])[0], label=name)
+    return d
+
+
+def _update(frame: Frame, max_key: int) -> SemanticUpdate:
+    """Instance ids as region keys (id - 1), keeping keys <= ``max_key``."""
+    keys = frame.instance.astype(np.int32) - 1
+    keys[keys > max_key] = -1
+    return SemanticUpdate(
+        frame_id=frame.frame_id,
+        T_world_cam=frame.T_world_cam,
+        **SemanticUpdate.intrinsics_fields(frame.intrinsics),
+        key_map=keys,
+        conf_map=np.where(keys >= 0, 0.9, 0.0).astype(np.float32),
+        new_keys=np.zeros(0, np.int32),
+    )
+
+
+def _geometry(max_key: int, frames: list[Frame] = FRAMES, **section: object) -> GeometryService:
+    geo = GeometryService(
+        GeometryConfig(map_id="unit", geometry=GeometrySection(load_on_start=False, **section))
+    )
+    for f in frames:
+        geo.on_frame(RgbdFrame.from_frame(f))
+        geo.on_update(_update(f, max_key))
+    return geo
+
+
+def _expected(geo: GeometryService, key: int) -> tuple[np.ndarray, np.ndarray, int]:
+    pts = geo.volume.extract_points(keys=[key])
+    if not len(pts.points):
+        return np.zeros(3, np.float32), np.zeros(3, np.float32), 0
+    return pts.points.min(axis=0), pts.points.max(axis=0), len(pts.points)
+
+
+# ------------------------------------------------------------------------- geometry, no bus
+
+
+def test_region_summaries_match_the_points_of_each_region() -> None:
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(500, 3)).astype(np.float32)
+    keys = rng.integers(-1, 7, 500).astype(np.int32)
+    k, lo, hi, n = region_summaries(keys, points)
+    assert k.tolist() == sorted(set(keys.tolist()) - {-1})
+    for i, key in enumerate(k):
+        mine = points[keys == key]
+        np.testing.assert_array_equal(lo[i], mine.min(axis=0))
+        np.testing.assert_array_equal(hi[i], mine.max(axis=0))
+        assert n[i] == len(mine)
+    empty = region_summaries(np.full(3, -1, np.int32), points[:3])
+    assert all(len(a) == 0 for a in empty)
+
+
+def test_geometry_summary_is_cached_per_map_version_and_recomputed_after_changes() -> None:
+    geo = _geometry(max_key=16, frames=FRAMES[:3], regions_min_interval_s=0.0)
+    calls = []
+    extract = geo.volume.extract_points
+
+    def counting(*args: object, **kwargs: object) -> object:
+        if not args and kwargs.get("keys") is None:  # the whole map (what a summary needs)
+            calls.append(1)
+        return extract(*args, **kwargs)
+
+    geo.volume.extract_points = counting  # type: ignore[method-assign]
+    first = geo.handle_regions(RegionSummaryRequest())
+    again = geo.handle_regions(RegionSummaryRequest(keys=[int(first.keys[0])]))
+    assert len(calls) == 1, "an unchanged map must be answered from the cache"
+    assert again.map_version == first.map_version and again.keys.tolist() == [int(first.keys[0])]
+    assert first.key_horizon == max(int(_update(f, 16).key_map.max()) for f in FRAMES[:3]) + 1
+    for i, key in enumerate(first.keys.tolist()):
+        lo, hi, n = _expected(geo, key)
+        np.testing.assert_array_equal(first.bbox_min[i], lo)
+        np.testing.assert_array_equal(first.bbox_max[i], hi)
+        assert first.num_points[i] == n
+    # New frames + an update with keys up to 25: a new version, recomputed, horizon moved on.
+    for f in FRAMES[3:]:
+        geo.on_frame(RgbdFrame.from_frame(f))
+        geo.on_update(_update(f, 25))
+    later = geo.handle_regions(RegionSummaryRequest())
+    assert len(calls) == 2 and later.map_version > first.map_version
+    horizon = (
+        max(int(_update(f, k).key_map.max()) for f, k in zip(FRAMES, [16, 16, 16, 25, 25, 25], strict=True))
+        + 1
+    )
+    assert later.key_horizon == horizon
+    for i, key in enumerate(later.keys.tolist()):
+        assert later.num_points[i] == _expected(geo, key)[2]
+    # Reset: empty map, nothing covered.
+    geo.handle_control(ControlRequest(action="reset"), action="reset")
+    after_reset = geo.handle_regions(RegionSummaryRequest())
+    assert len(after_reset.keys) == 0 and after_reset.key_horizon == 0
+
+
+def test_geometry_summary_min_interval_unless_fresh() -> None:
+    geo = _geometry(max_key=16, frames=FRAMES[:2], regions_min_interval_s=3600.0)
+    first = geo.handle_regions(RegionSummaryRequest())
+    geo.on_frame(RgbdFrame.from_frame(FRAMES[2]))
+    cached = geo.handle_regions(RegionSummaryRequest())
+    assert cached.map_version == first.map_version  # within the interval: the cached summary, with its age
+    fresh = geo.handle_regions(RegionSummaryRequest(fresh=True))
+    assert fresh.map_version == geo.map_version > first.map_version
+
+
+# ------------------------------------------------------------------------------- over the bus
+
+
+@dataclass
+class Cluster:
+    geo: GeometryService | None
+    query: QueryService
+    client: OpenFusionClient
+    semantic_dictionary: RegionDictionary
+
+    def query_counter(self, name: str) -> float:
+        stats = collect_health(self.client.session, self.client.keys, timeout_s=2.0).get("query")
+        return float(stats.counters.get(name, 0.0)) if stats else 0.0
+
+
+@pytest.fixture
+def make_cluster() -> Iterator:
+    closers: list = []
+
+    def make(*, geometry: GeometryService | None, dictionary: RegionDictionary, **query: object) -> Cluster:
+        map_id = unique_map_id("summaries")
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+
+        def cfg(mode: str, **kw: object) -> dict:
+            z = ZenohSettings(
+                mode=mode,
+                multicast_scouting=False,
+                **({"listen": [endpoint]} if mode == "router" else {"connect": [endpoint]}),
+            )
+            return {"map_id": map_id, "zenoh": z, "health_period_s": 0.2, **kw}
+
+        router = open_session(ServiceConfig(**cfg("router")))
+        closers.append(router.close)
+        sem = open_session(ServiceConfig(**cfg("client")))
+        closers.append(sem.close)
+        holder = {"dictionary": dictionary}
+        qbl = Queryable(
+            sem,
+            ServiceConfig(**cfg("client")).keys.semantic_dictionary,
+            DictionaryRequest,
+            lambda _r: snapshot_message(holder["dictionary"]),
+        )
+        closers.append(qbl.close)
+        if geometry is not None:
+            geometry.config = GeometryConfig(**cfg("client"), geometry=geometry.section)
+            runner = ServiceRunner(geometry.config, "geometry").start()
+            closers.append(runner.close)
+            geometry.setup(runner)
+            runner.ready()
+        qs = QueryService(
+            QueryConfig(**cfg("client"), query=QuerySection(text_encoder="hash", **query)), text_encoder=TEXT
+        )
+        qrunner = ServiceRunner(qs.config, "query").start()
+        closers.append(qrunner.close)
+        qs.setup(qrunner)
+        qrunner.ready()
+        client = OpenFusionClient.from_config(ServiceConfig(**cfg("client")), timeout_s=20.0)
+        closers.append(client.close)
+        wait_until(lambda: "query" in client.live_services(timeout_s=1.0), timeout_s=20)
+        return Cluster(geometry, qs, client, dictionary)
+
+    yield make
+    for close in reversed(closers):
+        close()
+
+
+def _check_hits(cluster: Cluster, reply: object) -> None:
+    assert cluster.geo is not None
+    for hit in reply.regions:  # type: ignore[attr-defined]
+        lo, hi, n = _expected(cluster.geo, hit.key)
+        assert hit.num_points == n, (hit.key, hit.num_points, n)
+        np.testing.assert_array_equal(hit.bbox_min, lo)
+        np.testing.assert_array_equal(hit.bbox_max, hi)
+
+
+def test_query_boxes_match_the_map_and_repeat_queries_need_no_geometry_round_trip(make_cluster) -> None:
+    geo = _geometry(max_key=25)
+    seen = max(int(f.instance.max()) for f in FRAMES)  # keys 0..seen-1: all below geometry's horizon
+    cluster = make_cluster(
+        geometry=geo, dictionary=_dictionary(seen), summary_max_age_s=3600.0, summary_refresh_s=3600.0
+    )
+    reply = cluster.client.query_text("table", top_k=5)
+    assert reply.regions[0].label == "table" and reply.regions[0].num_points > 0
+    _check_hits(cluster, reply)
+    for text in ("chair", "plant", "bookshelf", "floor"):
+        _check_hits(cluster, cluster.client.query_text(text, top_k=5))
+    wait_until(lambda: cluster.query_counter("queries") >= 5, timeout_s=10)
+    assert cluster.query_counter("summary_fetches") == 1
+    # with_points still asks geometry for the points, and box/count agree with them.
+    with_points = cluster.client.query_text("table", top_k=2, with_points=True)
+    _check_hits(cluster, with_points)
+    best = with_points.regions[0]
+    assert best.points is not None and len(best.points) == best.num_points
+    # The client can read the same summaries directly.
+    summary = cluster.client.regions(keys=[best.key])
+    assert summary.keys.tolist() == [best.key] and summary.num_points[0] == best.num_points
+
+
+def test_query_cache_follows_new_integration_and_new_regions(make_cluster) -> None:
+    geo = _geometry(max_key=16, frames=FRAMES[:2], regions_min_interval_s=0.0)
+    dictionary = _dictionary(17)
+    cluster = make_cluster(
+        geometry=geo,
+        dictionary=dictionary,
+        summary_max_age_s=0.3,
+        summary_refresh_s=3600.0,
+        summary_recheck_s=0.0,
+    )
+    wait_until(lambda: len(cluster.query.replica) == 17, timeout_s=10)
+    before = cluster.client.query_text("office chair", top_k=3)
+    _check_hits(cluster, before)
+    version = cluster.query.summaries.map_version
+    # More frames integrated and labelled: after the staleness bound the boxes follow the map.
+    for f in FRAMES[2:4]:
+        geo.on_frame(RgbdFrame.from_frame(f))
+        geo.on_update(_update(f, 16))
+    time.sleep(0.35)
+    after = cluster.client.query_text("office chair", top_k=3)
+    assert cluster.query.summaries.map_version > version
+    _check_hits(cluster, after)
+    # A region newer than the cached summary (key 20, "table") is fetched before answering, even
+    # though the cache is younger than summary_max_age_s (now too long to expire in this test).
+    cluster.query.section.summary_max_age_s = 3600.0
+    cached = cluster.query.summaries
+    assert cached is not None and not cached.covers(20)
+    since = dictionary.version
+    for key in range(17, 26):
+        dictionary.add(TEXT.encode([WORLD.categories[key + 1]])[0], label=WORLD.categories[key + 1])
+    for f in FRAMES[:4]:
+        geo.on_update(_update(f, 25))
+    cluster.query.on_delta(delta_message(dictionary, since_version=since))
+    assert len(cluster.query.replica) == 26
+    table = cluster.client.query_text("table", top_k=1).regions[0]
+    assert table.key == 20 and table.num_points > 0
+    assert cluster.query.summaries is not cached and cluster.query.summaries.covers(20)
+    _check_hits(cluster, cluster.client.query_text("table", top_k=3))
+
+
+def test_query_without_geometry_answers_zero_boxes_and_does_not_wait_every_time(make_cluster) -> None:
+    cluster = make_cluster(
+        geometry=None, dictionary=_dictionary(26), geometry_timeout_s=0.3, summary_max_age_s=3600.0
+    )
+    first = cluster.client.query_text("table", top_k=2)
+    second = cluster.client.query_text("chair", top_k=2)
+    for reply in (first, second):
+        assert reply.regions and all(h.num_points == 0 for h in reply.regions)
+    wait_until(lambda: cluster.query_counter("queries") >= 2, timeout_s=10)
+    assert cluster.query_counter("summary_failures") == 1
