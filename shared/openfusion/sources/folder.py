@@ -39,7 +39,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.sources.base import NOMINAL_FPS, IndexedFrameSource, SkipFrame
-from openfusion.sources.imageio import check_pose, numeric_key, read_color, read_depth_u16, read_matrix
+from openfusion.sources.imageio import check_pose, numeric_key, read_matrix, read_rgbd_frame
 from openfusion.sources.poses import pose_from_tum
 from openfusion.sources.redwood import read_trajectory_log
 from openfusion.sources.replica import read_trajectory_lines
@@ -210,16 +210,13 @@ class FolderSource(IndexedFrameSource):
             raise SkipFrame("missing_depth", f"{ctx}: no depth file matching {self.config.depth!r}")
         if color_path is None:
             raise SkipFrame("missing_color", f"{ctx}: no color file matching {self.config.color!r}")
-        size = (self.intrinsics.width_px, self.intrinsics.height_px)
-        depth = read_depth_u16(depth_path, size=size)
-        color = read_color(color_path, size=size)
-        return Frame(
+        return read_rgbd_frame(
             frame_id=int(key),
             stamp_ns=stamp,
-            color=color,
-            depth=depth,
-            depth_scale=self.config.depth_scale,
+            color_path=color_path,
+            depth_path=depth_path,
             intrinsics=self.intrinsics,
+            depth_scale=self.config.depth_scale,
             T_world_cam=T,
             source=self.name,
         )

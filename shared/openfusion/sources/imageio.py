@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.sources.base import SkipFrame
 
 logger = logging.getLogger(__name__)
@@ -75,6 +76,34 @@ def read_depth_u16(path: Path, *, size: tuple[int, int] | None = None) -> np.nda
         if size is not None and img.size != size:
             raise SkipFrame("depth_size", f"depth image {path} is {img.size[0]}x{img.size[1]}, expected {size[0]}x{size[1]}")
         return _gray_to_array(img, path, "depth")
+
+
+def read_rgbd_frame(
+    *,
+    frame_id: int,
+    stamp_ns: int,
+    color_path: Path,
+    depth_path: Path,
+    intrinsics: CameraIntrinsics,
+    depth_scale: float,
+    T_world_cam: np.ndarray,
+    source: str,
+) -> Frame:
+    """A color image and a 16-bit depth PNG, both checked against the intrinsics' size, as a Frame
+    (unreadable or wrongly sized files raise ``SkipFrame`` with the reason)."""
+    size = (intrinsics.width_px, intrinsics.height_px)
+    depth = read_depth_u16(depth_path, size=size)
+    color = read_color(color_path, size=size)
+    return Frame(
+        frame_id=frame_id,
+        stamp_ns=stamp_ns,
+        color=color,
+        depth=depth,
+        depth_scale=depth_scale,
+        intrinsics=intrinsics,
+        T_world_cam=T_world_cam,
+        source=source,
+    )
 
 
 def read_label_image(path: Path, *, what: str, size: tuple[int, int] | None = None) -> np.ndarray:

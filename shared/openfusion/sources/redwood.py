@@ -27,7 +27,7 @@ import numpy as np
 
 from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.sources.base import NOMINAL_FPS, IndexedFrameSource, SkipFrame
-from openfusion.sources.imageio import check_pose, numeric_key, read_color, read_depth_u16
+from openfusion.sources.imageio import check_pose, numeric_key, read_rgbd_frame
 
 logger = logging.getLogger(__name__)
 
@@ -144,16 +144,13 @@ class RedwoodSource(IndexedFrameSource):
             raise SkipFrame("missing_depth", f"{ctx}: no depth image for this frame")
         if color_path is None:
             raise SkipFrame("missing_color", f"{ctx}: no color image for this frame")
-        size = (self.intrinsics.width_px, self.intrinsics.height_px)
-        depth = read_depth_u16(depth_path, size=size)
-        color = read_color(color_path, size=size)
-        return Frame(
+        return read_rgbd_frame(
             frame_id=frame_idx,
             stamp_ns=int(round(frame_idx * 1e9 / self.fps)),
-            color=color,
-            depth=depth,
-            depth_scale=self.depth_scale,
+            color_path=color_path,
+            depth_path=depth_path,
             intrinsics=self.intrinsics,
+            depth_scale=self.depth_scale,
             T_world_cam=T,
             source=self.name,
         )

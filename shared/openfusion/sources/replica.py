@@ -25,7 +25,7 @@ import numpy as np
 
 from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.sources.base import NOMINAL_FPS, IndexedFrameSource, SkipFrame
-from openfusion.sources.imageio import check_pose, read_color, read_depth_u16
+from openfusion.sources.imageio import check_pose, read_rgbd_frame
 
 logger = logging.getLogger(__name__)
 
@@ -107,19 +107,16 @@ class ReplicaSource(IndexedFrameSource):
         if raw is None:
             raise SkipFrame("unreadable_pose", f"{ctx}: traj.txt line {index + 1} is not 16 numbers")
         T = check_pose(raw, context=ctx)
-        size = (self.intrinsics.width_px, self.intrinsics.height_px)
-        depth = read_depth_u16(results / f"depth{index:06d}.png", size=size)
         color_path = results / f"frame{index:06d}.jpg"
         if not color_path.exists() and (results / f"frame{index:06d}.png").exists():
             color_path = results / f"frame{index:06d}.png"
-        color = read_color(color_path, size=size)
-        return Frame(
+        return read_rgbd_frame(
             frame_id=index,
             stamp_ns=int(round(index * 1e9 / self.fps)),
-            color=color,
-            depth=depth,
-            depth_scale=self.depth_scale,
+            color_path=color_path,
+            depth_path=results / f"depth{index:06d}.png",
             intrinsics=self.intrinsics,
+            depth_scale=self.depth_scale,
             T_world_cam=T,
             source=self.name,
         )
