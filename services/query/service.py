@@ -20,8 +20,9 @@ text or image query without points makes no round trip to geometry. Staleness bo
 summary used in a reply was requested from geometry at most ``summary_max_age_s`` (default 2 s)
 before the query (plus geometry's own ``regions_min_interval_s``, 0.5 s, and one summary
 computation); while queries keep coming, the service refreshes it in the background every
-``summary_refresh_s`` (1 s), so queries do not wait for it; an older cache is refreshed before
-answering. A region newer than the cached summary (its key is at or above the summary's
+``summary_refresh_s`` (1 s), so queries do not wait for it, until ``summary_keep_warm_s`` (10 s)
+after the last query (each refresh of a changed map costs geometry one surface extraction); an
+older cache is refreshed before answering. A region newer than the cached summary (its key is at or above the summary's
 ``key_horizon``) makes the query fetch a fresh summary first, at most once per
 ``summary_recheck_s`` (0.25 s); a region that geometry still does not know then comes back
 with ``num_points`` 0 and a zero box. If geometry does not answer, the query is answered with
@@ -82,7 +83,7 @@ class QuerySection(ConfigSection):
     summary_max_age_s: float = Field(default=2.0, gt=0)
     summary_refresh_s: float = Field(default=1.0, gt=0)
     summary_recheck_s: float = Field(default=0.25, ge=0)
-    summary_keep_warm_s: float = Field(default=60.0, ge=0)
+    summary_keep_warm_s: float = Field(default=10.0, ge=0)
     torch_threads: int = Field(default=1, ge=0)  # 0 = leave torch's default
 
 
