@@ -70,3 +70,14 @@ def test_hash_encoder_is_lexical_and_deterministic():
     assert e[0] @ e[1] > e[0] @ e[2]
     np.testing.assert_array_equal(e[0], e[3])
     np.testing.assert_allclose(np.linalg.norm(e, axis=1), 1.0, atol=1e-6)
+
+
+def test_minilm_single_text_path_gives_the_batch_path_embedding(minilm):
+    """A query (one text) takes the direct tokenize+forward path; its embedding must equal the one
+    the same text gets inside a batch (the path maps use for class names), or rankings would shift."""
+    texts = ["the red chair", "something to sit on", "a lamp next to the sofa"]
+    batch = minilm.encode(texts)
+    singles = np.concatenate([minilm.encode([t]) for t in texts])
+    assert minilm._direct_path_ok()  # the fast path is the one being compared
+    np.testing.assert_allclose(singles, batch, atol=1e-5)
+    assert np.allclose(np.linalg.norm(singles, axis=1), 1.0, atol=1e-5)

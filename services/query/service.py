@@ -32,9 +32,8 @@ the points geometry returns (the current map).
 
 The text encoder runs with ``torch_threads`` intra-op threads (default 1: a one-sentence
 MiniLM forward gains little from a second thread and loses a lot when the other services keep
-the cores busy); a sentence-transformers model is called directly (tokenize + forward),
-skipping ``SentenceTransformer.encode``'s per-call bookkeeping, after checking at start that
-both give the same embeddings (otherwise ``encode`` is used).
+the cores busy). One query text takes the MiniLM encoder's single-text path (tokenize +
+forward, see ``openfusion.encoders.text_minilm``).
 """
 
 from __future__ import annotations
@@ -44,7 +43,6 @@ import logging
 import sys
 import threading
 import time
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -189,7 +187,6 @@ class QueryService:
         self._summary_lock = threading.Lock()
         self._summary_failed_at: float | None = None
         self._last_query_at: float | None = None
-        self._encode_one = None  # fast single-text path, set up in setup()
 
     # ----------------------------------------------------------------- dictionary
     def resync(self) -> bool:
@@ -338,8 +335,6 @@ class QueryService:
         return QueryReply(embedding_space=space, query=query, regions=hits)
 
     def encode_text(self, text: str) -> np.ndarray:
-        if self._encode_one is not None:
-            return self._encode_one(text)
         return self.text_encoder.encode([text])[0]
 
     def handle_text(self, req: TextQuery) -> QueryReply:
@@ -424,7 +419,6 @@ class QueryService:
     def setup(self, runner: ServiceRunner) -> None:
         self._runner = runner
         set_torch_threads(self.section.torch_threads)
-        self._encode_one = fast_single_text_encoder(self.text_encoder)
         keys = runner.keys
         runner.subscriber(keys.semantic_dictionary_delta, DictionaryDelta, self.on_delta, queue_size=256)
         self.resync()
@@ -453,41 +447,6 @@ def set_torch_threads(n: int) -> None:
     if n > 0 and torch is not None and torch.get_num_threads() != n:
         torch.set_num_threads(n)
         logger.info("query: torch uses %d intra-op thread(s)", n)
-
-
-def fast_single_text_encoder(encoder: Any) -> Callable[[str], np.ndarray] | None:
-    """One text -> unit-norm embedding by calling a sentence-transformers model directly
-    (tokenize + forward), or None when ``encoder`` does not wrap one or the direct call does
-    not reproduce ``encoder.encode`` on probe texts (then callers use ``encode``)."""
-    model = getattr(encoder, "_model", None)
-    st = sys.modules.get("sentence_transformers")
-    if model is None or st is None or not isinstance(model, st.SentenceTransformer):
-        return None
-    import torch
-    from sentence_transformers.util import batch_to_device
-
-    preprocess = getattr(model, "preprocess", None) or model.tokenize
-
-    def encode_one(text: str) -> np.ndarray:
-        with torch.inference_mode():
-            features = batch_to_device(preprocess([text]), model.device)
-            vec = model(features)["sentence_embedding"][0].float().cpu().numpy()
-        norm = float(np.linalg.norm(vec))
-        if not np.isfinite(norm) or norm == 0.0:
-            return encoder.encode([text])[0]  # let the encoder raise its own error
-        return (vec / norm).astype(np.float32, copy=False)
-
-    probes = ["a chair", "something to sit on near the window", "x"]
-    try:
-        expected = np.asarray(encoder.encode(probes), np.float32)
-        got = np.stack([encode_one(t) for t in probes])
-    except Exception as exc:  # any API difference: keep the encoder's own path
-        logger.info("query: direct sentence-transformers call unavailable (%s); using encode()", exc)
-        return None
-    if got.shape != expected.shape or not np.allclose(got, expected, atol=1e-4):
-        logger.info("query: direct sentence-transformers call differs from encode(); using encode()")
-        return None
-    return encode_one
 
 
 def _add_options(parser: argparse.ArgumentParser) -> None:
