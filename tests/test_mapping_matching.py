@@ -15,6 +15,7 @@ from openfusion.mapping import (
     soft_iou_matrix,
 )
 from openfusion.mapping.analytic_scene import SimpleObservation
+from openfusion.mapping.matching import mask_edge_weights
 
 H, W = 30, 40
 
@@ -30,16 +31,39 @@ def unit(v: np.ndarray) -> np.ndarray:
 
 
 def test_fast_soft_iou_equals_dense_definition() -> None:
-    """The one-pass soft IoU over disjoint rendered regions equals sum(min)/sum(max) computed densely."""
+    """The one-pass soft IoU over disjoint rendered regions equals sum(min)/sum(max) computed densely:
+    against the rendered key masks by default, against the rendered confidences on request."""
     rng = np.random.default_rng(1)
     key_map = rng.integers(-1, 5, size=(H, W))
     conf_map = rng.uniform(0.0, 1.0, size=(H, W))
     rendered = rendered_from(key_map, conf_map)
     frame = rng.uniform(0.0, 1.0, size=(6, H, W)).astype(np.float32) * (rng.uniform(size=(6, H, W)) > 0.5)
-    result = match_regions(frame, rendered, min_iou=0.0)
     keys, maps = region_conf_maps(rendered)
-    np.testing.assert_array_equal(result.rendered_keys, keys)
-    np.testing.assert_allclose(result.iou, soft_iou_matrix(frame, maps), atol=1e-5)
+    weighted = match_regions(frame, rendered, min_iou=0.0, rendered_conf_weighted=True)
+    np.testing.assert_array_equal(weighted.rendered_keys, keys)
+    np.testing.assert_allclose(weighted.iou, soft_iou_matrix(frame, maps), atol=1e-5)
+    masks = match_regions(frame, rendered, min_iou=0.0)
+    np.testing.assert_array_equal(masks.rendered_keys, keys)
+    np.testing.assert_allclose(masks.iou, soft_iou_matrix(frame, (maps > 0).astype(np.float32)), atol=1e-5)
+
+
+def test_match_uses_rendered_masks_not_evidence() -> None:
+    """A key rendered with little evidence (confidence 0.25: seen once) still matches the frame
+    region that covers it exactly (IoU 1 against its mask); confidence-weighted it would score 0.25.
+    Pixels whose key has no evidence left (confidence 0) are not part of the key's mask."""
+    key_map = np.full((H, W), -1)
+    key_map[5:15, 5:15] = 3
+    conf = np.where(key_map >= 0, 0.25, 0.0)
+    frame = (key_map == 3).astype(np.float32)[None]
+    result = match_regions(frame, rendered_from(key_map, conf), min_iou=0.3)
+    np.testing.assert_allclose(result.iou, [[1.0]], atol=1e-6)
+    assert result.pairs == [(0, 3)]
+    weighted = match_regions(frame, rendered_from(key_map, conf), min_iou=0.3, rendered_conf_weighted=True)
+    np.testing.assert_allclose(weighted.iou, [[0.25]], atol=1e-6)
+    assert weighted.pairs == []
+    conf[5:15, 5:10] = 0.0  # half of the key has no evidence left
+    half = match_regions(frame, rendered_from(key_map, conf), min_iou=0.0)
+    np.testing.assert_allclose(half.iou, [[0.5]], atol=1e-6)
 
 
 def test_region_conf_maps_split_the_rendered_view() -> None:
@@ -123,7 +147,12 @@ def test_plan_update_matches_existing_and_adds_new_regions() -> None:
     assert d.label(new_key) == "table" and d.count(new_key) == 1
     assert (plan.key_map[:, :20] == k_old).all() and (plan.key_map[:, 25:] == new_key).all()
     assert (plan.key_map[:, 20:25] == -1).all()
-    np.testing.assert_allclose(plan.conf_map[:, 25:], 0.7)
+    # The region's confidence, times the mask-edge weight 1/3, 2/3, 1 at 0, 1, >= 2 pixels from
+    # its border with the uncovered columns 20:25 (the image border is no edge).
+    np.testing.assert_allclose(plan.conf_map[:, 25], 0.7 / 3, atol=1e-6)
+    np.testing.assert_allclose(plan.conf_map[:, 26], 0.7 * 2 / 3, atol=1e-6)
+    np.testing.assert_allclose(plan.conf_map[:, 27:], 0.7, atol=1e-6)
+    np.testing.assert_allclose(plan.conf_map[:, 18:20], [[0.9 * 2 / 3, 0.9 / 3]] * H, atol=1e-6)
 
 
 def test_plan_update_embedding_gate() -> None:
@@ -150,3 +179,48 @@ def test_plan_update_refuses_other_embedding_space_and_bad_shapes() -> None:
     with pytest.raises(ValueError, match="embeddings"):
         plan_update(SimpleObservation(conf, np.ones((1, 3), np.float32), "clip-vit-b-32"), rendered, d)
     assert len(d) == 0 and d.version == 0
+
+
+def test_mask_edge_weights_by_distance_to_the_border() -> None:
+    """weight = min(1, (d + 1) / (mask_edge_px + 1)), d = Euclidean distance in pixels to the nearest
+    pixel whose label differs from a 4-neighbour; both sides of a border are edge pixels; the image
+    border is not an edge; 0 turns the weighting off."""
+    labels = np.zeros((9, 12), np.int64)
+    labels[:, 6:] = 1  # a vertical border between columns 5 and 6
+    w = mask_edge_weights(labels, 2.0)
+    np.testing.assert_allclose(w[:, 5], 1 / 3)
+    np.testing.assert_allclose(w[:, 6], 1 / 3)
+    np.testing.assert_allclose(w[:, 4], 2 / 3)
+    np.testing.assert_allclose(w[:, 7], 2 / 3)
+    np.testing.assert_allclose(w[:, :4], 1.0)
+    np.testing.assert_allclose(w[:, 8:], 1.0)
+    labels[4, 2] = 7  # a one-pixel region: it and its 4 neighbours are edge pixels
+    w = mask_edge_weights(labels, 2.0)
+    assert w[4, 2] == pytest.approx(1 / 3) and w[3, 2] == pytest.approx(1 / 3)
+    assert w[3, 1] == pytest.approx(2 / 3)  # diagonal neighbour: d = 1 (to (3, 2) and (4, 1))
+    assert w[2, 1] == pytest.approx((np.sqrt(2) + 1) / 3)  # d = sqrt(2) (to (3, 2))
+    assert w[0, 0] == 1.0
+    np.testing.assert_array_equal(mask_edge_weights(labels, 0.0), 1.0)
+    np.testing.assert_array_equal(mask_edge_weights(np.full((5, 5), 3), 2.0), 1.0)
+    with pytest.raises(ValueError, match="mask_edge_px"):
+        mask_edge_weights(labels, -1.0)
+
+
+def test_plan_update_mask_edge_option() -> None:
+    """mask_edge_px=0 plans the regions' own confidences; a larger value widens the down-weighted
+    band; the option is validated."""
+    d = RegionDictionary("s", 2)
+    conf = np.zeros((2, H, W), np.float32)
+    conf[0][:, :20] = 0.8
+    conf[1][:, 20:] = 0.6
+    obs = SimpleObservation(conf, np.eye(2, dtype=np.float32), "s")
+    empty = rendered_from(np.full((H, W), -1), np.zeros((H, W)))
+    plan = plan_update(obs, empty, d, mask_edge_px=0)
+    np.testing.assert_allclose(plan.conf_map[:, :20], 0.8)
+    np.testing.assert_allclose(plan.conf_map[:, 20:], 0.6)
+    plan = plan_update(obs, empty, RegionDictionary("s", 2), mask_edge_px=4)
+    np.testing.assert_allclose(plan.conf_map[:, 19], 0.8 / 5, atol=1e-6)
+    np.testing.assert_allclose(plan.conf_map[:, 16], 0.8 * 4 / 5, atol=1e-6)
+    np.testing.assert_allclose(plan.conf_map[:, :16], 0.8, atol=1e-6)
+    with pytest.raises(ValueError, match="mask_edge_px"):
+        plan_update(obs, empty, RegionDictionary("s", 2), mask_edge_px=float("nan"))

@@ -224,16 +224,48 @@ def test_capacity_drop_new_integrates_existing_blocks_only(scene: AnalyticScene)
 
 
 def test_fuse_semantics_rule() -> None:
-    """The written rule: new label; same key -> weighted average; other key -> loses confidence,
-    switches (with the remaining evidence) only when the new confidence exceeds the stored one."""
-    old_key1 = np.array([0, 3, 3, 3], np.int32)  # stored key+1: none, key 2, key 2, key 2
-    old_conf = np.array([0.0, 0.6, 0.6, 0.3], np.float32)
-    new_key1 = np.array([5, 3, 9, 9], np.int32)
-    new_conf = np.array([0.7, 0.2, 0.4, 0.9], np.float32)
+    """The written rule (evidence step s = 1 / (w + 1), w = 3: s = 0.25): new label -> s * c; same key
+    -> + s * c, capped at 1; other key -> - s * c, and the key switches (keeping the remaining
+    evidence) only once the stored evidence is used up."""
+    old_key1 = np.array([0, 3, 3, 3, 3], np.int32)  # stored key+1: none, then key 2 four times
+    old_conf = np.array([0.0, 0.6, 0.6, 0.1, 0.9], np.float32)
+    new_key1 = np.array([5, 3, 9, 9, 3], np.int32)
+    new_conf = np.array([0.7, 0.2, 0.4, 0.9, 0.8], np.float32)
     key1, conf, counts = fuse_semantics(old_key1, old_conf, new_key1, new_conf, history_weight=3.0)
-    np.testing.assert_array_equal(key1, [5, 3, 3, 9])
-    np.testing.assert_allclose(conf, [0.7, (3 * 0.6 + 0.2) / 4, 0.2, 0.6], atol=1e-6)
-    assert counts == (1, 1, 1, 1)
+    np.testing.assert_array_equal(key1, [5, 3, 3, 9, 3])
+    # 0.25*0.7; 0.6 + 0.25*0.2; 0.6 - 0.25*0.4; 0.25*0.9 - 0.1 (switched); min(1, 0.9 + 0.25*0.8)
+    np.testing.assert_allclose(conf, [0.175, 0.65, 0.5, 0.125, 1.0], atol=1e-6)
+    assert counts == (1, 2, 1, 1)
+    # w = 0 (s = 1): the fastest-reacting form.
+    key1, conf, _ = fuse_semantics(old_key1, old_conf, new_key1, new_conf, history_weight=0.0)
+    np.testing.assert_array_equal(key1, [5, 3, 3, 9, 3])
+    np.testing.assert_allclose(conf, [0.7, 0.8, 0.2, 0.8, 1.0], atol=1e-6)
+    with pytest.raises(ValueError, match="history_weight"):
+        fuse_semantics(old_key1, old_conf, new_key1, new_conf, history_weight=-1.0)
+
+    def observe(state: tuple[np.ndarray, np.ndarray], key1: int) -> tuple[np.ndarray, np.ndarray]:
+        """One full-confidence observation of stored key ``key1`` on a single voxel."""
+        k, c, _ = fuse_semantics(
+            *state, np.array([key1], np.int32), np.ones(1, np.float32), history_weight=3.0
+        )
+        return k, c
+
+    # An established voxel: seen 6 times at confidence 1 -> saturated at 1. One or two contrary
+    # observations do not flip it; w + 1 = 4 use its evidence up (conf exactly 0, key kept) and
+    # the 5th switches it; the new key then starts with only the evidence left over.
+    state = (np.array([0], np.int32), np.array([0.0], np.float32))
+    for _ in range(6):
+        state = observe(state, 3)
+    assert state[0][0] == 3 and state[1][0] == pytest.approx(1.0)
+    for want_key, want_conf in [(3, 0.75), (3, 0.5), (3, 0.25), (3, 0.0), (8, 0.25)]:
+        state = observe(state, 8)
+        assert (state[0][0], state[1][0]) == (want_key, pytest.approx(want_conf))
+    # Mixed evidence nets out: 3 observations of key 2 and 2 of key 7, interleaved, leave key 2
+    # with the evidence of one observation (0.25).
+    state = (np.array([0], np.int32), np.array([0.0], np.float32))
+    for key1 in (3, 8, 3, 8, 3):
+        state = observe(state, key1)
+    assert state[0][0] == 3 and state[1][0] == pytest.approx(0.25)
 
 
 def test_apply_update_rule_through_the_volume(volume: SemanticVolume) -> None:

@@ -16,7 +16,7 @@ import numpy as np
 
 from openfusion.frame import CameraIntrinsics
 from openfusion.mapping.dictionary import RegionDictionary
-from openfusion.mapping.matching import DEFAULT_MIN_IOU, PlannedUpdate, plan_update
+from openfusion.mapping.matching import DEFAULT_MASK_EDGE_PX, DEFAULT_MIN_IOU, PlannedUpdate, plan_update
 from openfusion.mapping.volume import SemanticVolume, UpdateStats
 
 logger = logging.getLogger(__name__)
@@ -43,7 +43,11 @@ class StepStats:
 
 
 class SemanticMapper:
-    """Owns nothing but wiring: a volume, a dictionary and the matching options."""
+    """Owns nothing but wiring: a volume, a dictionary and the matching options.
+
+    ``min_iou``, ``min_pixel_conf``, ``min_embedding_cos`` and ``mask_edge_px`` are passed to
+    :func:`openfusion.mapping.matching.plan_update` (see there).
+    """
 
     def __init__(
         self,
@@ -53,14 +57,18 @@ class SemanticMapper:
         min_iou: float = DEFAULT_MIN_IOU,
         min_pixel_conf: float = 0.05,
         min_embedding_cos: float | None = None,
+        mask_edge_px: float = DEFAULT_MASK_EDGE_PX,
     ) -> None:
         if not 0.0 <= min_iou <= 1.0:
             raise ValueError(f"min_iou must be within [0, 1], got {min_iou}")
+        if not (np.isfinite(mask_edge_px) and mask_edge_px >= 0):
+            raise ValueError(f"mask_edge_px must be finite and >= 0, got {mask_edge_px}")
         self.volume = volume
         self.dictionary = dictionary
         self.min_iou = min_iou
         self.min_pixel_conf = min_pixel_conf
         self.min_embedding_cos = min_embedding_cos
+        self.mask_edge_px = float(mask_edge_px)
         self.last_plan: PlannedUpdate | None = None
         self.last_update: UpdateStats | None = None
 
@@ -95,6 +103,7 @@ class SemanticMapper:
             min_iou=self.min_iou,
             min_pixel_conf=self.min_pixel_conf,
             min_embedding_cos=self.min_embedding_cos,
+            mask_edge_px=self.mask_edge_px,
         )
         t2 = time.perf_counter()
         update = self.volume.apply_update(
