@@ -18,8 +18,8 @@ The rule: confidence is accumulated evidence (clamped, like log-odds occupancy m
     contrary observations are spread in time; a voxel that changes key starts over with only the
     evidence left over. One or two contrary observations (a merged region, a mask edge that
     spilled over a neighbour, a key that drifted) no longer flip a voxel that was seen correctly
-    many times. A confidence of exactly 0 keeps the key but carries no evidence (the renderer's
-    matching ignores it; the next observation of any key takes the voxel).
+    many times. A confidence of exactly 0 keeps the key but carries no evidence (region matching
+    leaves such pixels out of the key's mask; the next observation of any key takes the voxel).
 
     ``w = 0`` (s = 1) is the fastest-reacting form: one full-confidence observation saturates a
     voxel and one contrary one replaces its key.
