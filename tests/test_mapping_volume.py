@@ -269,22 +269,29 @@ def test_fuse_semantics_rule() -> None:
 
 
 def test_apply_update_rule_through_the_volume(volume: SemanticVolume) -> None:
-    """Same key twice averages; a stronger other key takes over; pixels with key -1 change nothing."""
+    """The update rule through the volume (w = 3: evidence step 0.25): the same key twice adds its
+    evidence; one contrary observation only weakens the voxels, a second one takes them over;
+    pixels with key -1 change nothing."""
     vol = integrated_volume()
     ones = np.ones((120, 160), np.float32)
     vol.apply_update(POSES[0], K_SMALL, np.full((120, 160), 4, np.int32), 0.8 * ones)
     vol.apply_update(POSES[0], K_SMALL, np.full((120, 160), 4, np.int32), 0.4 * ones)
     r = vol.render(POSES[0], K_SMALL)
     seen = r.depth_m > 0
-    np.testing.assert_allclose(np.median(r.conf_map[seen]), (3 * 0.8 + 0.4) / 4, atol=1e-5)
+    np.testing.assert_allclose(np.median(r.conf_map[seen]), 0.25 * 0.8 + 0.25 * 0.4, atol=1e-5)
     left = np.full((120, 160), -1, np.int32)
     left[:, :80] = 9
+    stats = vol.apply_update(POSES[0], K_SMALL, left, 0.95 * ones)
+    assert stats.voxels_switched == 0 and stats.voxels_weakened > 0
+    r = vol.render(POSES[0], K_SMALL)
+    assert (r.key_map[seen] == 4).mean() > 0.95
+    np.testing.assert_allclose(np.median(r.conf_map[:, :70][seen[:, :70]]), 0.3 - 0.25 * 0.95, atol=1e-5)
     stats = vol.apply_update(POSES[0], K_SMALL, left, 0.95 * ones)
     assert stats.voxels_switched > 0
     r = vol.render(POSES[0], K_SMALL)
     assert (r.key_map[:, :70][seen[:, :70]] == 9).mean() > 0.95
     assert (r.key_map[:, 90:][seen[:, 90:]] == 4).mean() > 0.95
-    np.testing.assert_allclose(np.median(r.conf_map[:, :70][seen[:, :70]]), 0.95 - 0.7, atol=1e-5)
+    np.testing.assert_allclose(np.median(r.conf_map[:, :70][seen[:, :70]]), 2 * 0.25 * 0.95 - 0.3, atol=1e-5)
 
 
 def test_occluded_region_is_not_updated(scene: AnalyticScene) -> None:
@@ -459,6 +466,11 @@ def test_update_reuses_render_only_while_buffers_are_valid(scene: AnalyticScene)
         rendered=rendered,
     )
     assert not stats.reused_render and stats.voxels_switched > 0
+    # Voxels both key-1 updates reached hold 2 * 0.25 * 0.5 = 0.25 > 0.25 * 0.9 (update rule,
+    # evidence step 0.25): a second observation of key 2 takes them over as well.
+    vol.apply_update(
+        POSES[0], K_SMALL, np.full((120, 160), 2, np.int32), np.full((120, 160), 0.9, np.float32)
+    )
     after = vol.render(POSES[0], K_SMALL)
     assert (after.key_map[after.depth_m > 0] == 2).mean() > 0.95
 
