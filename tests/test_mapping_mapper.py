@@ -85,7 +85,15 @@ def test_object_seen_from_several_poses_keeps_one_key(mapped) -> None:
     for T in POSES:
         rendered = mapper.volume.render(T, K_FULL.scaled(w, h))
         _, inst, _ = scene.render(T, K_FULL.scaled(w, h))
-        on_chair = (inst == 10) & (rendered.key_map >= 0)
+        # The chair's pixels away from its silhouette (a silhouette pixel at 160x120 mixes the chair
+        # with what lies behind it).
+        chair_px = inst == 10
+        inner = chair_px.copy()
+        inner[1:, :] &= chair_px[:-1, :]
+        inner[:-1, :] &= chair_px[1:, :]
+        inner[:, 1:] &= chair_px[:, :-1]
+        inner[:, :-1] &= chair_px[:, 1:]
+        on_chair = inner & (rendered.key_map >= 0)
         assert on_chair.sum() > 20
         assert (rendered.key_map[on_chair] == chair[0]).mean() > 0.95
 

@@ -32,37 +32,37 @@ def unit(v: np.ndarray) -> np.ndarray:
 
 def test_fast_soft_iou_equals_dense_definition() -> None:
     """The one-pass soft IoU over disjoint rendered regions equals sum(min)/sum(max) computed densely:
-    against the rendered key masks by default, against the rendered confidences on request."""
+    against the rendered confidences by default, against the rendered key masks on request."""
     rng = np.random.default_rng(1)
     key_map = rng.integers(-1, 5, size=(H, W))
     conf_map = rng.uniform(0.0, 1.0, size=(H, W))
     rendered = rendered_from(key_map, conf_map)
     frame = rng.uniform(0.0, 1.0, size=(6, H, W)).astype(np.float32) * (rng.uniform(size=(6, H, W)) > 0.5)
     keys, maps = region_conf_maps(rendered)
-    weighted = match_regions(frame, rendered, min_iou=0.0, rendered_conf_weighted=True)
+    weighted = match_regions(frame, rendered, min_iou=0.0)
     np.testing.assert_array_equal(weighted.rendered_keys, keys)
     np.testing.assert_allclose(weighted.iou, soft_iou_matrix(frame, maps), atol=1e-5)
-    masks = match_regions(frame, rendered, min_iou=0.0)
+    masks = match_regions(frame, rendered, min_iou=0.0, rendered_conf_weighted=False)
     np.testing.assert_array_equal(masks.rendered_keys, keys)
     np.testing.assert_allclose(masks.iou, soft_iou_matrix(frame, (maps > 0).astype(np.float32)), atol=1e-5)
 
 
-def test_match_uses_rendered_masks_not_evidence() -> None:
-    """A key rendered with little evidence (confidence 0.25: seen once) still matches the frame
-    region that covers it exactly (IoU 1 against its mask); confidence-weighted it would score 0.25.
-    Pixels whose key has no evidence left (confidence 0) are not part of the key's mask."""
+def test_match_against_rendered_masks_on_request() -> None:
+    """A key rendered at confidence 0.25 and a frame region covering it exactly: soft IoU 0.25 with
+    the rendered confidences (default), 1 against the key's mask (``rendered_conf_weighted=False``).
+    Pixels whose key has no confidence left (0) are not part of the key's mask."""
     key_map = np.full((H, W), -1)
     key_map[5:15, 5:15] = 3
     conf = np.where(key_map >= 0, 0.25, 0.0)
     frame = (key_map == 3).astype(np.float32)[None]
-    result = match_regions(frame, rendered_from(key_map, conf), min_iou=0.3)
-    np.testing.assert_allclose(result.iou, [[1.0]], atol=1e-6)
-    assert result.pairs == [(0, 3)]
-    weighted = match_regions(frame, rendered_from(key_map, conf), min_iou=0.3, rendered_conf_weighted=True)
+    weighted = match_regions(frame, rendered_from(key_map, conf), min_iou=0.3)
     np.testing.assert_allclose(weighted.iou, [[0.25]], atol=1e-6)
     assert weighted.pairs == []
-    conf[5:15, 5:10] = 0.0  # half of the key has no evidence left
-    half = match_regions(frame, rendered_from(key_map, conf), min_iou=0.0)
+    result = match_regions(frame, rendered_from(key_map, conf), min_iou=0.3, rendered_conf_weighted=False)
+    np.testing.assert_allclose(result.iou, [[1.0]], atol=1e-6)
+    assert result.pairs == [(0, 3)]
+    conf[5:15, 5:10] = 0.0  # half of the key has no confidence left
+    half = match_regions(frame, rendered_from(key_map, conf), min_iou=0.0, rendered_conf_weighted=False)
     np.testing.assert_allclose(half.iou, [[0.5]], atol=1e-6)
 
 

@@ -224,22 +224,22 @@ def test_capacity_drop_new_integrates_existing_blocks_only(scene: AnalyticScene)
 
 
 def test_fuse_semantics_rule() -> None:
-    """The written rule (evidence step s = 1 / (w + 1), w = 3: s = 0.25): new label -> s * c; same key
-    -> + s * c, capped at 1; other key -> - s * c, and the key switches (keeping the remaining
-    evidence) only once the stored evidence is used up."""
+    """The written rule (w = 3, a new observation weighs 1/(w+1) = 0.25): new label -> c; same key ->
+    weighted average (3 conf + c) / 4; other key -> conf - c/4, and the key switches (keeping the
+    remaining evidence) only once the stored confidence is used up."""
     old_key1 = np.array([0, 3, 3, 3, 3], np.int32)  # stored key+1: none, then key 2 four times
     old_conf = np.array([0.0, 0.6, 0.6, 0.1, 0.9], np.float32)
     new_key1 = np.array([5, 3, 9, 9, 3], np.int32)
     new_conf = np.array([0.7, 0.2, 0.4, 0.9, 0.8], np.float32)
     key1, conf, counts = fuse_semantics(old_key1, old_conf, new_key1, new_conf, history_weight=3.0)
     np.testing.assert_array_equal(key1, [5, 3, 3, 9, 3])
-    # 0.25*0.7; 0.6 + 0.25*0.2; 0.6 - 0.25*0.4; 0.25*0.9 - 0.1 (switched); min(1, 0.9 + 0.25*0.8)
-    np.testing.assert_allclose(conf, [0.175, 0.65, 0.5, 0.125, 1.0], atol=1e-6)
+    # 0.7; (3*0.6 + 0.2)/4; 0.6 - 0.4/4; 0.9/4 - 0.1 (switched); (3*0.9 + 0.8)/4
+    np.testing.assert_allclose(conf, [0.7, 0.5, 0.5, 0.125, 0.875], atol=1e-6)
     assert counts == (1, 2, 1, 1)
-    # w = 0 (s = 1): the fastest-reacting form.
+    # w = 0: the latest confidence replaces the stored one; a stronger contrary one takes the key.
     key1, conf, _ = fuse_semantics(old_key1, old_conf, new_key1, new_conf, history_weight=0.0)
     np.testing.assert_array_equal(key1, [5, 3, 3, 9, 3])
-    np.testing.assert_allclose(conf, [0.7, 0.8, 0.2, 0.8, 1.0], atol=1e-6)
+    np.testing.assert_allclose(conf, [0.7, 0.2, 0.2, 0.8, 0.8], atol=1e-6)
     with pytest.raises(ValueError, match="history_weight"):
         fuse_semantics(old_key1, old_conf, new_key1, new_conf, history_weight=-1.0)
 
@@ -250,9 +250,9 @@ def test_fuse_semantics_rule() -> None:
         )
         return k, c
 
-    # An established voxel: seen 6 times at confidence 1 -> saturated at 1. One or two contrary
-    # observations do not flip it; w + 1 = 4 use its evidence up (conf exactly 0, key kept) and
-    # the 5th switches it; the new key then starts with only the evidence left over.
+    # An established voxel (seen 6 times at confidence 1): one or two contrary observations do not
+    # flip it; w + 1 = 4 use its confidence up (exactly 0, key kept) and the 5th switches it; the
+    # new key then starts with only the evidence left over.
     state = (np.array([0], np.int32), np.array([0.0], np.float32))
     for _ in range(6):
         state = observe(state, 3)
@@ -260,38 +260,38 @@ def test_fuse_semantics_rule() -> None:
     for want_key, want_conf in [(3, 0.75), (3, 0.5), (3, 0.25), (3, 0.0), (8, 0.25)]:
         state = observe(state, 8)
         assert (state[0][0], state[1][0]) == (want_key, pytest.approx(want_conf))
-    # Mixed evidence nets out: 3 observations of key 2 and 2 of key 7, interleaved, leave key 2
-    # with the evidence of one observation (0.25).
+    # Interleaved evidence: key 2, 7, 2, 7, 2 -> 1, 0.75, (3*0.75+1)/4, -0.25, (3*0.5625+1)/4.
     state = (np.array([0], np.int32), np.array([0.0], np.float32))
     for key1 in (3, 8, 3, 8, 3):
         state = observe(state, key1)
-    assert state[0][0] == 3 and state[1][0] == pytest.approx(0.25)
+    assert state[0][0] == 3 and state[1][0] == pytest.approx(0.671875)
 
 
 def test_apply_update_rule_through_the_volume(volume: SemanticVolume) -> None:
-    """The update rule through the volume (w = 3: evidence step 0.25): the same key twice adds its
-    evidence; one contrary observation only weakens the voxels, a second one takes them over;
-    pixels with key -1 change nothing."""
+    """The update rule through the volume (w = 3): the same key twice averages (3 * 0.8 + 0.4) / 4;
+    contrary observations at 0.95 each remove 0.95 / 4, so two only weaken the voxels and the third
+    takes them over with the evidence left over; pixels with key -1 change nothing."""
     vol = integrated_volume()
     ones = np.ones((120, 160), np.float32)
     vol.apply_update(POSES[0], K_SMALL, np.full((120, 160), 4, np.int32), 0.8 * ones)
     vol.apply_update(POSES[0], K_SMALL, np.full((120, 160), 4, np.int32), 0.4 * ones)
     r = vol.render(POSES[0], K_SMALL)
     seen = r.depth_m > 0
-    np.testing.assert_allclose(np.median(r.conf_map[seen]), 0.25 * 0.8 + 0.25 * 0.4, atol=1e-5)
+    np.testing.assert_allclose(np.median(r.conf_map[seen]), (3 * 0.8 + 0.4) / 4, atol=1e-5)
     left = np.full((120, 160), -1, np.int32)
     left[:, :80] = 9
-    stats = vol.apply_update(POSES[0], K_SMALL, left, 0.95 * ones)
-    assert stats.voxels_switched == 0 and stats.voxels_weakened > 0
-    r = vol.render(POSES[0], K_SMALL)
-    assert (r.key_map[seen] == 4).mean() > 0.95
-    np.testing.assert_allclose(np.median(r.conf_map[:, :70][seen[:, :70]]), 0.3 - 0.25 * 0.95, atol=1e-5)
+    for weakened_to in (0.7 - 0.95 / 4, 0.7 - 2 * 0.95 / 4):
+        stats = vol.apply_update(POSES[0], K_SMALL, left, 0.95 * ones)
+        assert stats.voxels_switched == 0 and stats.voxels_weakened > 0
+        r = vol.render(POSES[0], K_SMALL)
+        assert (r.key_map[seen] == 4).mean() > 0.95
+        np.testing.assert_allclose(np.median(r.conf_map[:, :70][seen[:, :70]]), weakened_to, atol=1e-5)
     stats = vol.apply_update(POSES[0], K_SMALL, left, 0.95 * ones)
     assert stats.voxels_switched > 0
     r = vol.render(POSES[0], K_SMALL)
     assert (r.key_map[:, :70][seen[:, :70]] == 9).mean() > 0.95
     assert (r.key_map[:, 90:][seen[:, 90:]] == 4).mean() > 0.95
-    np.testing.assert_allclose(np.median(r.conf_map[:, :70][seen[:, :70]]), 2 * 0.25 * 0.95 - 0.3, atol=1e-5)
+    np.testing.assert_allclose(np.median(r.conf_map[:, :70][seen[:, :70]]), 3 * 0.95 / 4 - 0.7, atol=1e-5)
 
 
 def test_occluded_region_is_not_updated(scene: AnalyticScene) -> None:
@@ -465,12 +465,13 @@ def test_update_reuses_render_only_while_buffers_are_valid(scene: AnalyticScene)
         np.full((120, 160), 0.9, np.float32),
         rendered=rendered,
     )
-    assert not stats.reused_render and stats.voxels_switched > 0
-    # Voxels both key-1 updates reached hold 2 * 0.25 * 0.5 = 0.25 > 0.25 * 0.9 (update rule,
-    # evidence step 0.25): a second observation of key 2 takes them over as well.
-    vol.apply_update(
-        POSES[0], K_SMALL, np.full((120, 160), 2, np.int32), np.full((120, 160), 0.9, np.float32)
-    )
+    assert not stats.reused_render and stats.voxels_weakened > 0
+    # Key-1 voxels hold 0.5; each key-2 observation at 0.9 removes 0.9 / 4 (update rule, w = 3):
+    # 0.275, 0.05, then the third takes them over. Written through fresh ray casts every time.
+    for _ in range(2):
+        vol.apply_update(
+            POSES[0], K_SMALL, np.full((120, 160), 2, np.int32), np.full((120, 160), 0.9, np.float32)
+        )
     after = vol.render(POSES[0], K_SMALL)
     assert (after.key_map[after.depth_m > 0] == 2).mean() > 0.95
 

@@ -7,13 +7,10 @@ Soft IoU
     (one key per pixel), which :func:`match_regions` uses to compute all n x m values in one pass
     over the labelled pixels; :func:`soft_iou_matrix` is the general (dense) form.
 
-    The frame side is the encoder's soft map; the map side is, by default, the rendered *mask* of
-    each key (1 where the key is rendered with confidence > 0). The stored per-voxel confidence is
-    accumulated evidence (see ``openfusion.mapping.update_rule``): a surface seen once holds a
-    quarter of the confidence of one seen four times, and weighting the rendered maps by it would
-    cap the IoU of every young region at its evidence level (a region seen once could never reach
-    an IoU above 0.25) and so hand out new keys for surfaces that already have one.
-    ``rendered_conf_weighted=True`` gives the confidence-weighted form (the paper's).
+    The frame side is the encoder's soft maps, the map side the rendered confidence of each key
+    (the paper's form). ``rendered_conf_weighted=False`` compares against each key's rendered
+    *mask* instead (1 where the key is rendered with confidence > 0); on the synthetic evaluation
+    both score the same (docs/EVAL.md), so the default stays with the paper.
 
 Assignment
     ``scipy.optimize.linear_sum_assignment`` (a Jonker-Volgenant solver) maximises the total soft
@@ -105,14 +102,14 @@ def match_regions(
     min_iou: float = DEFAULT_MIN_IOU,
     *,
     allowed: Callable[[np.ndarray], np.ndarray] | None = None,
-    rendered_conf_weighted: bool = False,
+    rendered_conf_weighted: bool = True,
 ) -> MatchResult:
     """Match the frame's n regions to the m map regions in view (soft IoU, Jonker-Volgenant).
 
     ``allowed`` maps the rendered keys (m,) to an (n, m) boolean matrix of pairs that may match
     (e.g. an embedding-similarity gate); other pairs are treated as IoU 0 by the assignment.
-    The rendered regions enter as masks (pixels with a key and confidence > 0), or weighted by
-    their rendered confidence with ``rendered_conf_weighted`` (see the module docstring).
+    The rendered regions enter weighted by their rendered confidence, or as masks (pixels with a key
+    and confidence > 0) with ``rendered_conf_weighted=False`` (see the module docstring).
     """
     if not 0.0 <= min_iou <= 1.0:
         raise ValueError(f"min_iou must be within [0, 1], got {min_iou}")
@@ -130,7 +127,7 @@ def _match_checked(
     rendered: RenderedView,
     min_iou: float,
     allowed: Callable[[np.ndarray], np.ndarray] | None,
-    rendered_conf_weighted: bool = False,
+    rendered_conf_weighted: bool = True,
 ) -> MatchResult:
     n = len(frame_conf)
     flat_keys = rendered.key_map.reshape(-1)
@@ -245,7 +242,7 @@ def plan_update(
     min_pixel_conf: float = 0.05,
     min_embedding_cos: float | None = None,
     mask_edge_px: float = DEFAULT_MASK_EDGE_PX,
-    rendered_conf_weighted: bool = False,
+    rendered_conf_weighted: bool = True,
 ) -> PlannedUpdate:
     """Match the observation to the rendered map and update the dictionary (one version batch).
 
@@ -257,8 +254,8 @@ def plan_update(
     updates its key's running-mean embedding and count; an unmatched one gets a new key.
     With ``min_embedding_cos``, a pair may only match when the cosine similarity of the frame
     region's embedding and the key's embedding reaches it (off by default: geometry alone, as in
-    the paper). Matching compares the frame's soft maps with the rendered key masks (or with the
-    rendered confidences, ``rendered_conf_weighted``).
+    the paper). Matching compares the frame's soft maps with the rendered confidences (or with the
+    rendered key masks, ``rendered_conf_weighted=False``).
 
     A pixel's planned confidence is its region's confidence there times the mask-edge weight
     ``min(1, (d + 1) / (mask_edge_px + 1))``, d = distance in pixels to the nearest border between

@@ -37,12 +37,11 @@ class VolumeParams:
       written) or integrated into its already allocated blocks only (``when_full="drop_new"``).
     - ``min_weight``: a voxel counts as observed surface (for render, update and extraction) once it
       has at least this many depth observations.
-    - ``conf_history_weight`` (w >= 0): how much a voxel's stored semantic evidence outweighs one new
-      observation. The update rule (``openfusion.mapping.update_rule``) treats the per-voxel
-      confidence as accumulated evidence: every observation of confidence c adds (same key) or
-      removes (other key) ``c / (w + 1)``, clamped to [0, 1], and the key changes only when the
-      evidence is used up. Default 3: a voxel saturates after 4 full-confidence observations and
-      then needs 4 contrary ones to change key; 0 reacts to every single observation.
+    - ``conf_history_weight`` (w >= 0): the weight of a voxel's stored semantic confidence against
+      one new observation (``openfusion.mapping.update_rule``): the same key averages,
+      ``(w * conf + c) / (w + 1)``; another key removes ``c / (w + 1)`` and takes the voxel only
+      when that uses the stored confidence up. Default 3: a voxel at confidence 1 needs 4
+      full-confidence contrary observations to change key; 0 reacts to every single observation.
     - ``label_fill_radius_m``: when surface points are read out (queries, segmentation, exports), a
       point with no labelled voxel among the 8 corners of its cell takes the key of the nearest
       labelled surface point within this distance (0 turns it off). The update labels voxels at the

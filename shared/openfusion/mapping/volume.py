@@ -19,14 +19,14 @@ Render (depth-tested)
 Update rule (inverse render), per voxel near the surface seen from the pose
     The same ray cast picks, for every pixel of the update's key/confidence map, the 8 voxels around
     its surface hit; a voxel reached by several pixels takes the pixel whose hit is nearest to it
-    (largest trilinear weight). The voxel's key and confidence then follow the evidence-accumulating
-    rule of :mod:`openfusion.mapping.update_rule` (``fuse_semantics``): with
-    ``s = 1 / (VolumeParams.conf_history_weight + 1)``, an observation (key ``k``, confidence ``c``)
+    (largest trilinear weight). The voxel's key and confidence then follow the rule of
+    :mod:`openfusion.mapping.update_rule` (``fuse_semantics``): with
+    ``w = VolumeParams.conf_history_weight`` and an observation (key ``k``, confidence ``c``)
 
-    - never labelled:  key <- k,  conf <- s * c
-    - same key:        conf <- min(1, conf + s * c)
-    - other key:       conf <- conf - s * c; if that is negative the new key wins:
-                       key <- k, conf <- s * c - conf_old
+    - never labelled:  key <- k,  conf <- c
+    - same key:        conf <- (w * conf + c) / (w + 1)               (weighted average)
+    - other key:       conf <- conf - c / (w + 1); if that is negative the new key wins:
+                       key <- k, conf <- c / (w + 1) - conf_old      (the remaining evidence)
 
     Pixels with key -1 or confidence 0 change nothing. Voxels behind the first surface are never
     reached by the rays, so occluded voxels are not updated.
