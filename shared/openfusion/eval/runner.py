@@ -68,6 +68,7 @@ class EvalConfig:
     block_resolution: int = 8
     trunc_voxels: float = 4.0
     depth_max_m: float = 6.0
+    initial_block_count: int = 16384  # as the geometry service: a room maps without grid growth
     semantic_every: int = 1
     exclude_background: bool = False
     background_classes: tuple[str, ...] = DEFAULT_BACKGROUND_CLASSES
@@ -268,6 +269,7 @@ def evaluate_scene(
         block_resolution=config.block_resolution,
         trunc_voxels=config.trunc_voxels,
         depth_max_m=config.depth_max_m,
+        initial_block_count=config.initial_block_count,
     )
     observed = ObservedSurface(
         gt.points,
