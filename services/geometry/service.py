@@ -51,6 +51,7 @@ from openfusion.mapping import (
     save_map,
 )
 from openfusion.mapping.mapfile import resolve_map_path
+from openfusion.mapping.params import ROOM_SCALE_INITIAL_BLOCKS
 from openfusion.messages import (
     ControlReply,
     ControlRequest,
@@ -85,10 +86,8 @@ class GeometrySection(ConfigSection):
     depth_min_m: float = Field(default=0.1, ge=0)
     depth_max_m: float = Field(default=6.0, gt=0)
     max_blocks: int | None = Field(default=None, gt=0)
-    # Blocks allocated at start (8^3 voxels x 28 B = 14 KiB each: 16384 = 230 MiB, a furnished
-    # room at 2 cm). The grid doubles when full, and each doubling copies every block while
-    # integration waits (measured ~0.5 s), so a service starts big enough for a room.
-    initial_blocks: int = Field(default=16384, gt=0)
+    # Blocks allocated at start (see openfusion.mapping.params.ROOM_SCALE_INITIAL_BLOCKS).
+    initial_blocks: int = Field(default=ROOM_SCALE_INITIAL_BLOCKS, gt=0)
     device: str = "CPU:0"
     frame_queue_size: int = Field(default=64, gt=0)
     max_points_reply: int = Field(default=500_000, gt=0)

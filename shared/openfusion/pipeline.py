@@ -22,6 +22,7 @@ from typing import Any
 
 from openfusion.frame import Frame
 from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume, VolumeParams
+from openfusion.mapping.params import ROOM_SCALE_INITIAL_BLOCKS
 
 logger = logging.getLogger(__name__)
 
@@ -135,7 +136,13 @@ def run_in_process(args: argparse.Namespace) -> dict[str, Any]:
             log_frame(frame, stats)
 
     try:
-        result = map_scene(source, region_encoder=encoder, semantic_every=args.semantic_every, on_frame=on_frame)
+        result = map_scene(
+            source,
+            region_encoder=encoder,
+            volume_params=VolumeParams(initial_block_count=ROOM_SCALE_INITIAL_BLOCKS),  # as the service
+            semantic_every=args.semantic_every,
+            on_frame=on_frame,
+        )
     finally:
         bar.close()
     save_map(out / "map", result.volume, result.dictionary, meta={"map_id": args.map_id})

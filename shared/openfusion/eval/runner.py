@@ -68,7 +68,7 @@ class EvalConfig:
     block_resolution: int = 8
     trunc_voxels: float = 4.0
     depth_max_m: float = 6.0
-    initial_block_count: int = 16384  # as the geometry service: a room maps without grid growth
+    initial_block_count: int | None = None  # None: ROOM_SCALE_INITIAL_BLOCKS, as the geometry service
     semantic_every: int = 1
     exclude_background: bool = False
     background_classes: tuple[str, ...] = DEFAULT_BACKGROUND_CLASSES
@@ -257,6 +257,7 @@ def evaluate_scene(
 ) -> dict:
     """Map one scene and measure it; returns the scene's results (JSON-ready dict)."""
     from openfusion.mapping import VolumeParams
+    from openfusion.mapping.params import ROOM_SCALE_INITIAL_BLOCKS
 
     t_start = time.perf_counter()
     scene = open_scene(
@@ -276,7 +277,7 @@ def evaluate_scene(
         block_resolution=config.block_resolution,
         trunc_voxels=config.trunc_voxels,
         depth_max_m=config.depth_max_m,
-        initial_block_count=config.initial_block_count,
+        initial_block_count=config.initial_block_count or ROOM_SCALE_INITIAL_BLOCKS,
     )
     observed = ObservedSurface(
         gt.points,

@@ -11,6 +11,12 @@ _DEVICE_RE = re.compile(r"^(CPU|CUDA):(\d+)$")
 
 WhenFull = Literal["raise", "drop_new"]
 
+#: Blocks a long-running map (the geometry service, ``openfusion run --in-process``, the evaluation)
+#: allocates at start: 16384 blocks of 8^3 voxels x 28 B = 230 MiB, a furnished room at 2 cm. The
+#: grid doubles when full and each doubling copies every block while integration waits (~0.5 s
+#: measured), so these start big enough for a room; the library default stays small for tests.
+ROOM_SCALE_INITIAL_BLOCKS = 16384
+
 
 def normalise_device(device: str) -> str:
     """Return an Open3D device string ``"CPU:0"`` / ``"CUDA:n"``; accepts ``cpu``, ``cuda``, ``cuda:1``."""
