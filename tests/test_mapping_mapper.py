@@ -185,3 +185,19 @@ def test_min_embedding_cos_refuses_a_match_whose_embedding_disagrees() -> None:
         outcomes[gate] = step
     assert outcomes[None].new == 0 and outcomes[None].matched > 0
     assert outcomes[0.5].matched == 0 and outcomes[0.5].new > 0
+
+
+def test_query_leaves_out_regions_without_surface_points(mapped) -> None:
+    """A region whose voxels were all taken over by other regions (here: a dictionary entry with
+    the table's embedding and no voxels, tying with the table at score 1) is not returned; the
+    results are still ``top_k`` regions, each with surface points."""
+    _, mapper, _ = mapped
+    dictionary = RegionDictionary.from_snapshot(mapper.dictionary.snapshot())
+    empty = dictionary.add(category_embedding("table", DIM), label="table")
+    query = category_embedding("table", DIM)
+    ranked, _ = dictionary.top_k(query, 3)
+    assert empty in ranked  # it would have been a top-3 answer
+    results = query_regions(dictionary, mapper.volume, query, top_k=3)
+    assert len(results) == 3 and empty not in [r.key for r in results]
+    assert all(r.num_points > 0 for r in results)
+    assert [r.key for r in query_regions(dictionary, None, query, top_k=3)] == list(ranked)

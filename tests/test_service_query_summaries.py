@@ -298,3 +298,23 @@ def test_query_without_geometry_answers_zero_boxes_and_does_not_wait_every_time(
         assert reply.regions and all(h.num_points == 0 for h in reply.regions)
     wait_until(lambda: cluster.query_counter("queries") >= 2, timeout_s=10)
     assert cluster.query_counter("summary_failures") == 1
+
+
+def test_ranked_regions_known_to_be_empty_are_dropped() -> None:
+    """Ranking keeps the regions with surface points and those the summary does not know yet (newer
+    than it); a key below the horizon that is not listed, or listed with 0 points, is dropped."""
+    from openfusion.messages import RegionSummaryReply
+    from openfusion.services.query.service import RegionSummaries, drop_empty_regions
+
+    reply = RegionSummaryReply(
+        map_version=3,
+        key_horizon=10,
+        keys=np.array([1, 4], np.int32),
+        bbox_min=np.zeros((2, 3), np.float32),
+        bbox_max=np.ones((2, 3), np.float32),
+        num_points=np.array([120, 0], np.int64),
+    )
+    summaries = RegionSummaries(reply, fetched_at=0.0)
+    ranked = [(4, 0.9), (1, 0.8), (2, 0.7), (12, 0.6)]
+    assert drop_empty_regions(ranked, summaries) == [(1, 0.8), (12, 0.6)]
+    assert drop_empty_regions(ranked, None) == ranked

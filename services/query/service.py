@@ -51,6 +51,7 @@ from pydantic import Field
 from openfusion.bus import QueryError, RequestError, ServiceRunner, get
 from openfusion.config import ConfigSection, ServiceConfig
 from openfusion.encoders import make_text_encoder
+from openfusion.mapping.queries import candidates_for
 from openfusion.messages import (
     DictionaryDelta,
     ImageQuery,
@@ -115,6 +116,16 @@ class RegionSummaries:
         if i is None:
             return _ZERO3, _ZERO3, 0
         return self._bbox_min[i], self._bbox_max[i], int(self._num_points[i])
+
+
+def drop_empty_regions(
+    ranked: list[tuple[int, float]], summaries: RegionSummaries | None
+) -> list[tuple[int, float]]:
+    """``ranked`` without the regions the summary knows to have no surface points (every voxel
+    they labelled was taken over by other regions); regions it does not know yet stay."""
+    if summaries is None:
+        return list(ranked)
+    return [(k, s) for k, s in ranked if not (summaries.covers(k) and summaries.get(k)[2] == 0)]
 
 
 def region_hits(
@@ -316,14 +327,13 @@ class QueryService:
     def _rank(
         self, vector: np.ndarray, *, top_k: int, with_points: bool, max_points: int, space: str, query: str
     ) -> QueryReply:
-        ranked = self.replica.top_k(vector, top_k)
+        ranked = self.replica.top_k(vector, candidates_for(top_k))
+        summaries = self._summaries_for([k for k, _ in ranked])
+        ranked = drop_empty_regions(ranked, summaries)[:top_k]
         keys = [k for k, _ in ranked]
-        summaries = None
         points = None
         if with_points:  # the points themselves: only geometry has them (box and count from them too)
             points = self._points_of(keys, self.section.max_points_reply)
-        if points is None:
-            summaries = self._summaries_for(keys)
         hits = region_hits(
             ranked,
             self.replica.labels_for(keys),

@@ -44,11 +44,15 @@ def query_regions(
 
     ``embedding_space`` names the space the query vector came from; a different space than the
     map's raises :class:`~openfusion.mapping.errors.EmbeddingSpaceError`. With a ``volume``, each
-    result carries its surface-point count and robust bounding box (1st-99th percentile) (and up to ``max_points`` points when
-    ``with_points``); with ``volume=None`` only the ranking is returned (NaN boxes, 0 points).
+    result carries its surface-point count and robust bounding box (1st-99th percentile) (and up to
+    ``max_points`` points when ``with_points``), and regions without surface points (every voxel
+    they labelled was taken over by other regions) are left out, so up to ``top_k`` regions that
+    exist in the map come back; with ``volume=None`` only the ranking is returned (NaN boxes,
+    0 points).
     """
     dictionary.check_space(embedding_space)
-    keys, scores = dictionary.top_k(vector, top_k)
+    candidates = top_k if volume is None else candidates_for(top_k)
+    keys, scores = dictionary.top_k(vector, candidates)
     results = [
         RegionResult(
             int(k),
@@ -75,7 +79,16 @@ def query_regions(
                 rng = np.random.default_rng(res.key)
                 pts = pts[np.sort(rng.choice(len(pts), size=max_points, replace=False))]
             res.points = pts.astype(np.float32)
-    return results
+    return [res for res in results if res.num_points > 0][:top_k]
+
+
+def candidates_for(top_k: int) -> int:
+    """How many ranked regions to look at so that ``top_k`` with surface points usually remain
+    after empty ones (all voxels taken over by other regions) are dropped."""
+    return int(top_k) + min(int(top_k), EMPTY_REGION_SLACK)
+
+
+EMPTY_REGION_SLACK = 16
 
 
 def classify_regions(
