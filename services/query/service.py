@@ -11,7 +11,9 @@
 | ``…/query/point`` | queryable | PointQuery → QueryReply |
 | ``…/health/query`` | liveliness + stats | counters ``queries``, ``regions``, ``dictionary_resyncs``, ``summary_fetches``, ``summary_failures`` |
 
-It answers from the latest dictionary it has and never blocks mapping. A query whose
+It answers from the latest dictionary it has and never blocks mapping. Regions the cached
+summary knows to have no surface points (every voxel taken over by other regions) are left out
+of rankings, so ``top_k`` answers are regions with geometry (see ``drop_empty_regions``). A query whose
 embedding space differs from the map's is refused with ``reply_err`` (code
 ``embedding_space_mismatch``) naming both spaces.
 
