@@ -256,7 +256,7 @@ class GeometryService:
             with self._lock:
                 self.volume.integrate(frame)
                 self.frames_integrated += 1
-                self.map_version += 1
+                self._map_changed()
                 self._dirty = True
         except CapacityError as exc:
             logger.warning("geometry: frame %d refused: %s", frame.frame_id, exc)

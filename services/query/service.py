@@ -143,38 +143,28 @@ def region_hits(
     (the points of those keys) when given, else from ``summaries`` (zeros when neither knows)."""
     hits = []
     for key, score in ranked:
+        kept = None
         if points is None and summaries is not None:
             bbox_min, bbox_max, n = summaries.get(key)
-            hits.append(
-                RegionHit(
-                    key=int(key),
-                    score=float(score),
-                    label=labels.get(int(key)) or None,
-                    bbox_min=bbox_min,
-                    bbox_max=bbox_max,
-                    num_points=n,
-                    points=None,
-                )
-            )
-            continue
-        if points is not None and len(points.keys):
-            mask = points.keys == key
-            pts = points.points[mask]
         else:
-            pts = np.zeros((0, 3), np.float32)
-        if len(pts):
-            bbox_min, bbox_max = pts.min(axis=0), pts.max(axis=0)
-        else:
-            bbox_min = bbox_max = np.zeros(3, np.float32)
-        kept = pts[:max_points] if with_points else None
+            if points is not None and len(points.keys):
+                pts = points.points[points.keys == key]
+            else:
+                pts = np.zeros((0, 3), np.float32)
+            if len(pts):
+                bbox_min, bbox_max = pts.min(axis=0), pts.max(axis=0)
+            else:
+                bbox_min = bbox_max = _ZERO3
+            n = int(len(pts))
+            kept = pts[:max_points] if with_points else None
         hits.append(
             RegionHit(
                 key=int(key),
                 score=float(score),
                 label=labels.get(int(key)) or None,
-                bbox_min=bbox_min.astype(np.float32),
-                bbox_max=bbox_max.astype(np.float32),
-                num_points=int(len(pts)),
+                bbox_min=np.asarray(bbox_min, np.float32),
+                bbox_max=np.asarray(bbox_max, np.float32),
+                num_points=n,
                 points=kept,
             )
         )

@@ -16,6 +16,10 @@ logger = logging.getLogger(__name__)
 # stray points on the surface just behind an object, which would inflate a min/max box.
 BBOX_PERCENTILE = 1.0
 
+# Extra ranked regions looked at (at most this many, and at most top_k) so that top_k regions with
+# surface points remain after empty ones are left out.
+EMPTY_REGION_SLACK = 16
+
 
 @dataclass
 class RegionResult:
@@ -87,8 +91,6 @@ def candidates_for(top_k: int) -> int:
     after empty ones (all voxels taken over by other regions) are dropped."""
     return int(top_k) + min(int(top_k), EMPTY_REGION_SLACK)
 
-
-EMPTY_REGION_SLACK = 16
 
 
 def classify_regions(
