@@ -13,6 +13,7 @@ def test_keyspace_builds_the_documented_keys() -> None:
     """Every named key of design §2, under the default and a multi-segment prefix."""
     keys = KeySpace("openfusion", "lab-1")
     assert keys.sensor_rgbd == "openfusion/lab-1/sensor/rgbd"
+    assert keys.sensor_instance == "openfusion/lab-1/sensor/instance"
     assert keys.geometry_render == "openfusion/lab-1/geometry/render"
     assert keys.geometry_points == "openfusion/lab-1/geometry/points"
     assert keys.geometry_mesh == "openfusion/lab-1/geometry/mesh"
@@ -38,7 +39,7 @@ def test_keyspace_builds_the_documented_keys() -> None:
 def test_every_key_is_a_canonical_zenoh_key_expression() -> None:
     """Zenoh accepts each key as-is (canonical form), and the health wildcard matches each service."""
     keys = KeySpace("openfusion", "lab")
-    every = [keys.sensor_rgbd, keys.geometry_render, keys.semantic_dictionary_delta, keys.control("reset")]
+    every = [keys.sensor_rgbd, keys.sensor_instance, keys.geometry_render, keys.semantic_dictionary_delta, keys.control("reset")]
     for key in every + [keys.health_all, keys.all]:
         assert str(zenoh.KeyExpr(key)) == key
     wildcard = zenoh.KeyExpr(keys.health_all)

@@ -57,6 +57,9 @@ EXAMPLES: dict[str, m.Message] = {
         instance_categories={3: "office chair"},
         source="synthetic",
     ),
+    "sensor.instance": m.InstanceFrame(
+        frame_id=1, stamp_ns=5, instance=_i32(6, 8), instance_categories={3: "office chair"}, source="synthetic"
+    ),
     "geometry.render_request": m.RenderRequest(frame_id=2, T_world_cam=_pose(), **K_FIELDS),
     "geometry.render_reply": m.RenderReply(
         frame_id=2, key_map=_i32(6, 8), conf_map=_f32(6, 8), depth_m=_f32(6, 8)
@@ -180,6 +183,28 @@ def test_rgbd_frame_from_and_to_frame() -> None:
         m.RgbdFrame.from_frame(frame)
 
 
+def test_frame_splits_into_rgbd_without_instance_and_instance_frame_and_joins_back() -> None:
+    """The bridge's split: geometry's message carries no instance image; the semantic service
+    joins the InstanceFrame back by frame id + stamp. Bad input tried: an instance image of
+    another frame (other stamp) and one of another size are refused naming the problem."""
+    frame = EXAMPLES["sensor.rgbd"].to_frame()
+    rgbd = m.RgbdFrame.from_frame(frame, with_instance=False)
+    assert rgbd.instance is None and rgbd.instance_categories == {}
+    inst = m.InstanceFrame.from_frame(frame)
+    assert inst is not None and inst.belongs_to(rgbd)
+    joined = rgbd.to_frame(inst)
+    np.testing.assert_array_equal(joined.instance, frame.instance)
+    assert joined.instance_categories == {3: "office chair"}
+    assert rgbd.to_frame().instance is None
+    assert m.InstanceFrame.from_frame(rgbd.to_frame()) is None  # nothing to send without an image
+    other = m.InstanceFrame(**_replace(inst, stamp_ns=6))
+    with pytest.raises(ValueError, match="instance image of frame 1 \\(stamp 6 ns\\) joined to frame 1 \\(stamp 5 ns\\)"):
+        rgbd.to_frame(other)
+    small = m.InstanceFrame(**_replace(inst, instance=_i32(5, 8)))
+    with pytest.raises(ValueError, match="instance is 8x5 but the intrinsics are for 8x6"):
+        rgbd.to_frame(small)
+
+
 def _replace(msg: m.Message, **changes: Any) -> dict[str, Any]:
     return {**{k: getattr(msg, k) for k in type(msg).model_fields}, **changes}
 
@@ -190,6 +215,9 @@ def _replace(msg: m.Message, **changes: Any) -> dict[str, Any]:
         ("sensor.rgbd", {"depth": np.zeros((6, 8), np.int32)}, "dtype int32"),
         ("sensor.rgbd", {"instance": np.zeros((5, 8), np.int32)}, "instance must be 6x8"),
         ("sensor.rgbd", {"T_world_cam": np.diag([2.0, 1.0, 1.0, 1.0])}, "orthonormal"),
+        ("sensor.instance", {"instance": np.zeros((6, 8), np.int64)}, "dtype int64"),
+        ("sensor.instance", {"instance": np.zeros((0, 8), np.int32)}, "empty"),
+        ("sensor.instance", {"frame_id": -1}, "greater than or equal to 0"),
         ("geometry.render_request", {"T_world_cam": np.full((4, 4), np.inf)}, "finite"),
         ("geometry.render_reply", {"depth_m": _f32(6, 7)}, "same shape"),
         ("geometry.points_reply", {"keys": _i32(3)}, "differ in length"),

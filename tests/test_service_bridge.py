@@ -1,6 +1,7 @@
 """Bridge service: a real ``openfusion service bridge`` process plays the synthetic scene onto the
-bus; a subscriber in the test receives every frame intact (same ids, poses, depth) and the
-bridge's health reports what it read and published. Bad input tried: an unknown source scheme
+bus; a subscriber in the test receives every frame intact (same ids, poses, depth), each frame's
+instance image on ``sensor/instance`` (never inside the frame), and the bridge's health
+reports what it read and published. Bad input tried: an unknown source scheme
 (the process must exit with a one-line error, not a traceback)."""
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from helpers_bus import (
     wait_until,
 )
 from openfusion.bus import Subscriber, collect_health, open_session
-from openfusion.messages import RgbdFrame
+from openfusion.messages import InstanceFrame, RgbdFrame
 from openfusion.sources import open_source
 
 
@@ -32,12 +33,15 @@ def test_bridge_publishes_every_frame_of_the_source_intact() -> None:
     expected = list(open_source(spec))
     session = open_session(loopback_config(map_id, listen=[port]))
     got: list[RgbdFrame] = []
+    instances: dict[int, InstanceFrame] = {}
     try:
-        sub = Subscriber(session, loopback_config(map_id).keys.sensor_rgbd, RgbdFrame, got.append, queue_size=64)
+        keys = loopback_config(map_id).keys
+        inst_sub = Subscriber(session, keys.sensor_instance, InstanceFrame,
+                              lambda m: instances.__setitem__(m.frame_id, m), queue_size=64)
+        sub = Subscriber(session, keys.sensor_rgbd, RgbdFrame, got.append, queue_size=64)
         args = ["service", "bridge", *loopback_args(map_id, connect=[port]), "--source", spec, "--rate-hz", "0"]
         with ServiceProcess("openfusion.cli", args) as proc:
-            wait_until(lambda: len(got) >= len(expected), timeout_s=60)
-            keys = loopback_config(map_id).keys
+            wait_until(lambda: len(got) >= len(expected) and len(instances) >= len(expected), timeout_s=60)
 
             def bridge_done() -> object:
                 stats = collect_health(session, keys, timeout_s=1.0).get("bridge")
@@ -47,14 +51,19 @@ def test_bridge_publishes_every_frame_of_the_source_intact() -> None:
             proc.terminate()
             assert proc.wait(20) == 0, proc.output()
         sub.close()
+        inst_sub.close()
     finally:
         session.close()
     assert [m.frame_id for m in got] == [f.frame_id for f in expected]
     for msg, frame in zip(got, expected, strict=True):
         np.testing.assert_array_equal(msg.depth, frame.depth)
         np.testing.assert_allclose(msg.T_world_cam, frame.T_world_cam)
-        assert msg.instance_categories == frame.instance_categories
+        assert msg.instance is None and msg.instance_categories == {}  # not on the geometry path
+        joined = msg.to_frame(instances[msg.frame_id])
+        np.testing.assert_array_equal(joined.instance, frame.instance)
+        assert joined.instance_categories == frame.instance_categories
     assert health.counters["frames_published"] == len(expected)
+    assert health.counters["instances_published"] == len(expected)
     assert health.counters["frames_read"] == len(expected)
 
 

@@ -177,7 +177,7 @@ def test_malformed_payloads_on_every_key_are_counted_and_change_nothing(env: Env
     wrong = ControlRequest(action="reset")
     from openfusion.codec import encode
 
-    for key in (keys.sensor_rgbd, keys.semantic_update, keys.semantic_dictionary_delta):
+    for key in (keys.sensor_rgbd, keys.sensor_instance, keys.semantic_update, keys.semantic_dictionary_delta):
         for payload in [*garbage, encode(wrong)]:
             session.put(key, payload)
     for key in (

@@ -3,15 +3,19 @@
 | key | direction | message |
 |---|---|---|
 | ``…/sensor/rgbd`` | subscribes, latest frame only | :class:`~openfusion.messages.RgbdFrame` |
+| ``…/sensor/instance`` | subscribes when the encoder reads instance images (gt) | :class:`~openfusion.messages.InstanceFrame` |
 | ``…/geometry/render`` | queries | RenderRequest → RenderReply |
 | ``…/geometry/dictionary`` | queries once on start (recovery) | DictionaryRequest → DictionarySnapshot |
 | ``…/semantic/update`` | publishes | :class:`~openfusion.messages.SemanticUpdate` |
 | ``…/semantic/dictionary/delta`` | publishes | :class:`~openfusion.messages.DictionaryDelta` |
 | ``…/semantic/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot |
-| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``regions``, ``matched``, ``new_regions`` |
+| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions`` |
 
 A slow encoder never builds a queue: the frame subscription keeps only the newest frame and
-counts the ones it replaced. The semantic switch: ``every_k = 0`` turns semantics off,
+counts the ones it replaced. An encoder that reads ground-truth instance images (gt) gets each
+frame joined with its ``InstanceFrame`` (same frame id and stamp; the bridge sends it first); a
+frame whose instance image has not come within ``instance_wait_s`` is skipped and counted in
+``skipped_no_instance`` (a frame that carries its own instance image uses that). The semantic switch: ``every_k = 0`` turns semantics off,
 ``every_k = k`` uses every k-th frame (by frame id), ``max_hz`` caps the rate.
 On start the service asks geometry for the dictionary it checkpointed, so a restarted semantic
 service continues with the same keys and embeddings.
@@ -30,11 +34,13 @@ from pydantic import Field
 from openfusion.bus import Publisher, QueryError, ServiceRunner, Subscriber, get
 from openfusion.config import ConfigSection, ServiceConfig
 from openfusion.encoders import make_region_encoder
+from openfusion.instance_join import InstanceBuffer
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
 from openfusion.mapping.volume import resample_nearest
 from openfusion.messages import (
     DictionaryRequest,
     DictionarySnapshot,
+    InstanceFrame,
     RenderReply,
     RenderRequest,
     RgbdFrame,
@@ -54,6 +60,8 @@ class SemanticSection(ConfigSection):
     max_hz: float | None = Field(default=None, gt=0)
     min_iou: float = Field(default=0.10, ge=0, le=1)
     render_timeout_s: float = Field(default=5.0, gt=0)
+    # How long a frame waits for its instance image (gt encoder) before it is skipped.
+    instance_wait_s: float = Field(default=0.5, ge=0, le=10)
     recover_timeout_s: float = Field(default=10.0, ge=0)
     model_path: str | None = None
     device: str = "auto"
@@ -103,9 +111,11 @@ class SemanticService:
         self.dictionary = RegionDictionary(self.encoder.embedding_space, self.encoder.dim)
         self.switch = SemanticSwitch(self.section.every_k, self.section.max_hz)
         self._frames: Subscriber[RgbdFrame] | None = None
+        self._instances: InstanceBuffer | None = InstanceBuffer() if self.encoder.needs_instances else None
         self._update_pub: Publisher | None = None
         self._delta_pub: Publisher | None = None
         self._published_version = self.dictionary.version
+        self._frames_without_instance = 0
 
     def recover(self, runner: ServiceRunner) -> bool:
         """Take the dictionary geometry checkpointed (same space only). True when recovered."""
@@ -138,10 +148,11 @@ class SemanticService:
     def handle_snapshot(self, _req: DictionaryRequest) -> DictionarySnapshot:
         return snapshot_message(self.dictionary)
 
-    def process(self, runner: ServiceRunner, msg: RgbdFrame) -> None:
-        """One semantic step for one frame (called from the loop)."""
+    def process(self, runner: ServiceRunner, msg: RgbdFrame, instance: InstanceFrame | None = None) -> None:
+        """One semantic step for one frame (called from the loop), with its instance image when
+        the encoder reads them."""
         started = time.monotonic()
-        frame = msg.to_frame()
+        frame = msg.to_frame(instance)
         obs = self.encoder.encode(frame)
         if self.section.simulate_latency_s > 0:
             time.sleep(self.section.simulate_latency_s)
@@ -185,6 +196,8 @@ class SemanticService:
         self._update_pub = runner.publisher(keys.semantic_update)
         self._delta_pub = runner.publisher(keys.semantic_dictionary_delta)
         runner.queryable(keys.semantic_dictionary, DictionaryRequest, self.handle_snapshot)
+        if self._instances is not None:
+            runner.subscriber(keys.sensor_instance, InstanceFrame, self._instances.add, queue_size=8)
         self._frames = runner.subscriber(keys.sensor_rgbd, RgbdFrame, latest_only=True)
         runner.stats.set("semantic_frames", 0)
         runner.stats.set("regions", len(self.dictionary))
@@ -198,14 +211,31 @@ class SemanticService:
             if not self.switch.accept(msg.frame_id, time.monotonic()):
                 runner.stats.incr("skipped_switch")
                 continue
+            instance = None
+            if self._instances is not None and msg.instance is None:
+                instance = self._instances.take(msg, timeout_s=self.section.instance_wait_s)
+                runner.stats.set("instances_evicted", self._instances.evicted)
+                if instance is None:
+                    self._skip_without_instance(runner, msg)
+                    continue
             try:
-                self.process(runner, msg)
+                self.process(runner, msg, instance)
             except QueryError as exc:
                 logger.warning("semantic: frame %d skipped: %s", msg.frame_id, exc)
                 runner.stats.incr("skipped_no_render")
             except ValueError as exc:
                 logger.warning("semantic: frame %d refused: %s", msg.frame_id, exc)
                 runner.stats.add_error()
+
+    def _skip_without_instance(self, runner: ServiceRunner, msg: RgbdFrame) -> None:
+        runner.stats.incr("skipped_no_instance")
+        self._frames_without_instance += 1
+        if self._frames_without_instance % 100 == 1:  # the first, then every 100th
+            logger.warning(
+                "semantic: frame %d skipped: its instance image did not arrive on %s within %.2f s (%d such "
+                "frames so far; the %r encoder needs a source with instance labels)", msg.frame_id,
+                runner.keys.sensor_instance, self.section.instance_wait_s, self._frames_without_instance,
+                self.section.encoder)
 
     def close(self) -> None:
         return None

@@ -220,15 +220,21 @@ def run_services(args: argparse.Namespace) -> dict[str, Any]:
                                                                         multicast_scouting=False))
     client = OpenFusionClient.from_config(client_cfg, timeout_s=30.0)
     rerun = open_rerun(args.rerun)
-    frames_sub = None
+    subscribers: list = []  # rerun viewer feeds, closed before the services stop
     started = time.monotonic()
     try:
         if rerun is not None:
             from openfusion.bus import Subscriber
-            from openfusion.messages import RgbdFrame
+            from openfusion.instance_join import InstanceBuffer
+            from openfusion.messages import InstanceFrame, RgbdFrame
 
-            frames_sub = Subscriber(client.session, client.keys.sensor_rgbd, RgbdFrame,
-                                    lambda msg: rerun.log_frame(msg.to_frame()), latest_only=True)
+            # Instance images come on their own key just before their frame: shown when there.
+            instances = InstanceBuffer()
+            subscribers.append(Subscriber(client.session, client.keys.sensor_instance, InstanceFrame, instances.add,
+                                          queue_size=8))
+            subscribers.append(Subscriber(client.session, client.keys.sensor_rgbd, RgbdFrame,
+                                          lambda msg: rerun.log_frame(msg.to_frame(instances.take(msg))),
+                                          latest_only=True))
         cluster.start("geometry", ["--map-dir", str(out / "checkpoints"), "--checkpoint-period-s", "0",
                                    "--set", "geometry.load_on_start=false"])
         semantic_args = ["--encoder", args.encoder, "--semantic-every", str(args.semantic_every)]
@@ -258,8 +264,8 @@ def run_services(args: argparse.Namespace) -> dict[str, Any]:
                 rerun.log_query(text, hits)
         summary = _summary(args, stats, time.monotonic() - started)
     finally:
-        if frames_sub is not None:
-            frames_sub.close()
+        for sub in subscribers:
+            sub.close()
         if rerun is not None:
             rerun.close()
         cluster.stop()

@@ -141,6 +141,12 @@ class KeySpace:
         """pub/sub of :class:`openfusion.messages.RgbdFrame`."""
         return self.key("sensor", "rgbd")
 
+    @property
+    def sensor_instance(self) -> str:
+        """pub/sub of :class:`openfusion.messages.InstanceFrame`: the ground-truth instance image
+        of the frame with the same id on :attr:`sensor_rgbd` (read by the gt encoder only)."""
+        return self.key("sensor", "instance")
+
     # geometry
     @property
     def geometry_render(self) -> str:

@@ -88,11 +88,14 @@ class RegionObservation:
 
 
 class RegionEncoder(abc.ABC):
-    """Frame -> :class:`RegionObservation`. Subclasses set ``name``, ``embedding_space``, ``dim``."""
+    """Frame -> :class:`RegionObservation`. Subclasses set ``name``, ``embedding_space``, ``dim``,
+    and ``needs_instances = True`` when they read ``frame.instance`` (the semantic service then
+    joins each frame with its :class:`~openfusion.messages.InstanceFrame` from the bus)."""
 
     name: str = ""
     embedding_space: str = ""
     dim: int = 0
+    needs_instances: bool = False
 
     def __init__(self, *, output_scale: float = DEFAULT_OUTPUT_SCALE) -> None:
         if not (0.0 < output_scale <= 1.0):

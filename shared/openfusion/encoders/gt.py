@@ -32,6 +32,7 @@ class GroundTruthRegionEncoder(RegionEncoder):
     """
 
     name = "gt"
+    needs_instances = True
 
     def __init__(
         self,

@@ -1,0 +1,65 @@
+"""Join frames from ``…/sensor/rgbd`` with their instance images from ``…/sensor/instance``.
+
+The bridge publishes a frame's :class:`~openfusion.messages.InstanceFrame` just before the
+frame itself, on the same session, so it normally arrives first. The semantic service keeps the
+last few in an :class:`InstanceBuffer` and, for the frame it is about to encode, takes the one
+with the same frame id and time stamp, waiting a little for it when the frame overtook it.
+"""
+
+from __future__ import annotations
+
+import collections
+import threading
+import time
+
+from openfusion.messages import InstanceFrame, RgbdFrame
+
+DEFAULT_CAPACITY = 32
+
+
+class InstanceBuffer:
+    """The newest ``capacity`` instance messages, looked up by (frame id, stamp).
+
+    Thread-safe: :meth:`add` runs on a subscriber thread, :meth:`take` on the service loop. The
+    semantic service encodes only the newest frame, so taking one entry also drops every entry
+    that arrived before it (those frames were skipped and will not be asked for). Memory is
+    bounded: past ``capacity`` the oldest entry goes (counted in ``evicted``).
+    """
+
+    def __init__(self, capacity: int = DEFAULT_CAPACITY) -> None:
+        if capacity < 1:
+            raise ValueError(f"capacity must be at least 1, got {capacity}")
+        self.capacity = capacity
+        self.evicted = 0
+        self._entries: collections.OrderedDict[tuple[int, int], InstanceFrame] = collections.OrderedDict()
+        self._cond = threading.Condition()
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._entries)
+
+    def add(self, msg: InstanceFrame) -> None:
+        key = (msg.frame_id, msg.stamp_ns)
+        with self._cond:
+            self._entries.pop(key, None)
+            self._entries[key] = msg
+            while len(self._entries) > self.capacity:
+                self._entries.popitem(last=False)
+                self.evicted += 1
+            self._cond.notify_all()
+
+    def take(self, frame: RgbdFrame, timeout_s: float = 0.0) -> InstanceFrame | None:
+        """The instance message of ``frame`` (removed, with everything older), waiting up to
+        ``timeout_s`` for it to arrive; None when it did not."""
+        key = (frame.frame_id, frame.stamp_ns)
+        deadline = time.monotonic() + max(0.0, timeout_s)
+        with self._cond:
+            while key not in self._entries:
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return None
+                self._cond.wait(remaining)
+            while True:
+                k, msg = self._entries.popitem(last=False)
+                if k == key:
+                    return msg
