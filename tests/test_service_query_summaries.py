@@ -18,21 +18,24 @@ from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.encoders import make_text_encoder
 from openfusion.frame import Frame
 from openfusion.mapping import RegionDictionary
+from openfusion.mapping.queries import query_regions, region_summaries
 from openfusion.messages import (
     ControlRequest,
     DictionaryRequest,
+    PointsRequest,
     RegionSummaryRequest,
     RgbdFrame,
     SemanticUpdate,
 )
 from openfusion.services.dictionary_sync import delta_message, snapshot_message
-from openfusion.services.geometry.service import (
-    GeometryConfig,
-    GeometrySection,
-    GeometryService,
-    region_summaries,
+from openfusion.services.geometry.service import GeometryConfig, GeometrySection, GeometryService
+from openfusion.services.query.service import (
+    QueryConfig,
+    QuerySection,
+    QueryService,
+    RegionSummaries,
+    region_hits,
 )
-from openfusion.services.query.service import QueryConfig, QuerySection, QueryService
 from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld
 
 pytestmark = pytest.mark.timeout(120)
@@ -79,25 +82,56 @@ def _expected(geo: GeometryService, key: int) -> tuple[np.ndarray, np.ndarray, i
     pts = geo.volume.extract_points(keys=[key])
     if not len(pts.points):
         return np.zeros(3, np.float32), np.zeros(3, np.float32), 0
-    return pts.points.min(axis=0), pts.points.max(axis=0), len(pts.points)
+    lo, hi = np.percentile(pts.points, [1.0, 99.0], axis=0)
+    return lo.astype(np.float32), hi.astype(np.float32), len(pts.points)
 
 
 # ------------------------------------------------------------------------- geometry, no bus
 
 
 def test_region_summaries_match_the_points_of_each_region() -> None:
+    """Boxes are the 1st-99th percentile per axis (np.percentile's), min/max with percentile=0;
+    a region of one point is that point; unlabelled points (-1) count nowhere."""
     rng = np.random.default_rng(0)
     points = rng.normal(size=(500, 3)).astype(np.float32)
     keys = rng.integers(-1, 7, 500).astype(np.int32)
+    keys[0], points[0] = 40, (1.0, 2.0, 3.0)  # a region of one point
     k, lo, hi, n = region_summaries(keys, points)
     assert k.tolist() == sorted(set(keys.tolist()) - {-1})
     for i, key in enumerate(k):
         mine = points[keys == key]
-        np.testing.assert_array_equal(lo[i], mine.min(axis=0))
-        np.testing.assert_array_equal(hi[i], mine.max(axis=0))
+        np.testing.assert_allclose(lo[i], np.percentile(mine, 1.0, axis=0), rtol=0, atol=1e-6)
+        np.testing.assert_allclose(hi[i], np.percentile(mine, 99.0, axis=0), rtol=0, atol=1e-6)
         assert n[i] == len(mine)
+    np.testing.assert_array_equal(lo[k == 40][0], [1.0, 2.0, 3.0])
+    k0, lo0, hi0, _ = region_summaries(keys, points, percentile=0.0)
+    for i, key in enumerate(k0):
+        np.testing.assert_array_equal(lo0[i], points[keys == key].min(axis=0))
+        np.testing.assert_array_equal(hi0[i], points[keys == key].max(axis=0))
     empty = region_summaries(np.full(3, -1, np.int32), points[:3])
     assert all(len(a) == 0 for a in empty)
+
+
+def test_a_query_reports_the_same_box_in_process_and_through_the_query_service() -> None:
+    """`openfusion query --map-dir` (library) and a remote query (query service: from geometry's
+    cached summaries, or from the points when points are asked for) give one box per region."""
+    geo = _geometry(max_key=16)
+    dictionary = _dictionary(17)
+    vector = TEXT.encode(["chair"])[0]
+    library = query_regions(dictionary, geo.volume, vector, top_k=5)
+    assert library
+    ranked = [(r.key, r.score) for r in library]
+    labels = {r.key: r.label or "" for r in library}
+    summaries = RegionSummaries(geo.handle_regions(RegionSummaryRequest()), fetched_at=0.0)
+    from_summary = region_hits(ranked, labels, None, with_points=False, max_points=0, summaries=summaries)
+    points = geo.handle_points(PointsRequest(keys=[k for k, _ in ranked], max_points=100_000))
+    from_points = region_hits(ranked, labels, points, with_points=True, max_points=50)
+    for lib, a, b in zip(library, from_summary, from_points, strict=True):
+        for hit in (a, b):
+            assert hit.key == lib.key and hit.num_points == lib.num_points
+            np.testing.assert_allclose(hit.bbox_min, lib.bbox_min, atol=1e-6)
+            np.testing.assert_allclose(hit.bbox_max, lib.bbox_max, atol=1e-6)
+        assert b.points is not None and len(b.points) == min(50, lib.num_points)
 
 
 def test_geometry_summary_is_cached_per_map_version_and_recomputed_after_changes() -> None:

@@ -52,6 +52,7 @@ from openfusion.mapping import (
 )
 from openfusion.mapping.mapfile import resolve_map_path
 from openfusion.mapping.params import ROOM_SCALE_INITIAL_BLOCKS
+from openfusion.mapping.queries import region_summaries
 from openfusion.messages import (
     ControlReply,
     ControlRequest,
@@ -122,31 +123,6 @@ def check_update(msg: SemanticUpdate) -> None:
     depth = msg.depth_m
     if depth is not None and depth.size and (not np.isfinite(depth).all() or float(depth.min()) < 0.0):
         raise ValueError("depth_m must be finite and >= 0")
-
-
-def region_summaries(
-    keys: np.ndarray, points: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per-region (keys int32, bbox_min (n,3) float32, bbox_max (n,3) float32, num_points int64) of
-    surface points with region ``keys`` (-1 = none, ignored); keys ascending."""
-    labelled = keys >= 0
-    k, p = keys[labelled], points[labelled]
-    if not len(k):
-        return (
-            np.zeros(0, np.int32),
-            np.zeros((0, 3), np.float32),
-            np.zeros((0, 3), np.float32),
-            np.zeros(0, np.int64),
-        )
-    order = np.argsort(k, kind="stable")
-    k, p = k[order], p[order]
-    uniq, start, counts = np.unique(k, return_index=True, return_counts=True)
-    return (
-        uniq.astype(np.int32),
-        np.minimum.reduceat(p, start, axis=0).astype(np.float32),
-        np.maximum.reduceat(p, start, axis=0).astype(np.float32),
-        counts.astype(np.int64),
-    )
 
 
 class _Summary:

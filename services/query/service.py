@@ -53,7 +53,7 @@ from pydantic import Field
 from openfusion.bus import QueryError, RequestError, ServiceRunner, get
 from openfusion.config import ConfigSection, ServiceConfig
 from openfusion.encoders import make_text_encoder
-from openfusion.mapping.queries import candidates_for
+from openfusion.mapping.queries import candidates_for, region_summaries, subsample_points
 from openfusion.messages import (
     DictionaryDelta,
     ImageQuery,
@@ -105,6 +105,14 @@ class RegionSummaries:
         self._index = {int(k): i for i, k in enumerate(reply.keys.tolist())}
         self._bbox_min, self._bbox_max, self._num_points = reply.bbox_min, reply.bbox_max, reply.num_points
 
+    @classmethod
+    def of_points(cls, keys: np.ndarray, points: np.ndarray) -> RegionSummaries:
+        """The same table computed here from labelled points (e.g. a ``geometry/points`` reply)."""
+        k, lo, hi, n = region_summaries(keys, points)
+        reply = RegionSummaryReply(map_version=0, key_horizon=0, age_s=0.0, keys=k, bbox_min=lo, bbox_max=hi,
+                                   num_points=n)
+        return cls(reply, fetched_at=time.monotonic())
+
     def __len__(self) -> int:
         return len(self._index)
 
@@ -140,23 +148,16 @@ def region_hits(
     summaries: RegionSummaries | None = None,
 ) -> list[RegionHit]:
     """Ranked (key, score) pairs → :class:`RegionHit` list. Box and count come from ``points``
-    (the points of those keys) when given, else from ``summaries`` (zeros when neither knows)."""
+    (the points of those keys) when given, else from ``summaries`` (zeros when neither knows);
+    the box is the library's (:func:`~openfusion.mapping.queries.region_summaries`), as in-process."""
     hits = []
+    if points is not None:
+        summaries = RegionSummaries.of_points(points.keys, points.points)
     for key, score in ranked:
-        kept = None
-        if points is None and summaries is not None:
-            bbox_min, bbox_max, n = summaries.get(key)
-        else:
-            if points is not None and len(points.keys):
-                pts = points.points[points.keys == key]
-            else:
-                pts = np.zeros((0, 3), np.float32)
-            if len(pts):
-                bbox_min, bbox_max = pts.min(axis=0), pts.max(axis=0)
-            else:
-                bbox_min = bbox_max = _ZERO3
-            n = int(len(pts))
-            kept = pts[:max_points] if with_points else None
+        bbox_min, bbox_max, n = summaries.get(key) if summaries is not None else (_ZERO3, _ZERO3, 0)
+        kept = None  # also when points were asked for but geometry did not answer
+        if with_points and points is not None:
+            kept = subsample_points(points.points[points.keys == key], max_points, seed=int(key))
         hits.append(
             RegionHit(
                 key=int(key),
