@@ -65,6 +65,13 @@ def test_embedded_run_maps_the_scene_over_the_bus_and_answers_queries(tmp_path: 
     assert chair_iou(out / "map", seed=1) >= 0.5
     if rerun_args:  # frames from the bus, the mesh and the query results went to the recording
         assert (tmp_path / "run.rrd").stat().st_size > 1_000_000
+        if importlib.util.find_spec("rerun.chunk"):  # reading .rrd back needs rerun-sdk >= 0.41
+            from rerun.chunk import RrdReader
+
+            entities = set(RrdReader(str(tmp_path / "run.rrd")).store().schema().entity_paths())
+            # The instance images came on their own key and were joined to their frames.
+            for wanted in ("/world/camera/image", "/world/camera/instances", "/world/map/mesh"):
+                assert wanted in entities, (wanted, sorted(entities))
 
 
 @pytest.mark.parametrize(("args", "needle"), [(["--frames", "0"], "--frames"), (["--map", "a/b"], "a/b")])

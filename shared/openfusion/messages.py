@@ -152,7 +152,6 @@ class RgbdFrame(PinholeMessage):
         ground-truth instance image out: the bridge sends it on its own key
         (:class:`InstanceFrame`), so geometry never receives those bytes."""
         frame.validate()
-        keep = with_instance and frame.instance is not None
         return cls(
             frame_id=frame.frame_id,
             stamp_ns=frame.stamp_ns,
@@ -161,8 +160,8 @@ class RgbdFrame(PinholeMessage):
             depth_scale=frame.depth_scale,
             color=frame.color,
             depth=frame.depth,
-            instance=frame.instance if keep else None,
-            instance_categories=dict(frame.instance_categories) if keep else {},
+            instance=frame.instance if with_instance else None,
+            instance_categories=dict(frame.instance_categories) if with_instance else {},
             source=frame.source,
         )
 
