@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 
@@ -22,7 +23,8 @@ from helpers_bus import (
     wait_until,
 )
 from openfusion.bus import Subscriber, collect_health, open_session
-from openfusion.messages import InstanceFrame, RgbdFrame
+from openfusion.config import ServiceConfig
+from openfusion.messages import HealthStats, InstanceFrame, RgbdFrame
 from openfusion.sources import open_source
 
 
@@ -76,3 +78,62 @@ def test_bridge_with_unknown_source_exits_with_one_clear_line() -> None:
     assert result.returncode != 0
     assert "Traceback" not in result.stderr
     assert "nosuch" in result.stderr
+
+
+def test_playback_at_full_speed_loses_no_frame_to_geometrys_bounded_queue(tmp_path: Path) -> None:
+    """A replay at --rate-hz 0 into a geometry service whose frame queue holds 4 frames: with flow
+    control (at most 3 frames not yet acknowledged on geometry/progress) every frame is integrated
+    and none dropped; with it off (--max-in-flight 0) the same replay overflows the queue, which is
+    what flow control is for. Bad input tried: a publisher far faster than the consumer."""
+    from openfusion.config import ZenohSettings
+    from openfusion.embedded import Cluster
+    from openfusion.sources.record import FrameRecorder
+
+    n = 20
+    recording = tmp_path / "frames.ofrec"
+    with FrameRecorder(recording) as rec:
+        for frame in open_source(f"synthetic:seed=2,frames={n},width=640,height=480"):
+            rec.write(frame)
+    map_id = unique_map_id("flow")
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_session(ServiceConfig(map_id=map_id, zenoh=ZenohSettings(mode="router", listen=[endpoint],
+                                                                            multicast_scouting=False)))
+    cluster = Cluster(map_id, endpoint, tmp_path / "logs")
+    try:
+        keys = loopback_config(map_id).keys
+
+        def geometry() -> HealthStats | None:
+            return collect_health(router, keys, timeout_s=1.0).get("geometry")
+
+        def play(*extra: str) -> HealthStats:
+            cluster.start("bridge", ["--source", f"replay:{recording}", "--rate-hz", "0", *extra])
+            bridge = wait_until(
+                lambda: (s := collect_health(router, keys, timeout_s=1.0).get("bridge")) is not None
+                and s.counters.get("playback_done") and s, timeout_s=120)
+            cluster.stop("bridge")
+            cluster.processes.pop("bridge")
+            return bridge
+
+        cluster.start("geometry", ["--checkpoint-period-s", "0", "--set", "geometry.frame_queue_size=4",
+                                   "--set", "geometry.initial_blocks=4096", "--set", "geometry.load_on_start=false"])
+        wait_until(geometry, timeout_s=120)
+
+        play("--max-in-flight", "0")
+        settled = wait_until(lambda: (g := geometry()) and g.counters.get("frames_integrated", 0) + g.drops >= n
+                             and g, timeout_s=120)
+        open_loop_drops = settled.drops
+        assert open_loop_drops > 0, "the replay should overflow a 4-frame queue without flow control"
+        integrated_before = settled.counters["frames_integrated"]
+
+        bridge = play("--max-in-flight", "3")
+        after = wait_until(lambda: (g := geometry()) and g.counters["frames_integrated"] >= integrated_before + n
+                           and g, timeout_s=120)
+        assert after.counters["frames_integrated"] == integrated_before + n
+        assert after.drops == open_loop_drops  # not one more frame lost
+        assert bridge.counters["frames_published"] == n
+        assert bridge.counters.get("flow_timeouts", 0) == 0
+        assert bridge.counters.get("flow_wait_s", 0) > 0  # it did wait for geometry
+        cluster.check_alive()
+    finally:
+        cluster.stop()
+        router.close()

@@ -4,7 +4,8 @@
 |---|---|---|
 | ``…/sensor/rgbd`` | publishes | :class:`~openfusion.messages.RgbdFrame` (without the instance image) |
 | ``…/sensor/instance`` | publishes, for frames that have one, just before the frame | :class:`~openfusion.messages.InstanceFrame` |
-| ``…/health/bridge`` | liveliness + stats | counters ``frames_read``, ``frames_published``, ``instances_published``, ``skipped_<reason>``, ``playback_done`` |
+| ``…/geometry/progress`` | subscribes (flow control, playback only) | :class:`~openfusion.messages.GeometryProgress` |
+| ``…/health/bridge`` | liveliness + stats | counters ``frames_read``, ``frames_published``, ``instances_published``, ``skipped_<reason>``, ``playback_done``, ``flow_wait_s``, ``flow_timeouts`` |
 
 Ground-truth instance images (synthetic scene, ScanNet, Replica) go on their own key: only the
 semantic service's gt encoder reads them, and on ``sensor/rgbd`` they were 45 % of every
@@ -14,6 +15,14 @@ Rates: ``rate_hz = 0`` publishes as fast as the source produces; ``rate_hz > 0``
 rate; unset (None) follows the frames' own timestamps (recorded rate). ``loop`` replays the
 source forever. Before the first frame the bridge waits up to ``wait_for_subscribers_s`` for a
 subscriber (so a geometry service started at the same time does not miss the start).
+
+Flow control (playback, i.e. ``block_when_congested``): at most ``max_in_flight`` frames are
+published and not yet taken by geometry (acknowledged on ``geometry/progress``), so a replay at
+``rate_hz = 0`` goes exactly as fast as geometry integrates and never overflows its bounded queue
+(it dropped half of a 150-frame replay before). No acknowledgement within ``flow_wait_s`` (no
+geometry, or one that died): counted in ``flow_timeouts``, and publishing continues open loop until
+geometry acknowledges again. Live sensors (``block_when_congested = false``) never wait: a stale
+frame is worth less than a fresh one. See :mod:`openfusion.flow_control`.
 """
 
 from __future__ import annotations
@@ -28,8 +37,9 @@ from pydantic import Field
 from openfusion.bus import Publisher, ServiceRunner
 from openfusion.codec import EncodeError
 from openfusion.config import ConfigSection, ServiceConfig
+from openfusion.flow_control import InFlightWindow
 from openfusion.frame import Frame
-from openfusion.messages import InstanceFrame, RgbdFrame
+from openfusion.messages import GeometryProgress, InstanceFrame, RgbdFrame
 from openfusion.services.common import ServiceDefinition
 from openfusion.sources import FrameSource, open_source
 
@@ -47,6 +57,10 @@ class BridgeSection(ConfigSection):
     # a frame when the link or a subscriber is congested. Set False for live sensors, where a
     # stale frame is worth less than a fresh one.
     block_when_congested: bool = True
+    # Playback flow control: frames published and not yet taken by geometry (0 = off). Well under
+    # geometry's frame queue (64), so none is dropped there.
+    max_in_flight: int = Field(default=16, ge=0)
+    flow_wait_s: float = Field(default=5.0, gt=0)
 
 
 class BridgeConfig(ServiceConfig):
@@ -88,6 +102,9 @@ class BridgeService:
             self.source.max_frames = self.section.max_frames
         self._pub: Publisher | None = None
         self._instance_pub: Publisher | None = None
+        self.window: InFlightWindow | None = None
+        if self.section.block_when_congested and self.section.max_in_flight > 0:
+            self.window = InFlightWindow(self.section.max_in_flight)
 
     def setup(self, runner: ServiceRunner) -> None:
         import zenoh
@@ -95,6 +112,10 @@ class BridgeService:
         congestion = zenoh.CongestionControl.BLOCK if self.section.block_when_congested else zenoh.CongestionControl.DROP
         self._pub = runner.publisher(runner.keys.sensor_rgbd, congestion_control=congestion)
         self._instance_pub = runner.publisher(runner.keys.sensor_instance, congestion_control=congestion)
+        if self.window is not None:
+            window = self.window
+            runner.subscriber(runner.keys.geometry_progress, GeometryProgress,
+                              lambda m: window.acknowledge(m.frame_id, m.stamp_ns), queue_size=256)
 
     def _publish(self, runner: ServiceRunner, frame: Frame) -> None:
         assert self._pub is not None and self._instance_pub is not None
@@ -107,6 +128,8 @@ class BridgeService:
                 self._instance_pub.put(instance)
                 runner.stats.incr("instances_published")
             self._pub.put(rgbd)
+            if self.window is not None:
+                self.window.sent(frame.frame_id, frame.stamp_ns)
         except (EncodeError, ValueError) as exc:
             logger.warning("bridge: frame %d not published: %s", frame.frame_id, exc)
             runner.stats.add_error()
@@ -114,6 +137,28 @@ class BridgeService:
             return
         runner.stats.record(time.monotonic() - started)
         runner.stats.incr("frames_published")
+
+    def _wait_for_geometry(self, runner: ServiceRunner) -> bool:
+        """Flow control: wait until geometry has room for another frame. False when stopping."""
+        if self.window is None:
+            return True
+        started = time.monotonic()
+        deadline = started + self.section.flow_wait_s
+        while not self.window.wait_for_room(min(0.2, max(0.0, deadline - time.monotonic()))):
+            if runner.stopping:
+                return False
+            if time.monotonic() >= deadline:
+                self.window.give_up()
+                runner.stats.set("flow_timeouts", self.window.timeouts)
+                logger.warning(
+                    "bridge: geometry took none of the last %d frames within %.1f s (acknowledged on %s); "
+                    "publishing without waiting until it does", self.window.limit, self.section.flow_wait_s,
+                    runner.keys.geometry_progress)
+                break
+        waited = time.monotonic() - started
+        if waited > 0:
+            runner.stats.incr("flow_wait_s", waited)
+        return True
 
     def _sync_source_stats(self, runner: ServiceRunner) -> None:
         st = self.source.stats
@@ -139,6 +184,8 @@ class BridgeService:
                 runner.stats.incr("frames_read")
                 wait_s = pacer.due_s(frame.stamp_ns)
                 if wait_s > 0 and runner.wait(wait_s):
+                    break
+                if not self._wait_for_geometry(runner):
                     break
                 self._publish(runner, frame)
                 self._sync_source_stats(runner)
@@ -181,11 +228,14 @@ def _add_options(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--loop", action="store_true", default=None, help="replay the source forever")
     g.add_argument("--max-frames", type=int, help="stop after N frames")
     g.add_argument("--progress", action="store_true", default=None, help="show a progress bar")
+    g.add_argument("--max-in-flight", type=int, help="playback: frames published and not yet taken by geometry "
+                   "(default 16; 0 = do not wait for geometry)")
 
 
 def _options(args: argparse.Namespace) -> dict[str, Any]:
     return {"bridge": {"source": args.source, "rate_hz": args.rate_hz, "loop": args.loop,
-                       "max_frames": args.max_frames, "progress": args.progress}}
+                       "max_frames": args.max_frames, "progress": args.progress,
+                       "max_in_flight": args.max_in_flight}}
 
 
 DEFINITION = ServiceDefinition(

@@ -5,6 +5,7 @@
 | ``…/sensor/rgbd`` | subscribes (every frame, bounded queue) | :class:`~openfusion.messages.RgbdFrame` |
 | ``…/semantic/update`` | subscribes | :class:`~openfusion.messages.SemanticUpdate` |
 | ``…/semantic/dictionary/delta`` | subscribes (replica for checkpoints) | :class:`~openfusion.messages.DictionaryDelta` |
+| ``…/geometry/progress`` | publishes, one per frame taken from the queue | :class:`~openfusion.messages.GeometryProgress` (the bridge's flow control) |
 | ``…/geometry/render`` | queryable | RenderRequest → RenderReply |
 | ``…/geometry/points`` | queryable | PointsRequest → PointsReply (capped) |
 | ``…/geometry/mesh`` | queryable | MeshRequest → MeshReply |
@@ -38,9 +39,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import zenoh
 from pydantic import Field
 
-from openfusion.bus import RequestError, ServiceRunner
+from openfusion.bus import Publisher, RequestError, ServiceRunner, Subscriber
 from openfusion.config import ConfigSection, ServiceConfig
 from openfusion.mapping import (
     CapacityError,
@@ -59,6 +61,7 @@ from openfusion.messages import (
     DictionaryDelta,
     DictionaryRequest,
     DictionarySnapshot,
+    GeometryProgress,
     MeshReply,
     MeshRequest,
     PointsReply,
@@ -170,6 +173,8 @@ class GeometryService:
             self.section.map_dir / config.map_id if self.section.map_dir is not None else None
         )
         self._runner: ServiceRunner | None = None
+        self._frames_sub: Subscriber[RgbdFrame] | None = None
+        self._progress_pub: Publisher | None = None
         if (
             self.section.load_on_start
             and self.checkpoint_dir is not None
@@ -237,7 +242,9 @@ class GeometryService:
         except CapacityError as exc:
             logger.warning("geometry: frame %d refused: %s", frame.frame_id, exc)
             self._count("capacity_refused")
+            self._acknowledge(msg, integrated=False)
             return
+        self._acknowledge(msg, integrated=True)
         if self._runner is not None:
             ended = time.monotonic()
             elapsed = ended - started
@@ -247,6 +254,17 @@ class GeometryService:
             self._runner.stats.set("frames_integrated", self.frames_integrated)
             self._runner.stats.set("num_blocks", self.volume.num_blocks)
             self._runner.stats.set("last_frame_id", frame.frame_id)
+
+    def _acknowledge(self, msg: RgbdFrame, *, integrated: bool) -> None:
+        """Tell the bridge this frame left the queue (its flow control waits for this)."""
+        if self._progress_pub is None:
+            return
+        queued = self._frames_sub.queued if self._frames_sub is not None else 0
+        try:
+            self._progress_pub.put(GeometryProgress(frame_id=msg.frame_id, stamp_ns=msg.stamp_ns, integrated=integrated,
+                                                    frames_integrated=self.frames_integrated, queued=queued))
+        except zenoh.ZError as exc:  # the map is fine; the bridge falls back to open loop
+            logger.warning("geometry: progress for frame %d not published: %s", msg.frame_id, exc)
 
     def on_update(self, msg: SemanticUpdate) -> None:
         check_update(msg)
@@ -375,7 +393,8 @@ class GeometryService:
     def setup(self, runner: ServiceRunner) -> None:
         self._runner = runner
         keys = runner.keys
-        runner.subscriber(
+        self._progress_pub = runner.publisher(keys.geometry_progress)
+        self._frames_sub = runner.subscriber(
             keys.sensor_rgbd, RgbdFrame, self.on_frame, queue_size=self.section.frame_queue_size
         )
         runner.subscriber(keys.semantic_update, SemanticUpdate, self.on_update, queue_size=64)

@@ -294,6 +294,12 @@ class Subscriber(Generic[M]):
             self._thread.start()
 
     @property
+    def queued(self) -> int:
+        """Samples waiting in the queue now."""
+        with self._cond:
+            return len(self._queue)
+
+    @property
     def drops(self) -> int:
         """Samples lost: discarded by our queue plus gaps in the publishers' sequence numbers."""
         return self.dropped_queue + self.dropped_upstream

@@ -149,6 +149,12 @@ class KeySpace:
 
     # geometry
     @property
+    def geometry_progress(self) -> str:
+        """pub/sub of :class:`openfusion.messages.GeometryProgress`: one per frame geometry took
+        from its queue (the bridge's flow control during playback)."""
+        return self.key("geometry", "progress")
+
+    @property
     def geometry_render(self) -> str:
         """queryable: RenderRequest -> RenderReply."""
         return self.key("geometry", "render")

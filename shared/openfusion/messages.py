@@ -241,6 +241,21 @@ class InstanceFrame(Message):
 # --------------------------------------------------------------------------------- geometry
 
 
+class GeometryProgress(Message):
+    """The geometry service took frame (``frame_id``, ``stamp_ns``) out of its queue (integrated
+    it, or refused it for capacity), on ``…/geometry/progress``: the acknowledgement the bridge's
+    flow control (:mod:`openfusion.flow_control`) waits for during playback."""
+
+    schema_name: ClassVar[str] = "geometry.progress"
+    schema_version: ClassVar[int] = 1
+
+    frame_id: int = Field(ge=0)
+    stamp_ns: int = Field(ge=0)
+    integrated: bool
+    frames_integrated: int = Field(ge=0)
+    queued: int = Field(ge=0)  # frames waiting in geometry's queue after this one
+
+
 class RenderRequest(PinholeMessage):
     """Render the map's region keys from ``T_world_cam`` into a small ``width_px`` x ``height_px`` view."""
 
