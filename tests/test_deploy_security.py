@@ -433,6 +433,32 @@ def test_sensor_identity_cannot_write_outside_sensor_keys(router: Router) -> Non
         assert deltas.items == [b"gpu-semantic"]
 
 
+def test_sensor_identity_reads_geometry_progress_and_nothing_else_of_geometry(router: Router) -> None:
+    """The bridge's flow control: robot-sensor receives geometry's acknowledgements on
+    geometry/progress. Bad input: robot-sensor subscribing to other geometry keys (render, points)
+    and putting a forged acknowledgement; the query client subscribing to progress."""
+    with (
+        _client("geometry", router) as geometry,
+        _client("robot-sensor", router) as sensor,
+        _client("query-client", router) as asker,
+    ):
+        _sub_p, progress = _subscribe(sensor, _key("geometry", "progress"))
+        _sub_r, render = _subscribe(sensor, _key("geometry", "render"))
+        _sub_q, asked = _subscribe(asker, _key("geometry", "progress"))
+        _sub_g, forged = _subscribe(geometry, _key("geometry", "progress"))
+        time.sleep(SETTLE_S)
+        sensor.put(_key("geometry", "progress"), b"forged-by-robot-sensor")
+        geometry.put(_key("geometry", "render"), b"geometry-render")
+        geometry.put(_key("geometry", "progress"), b"geometry-ack")
+        assert _wait_until(lambda: progress.items)
+        time.sleep(SETTLE_S)
+        # A session's own subscribers see its own puts (Zenoh delivers them without the router):
+        # the forged acknowledgement reaches only robot-sensor itself, never geometry.
+        assert progress.items == [b"forged-by-robot-sensor", b"geometry-ack"]
+        assert forged.items == [b"geometry-ack"]
+        assert render.items == [] and asked.items == []
+
+
 def test_control_queries_need_the_admin_identity(router: Router) -> None:
     """Bad input: control/save asked by the query client, the robot sensor, the semantic service
     (which may answer control but not ask it). Only the admin's query reaches the queryable."""
