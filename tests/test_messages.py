@@ -60,6 +60,7 @@ EXAMPLES: dict[str, m.Message] = {
     "sensor.instance": m.InstanceFrame(
         frame_id=1, stamp_ns=5, instance=_i32(6, 8), instance_categories={3: "office chair"}, source="synthetic"
     ),
+    "geometry.progress": m.GeometryProgress(frame_id=1, stamp_ns=5, integrated=True, frames_integrated=9, queued=2),
     "geometry.render_request": m.RenderRequest(frame_id=2, T_world_cam=_pose(), **K_FIELDS),
     "geometry.render_reply": m.RenderReply(
         frame_id=2, key_map=_i32(6, 8), conf_map=_f32(6, 8), depth_m=_f32(6, 8)
@@ -218,6 +219,8 @@ def _replace(msg: m.Message, **changes: Any) -> dict[str, Any]:
         ("sensor.instance", {"instance": np.zeros((6, 8), np.int64)}, "dtype int64"),
         ("sensor.instance", {"instance": np.zeros((0, 8), np.int32)}, "empty"),
         ("sensor.instance", {"frame_id": -1}, "greater than or equal to 0"),
+        ("geometry.progress", {"queued": -1}, "greater than or equal to 0"),
+        ("geometry.progress", {"integrated": "perhaps"}, "valid boolean"),
         ("geometry.render_request", {"T_world_cam": np.full((4, 4), np.inf)}, "finite"),
         ("geometry.render_reply", {"depth_m": _f32(6, 7)}, "same shape"),
         ("geometry.points_reply", {"keys": _i32(3)}, "differ in length"),
