@@ -117,6 +117,20 @@ def _settled_dictionary(env: Env) -> DictionarySnapshot:
     raise AssertionError("the dictionary did not settle")
 
 
+def _settle_map(env: Env) -> None:
+    """Wait until geometry stopped receiving semantic updates and frames for a moment (the semantic
+    service may still be encoding the last frames of an earlier test's playback)."""
+    last = None
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        now = (env.counter("geometry", "updates_applied"), env.counter("geometry", "frames_integrated"))
+        if now == last:
+            return
+        last = now
+        time.sleep(1.0)
+    raise AssertionError("the map did not settle")
+
+
 def test_remote_query_from_a_separate_client_process_finds_the_chair(env: Env) -> None:
     result = subprocess.run(
         [
@@ -247,6 +261,7 @@ def test_kill_semantic_geometry_keeps_integrating_then_restart_keeps_the_diction
 
 
 def test_kill_geometry_after_save_and_restart_loses_nothing_saved(env: Env) -> None:
+    _settle_map(env)  # what is compared below must be what the checkpoint holds
     reply: ControlReply = env.client.control("save")
     assert reply.ok, reply.message
     saved = env.client.points(max_points=500_000)
