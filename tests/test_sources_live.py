@@ -136,3 +136,25 @@ def test_too_new_librealsense_is_refused(monkeypatch: pytest.MonkeyPatch) -> Non
     monkeypatch.setitem(sys.modules, "pyrealsense2", fake)
     with pytest.raises(LiveDependencyError, match="2.53.1.4623"):
         T265Driver()
+
+
+def test_bridge_never_blocks_or_waits_for_a_live_source_but_does_for_playback() -> None:
+    """A live camera must not be slowed down by geometry: the bridge drops under congestion and
+    has no flow control for it; a dataset/synthetic source gets both. The config overrides."""
+    from openfusion.services.bridge.service import BridgeConfig, BridgeService
+
+    t265 = FakeT265()
+    live = KinectT265Source(sync=SyncConfig(), image_driver=FakeKinect(t265, n=2), pose_driver=t265)
+    assert live.live
+    from openfusion.sources.ros2 import Ros2Source
+
+    assert Ros2Source.live  # ROS 2 topics are live too
+    bridge = BridgeService(BridgeConfig(), source=live)
+    assert bridge.blocking is False and bridge.window is None
+    playback = BridgeService(BridgeConfig(), source=open_source("synthetic:frames=2,width=80,height=60"))
+    assert playback.blocking is True and playback.window is not None and playback.window.limit == 16
+    forced = BridgeService(BridgeConfig.model_validate({"bridge": {"block_when_congested": True}}), source=live)
+    assert forced.blocking is True and forced.window is not None
+    no_flow = BridgeService(BridgeConfig.model_validate({"bridge": {"max_in_flight": 0}}),
+                            source=open_source("synthetic:frames=2,width=80,height=60"))
+    assert no_flow.blocking is True and no_flow.window is None

@@ -16,13 +16,17 @@ rate; unset (None) follows the frames' own timestamps (recorded rate). ``loop`` 
 source forever. Before the first frame the bridge waits up to ``wait_for_subscribers_s`` for a
 subscriber (so a geometry service started at the same time does not miss the start).
 
-Flow control (playback, i.e. ``block_when_congested``): at most ``max_in_flight`` frames are
-published and not yet taken by geometry (acknowledged on ``geometry/progress``), so a replay at
-``rate_hz = 0`` goes exactly as fast as geometry integrates and never overflows its bounded queue
-(it dropped half of a 150-frame replay before). No acknowledgement within ``flow_wait_s`` (no
-geometry, or one that died): counted in ``flow_timeouts``, and publishing continues open loop until
-geometry acknowledges again. Live sensors (``block_when_congested = false``) never wait: a stale
-frame is worth less than a fresh one. See :mod:`openfusion.flow_control`.
+Playback versus live: for a dataset, recording or the synthetic scene the bridge must get every
+frame into the map, so it blocks when Zenoh is congested and has flow control: at most
+``max_in_flight`` frames are published and not yet taken by geometry (acknowledged on
+``geometry/progress``), so a replay at ``rate_hz = 0`` goes exactly as fast as geometry integrates
+and never overflows its bounded queue (it dropped half of a 150-frame replay before). No
+acknowledgement within ``flow_wait_s`` (no geometry, or one that died): counted in
+``flow_timeouts``, and publishing continues open loop until geometry acknowledges again. For a live
+source (``FrameSource.live``: Kinect + T265, ROS 2 topics) the bridge never blocks or waits: Zenoh
+drops a frame under congestion and geometry's queue drops its oldest, since a stale frame is worth
+less than a fresh one. ``block_when_congested`` (default: by source) overrides the choice. See
+:mod:`openfusion.flow_control`.
 """
 
 from __future__ import annotations
@@ -53,10 +57,10 @@ class BridgeSection(ConfigSection):
     max_frames: int | None = Field(default=None, ge=0)
     wait_for_subscribers_s: float = Field(default=10.0, ge=0)
     progress: bool = False
-    # Dataset playback must not lose frames: block (back-pressure) instead of letting Zenoh drop
-    # a frame when the link or a subscriber is congested. Set False for live sensors, where a
-    # stale frame is worth less than a fresh one.
-    block_when_congested: bool = True
+    # Playback must not lose frames: block (back-pressure) instead of letting Zenoh drop a frame
+    # when the link is congested, and wait for geometry (flow control). Live sensors must not
+    # wait: a stale frame is worth less than a fresh one. None = by source (live or not).
+    block_when_congested: bool | None = None
     # Playback flow control: frames published and not yet taken by geometry (0 = off). Well under
     # geometry's frame queue (64), so none is dropped there.
     max_in_flight: int = Field(default=16, ge=0)
@@ -102,14 +106,20 @@ class BridgeService:
             self.source.max_frames = self.section.max_frames
         self._pub: Publisher | None = None
         self._instance_pub: Publisher | None = None
+        blocking = self.section.block_when_congested
+        self.blocking = (not self.source.live) if blocking is None else blocking
         self.window: InFlightWindow | None = None
-        if self.section.block_when_congested and self.section.max_in_flight > 0:
+        if self.blocking and self.section.max_in_flight > 0:
             self.window = InFlightWindow(self.section.max_in_flight)
 
     def setup(self, runner: ServiceRunner) -> None:
         import zenoh
 
-        congestion = zenoh.CongestionControl.BLOCK if self.section.block_when_congested else zenoh.CongestionControl.DROP
+        congestion = zenoh.CongestionControl.BLOCK if self.blocking else zenoh.CongestionControl.DROP
+        logger.info("bridge: %s source %s: %s", "live" if self.source.live else "playback", self.source.name,
+                    f"blocks when congested, at most {self.window.limit} frames ahead of geometry"
+                    if self.window is not None else "blocks when congested" if self.blocking
+                    else "never blocks (frames may be dropped under congestion)")
         self._pub = runner.publisher(runner.keys.sensor_rgbd, congestion_control=congestion)
         self._instance_pub = runner.publisher(runner.keys.sensor_instance, congestion_control=congestion)
         if self.window is not None:

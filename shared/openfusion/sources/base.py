@@ -66,8 +66,12 @@ class FrameSource(ABC):
     """An iterable of canonical ``Frame`` objects (docs/ARCHITECTURE.md, "Sources").
 
     Each ``iter()`` starts a new pass and resets ``stats``. ``max_frames`` stops after that
-    many yielded frames; ``stride`` keeps every n-th item (indexed sources only).
+    many yielded frames; ``stride`` keeps every n-th item (indexed sources only). ``live`` is True
+    for sources whose frames come from sensors in real time (Kinect + T265, ROS 2 topics): the
+    bridge then never blocks or waits for them (a stale frame is worth less than a fresh one).
     """
+
+    live: bool = False
 
     def __init__(self, name: str, *, max_frames: int | None = None) -> None:
         if max_frames is not None and max_frames < 0:

@@ -194,6 +194,8 @@ class KinectT265Source(FrameSource):
     ``image_driver``/``pose_driver`` replace the hardware (tests, other sensors).
     """
 
+    live = True
+
     def __init__(
         self,
         *,

@@ -242,6 +242,8 @@ class Ros2Source(FrameSource):
     after ``idle_timeout_s`` without samples (None: runs until ``close()``).
     """
 
+    live = True
+
     def __init__(
         self,
         config: Ros2Config | None = None,
