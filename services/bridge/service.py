@@ -165,9 +165,7 @@ class BridgeService:
                     "publishing without waiting until it does", self.window.limit, self.section.flow_wait_s,
                     runner.keys.geometry_progress)
                 break
-        waited = time.monotonic() - started
-        if waited > 0:
-            runner.stats.incr("flow_wait_s", waited)
+        runner.stats.incr("flow_wait_s", time.monotonic() - started)
         return True
 
     def _sync_source_stats(self, runner: ServiceRunner) -> None:

@@ -151,8 +151,9 @@ def region_hits(
     (the points of those keys) when given, else from ``summaries`` (zeros when neither knows);
     the box is the library's (:func:`~openfusion.mapping.queries.region_summaries`), as in-process."""
     hits = []
-    if points is not None:
-        summaries = RegionSummaries.of_points(points.keys, points.points)
+    if points is not None:  # boxes of the ranked regions only (a point query's reply holds the whole map)
+        ranked_pts = np.isin(points.keys, [k for k, _ in ranked])
+        summaries = RegionSummaries.of_points(points.keys[ranked_pts], points.points[ranked_pts])
     for key, score in ranked:
         bbox_min, bbox_max, n = summaries.get(key) if summaries is not None else (_ZERO3, _ZERO3, 0)
         kept = None  # also when points were asked for but geometry did not answer

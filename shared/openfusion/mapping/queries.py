@@ -102,7 +102,8 @@ def region_summaries(
     if not len(k):
         return (np.zeros(0, np.int32), np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32),
                 np.zeros(0, np.int64))
-    uniq, start, counts = np.unique(np.sort(k, kind="stable"), return_index=True, return_counts=True)
+    uniq, counts = np.unique(k, return_counts=True)
+    start = np.cumsum(counts) - counts  # where each region begins once sorted by key
     q = float(percentile) / 100.0
     # Rank within each region (linear interpolation between the two nearest) for both bounds.
     ranks = []
