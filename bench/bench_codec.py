@@ -37,7 +37,7 @@ TARGET_RATIO = 0.5
 
 
 def make_frame_message(seed: int = 0) -> Any:
-    from openfusion.messages import RgbdFrame
+    from openfusion.wire.schemas import RgbdFrame
 
     rng = np.random.default_rng(seed)
     return RgbdFrame(
@@ -68,8 +68,8 @@ def _median_ms(fn: Callable[[], Any], iterations: int) -> float:
 
 
 def bench_in_process(iterations: int) -> list[dict[str, Any]]:
-    from openfusion.codec import decode, encode
-    from openfusion.messages import RgbdFrame
+    from openfusion.wire.codec import decode, encode
+    from openfusion.wire.schemas import RgbdFrame
 
     msg = make_frame_message()
     color, depth = msg.color, msg.depth
@@ -135,7 +135,7 @@ def run_subscriber(mode: str, port: int, timeout_s: float) -> dict[str, Any]:
     import zenoh
 
     from openfusion.bus import Subscriber, open_session
-    from openfusion.messages import RgbdFrame
+    from openfusion.wire.schemas import RgbdFrame
 
     session = open_session(_config(port, listen=True))
     key = "openfusion/bench/sensor/rgbd"

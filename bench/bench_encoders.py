@@ -28,9 +28,9 @@ from openfusion.encoders.clip_export import export_clip_to_onnx
 from openfusion.encoders.clip_regions import DEFAULT_CLIP_MODEL
 from openfusion.encoders.graph_segmentation import GraphSegmentationProposer
 from openfusion.encoders.masks import area_downsample_labels
-from openfusion.encoders.testing import grid_boxes, make_box_frame
-from openfusion.encoders.tiny_models import build_tiny_clip, build_tiny_region_onnx, build_tiny_text_onnx
 from openfusion.frame import Frame
+from openfusion.testing.images import grid_boxes, make_box_frame
+from openfusion.testing.models import build_tiny_clip, build_tiny_region_onnx, build_tiny_text_onnx
 
 CATEGORIES = ["office chair", "table", "sofa", "bed", "bookshelf", "cabinet", "lamp", "monitor", "plant", "door"]
 

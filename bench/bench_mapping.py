@@ -29,8 +29,8 @@ import open3d.core as o3c
 
 from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume, VolumeParams
-from openfusion.mapping.analytic_scene import SimpleObservation, furnished_room, orbit_poses
 from openfusion.mapping.volume import range_map_down_factor, resample_nearest
+from openfusion.testing.analytic_scene import SimpleObservation, furnished_room, orbit_poses
 
 OBS_W, OBS_H = 160, 120
 REGIONS_PER_FRAME = 50

@@ -40,17 +40,17 @@ import numpy as np
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
+from openfusion.app.run import Cluster, free_port, wait_for_services  # noqa: E402
 from openfusion.bus import Queryable, collect_health, get, open_session  # noqa: E402
 from openfusion.client import OpenFusionClient  # noqa: E402
 from openfusion.config import ServiceConfig, ZenohSettings  # noqa: E402
-from openfusion.embedded import Cluster, free_port, wait_for_services  # noqa: E402
 from openfusion.encoders import make_text_encoder  # noqa: E402
 from openfusion.mapping import RegionDictionary, SemanticVolume, VolumeParams, save_map  # noqa: E402
-from openfusion.messages import DictionaryRequest, HealthStats, PointsReply, PointsRequest  # noqa: E402
 from openfusion.services.dictionary_sync import snapshot_message  # noqa: E402
 from openfusion.services.geometry.service import GeometrySection  # noqa: E402
 from openfusion.sources.record import FrameRecorder  # noqa: E402
 from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld  # noqa: E402
+from openfusion.wire.schemas import DictionaryRequest, HealthStats, PointsReply, PointsRequest  # noqa: E402
 
 
 class Bus:

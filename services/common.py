@@ -68,6 +68,6 @@ class ServiceDefinition:
 
     def main(self, argv: Sequence[str] | None = None) -> int:
         """``python -m openfusion.services.NAME``: same as ``openfusion service NAME``."""
-        from openfusion.cli import main as cli_main
+        from openfusion.app.cli import main as cli_main
 
         return cli_main(["service", self.name, *(argv if argv is not None else __import__("sys").argv[1:])])

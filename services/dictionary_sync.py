@@ -15,7 +15,7 @@ from openfusion.bus import QueryError, get
 from openfusion.mapping import DictionaryDelta as LibDelta
 from openfusion.mapping import DictionarySnapshot as LibSnapshot
 from openfusion.mapping import EmbeddingSpaceError, RegionDictionary, StaleVersionError
-from openfusion.messages import DictionaryDelta, DictionaryRequest, DictionarySnapshot
+from openfusion.wire.schemas import DictionaryDelta, DictionaryRequest, DictionarySnapshot
 
 logger = logging.getLogger(__name__)
 

@@ -25,10 +25,17 @@ from openfusion.bus import (
     get,
     live_services,
 )
-from openfusion.codec import decode, encode
-from openfusion.demo_service import PingReply, PingRequest
-from openfusion.keys import KeySpace
-from openfusion.messages import ControlReply, ControlRequest, ErrorReply, HealthStats, RenderReply, TextQuery
+from openfusion.testing.demo_service import PingReply, PingRequest
+from openfusion.wire.codec import decode, encode
+from openfusion.wire.keys import KeySpace
+from openfusion.wire.schemas import (
+    ControlReply,
+    ControlRequest,
+    ErrorReply,
+    HealthStats,
+    RenderReply,
+    TextQuery,
+)
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -293,7 +300,7 @@ def test_service_runner_health_liveliness_and_close(sessions, keys) -> None:
 
 
 def _demo(keys: KeySpace, port: int) -> ServiceProcess:
-    return ServiceProcess("openfusion.demo_service", [*loopback_args(keys.map_id, connect=[port]), "--set", "health_period_s=0.2"])
+    return ServiceProcess("openfusion.testing.demo_service", [*loopback_args(keys.map_id, connect=[port]), "--set", "health_period_s=0.2"])
 
 
 def test_demo_service_liveliness_disappears_on_kill_9(sessions, keys) -> None:

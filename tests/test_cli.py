@@ -23,16 +23,16 @@ from helpers_bus import (
     unique_map_id,
     wait_until,
 )
-from openfusion import cli
+from openfusion.app import cli
 from openfusion.bus import Publisher, Subscriber, open_session
 from openfusion.config import ServiceConfig
-from openfusion.keys import KeySpace
-from openfusion.messages import TextQuery
+from openfusion.wire.keys import KeySpace
+from openfusion.wire.schemas import TextQuery
 
 pytestmark = pytest.mark.timeout(120)
 
 _SCRIPT = Path(sys.executable).parent / "openfusion"
-OPENFUSION = [str(_SCRIPT)] if _SCRIPT.exists() else [sys.executable, "-m", "openfusion.cli"]
+OPENFUSION = [str(_SCRIPT)] if _SCRIPT.exists() else [sys.executable, "-m", "openfusion.app.cli"]
 
 
 def _run(*args: str, timeout_s: float = 60) -> subprocess.CompletedProcess[str]:
@@ -77,7 +77,7 @@ def test_health_lists_a_live_service_with_its_stats() -> None:
     """With the demo service running, `openfusion health` shows it (table and JSON with its pid)."""
     map_id = unique_map_id("cli")
     port = free_port()
-    with ServiceProcess("openfusion.demo_service", loopback_args(map_id, listen=[port])) as svc:
+    with ServiceProcess("openfusion.testing.demo_service", loopback_args(map_id, listen=[port])) as svc:
         args = ["health", "--map", map_id, "--no-multicast", "--connect", endpoint(port), "--timeout", "20"]
         proc = _run(*args, "--json")
         assert proc.returncode == 0, proc.stderr + svc.output()
@@ -95,7 +95,7 @@ def test_router_relays_between_clients_and_exits_0_on_sigterm() -> None:
     port = free_port()
     map_id = unique_map_id("router")
     keys = KeySpace("openfusion", map_id)
-    router = ServiceProcess("openfusion.cli", ["router", "--listen", endpoint(port), "--no-multicast"])
+    router = ServiceProcess("openfusion.app.cli", ["router", "--listen", endpoint(port), "--no-multicast"])
     with router:
         wait_until(lambda: "listening on" in router.output(), timeout_s=30)
         client = ServiceConfig.model_validate(
@@ -126,7 +126,7 @@ def test_registry_skips_missing_modules_and_loads_only_the_chosen_one(monkeypatc
     parser, loaded = cli.build_parser(["version"])
     assert set(loaded) == {"version"}
     assert "later" not in parser.format_help() and "health" in parser.format_help()
-    code = "import sys; from openfusion.cli import main; main(['version']); print('torch' in sys.modules)"
+    code = "import sys; from openfusion.app.cli import main; main(['version']); print('torch' in sys.modules)"
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=subprocess_env())
     assert proc.stdout.strip().splitlines()[-1] == "False"
 

@@ -13,9 +13,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from openfusion import codec
-from openfusion.codec import ALLOWED_DTYPES, DecodeError, EncodeError, decode, encode, ndarray
-from openfusion.messages import Message, RgbdFrame, TextQuery
+from openfusion.wire import codec
+from openfusion.wire.codec import ALLOWED_DTYPES, DecodeError, EncodeError, decode, encode, ndarray
+from openfusion.wire.schemas import Message, RgbdFrame, TextQuery
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -494,15 +494,15 @@ def test_dev_peers_find_each_other_through_the_hub_without_multicast() -> None:
 
 
 def _cli_parser_for(argv: list[str]) -> Any:
-    """The `openfusion` argparse parser ready to parse ``argv`` (openfusion.cli.build_parser
+    """The `openfusion` argparse parser ready to parse ``argv`` (openfusion.app.cli.build_parser
     loads only the arguments of the sub-command named in argv, and returns (parser, loaded))."""
     try:
-        cli = importlib.import_module("openfusion.cli")
+        cli = importlib.import_module("openfusion.app.cli")
     except ImportError as error:
-        pytest.fail(f"openfusion.cli cannot be imported: {error}")
+        pytest.fail(f"openfusion.app.cli cannot be imported: {error}")
     builder = getattr(cli, "build_parser", None)
     if not callable(builder):
-        pytest.fail("openfusion.cli exposes no build_parser(argv)")
+        pytest.fail("openfusion.app.cli exposes no build_parser(argv)")
     built = builder(argv)
     return built[0] if isinstance(built, tuple) else built
 
@@ -511,7 +511,7 @@ def test_compose_commands_parse_with_cli(capsys: pytest.CaptureFixture[str]) -> 
     """Every command and health check in the compose files is a real `openfusion` invocation.
 
     Bad input guarded: an option the CLI does not have, a misspelt sub-command, a missing
-    required value. Until `openfusion service` exists in openfusion.cli this test fails, listing
+    required value. Until `openfusion service` exists in openfusion.app.cli this test fails, listing
     the service commands the CLI rejects.
     """
     argvs: list[tuple[str, list[str]]] = []

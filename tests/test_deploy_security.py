@@ -604,7 +604,7 @@ def _rewrite_paths(source: Path, target: Path, bundle: Bundle) -> Path:
 
 
 def _openfusion(*args: str, timeout_s: float = 30.0) -> subprocess.CompletedProcess[str]:
-    code = "import sys; from openfusion.cli import main; sys.exit(main())"
+    code = "import sys; from openfusion.app.cli import main; sys.exit(main())"
     return subprocess.run(
         [sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=timeout_s, check=False
     )
@@ -621,7 +621,7 @@ def test_openfusion_router_runs_the_prod_config_and_health_checks_pass_through_i
     port = _free_port()
     endpoint = f"tls/127.0.0.1:{port}"
     router_file = _rewrite_paths(PROD / "router.json5", tmp_path / "router.json5", bundle)
-    code = "import sys; from openfusion.cli import main; sys.exit(main())"
+    code = "import sys; from openfusion.app.cli import main; sys.exit(main())"
     router_process = subprocess.Popen(
         [sys.executable, "-c", code, "router", "--listen", endpoint, "--zenoh-config", str(router_file)],
         stdout=subprocess.PIPE,

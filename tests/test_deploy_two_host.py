@@ -20,10 +20,10 @@ from pathlib import Path
 import pytest
 
 from helpers_bus import ROOT, subprocess_env, unique_map_id, wait_until
+from openfusion.app.run import Cluster, free_port, wait_for_services
 from openfusion.bus import collect_health, live_services, open_session
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings
-from openfusion.embedded import Cluster, free_port, wait_for_services
 
 pytestmark = [pytest.mark.netns, pytest.mark.timeout(600)]
 
@@ -105,7 +105,7 @@ def test_semantic_on_a_second_host_maps_survives_a_link_cut_and_reconnects(netns
     env = subprocess_env(HF_HUB_OFFLINE="1")
     log = open(tmp_path / "semantic-netns.log", "wb")  # noqa: SIM115 - closed in finally
     semantic = subprocess.Popen(
-        ["ip", "netns", "exec", netns.name, sys.executable, "-m", "openfusion.cli", "service", "semantic",
+        ["ip", "netns", "exec", netns.name, sys.executable, "-m", "openfusion.app.cli", "service", "semantic",
          "--map", map_id, "--mode", "client", "--connect", remote, "--no-multicast"],
         stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
     try:

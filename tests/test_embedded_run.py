@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from helpers_bus import ROOT, subprocess_env
 from openfusion.encoders import make_text_encoder
-from openfusion.eval.ply import read_ply
+from openfusion.io.ply import read_ply
 from openfusion.mapping import load_map, query_regions
 from openfusion.sources.synthetic import SyntheticWorld
 
@@ -25,7 +25,7 @@ SOURCE = "synthetic:seed=1,frames=40,width=320,height=240"
 
 
 def _run(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "openfusion.cli", "run", *args], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "openfusion.app.cli", "run", *args], capture_output=True, text=True,
                           timeout=timeout, cwd=ROOT, env=subprocess_env(HF_HUB_OFFLINE="1"))
 
 

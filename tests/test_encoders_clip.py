@@ -11,8 +11,8 @@ from openfusion.encoders import EncoderError, make_region_encoder, make_text_enc
 from openfusion.encoders.clip_export import export_clip_to_onnx
 from openfusion.encoders.clip_regions import DEFAULT_CLIP_MODEL, SPACE_FILE, ClipRegionEncoder
 from openfusion.encoders.masks import area_downsample_labels
-from openfusion.encoders.testing import grid_boxes, make_box_frame
-from openfusion.encoders.tiny_models import build_tiny_clip, build_tiny_mask_proposer_onnx
+from openfusion.testing.images import grid_boxes, make_box_frame
+from openfusion.testing.models import build_tiny_clip, build_tiny_mask_proposer_onnx
 
 
 @pytest.fixture(scope="module")

@@ -18,8 +18,8 @@ from openfusion.encoders import (
 from openfusion.encoders.gt import GroundTruthRegionEncoder
 from openfusion.encoders.masks import area_downsample_labels
 from openfusion.encoders.noise import apply_region_noise, perturb_embeddings
-from openfusion.encoders.testing import Box, grid_boxes, make_box_frame
 from openfusion.encoders.text_hash import HashTextEncoder
+from openfusion.testing.images import Box, grid_boxes, make_box_frame
 
 CATEGORIES = ["office chair", "table", "sofa", "bed", "bookshelf", "cabinet", "lamp", "monitor"]
 

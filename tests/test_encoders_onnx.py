@@ -11,8 +11,8 @@ from openfusion.encoders import EncoderError, make_region_encoder, make_text_enc
 from openfusion.encoders.clip_export import set_onnx_metadata
 from openfusion.encoders.onnx_backend import OnnxRegionEncoder, _image_input
 from openfusion.encoders.onnx_contract import EncoderContractError
-from openfusion.encoders.testing import grid_boxes, make_box_frame
-from openfusion.encoders.tiny_models import build_tiny_region_onnx, build_tiny_text_onnx
+from openfusion.testing.images import grid_boxes, make_box_frame
+from openfusion.testing.models import build_tiny_region_onnx, build_tiny_text_onnx
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ from openfusion.encoders import EncoderError
 from openfusion.encoders.crops import CLIP_MEAN, CropSpec, preprocess_image, region_crops
 from openfusion.encoders.graph_segmentation import GraphSegmentationProposer, felzenszwalb_segment
 from openfusion.encoders.masks import area_downsample_labels
-from openfusion.encoders.testing import Box, grid_boxes, make_box_frame
+from openfusion.testing.images import Box, grid_boxes, make_box_frame
 
 
 def _noisy(frame, *, sigma: float, shade: float, seed: int = 0):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from openfusion.encoders import EncoderError, make_region_encoder, make_text_encoder
-from openfusion.encoders.testing import Box, make_box_frame
+from openfusion.testing.images import Box, make_box_frame
 
 CATALOGUE = [
     "chair", "table", "sofa", "bed", "bookshelf", "cabinet", "lamp", "monitor",

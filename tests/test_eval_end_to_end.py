@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from openfusion.eval.cli import main
+from openfusion.app.eval_cmd import main
 
 pytest.importorskip("open3d")
 

@@ -13,7 +13,7 @@ from openfusion.eval.ground_truth import (
     load_scannet_ground_truth,
     read_scannet_label_table,
 )
-from openfusion.eval.ply import PlyError, read_ply, read_ply_vertices, write_ply_vertices
+from openfusion.io.ply import PlyError, read_ply, read_ply_vertices, write_ply_vertices
 
 
 def _write_scannet_like_ply(path: Path, xyz: np.ndarray, label: np.ndarray, *, truncate: int = 0) -> None:

@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from openfusion.flow_control import InFlightWindow
+from openfusion.bus.flow_control import InFlightWindow
 
 
 def test_window_holds_at_most_limit_frames_until_one_is_acknowledged() -> None:

@@ -11,8 +11,8 @@ import time
 import numpy as np
 import pytest
 
-from openfusion.instance_join import InstanceBuffer
-from openfusion.messages import InstanceFrame, RgbdFrame
+from openfusion.bus.instance_join import InstanceBuffer
+from openfusion.wire.schemas import InstanceFrame, RgbdFrame
 
 
 def _rgbd(frame_id: int, stamp_ns: int) -> RgbdFrame:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import zenoh
 
-from openfusion.keys import KeySpace, health_all_maps, key_for, validate_map_id
+from openfusion.wire.keys import KeySpace, health_all_maps, key_for, validate_map_id
 
 
 def test_keyspace_builds_the_documented_keys() -> None:

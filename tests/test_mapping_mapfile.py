@@ -21,7 +21,8 @@ from openfusion.mapping import (
     save_map,
     segment_points,
 )
-from openfusion.mapping.analytic_scene import (
+from openfusion.mapping.mapfile import MAP_FILE_NAME
+from openfusion.testing.analytic_scene import (
     AnalyticScene,
     Box,
     Room,
@@ -29,7 +30,6 @@ from openfusion.mapping.analytic_scene import (
     look_at,
     observation_from_instances,
 )
-from openfusion.mapping.mapfile import MAP_FILE_NAME
 
 K_FULL = CameraIntrinsics(160, 120, 131.25, 131.25, 79.5, 59.5)
 DIM = 16

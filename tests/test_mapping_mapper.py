@@ -15,7 +15,7 @@ from openfusion.mapping import (
     query_regions,
     segment_points,
 )
-from openfusion.mapping.analytic_scene import (
+from openfusion.testing.analytic_scene import (
     AnalyticScene,
     Box,
     Room,

@@ -14,8 +14,8 @@ from openfusion.mapping import (
     region_conf_maps,
     soft_iou_matrix,
 )
-from openfusion.mapping.analytic_scene import SimpleObservation
 from openfusion.mapping.matching import mask_edge_weights
+from openfusion.testing.analytic_scene import SimpleObservation
 
 H, W = 30, 40
 

@@ -24,8 +24,8 @@ from helpers_bus import (
 )
 from openfusion.bus import Subscriber, collect_health, open_session
 from openfusion.config import ServiceConfig
-from openfusion.messages import HealthStats, InstanceFrame, RgbdFrame
 from openfusion.sources import open_source
+from openfusion.wire.schemas import HealthStats, InstanceFrame, RgbdFrame
 
 
 def test_bridge_publishes_every_frame_of_the_source_intact() -> None:
@@ -42,7 +42,7 @@ def test_bridge_publishes_every_frame_of_the_source_intact() -> None:
                               lambda m: instances.__setitem__(m.frame_id, m), queue_size=64)
         sub = Subscriber(session, keys.sensor_rgbd, RgbdFrame, got.append, queue_size=64)
         args = ["service", "bridge", *loopback_args(map_id, connect=[port]), "--source", spec, "--rate-hz", "0"]
-        with ServiceProcess("openfusion.cli", args) as proc:
+        with ServiceProcess("openfusion.app.cli", args) as proc:
             wait_until(lambda: len(got) >= len(expected) and len(instances) >= len(expected), timeout_s=60)
 
             def bridge_done() -> object:
@@ -72,7 +72,7 @@ def test_bridge_publishes_every_frame_of_the_source_intact() -> None:
 def test_bridge_with_unknown_source_exits_with_one_clear_line() -> None:
     map_id = unique_map_id("bridge-bad")
     result = subprocess.run(
-        [sys.executable, "-m", "openfusion.cli", "service", "bridge", *loopback_args(map_id), "--source", "nosuch:/x"],
+        [sys.executable, "-m", "openfusion.app.cli", "service", "bridge", *loopback_args(map_id), "--source", "nosuch:/x"],
         capture_output=True, text=True, timeout=60, cwd=ROOT, env=subprocess_env(),
     )
     assert result.returncode != 0
@@ -85,8 +85,8 @@ def test_playback_at_full_speed_loses_no_frame_to_geometrys_bounded_queue(tmp_pa
     control (at most 3 frames not yet acknowledged on geometry/progress) every frame is integrated
     and none dropped; with it off (--max-in-flight 0) the same replay overflows the queue, which is
     what flow control is for. Bad input tried: a publisher far faster than the consumer."""
+    from openfusion.app.run import Cluster
     from openfusion.config import ZenohSettings
-    from openfusion.embedded import Cluster
     from openfusion.sources.record import FrameRecorder
 
     n = 20

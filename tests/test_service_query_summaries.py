@@ -19,14 +19,6 @@ from openfusion.encoders import make_text_encoder
 from openfusion.frame import Frame
 from openfusion.mapping import RegionDictionary
 from openfusion.mapping.queries import query_regions, region_summaries
-from openfusion.messages import (
-    ControlRequest,
-    DictionaryRequest,
-    PointsRequest,
-    RegionSummaryRequest,
-    RgbdFrame,
-    SemanticUpdate,
-)
 from openfusion.services.dictionary_sync import delta_message, snapshot_message
 from openfusion.services.geometry.service import GeometryConfig, GeometrySection, GeometryService
 from openfusion.services.query.service import (
@@ -37,6 +29,14 @@ from openfusion.services.query.service import (
     region_hits,
 )
 from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld
+from openfusion.wire.schemas import (
+    ControlRequest,
+    DictionaryRequest,
+    PointsRequest,
+    RegionSummaryRequest,
+    RgbdFrame,
+    SemanticUpdate,
+)
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -337,8 +337,8 @@ def test_query_without_geometry_answers_zero_boxes_and_does_not_wait_every_time(
 def test_ranked_regions_known_to_be_empty_are_dropped() -> None:
     """Ranking keeps the regions with surface points and those the summary does not know yet (newer
     than it); a key below the horizon that is not listed, or listed with 0 points, is dropped."""
-    from openfusion.messages import RegionSummaryReply
     from openfusion.services.query.service import RegionSummaries, drop_empty_regions
+    from openfusion.wire.schemas import RegionSummaryReply
 
     reply = RegionSummaryReply(
         map_version=3,

@@ -19,11 +19,11 @@ import numpy as np
 import pytest
 
 from helpers_bus import ROOT, subprocess_env, unique_map_id, wait_until
+from openfusion.app.run import Cluster, free_port, wait_for_services
 from openfusion.bus import QueryError, collect_health, get, open_session
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings
-from openfusion.embedded import Cluster, free_port, wait_for_services
-from openfusion.messages import (
+from openfusion.wire.schemas import (
     ControlReply,
     ControlRequest,
     DictionaryRequest,
@@ -136,7 +136,7 @@ def test_remote_query_from_a_separate_client_process_finds_the_chair(env: Env) -
         [
             sys.executable,
             "-m",
-            "openfusion.cli",
+            "openfusion.app.cli",
             "query",
             "chair",
             "--map",
@@ -189,7 +189,7 @@ def test_malformed_payloads_on_every_key_are_counted_and_change_nothing(env: Env
     garbage = [b"", b"\x00\x01garbage", b"\x93\xa3abc", json.dumps({"schema": "sensor.rgbd"}).encode()]
     # Wrong schema on a subscribed key: a valid message of another type.
     wrong = ControlRequest(action="reset")
-    from openfusion.codec import encode
+    from openfusion.wire.codec import encode
 
     for key in (keys.sensor_rgbd, keys.sensor_instance, keys.semantic_update, keys.semantic_dictionary_delta):
         for payload in [*garbage, encode(wrong)]:

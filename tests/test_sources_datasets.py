@@ -11,9 +11,9 @@ import pytest
 from PIL import Image
 
 from openfusion.frame import CameraIntrinsics
+from openfusion.poses import matrix_to_quat, quat_to_matrix, rotation_angle_deg
 from openfusion.sources import open_source
 from openfusion.sources.folder import FolderSource
-from openfusion.sources.poses import matrix_to_quat, quat_to_matrix, rotation_angle_deg
 from openfusion.sources.redwood import RedwoodSource
 from openfusion.sources.replica import REPLICA_INTRINSICS, ReplicaSource
 from openfusion.sources.tum import TumSource, associate

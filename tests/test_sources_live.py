@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from openfusion.frame import CameraIntrinsics
+from openfusion.poses import look_at, rotation_angle_deg
 from openfusion.sources import open_source
 from openfusion.sources.live import (
     AzureKinectDriver,
@@ -19,7 +20,6 @@ from openfusion.sources.live import (
     PoseSample,
     T265Driver,
 )
-from openfusion.sources.poses import look_at, rotation_angle_deg
 from openfusion.sources.sync import T265_FROM_OPENCV, ZUP_FROM_T265_WORLD, SyncConfig
 
 MS = 1_000_000

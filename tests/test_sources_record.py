@@ -7,11 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from openfusion.codec import encode
 from openfusion.frame import CameraIntrinsics, Frame
-from openfusion.messages import RgbdFrame, TextQuery
 from openfusion.sources import open_source
 from openfusion.sources.record import FrameRecorder, RecordingError, ReplaySource, record_source
+from openfusion.wire.codec import encode
+from openfusion.wire.schemas import RgbdFrame, TextQuery
 
 
 def _frame(i: int, *, with_instances: bool = True) -> Frame:

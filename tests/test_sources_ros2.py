@@ -11,6 +11,7 @@ import time
 import numpy as np
 import pytest
 
+from openfusion.poses import matrix_to_quat, pose_from_tum
 from openfusion.sources.cdr import (
     CameraInfoMsg,
     CdrError,
@@ -29,7 +30,6 @@ from openfusion.sources.cdr import (
     encode_tf_message,
     image_to_array,
 )
-from openfusion.sources.poses import matrix_to_quat, pose_from_tum
 from openfusion.sources.ros2 import T_BODY_OPTICAL, Ros2Config, Ros2FrameAssembler, Ros2Source, Ros2Topics
 
 MS = 1_000_000

@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
 from openfusion.frame import CameraIntrinsics
-from openfusion.sources.poses import (
+from openfusion.poses import (
     interpolate_pose,
     matrix_to_quat,
     quat_to_matrix,

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from openfusion.eval.ply import read_ply_vertices
+from openfusion.io.ply import read_ply_vertices
+from openfusion.poses import rotation_angle_deg
 from openfusion.sources import open_source
-from openfusion.sources.poses import rotation_angle_deg
 from openfusion.sources.scannet import ScanNetSource
 from openfusion.sources.synthetic import (
     CATEGORIES,

@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from openfusion import cli
-from openfusion.eval.ply import read_ply
+from openfusion.app import cli
+from openfusion.io.ply import read_ply
 from openfusion.mapping import RegionDictionary, SemanticVolume, VolumeParams, save_map
 from openfusion.sources import open_source
-from openfusion.viz.testing import cached_synthetic_map
+from openfusion.testing.maps import cached_synthetic_map
 
 COMMANDS = {
-    "render": "openfusion.viz.render_cli:RenderCommand",
-    "export": "openfusion.viz.export_cli:ExportCommand",
+    "render": "openfusion.app.render_cmd:RenderCommand",
+    "export": "openfusion.app.export_cmd:ExportCommand",
 }
 
 

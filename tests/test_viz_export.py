@@ -8,8 +8,9 @@ import sys
 import numpy as np
 import pytest
 
-from openfusion.eval.ply import read_ply
+from openfusion.io.ply import read_ply
 from openfusion.mapping import load_map
+from openfusion.testing.maps import cached_synthetic_map
 from openfusion.viz.colouring import (
     QueryHit,
     assign_classes,
@@ -21,7 +22,6 @@ from openfusion.viz.colouring import (
 from openfusion.viz.errors import MissingDependencyError, VizError
 from openfusion.viz.export import export_mesh, export_mesh_glb, export_points, write_legend
 from openfusion.viz.palette import HIGHLIGHT_RGB, UNLABELLED_RGB, index_colors, key_colors
-from openfusion.viz.testing import cached_synthetic_map
 
 
 @pytest.fixture(scope="module")

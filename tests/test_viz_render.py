@@ -8,18 +8,18 @@ import pytest
 from PIL import Image
 
 from openfusion.encoders import make_text_encoder
-from openfusion.sources.poses import look_at
+from openfusion.poses import look_at
 from openfusion.sources.synthetic import SyntheticWorld
-from openfusion.viz.camera import VirtualCamera, overview_camera, pinhole
-from openfusion.viz.errors import VizError
-from openfusion.viz.picture import ViewOptions, open_map, picture_of_map
-from openfusion.viz.render import CaptionLine, draw_caption, render_mesh, save_png
-from openfusion.viz.testing import (
+from openfusion.testing.maps import (
     SyntheticMapSpec,
     cached_synthetic_map,
     project_points,
     sample_instance_points,
 )
+from openfusion.viz.camera import VirtualCamera, overview_camera, pinhole
+from openfusion.viz.errors import VizError
+from openfusion.viz.picture import ViewOptions, open_map, picture_of_map
+from openfusion.viz.render import CaptionLine, draw_caption, render_mesh, save_png
 
 
 def _quad(z: float, half: float = 0.5, *, normal_up: bool = True):

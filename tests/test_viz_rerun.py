@@ -10,9 +10,9 @@ import pytest
 
 from openfusion.mapping import load_map, query_regions
 from openfusion.sources import open_source
+from openfusion.testing.maps import cached_synthetic_map
 from openfusion.viz.errors import MissingDependencyError, VizError
 from openfusion.viz.rerun_log import DEFAULT_SERVE_PORT, RerunLogger, parse_sink
-from openfusion.viz.testing import cached_synthetic_map
 
 
 def test_parse_sink_accepts_the_documented_forms(tmp_path):
@@ -118,7 +118,7 @@ def test_log_query_accepts_a_query_reply_message(tmp_path):
     pytest.importorskip("rerun", reason="rerun logging needs the optional rerun-sdk package")
     RrdReader = pytest.importorskip("rerun.chunk", reason="reading .rrd back needs rerun-sdk >= 0.41").RrdReader
 
-    from openfusion.messages import QueryReply, RegionHit
+    from openfusion.wire.schemas import QueryReply, RegionHit
 
     hit = RegionHit(
         key=3, score=0.8, label="chair", bbox_min=np.zeros(3, np.float32), bbox_max=np.ones(3, np.float32), num_points=10

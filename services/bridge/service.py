@@ -2,9 +2,9 @@
 
 | key | direction | message |
 |---|---|---|
-| ``…/sensor/rgbd`` | publishes | :class:`~openfusion.messages.RgbdFrame` (without the instance image) |
-| ``…/sensor/instance`` | publishes, for frames that have one, just before the frame | :class:`~openfusion.messages.InstanceFrame` |
-| ``…/geometry/progress`` | subscribes (flow control, playback only) | :class:`~openfusion.messages.GeometryProgress` |
+| ``…/sensor/rgbd`` | publishes | :class:`~openfusion.wire.schemas.RgbdFrame` (without the instance image) |
+| ``…/sensor/instance`` | publishes, for frames that have one, just before the frame | :class:`~openfusion.wire.schemas.InstanceFrame` |
+| ``…/geometry/progress`` | subscribes (flow control, playback only) | :class:`~openfusion.wire.schemas.GeometryProgress` |
 | ``…/health/bridge`` | liveliness + stats | counters ``frames_read``, ``frames_published``, ``instances_published``, ``skipped_<reason>``, ``playback_done``, ``flow_wait_s``, ``flow_timeouts`` |
 
 Ground-truth instance images (synthetic scene, ScanNet, Replica) go on their own key: only the
@@ -26,7 +26,7 @@ acknowledgement within ``flow_wait_s`` (no geometry, or one that died): counted 
 source (``FrameSource.live``: Kinect + T265, ROS 2 topics) the bridge never blocks or waits: Zenoh
 drops a frame under congestion and geometry's queue drops its oldest, since a stale frame is worth
 less than a fresh one. ``block_when_congested`` (default: by source) overrides the choice. See
-:mod:`openfusion.flow_control`.
+:mod:`openfusion.bus.flow_control`.
 """
 
 from __future__ import annotations
@@ -39,13 +39,13 @@ from typing import Any
 from pydantic import Field
 
 from openfusion.bus import Publisher, ServiceRunner
-from openfusion.codec import EncodeError
+from openfusion.bus.flow_control import InFlightWindow
 from openfusion.config import ConfigSection, ServiceConfig
-from openfusion.flow_control import InFlightWindow
 from openfusion.frame import Frame
-from openfusion.messages import GeometryProgress, InstanceFrame, RgbdFrame
 from openfusion.services.common import ServiceDefinition
 from openfusion.sources import FrameSource, open_source
+from openfusion.wire.codec import EncodeError
+from openfusion.wire.schemas import GeometryProgress, InstanceFrame, RgbdFrame
 
 logger = logging.getLogger(__name__)
 

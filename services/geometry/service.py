@@ -2,10 +2,10 @@
 
 | key | direction | message |
 |---|---|---|
-| ``…/sensor/rgbd`` | subscribes (every frame, bounded queue) | :class:`~openfusion.messages.RgbdFrame` |
-| ``…/semantic/update`` | subscribes | :class:`~openfusion.messages.SemanticUpdate` |
-| ``…/semantic/dictionary/delta`` | subscribes (replica for checkpoints) | :class:`~openfusion.messages.DictionaryDelta` |
-| ``…/geometry/progress`` | publishes, one per frame taken from the queue | :class:`~openfusion.messages.GeometryProgress` (the bridge's flow control) |
+| ``…/sensor/rgbd`` | subscribes (every frame, bounded queue) | :class:`~openfusion.wire.schemas.RgbdFrame` |
+| ``…/semantic/update`` | subscribes | :class:`~openfusion.wire.schemas.SemanticUpdate` |
+| ``…/semantic/dictionary/delta`` | subscribes (replica for checkpoints) | :class:`~openfusion.wire.schemas.DictionaryDelta` |
+| ``…/geometry/progress`` | publishes, one per frame taken from the queue | :class:`~openfusion.wire.schemas.GeometryProgress` (the bridge's flow control) |
 | ``…/geometry/render`` | queryable | RenderRequest → RenderReply |
 | ``…/geometry/points`` | queryable | PointsRequest → PointsReply (capped) |
 | ``…/geometry/mesh`` | queryable | MeshRequest → MeshReply |
@@ -55,7 +55,9 @@ from openfusion.mapping import (
 from openfusion.mapping.mapfile import resolve_map_path
 from openfusion.mapping.params import ROOM_SCALE_INITIAL_BLOCKS
 from openfusion.mapping.queries import region_summaries
-from openfusion.messages import (
+from openfusion.services.common import ServiceDefinition
+from openfusion.services.dictionary_sync import DictionaryReplica
+from openfusion.wire.schemas import (
     ControlReply,
     ControlRequest,
     DictionaryDelta,
@@ -73,8 +75,6 @@ from openfusion.messages import (
     RgbdFrame,
     SemanticUpdate,
 )
-from openfusion.services.common import ServiceDefinition
-from openfusion.services.dictionary_sync import DictionaryReplica
 
 logger = logging.getLogger(__name__)
 

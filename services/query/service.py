@@ -3,7 +3,7 @@
 | key | direction | message |
 |---|---|---|
 | ``…/semantic/dictionary`` | queries (snapshot on start and after a gap) | DictionaryRequest → DictionarySnapshot |
-| ``…/semantic/dictionary/delta`` | subscribes | :class:`~openfusion.messages.DictionaryDelta` |
+| ``…/semantic/dictionary/delta`` | subscribes | :class:`~openfusion.wire.schemas.DictionaryDelta` |
 | ``…/geometry/regions`` | queries (cached region summaries, see below) | RegionSummaryRequest → RegionSummaryReply |
 | ``…/geometry/points`` | queries (points of the top regions, ``with_points`` only; point queries) | PointsRequest → PointsReply |
 | ``…/query/text`` | queryable | TextQuery → QueryReply |
@@ -54,7 +54,9 @@ from openfusion.bus import QueryError, RequestError, ServiceRunner, get
 from openfusion.config import ConfigSection, ServiceConfig
 from openfusion.encoders import make_text_encoder
 from openfusion.mapping.queries import candidates_for, region_summaries, subsample_points
-from openfusion.messages import (
+from openfusion.services.common import ServiceDefinition
+from openfusion.services.dictionary_sync import DictionaryReplica
+from openfusion.wire.schemas import (
     DictionaryDelta,
     ImageQuery,
     PointQuery,
@@ -66,8 +68,6 @@ from openfusion.messages import (
     RegionSummaryRequest,
     TextQuery,
 )
-from openfusion.services.common import ServiceDefinition
-from openfusion.services.dictionary_sync import DictionaryReplica
 
 logger = logging.getLogger(__name__)
 

@@ -2,12 +2,12 @@
 
 | key | direction | message |
 |---|---|---|
-| ``…/sensor/rgbd`` | subscribes, latest frame only | :class:`~openfusion.messages.RgbdFrame` |
-| ``…/sensor/instance`` | subscribes when the encoder reads instance images (gt) | :class:`~openfusion.messages.InstanceFrame` |
+| ``…/sensor/rgbd`` | subscribes, latest frame only | :class:`~openfusion.wire.schemas.RgbdFrame` |
+| ``…/sensor/instance`` | subscribes when the encoder reads instance images (gt) | :class:`~openfusion.wire.schemas.InstanceFrame` |
 | ``…/geometry/render`` | queries | RenderRequest → RenderReply |
 | ``…/geometry/dictionary`` | queries once on start (recovery) | DictionaryRequest → DictionarySnapshot |
-| ``…/semantic/update`` | publishes | :class:`~openfusion.messages.SemanticUpdate` |
-| ``…/semantic/dictionary/delta`` | publishes | :class:`~openfusion.messages.DictionaryDelta` |
+| ``…/semantic/update`` | publishes | :class:`~openfusion.wire.schemas.SemanticUpdate` |
+| ``…/semantic/dictionary/delta`` | publishes | :class:`~openfusion.wire.schemas.DictionaryDelta` |
 | ``…/semantic/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot |
 | ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions`` |
 
@@ -32,12 +32,14 @@ import numpy as np
 from pydantic import Field
 
 from openfusion.bus import Publisher, QueryError, ServiceRunner, Subscriber, get
+from openfusion.bus.instance_join import InstanceBuffer
 from openfusion.config import ConfigSection, ServiceConfig
 from openfusion.encoders import make_region_encoder
-from openfusion.instance_join import InstanceBuffer
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
 from openfusion.mapping.volume import resample_nearest
-from openfusion.messages import (
+from openfusion.services.common import ServiceDefinition
+from openfusion.services.dictionary_sync import delta_message, dictionary_from_snapshot, snapshot_message
+from openfusion.wire.schemas import (
     DictionaryRequest,
     DictionarySnapshot,
     InstanceFrame,
@@ -46,8 +48,6 @@ from openfusion.messages import (
     RgbdFrame,
     SemanticUpdate,
 )
-from openfusion.services.common import ServiceDefinition
-from openfusion.services.dictionary_sync import delta_message, dictionary_from_snapshot, snapshot_message
 
 logger = logging.getLogger(__name__)
 

@@ -19,8 +19,8 @@ import zenoh
 
 from openfusion.bus import get, live_services, open_session
 from openfusion.config import ServiceConfig, ZenohSettings
-from openfusion.keys import KeySpace
-from openfusion.messages import (
+from openfusion.wire.keys import KeySpace
+from openfusion.wire.schemas import (
     ControlReply,
     ControlRequest,
     DictionaryRequest,

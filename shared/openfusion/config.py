@@ -57,7 +57,7 @@ from typing import Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from openfusion.keys import DEFAULT_PREFIX, KeySpace, validate_map_id, validate_prefix
+from openfusion.wire.keys import DEFAULT_PREFIX, KeySpace, validate_map_id, validate_prefix
 
 try:
     import tomllib

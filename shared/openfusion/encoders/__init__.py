@@ -5,7 +5,7 @@ by onnxruntime), ``clip-regions`` (graph-segmentation proposals + CLIP crop embe
 with :func:`make_region_encoder` / :func:`make_text_encoder`; pick devices with :func:`select_device`.
 """
 
-from .base import (
+from openfusion.encoders.base import (
     DEFAULT_OUTPUT_SCALE,
     EncoderError,
     ImageQueryEncoder,
@@ -15,9 +15,14 @@ from .base import (
     normalize_rows,
     output_size_for,
 )
-from .device import onnx_providers, select_device
-from .noise import NOISE_PROFILES, NoiseProfile, NoiseReport, get_noise_profile
-from .registry import REGION_ENCODER_NAMES, TEXT_ENCODER_NAMES, make_region_encoder, make_text_encoder
+from openfusion.encoders.device import onnx_providers, select_device
+from openfusion.encoders.noise import NOISE_PROFILES, NoiseProfile, NoiseReport, get_noise_profile
+from openfusion.encoders.registry import (
+    REGION_ENCODER_NAMES,
+    TEXT_ENCODER_NAMES,
+    make_region_encoder,
+    make_text_encoder,
+)
 
 __all__ = [
     "DEFAULT_OUTPUT_SCALE",

@@ -90,7 +90,7 @@ class RegionObservation:
 class RegionEncoder(abc.ABC):
     """Frame -> :class:`RegionObservation`. Subclasses set ``name``, ``embedding_space``, ``dim``,
     and ``needs_instances = True`` when they read ``frame.instance`` (the semantic service then
-    joins each frame with its :class:`~openfusion.messages.InstanceFrame` from the bus)."""
+    joins each frame with its :class:`~openfusion.wire.schemas.InstanceFrame` from the bus)."""
 
     name: str = ""
     embedding_space: str = ""

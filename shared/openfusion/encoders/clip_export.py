@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from .clip_regions import DEFAULT_CLIP_MODEL, _features, load_clip
+from openfusion.encoders.clip_regions import DEFAULT_CLIP_MODEL, _features, load_clip
 
 logger = logging.getLogger(__name__)
 

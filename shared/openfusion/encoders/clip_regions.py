@@ -23,11 +23,17 @@ from typing import Any
 
 import numpy as np
 
-from .base import DEFAULT_OUTPUT_SCALE, EncoderError, TextEncoder, check_texts, normalize_rows
-from .crops import CLIP_MEAN, CLIP_STD, CropSpec
-from .device import select_device
-from .graph_segmentation import GraphSegmentationProposer
-from .proposal_encoder import ProposalRegionEncoder, RegionProposer
+from openfusion.encoders.base import (
+    DEFAULT_OUTPUT_SCALE,
+    EncoderError,
+    TextEncoder,
+    check_texts,
+    normalize_rows,
+)
+from openfusion.encoders.crops import CLIP_MEAN, CLIP_STD, CropSpec
+from openfusion.encoders.device import select_device
+from openfusion.encoders.graph_segmentation import GraphSegmentationProposer
+from openfusion.encoders.proposal_encoder import ProposalRegionEncoder, RegionProposer
 
 logger = logging.getLogger(__name__)
 
@@ -179,8 +185,8 @@ class ClipRegionEncoder(ProposalRegionEncoder):
         self.clip = load_clip(model, device=device, embedding_space=embedding_space)
         proposer: RegionProposer
         if mask_model_path is not None:
-            from .onnx_backend import OnnxMaskProposer
-            from .onnx_contract import load_onnx_model
+            from openfusion.encoders.onnx_backend import OnnxMaskProposer
+            from openfusion.encoders.onnx_contract import load_onnx_model
 
             mask_model = load_onnx_model(mask_model_path, expected_kind="mask-proposer", device=self.clip.device)
             proposer = OnnxMaskProposer(mask_model, **(proposer_options or {}))

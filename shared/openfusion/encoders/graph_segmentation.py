@@ -33,9 +33,8 @@ from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from openfusion.encoders.base import EncoderError
 from openfusion.frame import Frame
-
-from .base import EncoderError
 
 logger = logging.getLogger(__name__)
 

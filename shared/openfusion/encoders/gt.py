@@ -14,11 +14,16 @@ import threading
 
 import numpy as np
 
+from openfusion.encoders.base import (
+    DEFAULT_OUTPUT_SCALE,
+    EncoderError,
+    RegionEncoder,
+    RegionObservation,
+    TextEncoder,
+)
+from openfusion.encoders.masks import area_downsample_labels
+from openfusion.encoders.noise import NoiseProfile, NoiseReport, apply_region_noise, get_noise_profile
 from openfusion.frame import Frame
-
-from .base import DEFAULT_OUTPUT_SCALE, EncoderError, RegionEncoder, RegionObservation, TextEncoder
-from .masks import area_downsample_labels
-from .noise import NoiseProfile, NoiseReport, apply_region_noise, get_noise_profile
 
 logger = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from .base import EncoderError
+from openfusion.encoders.base import EncoderError
 
 
 def _cell_index(height_px: int, width_px: int, out_h: int, out_w: int) -> np.ndarray:

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from .masks import dilate_soft, erode_soft
+from openfusion.encoders.masks import dilate_soft, erode_soft
 
 
 @dataclass(frozen=True)

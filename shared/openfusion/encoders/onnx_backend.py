@@ -18,9 +18,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from openfusion.frame import Frame
-
-from .base import (
+from openfusion.encoders.base import (
     DEFAULT_OUTPUT_SCALE,
     MIN_EMBEDDING_NORM,
     EncoderError,
@@ -31,11 +29,12 @@ from .base import (
     check_texts,
     normalize_rows,
 )
-from .crops import CropSpec
-from .graph_segmentation import GraphSegmentationProposer
-from .masks import resize_maps_bilinear
-from .onnx_contract import EncoderContractError, OnnxModel, load_onnx_model
-from .proposal_encoder import ProposalRegionEncoder, RegionProposer
+from openfusion.encoders.crops import CropSpec
+from openfusion.encoders.graph_segmentation import GraphSegmentationProposer
+from openfusion.encoders.masks import resize_maps_bilinear
+from openfusion.encoders.onnx_contract import EncoderContractError, OnnxModel, load_onnx_model
+from openfusion.encoders.proposal_encoder import ProposalRegionEncoder, RegionProposer
+from openfusion.frame import Frame
 
 logger = logging.getLogger(__name__)
 

@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .base import EncoderError
-from .device import onnx_providers, select_device
+from openfusion.encoders.base import EncoderError
+from openfusion.encoders.device import onnx_providers, select_device
 
 logger = logging.getLogger(__name__)
 

@@ -13,9 +13,7 @@ from typing import Protocol
 
 import numpy as np
 
-from openfusion.frame import Frame
-
-from .base import (
+from openfusion.encoders.base import (
     DEFAULT_OUTPUT_SCALE,
     MIN_EMBEDDING_NORM,
     EncoderError,
@@ -24,7 +22,8 @@ from .base import (
     RegionObservation,
     check_rgb,
 )
-from .crops import CropSpec, preprocess_image, region_crops
+from openfusion.encoders.crops import CropSpec, preprocess_image, region_crops
+from openfusion.frame import Frame
 
 logger = logging.getLogger(__name__)
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from .base import RegionEncoder, TextEncoder
+from openfusion.encoders.base import RegionEncoder, TextEncoder
 
 REGION_ENCODER_NAMES = ("gt", "onnx", "clip-regions")
 TEXT_ENCODER_NAMES = ("gt", "onnx", "clip-regions", "minilm", "hash")
@@ -30,19 +30,19 @@ def make_text_encoder(name: str, **options: Any) -> TextEncoder:
     """
     key = _normalise_name(name)
     if key in ("minilm", "gt"):
-        from .text_minilm import MiniLMTextEncoder
+        from openfusion.encoders.text_minilm import MiniLMTextEncoder
 
         return MiniLMTextEncoder(**options)
     if key == "hash":
-        from .text_hash import HashTextEncoder
+        from openfusion.encoders.text_hash import HashTextEncoder
 
         return HashTextEncoder(**options)
     if key == "onnx":
-        from .onnx_backend import OnnxTextEncoder
+        from openfusion.encoders.onnx_backend import OnnxTextEncoder
 
         return OnnxTextEncoder(**options)
     if key in ("clip-regions", "clip"):
-        from .clip_regions import ClipTextEncoder
+        from openfusion.encoders.clip_regions import ClipTextEncoder
 
         return ClipTextEncoder(**options)
     raise ValueError(f"unknown text encoder {name!r}; known: {', '.join(TEXT_ENCODER_NAMES)}")
@@ -59,7 +59,7 @@ def make_region_encoder(name: str, **options: Any) -> RegionEncoder:
     """
     key = _normalise_name(name)
     if key == "gt":
-        from .gt import GroundTruthRegionEncoder
+        from openfusion.encoders.gt import GroundTruthRegionEncoder
 
         text = options.pop("text_encoder", "minilm")
         text_options = dict(options.pop("text_options", None) or {})
@@ -69,11 +69,11 @@ def make_region_encoder(name: str, **options: Any) -> RegionEncoder:
             raise ValueError("text_options only apply when text_encoder is given by name")
         return GroundTruthRegionEncoder(text, **options)
     if key == "onnx":
-        from .onnx_backend import make_onnx_region_encoder
+        from openfusion.encoders.onnx_backend import make_onnx_region_encoder
 
         return make_onnx_region_encoder(**options)
     if key == "clip-regions":
-        from .clip_regions import ClipRegionEncoder
+        from openfusion.encoders.clip_regions import ClipRegionEncoder
 
         return ClipRegionEncoder(**options)
     raise ValueError(f"unknown region encoder {name!r}; known: {', '.join(REGION_ENCODER_NAMES)}")

@@ -11,7 +11,7 @@ import hashlib
 
 import numpy as np
 
-from .base import TextEncoder, check_texts, normalize_rows
+from openfusion.encoders.base import TextEncoder, check_texts, normalize_rows
 
 
 def _trigram_features(text: str, dim: int) -> np.ndarray:

@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from .base import TextEncoder, check_texts, normalize_rows
-from .device import select_device
+from openfusion.encoders.base import TextEncoder, check_texts, normalize_rows
+from openfusion.encoders.device import select_device
 
 logger = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """Evaluation: the ConceptFusion / ConceptGraphs protocol, geometry metrics and baselines.
 
-See docs/EVAL.md. Entry points: ``openfusion eval`` (:mod:`openfusion.eval.cli`),
+See docs/EVAL.md. Entry points: ``openfusion eval`` (:mod:`openfusion.app.eval_cmd`),
 :func:`~openfusion.eval.runner.run_eval`, and ``bench/bench_eval.py``. Heavy dependencies
 (Open3D, the map core, encoders) are imported only by the functions that need them.
 """
@@ -26,7 +26,7 @@ from openfusion.eval.metrics import (
     compute_metrics,
     sum_confusions,
 )
-from openfusion.eval.ply import PlyError, read_ply, read_ply_vertices, write_ply_vertices
+from openfusion.io.ply import PlyError, read_ply, read_ply_vertices, write_ply_vertices
 
 __all__ = [
     "DEFAULT_BACKGROUND_CLASSES",

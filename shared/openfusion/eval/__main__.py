@@ -2,6 +2,6 @@
 
 import sys
 
-from openfusion.eval.cli import main
+from openfusion.app.eval_cmd import main
 
 sys.exit(main())

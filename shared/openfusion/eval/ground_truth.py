@@ -25,7 +25,7 @@ from typing import Protocol
 import numpy as np
 
 from openfusion.eval.classes import NYU40_CLASSES, class_for_category
-from openfusion.eval.ply import PlyError, read_ply
+from openfusion.io.ply import PlyError, read_ply
 
 logger = logging.getLogger(__name__)
 

@@ -7,7 +7,7 @@ Mapping loop (one process, no bus; :func:`map_scene_for_eval`): for every frame
 (the frame's depth enables the update's depth gate; timed as
 semantics). The same loop records what the baselines and the completeness metric need (the
 frame's depth for the observed-surface test and a compact copy of the encoder output). It is
-written here rather than calling ``openfusion.pipeline.map_scene`` because those per-frame
+written here rather than calling ``openfusion.mapping.pipeline.map_scene`` because those per-frame
 hooks and the split timings are what the evaluation measures.
 """
 

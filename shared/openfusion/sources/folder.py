@@ -38,9 +38,9 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from openfusion.frame import CameraIntrinsics, Frame
+from openfusion.io.images import check_pose, numeric_key, read_matrix, read_rgbd_frame
+from openfusion.poses import pose_from_tum
 from openfusion.sources.base import NOMINAL_FPS, IndexedFrameSource, SkipFrame
-from openfusion.sources.imageio import check_pose, numeric_key, read_matrix, read_rgbd_frame
-from openfusion.sources.poses import pose_from_tum
 from openfusion.sources.redwood import read_trajectory_log
 from openfusion.sources.replica import read_trajectory_lines
 

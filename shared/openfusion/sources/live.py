@@ -30,8 +30,8 @@ from typing import Any, Protocol
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics, Frame
+from openfusion.poses import pose_from_tum
 from openfusion.sources.base import FrameSource, Skip
-from openfusion.sources.poses import pose_from_tum
 from openfusion.sources.sync import FrameSynchronizer, SyncConfig
 
 logger = logging.getLogger(__name__)

@@ -3,8 +3,8 @@
 File format (little-endian)::
 
     header   8 bytes magic b"OFZRGBD\\n", uint32 format version (1), uint32 reserved (0)
-    records  uint32 payload length, then the payload: one ``openfusion.messages.RgbdFrame``
-             encoded by ``openfusion.codec.encode`` (the same bytes that travel on
+    records  uint32 payload length, then the payload: one ``openfusion.wire.schemas.RgbdFrame``
+             encoded by ``openfusion.wire.codec.encode`` (the same bytes that travel on
              ``.../sensor/rgbd``), repeated until the end of the file
 
 Nothing is converted: frames are already canonical, and replay returns exactly the arrays,
@@ -25,10 +25,10 @@ from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
 
-from openfusion.codec import DEFAULT_MAX_MESSAGE_BYTES, DecodeError, decode, encode, unpack_envelope
 from openfusion.frame import Frame
-from openfusion.messages import RgbdFrame
 from openfusion.sources.base import FrameSource, Skip
+from openfusion.wire.codec import DEFAULT_MAX_MESSAGE_BYTES, DecodeError, decode, encode, unpack_envelope
+from openfusion.wire.schemas import RgbdFrame
 
 logger = logging.getLogger(__name__)
 

@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics, Frame
+from openfusion.io.images import check_pose, read_rgbd_frame
 from openfusion.sources.base import NOMINAL_FPS, IndexedFrameSource, SkipFrame
-from openfusion.sources.imageio import check_pose, read_rgbd_frame
 
 logger = logging.getLogger(__name__)
 

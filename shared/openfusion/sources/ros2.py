@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics, Frame
+from openfusion.poses import pose_from_tum
 from openfusion.sources.base import FrameSource, Skip
 from openfusion.sources.cdr import (
     CdrError,
@@ -46,7 +47,6 @@ from openfusion.sources.cdr import (
     decode_tf_message,
     image_to_array,
 )
-from openfusion.sources.poses import pose_from_tum
 from openfusion.sources.sync import FrameSynchronizer, SyncConfig
 
 logger = logging.getLogger(__name__)

@@ -33,8 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics, Frame
-from openfusion.sources.base import NOMINAL_FPS, IndexedFrameSource, SkipFrame
-from openfusion.sources.imageio import (
+from openfusion.io.images import (
     check_pose,
     image_size,
     numeric_key,
@@ -43,6 +42,7 @@ from openfusion.sources.imageio import (
     read_label_image,
     read_matrix,
 )
+from openfusion.sources.base import NOMINAL_FPS, IndexedFrameSource, SkipFrame
 
 logger = logging.getLogger(__name__)
 

@@ -254,7 +254,7 @@ def _write_label_tsv(path: Path, label_ids: dict[str, int], counts: dict[str, in
 
 
 def _write_ground_truth(path: Path, world, spacing_m: float) -> int:  # noqa: ANN001 - a SyntheticWorld
-    from openfusion.eval.ply import write_ply_vertices
+    from openfusion.io.ply import write_ply_vertices
 
     gt = world.ground_truth_surface(spacing_m)
     nyu = np.array([NYU40_OF_CATEGORY.get(gt.categories[int(i)], (40, ""))[0] for i in gt.instance_ids], dtype=np.uint16)

@@ -56,8 +56,8 @@ import numpy as np
 from PIL import Image
 
 from openfusion.frame import CameraIntrinsics, Frame
-from openfusion.sources.imageio import resize_nearest
-from openfusion.sources.poses import matrix_to_quat, quat_to_matrix, slerp
+from openfusion.io.images import resize_nearest
+from openfusion.poses import matrix_to_quat, quat_to_matrix, slerp
 
 logger = logging.getLogger(__name__)
 

@@ -38,8 +38,8 @@ import numpy as np
 import open3d as o3d
 
 from openfusion.frame import CameraIntrinsics, Frame
+from openfusion.poses import look_at
 from openfusion.sources.base import IndexedFrameSource
-from openfusion.sources.poses import look_at
 
 logger = logging.getLogger(__name__)
 

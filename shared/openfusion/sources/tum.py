@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics, Frame
+from openfusion.io.images import check_pose, read_color, read_depth_u16
+from openfusion.poses import PoseTrack, pose_from_tum
 from openfusion.sources.base import IndexedFrameSource, SkipFrame
-from openfusion.sources.imageio import check_pose, read_color, read_depth_u16
-from openfusion.sources.poses import PoseTrack, pose_from_tum
 
 logger = logging.getLogger(__name__)
 

@@ -12,6 +12,6 @@ Modules (import what you need; this package imports nothing heavy by itself):
 - :mod:`openfusion.viz.export`: PLY (mesh / points) and GLB (trimesh) files plus legend files.
 - :mod:`openfusion.viz.query`: the text encoder of a map's embedding space; ranked matches.
 - :mod:`openfusion.viz.rerun_log`: ``RerunLogger`` (rerun-sdk) with ``save:``/``spawn``/``serve``.
-- :mod:`openfusion.viz.render_cli` / :mod:`openfusion.viz.export_cli`: ``openfusion render`` / ``openfusion export``.
-- :mod:`openfusion.viz.testing`: tiny synthetic maps and ground-truth projections for tests.
+- :mod:`openfusion.app.render_cmd` / :mod:`openfusion.app.export_cmd`: ``openfusion render`` / ``openfusion export``.
+- :mod:`openfusion.testing.maps`: tiny synthetic maps and ground-truth projections for tests.
 """

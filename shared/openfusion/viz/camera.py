@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics
-from openfusion.sources.poses import look_at
+from openfusion.poses import look_at
 from openfusion.viz.errors import VizError
 
 UP_AXES: dict[str, tuple[float, float, float]] = {

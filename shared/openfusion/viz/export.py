@@ -1,6 +1,6 @@
 """Write a map's mesh or points to files other tools open: PLY (always) and GLB (with trimesh).
 
-PLY files are binary little-endian, written atomically by :func:`openfusion.eval.ply.write_ply_vertices`.
+PLY files are binary little-endian, written atomically by :func:`openfusion.io.ply.write_ply_vertices`.
 Vertex properties: ``x y z`` (float, world metres), ``nx ny nz`` (mesh only), ``red green blue``
 (uchar, the chosen :class:`~openfusion.viz.colouring.Colouring`), ``key`` (int, region key, -1 = none)
 and ``conf`` (float, the key's confidence); meshes add a ``face`` element of triangles. MeshLab,
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from openfusion.eval.ply import write_ply_vertices
+from openfusion.io.ply import write_ply_vertices
 from openfusion.mapping.volume import SurfaceMesh, SurfacePoints
 from openfusion.viz.colouring import Colouring, legend_markdown
 from openfusion.viz.errors import MissingDependencyError, VizError

@@ -22,7 +22,7 @@ Entities (world frame = the map's frame, metres; timeline ``frame`` = frame id, 
 
 Pipeline hooks: ``log_frame(frame)``, ``log_mesh(mesh)``, ``log_query(reply)`` (or ``(text, results)``);
 :meth:`RerunLogger.frame_hook` returns an ``on_frame(frame, stats)`` callback for
-``openfusion.pipeline.map_scene`` that logs every frame and, every ``mesh_every`` frames, the mesh.
+``openfusion.mapping.pipeline.map_scene`` that logs every frame and, every ``mesh_every`` frames, the mesh.
 """
 
 from __future__ import annotations
@@ -270,7 +270,7 @@ class RerunLogger:
         """Matches of a query: each region's points in its rank's highlight colour, its bounding box,
         and a text log line; the previous query's entities are cleared.
 
-        Call as ``log_query(reply)`` with a :class:`openfusion.messages.QueryReply` (``.query``,
+        Call as ``log_query(reply)`` with a :class:`openfusion.wire.schemas.QueryReply` (``.query``,
         ``.regions``) or ``log_query(text, results)`` with :class:`openfusion.mapping.RegionResult`
         or :class:`~openfusion.viz.colouring.QueryHit` items. A region's points come from
         ``result.points`` when present, else from ``points`` (the map's surface points); its box

@@ -1,9 +1,9 @@
 """Every message schema that travels over the bus, and the schema registry.
 
 Each message is a pydantic model with a class-level ``schema_name`` and integer
-``schema_version``; :mod:`openfusion.codec` puts them on the wire. Units and frames are in the
+``schema_version``; :mod:`openfusion.wire.codec` puts them on the wire. Units and frames are in the
 field names (``stamp_ns``, ``T_world_cam``, ``depth_m``, ``radius_m``). Array fields declare
-their dtype and shape (:func:`openfusion.codec.ndarray`); sizes that must agree across fields
+their dtype and shape (:func:`openfusion.wire.codec.ndarray`); sizes that must agree across fields
 are checked by the model, so a decoded message is always self-consistent.
 
 Changing a message's fields means bumping its ``schema_version``: peers of another version
@@ -21,8 +21,8 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from openfusion.codec import ndarray
 from openfusion.frame import CameraIntrinsics, Frame
+from openfusion.wire.codec import ndarray
 
 logger = logging.getLogger(__name__)
 
@@ -244,7 +244,7 @@ class InstanceFrame(Message):
 class GeometryProgress(Message):
     """The geometry service took frame (``frame_id``, ``stamp_ns``) out of its queue (integrated
     it, or refused it for capacity), on ``…/geometry/progress``: the acknowledgement the bridge's
-    flow control (:mod:`openfusion.flow_control`) waits for during playback."""
+    flow control (:mod:`openfusion.bus.flow_control`) waits for during playback."""
 
     schema_name: ClassVar[str] = "geometry.progress"
     schema_version: ClassVar[int] = 1

@@ -22,7 +22,7 @@ from openfusion.config import add_config_arguments, config_from_args, setup_logg
 
 
 def _load_saved_map(map_dir: Path) -> Any:
-    from openfusion.cli import CliError
+    from openfusion.app.cli import CliError
     from openfusion.mapping import MapFormatError, load_map
     from openfusion.mapping.mapfile import resolve_map_path
 
@@ -35,7 +35,7 @@ def _load_saved_map(map_dir: Path) -> Any:
 
 
 def _text_encoder_for(space: str, name: str | None) -> Any:
-    from openfusion.cli import CliError
+    from openfusion.app.cli import CliError
     from openfusion.encoders import make_text_encoder
 
     encoder = make_text_encoder(name or "minilm")
@@ -45,7 +45,7 @@ def _text_encoder_for(space: str, name: str | None) -> Any:
 
 
 def _print_regions(text: str, space: str, regions: list[Any], *, as_json: bool) -> None:
-    from openfusion.embedded import region_record
+    from openfusion.app.run import region_record
 
     rows = [region_record(r) for r in regions]
     if as_json:
@@ -60,7 +60,7 @@ def _print_regions(text: str, space: str, regions: list[Any], *, as_json: bool) 
 
 
 def _write_points(path: Path, regions: list[Any]) -> int:
-    from openfusion.eval.ply import write_ply_vertices
+    from openfusion.io.ply import write_ply_vertices
 
     chunks = [(r.points, r.key) for r in regions if r.points is not None and len(r.points)]
     if not chunks:
@@ -85,7 +85,7 @@ class QueryCommand:
 
     @staticmethod
     def run(args: argparse.Namespace) -> int:
-        from openfusion.cli import CliError
+        from openfusion.app.cli import CliError
 
         if args.top_k < 1:
             raise CliError(f"--top-k must be >= 1, got {args.top_k}", 2)
@@ -127,8 +127,8 @@ class SegmentCommand:
 
     @staticmethod
     def run(args: argparse.Namespace) -> int:
-        from openfusion.cli import CliError
-        from openfusion.eval.ply import write_ply_vertices
+        from openfusion.app.cli import CliError
+        from openfusion.io.ply import write_ply_vertices
         from openfusion.mapping import segment_points
 
         classes = [c.strip() for c in args.classes.split(",") if c.strip()]

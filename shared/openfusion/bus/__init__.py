@@ -6,7 +6,7 @@ Rules these helpers enforce (style.md, design §2):
 - Zenoh never calls user code directly: each entity registers a tiny callback that only puts
   the sample/query into a Python queue; a worker thread of ours decodes it and runs the user's
   callback/handler, which may then call Zenoh freely.
-- A message that does not decode (:class:`openfusion.codec.DecodeError`) is logged with the key
+- A message that does not decode (:class:`openfusion.wire.codec.DecodeError`) is logged with the key
   and reason, counted as an error and dropped: subscriber callbacks never see bad messages;
   queryables answer it with ``reply_err(ErrorReply(code="bad_request:<reason>"))``.
 - Every query is answered (reply or reply_err) or, when the service is overloaded, dropped
@@ -19,7 +19,7 @@ Rules these helpers enforce (style.md, design §2):
   joiner has not "dropped" history). Hence, for one publisher and a subscriber declared before it
   started: ``published == received + drops`` once the queue is drained.
 
-A service is a :class:`ServiceRunner` (see ``openfusion.demo_service`` for the pattern)::
+A service is a :class:`ServiceRunner` (see ``openfusion.testing.demo_service`` for the pattern)::
 
     def setup(runner: ServiceRunner) -> None:
         runner.queryable(runner.keys.key("demo", "ping"), PingRequest, handle_ping)
@@ -49,7 +49,8 @@ from typing import Any, Generic, TypeVar
 import numpy as np
 import zenoh
 
-from openfusion.codec import (
+from openfusion.config import ServiceConfig, zenoh_config
+from openfusion.wire.codec import (
     DEFAULT_MAX_ARRAY_ELEMENTS,
     DEFAULT_MAX_MESSAGE_BYTES,
     DecodeError,
@@ -57,9 +58,8 @@ from openfusion.codec import (
     decode,
     encode,
 )
-from openfusion.config import ServiceConfig, zenoh_config
-from openfusion.keys import KeySpace, validate_segment
-from openfusion.messages import ErrorReply, HealthStats, Message
+from openfusion.wire.keys import KeySpace, validate_segment
+from openfusion.wire.schemas import ErrorReply, HealthStats, Message
 
 logger = logging.getLogger(__name__)
 

@@ -44,7 +44,7 @@ class SyntheticMapSpec:
 def build_synthetic_map(out_dir: str | os.PathLike[str], spec: SyntheticMapSpec | None = None) -> Path:
     """Map the synthetic room as ``spec`` says and save it into ``out_dir``; returns the map file."""
     from openfusion.encoders import make_region_encoder
-    from openfusion.pipeline import map_scene
+    from openfusion.mapping.pipeline import map_scene
     from openfusion.sources import open_source
 
     spec = spec or SyntheticMapSpec()

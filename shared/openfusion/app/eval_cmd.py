@@ -141,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 class EvalCommand:
-    """Registry entry for the ``openfusion`` console script (``openfusion.eval.cli:EvalCommand``)."""
+    """Registry entry for the ``openfusion`` console script (``openfusion.app.eval_cmd:EvalCommand``)."""
 
     add_arguments = staticmethod(add_arguments)
     run = staticmethod(run)

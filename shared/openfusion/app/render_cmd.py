@@ -16,8 +16,8 @@ import json
 import logging
 from pathlib import Path
 
-from openfusion.cli import CliError
-from openfusion.viz.cli_args import (
+from openfusion.app.cli import CliError
+from openfusion.app.viz_args import (
     EXIT_USAGE,
     add_colour_arguments,
     add_map_arguments,

@@ -138,19 +138,19 @@ class KeySpace:
     # sensors
     @property
     def sensor_rgbd(self) -> str:
-        """pub/sub of :class:`openfusion.messages.RgbdFrame`."""
+        """pub/sub of :class:`openfusion.wire.schemas.RgbdFrame`."""
         return self.key("sensor", "rgbd")
 
     @property
     def sensor_instance(self) -> str:
-        """pub/sub of :class:`openfusion.messages.InstanceFrame`: the ground-truth instance image
+        """pub/sub of :class:`openfusion.wire.schemas.InstanceFrame`: the ground-truth instance image
         of the frame with the same id on :attr:`sensor_rgbd` (read by the gt encoder only)."""
         return self.key("sensor", "instance")
 
     # geometry
     @property
     def geometry_progress(self) -> str:
-        """pub/sub of :class:`openfusion.messages.GeometryProgress`: one per frame geometry took
+        """pub/sub of :class:`openfusion.wire.schemas.GeometryProgress`: one per frame geometry took
         from its queue (the bridge's flow control during playback)."""
         return self.key("geometry", "progress")
 

@@ -85,7 +85,7 @@ class Cluster:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         log_path = self.log_dir / f"{name}.log"
         log = open(log_path, "ab")  # noqa: SIM115 - closed when the process ends (child keeps its fd)
-        cmd = [sys.executable, "-m", "openfusion.cli", "service", name, *self.base_args(), *extra]
+        cmd = [sys.executable, "-m", "openfusion.app.cli", "service", name, *self.base_args(), *extra]
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                 env={**os.environ, **(env or {})})
         log.close()
@@ -150,7 +150,7 @@ def write_query_outputs(
     ``mesh.ply`` (vertex colour + region key). ``replies``: (query, embedding space, ranked hits with
     key/score/label/bbox_min/bbox_max/num_points/points); ``mesh``: a SurfaceMesh-like object or
     (vertices, triangles, colors, keys)."""
-    from openfusion.eval.ply import write_ply_vertices
+    from openfusion.io.ply import write_ply_vertices
 
     records = []
     for i, (text, space, hits) in enumerate(replies):
@@ -225,8 +225,8 @@ def run_services(args: argparse.Namespace) -> dict[str, Any]:
     try:
         if rerun is not None:
             from openfusion.bus import Subscriber
-            from openfusion.instance_join import InstanceBuffer
-            from openfusion.messages import InstanceFrame, RgbdFrame
+            from openfusion.bus.instance_join import InstanceBuffer
+            from openfusion.wire.schemas import InstanceFrame, RgbdFrame
 
             # Instance images come on their own key just before their frame: shown when there.
             instances = InstanceBuffer()
@@ -378,8 +378,8 @@ class RunCommand:
 
     @staticmethod
     def run(args: argparse.Namespace) -> int:
-        from openfusion.cli import CliError
-        from openfusion.keys import validate_map_id
+        from openfusion.app.cli import CliError
+        from openfusion.wire.keys import validate_map_id
 
         try:
             validate_map_id(args.map_id)
@@ -396,7 +396,7 @@ class RunCommand:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
         try:
             if args.in_process:
-                from openfusion.pipeline import run_in_process
+                from openfusion.mapping.pipeline import run_in_process
 
                 summary = run_in_process(args)
             else:

@@ -50,7 +50,7 @@ from pydantic import BaseModel, ValidationError
 from pydantic_core import PydanticCustomError, core_schema
 
 if TYPE_CHECKING:
-    from openfusion.messages import Message
+    from openfusion.wire.schemas import Message
 
 DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 """Largest payload :func:`encode` writes and :func:`decode` reads unless told otherwise."""
@@ -326,11 +326,11 @@ def _to_wire(value: Any, chunks: _Chunks) -> Any:
 
 
 def encode(msg: Message, *, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> bytes:
-    """The wire bytes of ``msg`` (a registered :class:`openfusion.messages.Message`)."""
+    """The wire bytes of ``msg`` (a registered :class:`openfusion.wire.schemas.Message`)."""
     schema = getattr(type(msg), "schema_name", None)
     version = getattr(type(msg), "schema_version", None)
     if not isinstance(msg, BaseModel) or not isinstance(schema, str) or not isinstance(version, int):
-        raise TypeError(f"encode needs an openfusion.messages.Message with a schema name, got {type(msg).__name__}")
+        raise TypeError(f"encode needs an openfusion.wire.schemas.Message with a schema name, got {type(msg).__name__}")
     chunks = _Chunks()
     try:
         body = _to_wire(msg, chunks)
@@ -434,7 +434,7 @@ def decode(
     ``expected``: refuse any other schema (reason ``unexpected_schema``).
     ``max_bytes`` / ``max_array_elements``: size limits for this call.
     """
-    from openfusion.messages import message_class
+    from openfusion.wire.schemas import message_class
 
     schema, version, body, arraydata = _unpack(data, max_bytes=max_bytes)
     if expected is not None and schema != expected.schema_name:

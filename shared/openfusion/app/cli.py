@@ -5,7 +5,7 @@ whose object has ``add_arguments(parser)`` and ``run(args) -> int``. Only the mo
 chosen subcommand is imported (``openfusion version`` does not load torch); an entry whose
 module does not exist (yet) is left out. Add a subcommand with one line::
 
-    Subcommand("run", "openfusion.embedded:RunCommand", "start all services on this machine"),
+    Subcommand("run", "openfusion.app.run:RunCommand", "start all services on this machine"),
 
 Errors a user can cause (bad options or config, nothing answering, a port in use) end with
 one line on stderr and a non-zero exit code, no traceback (set ``OPENFUSION_DEBUG=1`` to get
@@ -70,16 +70,16 @@ class Subcommand:
 
 
 SUBCOMMANDS: list[Subcommand] = [
-    Subcommand("version", "openfusion.cli:VersionCommand", "print the version of openfusion-z and its bus"),
-    Subcommand("router", "openfusion.cli:RouterCommand", "run a Zenoh router (Python session in router mode)"),
-    Subcommand("health", "openfusion.cli:HealthCommand", "list the live services of a map and their stats"),
-    Subcommand("service", "openfusion.services.cli:ServiceCommand", "run one service (bridge, geometry, semantic, query)"),
-    Subcommand("run", "openfusion.embedded:RunCommand", "run everything on this machine: services, synthetic scene, queries"),
-    Subcommand("query", "openfusion.query_cli:QueryCommand", "ask a running map (or --map-dir) in plain text"),
-    Subcommand("segment", "openfusion.query_cli:SegmentCommand", "label a saved map's surface points by class names"),
-    Subcommand("eval", "openfusion.eval.cli:EvalCommand", "evaluate mapping quality, geometry and speed"),
-    Subcommand("render", "openfusion.viz.render_cli:RenderCommand", "headless PNG render of a saved map"),
-    Subcommand("export", "openfusion.viz.export_cli:ExportCommand", "export a saved map as PLY/GLB, coloured"),
+    Subcommand("version", "openfusion.app.cli:VersionCommand", "print the version of openfusion-z and its bus"),
+    Subcommand("router", "openfusion.app.cli:RouterCommand", "run a Zenoh router (Python session in router mode)"),
+    Subcommand("health", "openfusion.app.cli:HealthCommand", "list the live services of a map and their stats"),
+    Subcommand("service", "openfusion.app.service_cmd:ServiceCommand", "run one service (bridge, geometry, semantic, query)"),
+    Subcommand("run", "openfusion.app.run:RunCommand", "run everything on this machine: services, synthetic scene, queries"),
+    Subcommand("query", "openfusion.app.query_cmd:QueryCommand", "ask a running map (or --map-dir) in plain text"),
+    Subcommand("segment", "openfusion.app.query_cmd:SegmentCommand", "label a saved map's surface points by class names"),
+    Subcommand("eval", "openfusion.app.eval_cmd:EvalCommand", "evaluate mapping quality, geometry and speed"),
+    Subcommand("render", "openfusion.app.render_cmd:RenderCommand", "headless PNG render of a saved map"),
+    Subcommand("export", "openfusion.app.export_cmd:ExportCommand", "export a saved map as PLY/GLB, coloured"),
     # Later subcommands register here (their modules are imported only when chosen).
 ]
 
@@ -255,7 +255,7 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     import zenoh
 
     from openfusion.bus import BusError, QueryError
-    from openfusion.codec import DecodeError
+    from openfusion.wire.codec import DecodeError
 
     # ValueError / OSError: the library's way of refusing bad input (an unknown source spec, a
     # missing file, a port in use); shown as one line, with OPENFUSION_DEBUG=1 for the traceback.
@@ -288,7 +288,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 if __name__ == "__main__":
     # Run the imported module, not this __main__ copy, so exception classes such as CliError are
-    # the ones subcommand modules import from openfusion.cli.
-    from openfusion.cli import main as _main
+    # the ones subcommand modules import from openfusion.app.cli.
+    from openfusion.app.cli import main as _main
 
     sys.exit(_main())

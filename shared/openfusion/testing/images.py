@@ -1,7 +1,7 @@
 """Small synthetic inputs for encoder tests and benchmarks (no downloads, no datasets).
 
 ``make_box_frame`` draws axis-aligned boxes into color, depth and instance images so the expected
-regions are known exactly. Tiny random-weight models live in :mod:`openfusion.encoders.tiny_models`.
+regions are known exactly. Tiny random-weight models live in :mod:`openfusion.testing.models`.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ faster than the map never grows memory). Dataset playback must not lose frames, 
 congestion control only pushes back when the network is full, not when geometry is behind: a
 bridge replaying as fast as it can filled the 64-frame queue within a second and geometry dropped
 70 of 150 frames. So geometry acknowledges every frame it has taken out of its queue on
-``…/geometry/progress`` (:class:`~openfusion.messages.GeometryProgress`), and the bridge keeps at
+``…/geometry/progress`` (:class:`~openfusion.wire.schemas.GeometryProgress`), and the bridge keeps at
 most ``limit`` frames unacknowledged (:class:`InFlightWindow`), well under the queue size.
 
 Without acknowledgements (no geometry service yet, an old one, one that died) the bridge does not

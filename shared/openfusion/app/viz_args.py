@@ -1,7 +1,7 @@
 """Arguments shared by ``openfusion render`` and ``openfusion export``, and their checking.
 
 Every problem a user can cause (no map there, not a map, an unknown colour mode or embedding
-space, a bad size) becomes :class:`openfusion.cli.CliError` with one clear line.
+space, a bad size) becomes :class:`openfusion.app.cli.CliError` with one clear line.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import argparse
 import logging
 from pathlib import Path
 
-from openfusion.cli import CliError
+from openfusion.app.cli import CliError
 from openfusion.viz.camera import UP_AXES
 from openfusion.viz.errors import MissingDependencyError, VizError
 

@@ -2,7 +2,7 @@
 
 Used by ``openfusion run --in-process``, the evaluation and notebooks::
 
-    from openfusion.pipeline import map_scene
+    from openfusion.mapping.pipeline import map_scene
     from openfusion.encoders import make_region_encoder
     from openfusion.sources import open_source
     result = map_scene(open_source("synthetic:frames=60"), region_encoder=make_region_encoder("gt"))
@@ -29,7 +29,7 @@ logger = logging.getLogger(__name__)
 
 @dataclass
 class PipelineStats:
-    """Counts and times of one pipeline run; fps as defined in :mod:`openfusion.embedded`."""
+    """Counts and times of one pipeline run; fps as defined in :mod:`openfusion.app.run`."""
 
     frames_read: int = 0
     frames_skipped: dict[str, int] = field(default_factory=dict)
@@ -124,7 +124,7 @@ def run_in_process(args: argparse.Namespace) -> dict[str, Any]:
     source = open_source(args.source, max_frames=args.frames)
     options: dict[str, Any] = {"noise": args.noise} if (args.encoder == "gt" and args.noise) else {}
     encoder = make_region_encoder(args.encoder, **options)
-    from openfusion.embedded import open_rerun
+    from openfusion.app.run import open_rerun
 
     rerun = open_rerun(getattr(args, "rerun", None))
     log_frame = rerun.frame_hook() if rerun is not None else None
@@ -147,7 +147,7 @@ def run_in_process(args: argparse.Namespace) -> dict[str, Any]:
         bar.close()
     save_map(out / "map", result.volume, result.dictionary, meta={"map_id": args.map_id})
     text = make_text_encoder(args.text_encoder)
-    from openfusion.embedded import write_query_outputs
+    from openfusion.app.run import write_query_outputs
 
     replies = []
     for query in args.queries:

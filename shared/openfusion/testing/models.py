@@ -13,8 +13,8 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from .clip_export import set_onnx_metadata
-from .crops import CLIP_MEAN, CLIP_STD
+from openfusion.encoders.clip_export import set_onnx_metadata
+from openfusion.encoders.crops import CLIP_MEAN, CLIP_STD
 
 TINY_WORDS = [
     "chair", "office", "table", "sofa", "bed", "lamp", "door", "wall", "floor", "plant",

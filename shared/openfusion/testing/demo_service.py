@@ -1,11 +1,11 @@
 """A minimal real service built with the bus helpers; the pattern every service follows.
 
-It declares its liveliness token and publishes :class:`~openfusion.messages.HealthStats`
+It declares its liveliness token and publishes :class:`~openfusion.wire.schemas.HealthStats`
 (both through :func:`openfusion.bus.run_service`), and answers :class:`PingRequest` on
 ``{prefix}/{map}/demo/ping`` with a :class:`PingReply`. Tests use it to check liveliness,
 health, query/reply, handler failures and SIGTERM handling of a real process::
 
-    python -m openfusion.demo_service --map lab --listen tcp/127.0.0.1:7447 --no-multicast
+    python -m openfusion.testing.demo_service --map lab --listen tcp/127.0.0.1:7447 --no-multicast
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from pydantic import Field
 
 from openfusion.bus import RequestError, ServiceRunner, run_service
 from openfusion.config import ConfigError, add_config_arguments, config_from_args, setup_logging
-from openfusion.messages import Message
+from openfusion.wire.schemas import Message
 
 logger = logging.getLogger(__name__)
 
@@ -76,7 +76,7 @@ class DemoService:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m openfusion.demo_service", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m openfusion.testing.demo_service", description=__doc__.splitlines()[0])
     add_config_arguments(parser)
     parser.add_argument("--service-name", default=SERVICE, help="service name (health / liveliness key)")
     args = parser.parse_args(argv)

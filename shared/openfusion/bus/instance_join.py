@@ -1,6 +1,6 @@
 """Join frames from ``…/sensor/rgbd`` with their instance images from ``…/sensor/instance``.
 
-The bridge publishes a frame's :class:`~openfusion.messages.InstanceFrame` just before the
+The bridge publishes a frame's :class:`~openfusion.wire.schemas.InstanceFrame` just before the
 frame itself, on the same session, so it normally arrives first. The semantic service keeps the
 last few in an :class:`InstanceBuffer` and, for the frame it is about to encode, takes the one
 with the same frame id and time stamp, waiting a little for it when the frame overtook it.
@@ -12,7 +12,7 @@ import collections
 import threading
 import time
 
-from openfusion.messages import InstanceFrame, RgbdFrame
+from openfusion.wire.schemas import InstanceFrame, RgbdFrame
 
 DEFAULT_CAPACITY = 32
 

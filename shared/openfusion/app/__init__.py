@@ -1,0 +1,1 @@
+"""openfusion.app."""
