@@ -19,8 +19,9 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 from PIL import Image  # noqa: E402
 
-from openfusion.app.run import Cluster, free_port  # noqa: E402
+from openfusion.app.launcher import Cluster  # noqa: E402
 from openfusion.bus import Subscriber, open_session  # noqa: E402
+from openfusion.bus import free_loopback_port as free_port  # noqa: E402
 from openfusion.config import ServiceConfig, ZenohSettings  # noqa: E402
 from openfusion.sources import open_source  # noqa: E402
 from openfusion.sources.scannet_writer import write_scannet_layout  # noqa: E402

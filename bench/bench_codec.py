@@ -20,7 +20,6 @@ import argparse
 import collections
 import json
 import os
-import socket
 import statistics
 import subprocess
 import sys
@@ -105,12 +104,6 @@ def bench_in_process(iterations: int) -> list[dict[str, Any]]:
 
 
 # --------------------------------------------------------------------------------- two processes
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def _config(port: int, *, listen: bool) -> Any:
@@ -254,7 +247,9 @@ def run_publisher(mode: str, port: int, duration_s: float) -> dict[str, Any]:
 
 
 def bench_two_processes(mode: str, duration_s: float) -> dict[str, Any]:
-    port = _free_port()
+    from openfusion.bus import free_loopback_port
+
+    port = free_loopback_port()
     me = os.path.abspath(__file__)
     sub = subprocess.Popen(
         [sys.executable, me, "--role", "sub", "--mode", mode, "--port", str(port), "--duration", str(duration_s)],

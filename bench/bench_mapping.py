@@ -27,9 +27,9 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
-from openfusion.frame import CameraIntrinsics, Frame
+from openfusion.frame import CameraIntrinsics, Frame, resize_nearest
 from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume, VolumeParams
-from openfusion.mapping.volume import range_map_down_factor, resample_nearest
+from openfusion.mapping.volume import range_map_down_factor
 from openfusion.testing.analytic_scene import SimpleObservation, furnished_room, orbit_poses
 
 OBS_W, OBS_H = 160, 120
@@ -108,7 +108,7 @@ def fifty_regions(
     frame: Frame, rng: np.random.Generator, emb_of: dict[tuple[int, int], np.ndarray]
 ) -> SimpleObservation:
     """50 regions at 160x120: instances split by a coarse image grid, largest first, soft confidences."""
-    inst = resample_nearest(frame.instance, (OBS_H, OBS_W))
+    inst = resize_nearest(frame.instance, (OBS_H, OBS_W))
     for cells in (4, 6, 8, 12):
         cell = (np.arange(OBS_H)[:, None] * cells // OBS_H) * cells + (
             np.arange(OBS_W)[None, :] * cells // OBS_W

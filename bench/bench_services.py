@@ -40,8 +40,9 @@ import numpy as np
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-from openfusion.app.run import Cluster, free_port, wait_for_services  # noqa: E402
+from openfusion.app.launcher import Cluster, wait_for_services  # noqa: E402
 from openfusion.bus import Queryable, collect_health, get, open_session  # noqa: E402
+from openfusion.bus import free_loopback_port as free_port  # noqa: E402
 from openfusion.client import OpenFusionClient  # noqa: E402
 from openfusion.config import ServiceConfig, ZenohSettings  # noqa: E402
 from openfusion.encoders import make_text_encoder  # noqa: E402

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import argparse
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -65,9 +65,3 @@ class ServiceDefinition:
             return run_service(config, self.name, app.setup, loop=loop)
         finally:
             app.close()
-
-    def main(self, argv: Sequence[str] | None = None) -> int:
-        """``python -m openfusion.services.NAME``: same as ``openfusion service NAME``."""
-        from openfusion.app.cli import main as cli_main
-
-        return cli_main(["service", self.name, *(argv if argv is not None else __import__("sys").argv[1:])])

@@ -20,8 +20,9 @@ from pathlib import Path
 import pytest
 
 from helpers_bus import ROOT, subprocess_env, unique_map_id, wait_until
-from openfusion.app.run import Cluster, free_port, wait_for_services
+from openfusion.app.launcher import Cluster, wait_for_services
 from openfusion.bus import collect_health, live_services, open_session
+from openfusion.bus import free_loopback_port as free_port
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings
 

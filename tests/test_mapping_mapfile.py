@@ -22,12 +22,12 @@ from openfusion.mapping import (
     segment_points,
 )
 from openfusion.mapping.mapfile import MAP_FILE_NAME
+from openfusion.poses import look_at
 from openfusion.testing.analytic_scene import (
     AnalyticScene,
     Box,
     Room,
     category_embedding,
-    look_at,
     observation_from_instances,
 )
 

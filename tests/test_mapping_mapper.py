@@ -15,12 +15,12 @@ from openfusion.mapping import (
     query_regions,
     segment_points,
 )
+from openfusion.poses import look_at
 from openfusion.testing.analytic_scene import (
     AnalyticScene,
     Box,
     Room,
     category_embedding,
-    look_at,
     observation_from_instances,
 )
 

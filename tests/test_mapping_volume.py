@@ -16,7 +16,8 @@ from openfusion.mapping import (
 )
 from openfusion.mapping.update_rule import fuse_semantics
 from openfusion.mapping.volume import fill_nearest_labels
-from openfusion.testing.analytic_scene import AnalyticScene, Box, Room, look_at
+from openfusion.poses import look_at
+from openfusion.testing.analytic_scene import AnalyticScene, Box, Room
 
 K_FULL = CameraIntrinsics(320, 240, 262.5, 262.5, 159.5, 119.5)
 K_SMALL = K_FULL.scaled(160, 120)

@@ -85,7 +85,7 @@ def test_playback_at_full_speed_loses_no_frame_to_geometrys_bounded_queue(tmp_pa
     control (at most 3 frames not yet acknowledged on geometry/progress) every frame is integrated
     and none dropped; with it off (--max-in-flight 0) the same replay overflows the queue, which is
     what flow control is for. Bad input tried: a publisher far faster than the consumer."""
-    from openfusion.app.run import Cluster
+    from openfusion.app.launcher import Cluster
     from openfusion.config import ZenohSettings
     from openfusion.sources.record import FrameRecorder
 

@@ -19,8 +19,9 @@ import numpy as np
 import pytest
 
 from helpers_bus import ROOT, subprocess_env, unique_map_id, wait_until
-from openfusion.app.run import Cluster, free_port, wait_for_services
+from openfusion.app.launcher import Cluster, wait_for_services
 from openfusion.bus import QueryError, collect_health, get, open_session
+from openfusion.bus import free_loopback_port as free_port
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.wire.schemas import (

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from openfusion.io.images import read_depth_u16
 from openfusion.sources import SkipFrame, open_source
+from openfusion.sources.files import read_depth_u16
 from openfusion.sources.scannet import LABEL_TSV_COLUMNS, ScanNetSource, majority_labels, read_label_tsv
 
 DEPTH_W, DEPTH_H = 64, 48
@@ -202,7 +202,7 @@ def test_16bit_png_decodes_full_range(tmp_path: Path) -> None:
 def test_fast_color_decode_matches_full_resize(tmp_path: Path) -> None:
     """The reduced-scale JPEG decode (+ nearest for the last 1.2 %) of a real-size ScanNet color
     image stays within a few levels of decoding at full size and resizing bilinearly."""
-    from openfusion.io.images import read_color
+    from openfusion.sources.files import read_color
 
     yy, xx = np.mgrid[0:968, 0:1296]
     img = np.stack([(xx // 3) % 256, (yy // 2) % 256, ((xx + yy) // 8) % 256], axis=-1).astype(np.uint8)

@@ -2,6 +2,6 @@
 
 import sys
 
-from openfusion.services.geometry.service import DEFINITION
+from openfusion.app.cli import main
 
-sys.exit(DEFINITION.main())
+sys.exit(main(["service", "geometry", *sys.argv[1:]]))

@@ -35,8 +35,8 @@ from openfusion.bus import Publisher, QueryError, ServiceRunner, Subscriber, get
 from openfusion.bus.instance_join import InstanceBuffer
 from openfusion.config import ConfigSection, ServiceConfig
 from openfusion.encoders import make_region_encoder
+from openfusion.frame import resize_nearest
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
-from openfusion.mapping.volume import resample_nearest
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_sync import delta_message, dictionary_from_snapshot, snapshot_message
 from openfusion.wire.schemas import (
@@ -176,7 +176,7 @@ class SemanticService:
             frame_id=frame.frame_id, T_world_cam=frame.T_world_cam, **SemanticUpdate.intrinsics_fields(K_small),
             key_map=planned.key_map, conf_map=planned.conf_map,
             new_keys=np.array([key for _, key in planned.new_keys], np.int32),
-            depth_m=resample_nearest(frame.depth_m(), (h, w)).astype(np.float32)))
+            depth_m=resize_nearest(frame.depth_m(), (h, w)).astype(np.float32)))
         stats = runner.stats
         stats.record(time.monotonic() - started)
         stats.incr("semantic_frames")

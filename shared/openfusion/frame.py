@@ -1,6 +1,6 @@
 """Canonical frame and camera types shared by sources, the map core, encoders and services.
 
-Conventions (docs/ARCHITECTURE.md, design §3): metres; right-handed; OpenCV camera axes
+Conventions (docs/ARCHITECTURE.md, "Conventions"): metres; right-handed; OpenCV camera axes
 (x right, y down, z forward); ``T_world_cam`` is a 4x4 row-major camera-to-world pose.
 Color and depth of a frame are registered and have the same size (readers resize color to
 the depth camera).
@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from openfusion.poses import check_pose
 
 
 @dataclass(frozen=True)
@@ -100,13 +102,19 @@ class Frame:
             )
         if not (self.depth_scale > 0 and np.isfinite(self.depth_scale)):
             raise ValueError(f"depth_scale must be positive, got {self.depth_scale}")
-        T = np.asarray(self.T_world_cam)
-        if T.shape != (4, 4) or not np.isfinite(T).all():
-            raise ValueError("T_world_cam must be a finite 4x4 matrix")
-        if np.abs(T[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-6:
-            raise ValueError(f"T_world_cam last row must be [0 0 0 1], got {T[3]}")
-        R = T[:3, :3]
-        if np.abs(R @ R.T - np.eye(3)).max() > 1e-3:
-            raise ValueError("T_world_cam rotation is not orthonormal")
+        check_pose(self.T_world_cam)
         if self.instance is not None and (self.instance.shape != (h, w) or self.instance.dtype != np.int32):
             raise ValueError(f"instance must be {h}x{w} int32, got {self.instance.dtype} {self.instance.shape}")
+
+
+def resize_nearest(image: np.ndarray, size_hw: tuple[int, int]) -> np.ndarray:
+    """Nearest-neighbour resize of the first two axes to ``size_hw = (height, width)``, with the
+    pixel-centre convention of :meth:`CameraIntrinsics.scaled` (labels are never blended). The
+    one resize helper of the package (readers, encoders, the volume, services)."""
+    H, W = image.shape[:2]
+    h, w = size_hw
+    if (H, W) == (h, w):
+        return image
+    rows = np.minimum(((np.arange(h) + 0.5) * (H / h)).astype(np.int64), H - 1)
+    cols = np.minimum(((np.arange(w) + 0.5) * (W / w)).astype(np.int64), W - 1)
+    return image[rows[:, None], cols[None, :]]

@@ -1,11 +1,48 @@
-"""Pose helpers: quaternions (x, y, z, w order, as TUM and ROS write them), SLERP, pose interpolation.
+"""Pose helpers: the one pose check, inversion, look-at, quaternions (x, y, z, w order, as TUM
+and ROS write them), SLERP and pose interpolation.
 
 Poses are 4x4 float64 camera-to-world matrices (``T_world_cam``) unless a name says otherwise.
+Every place that accepts a pose (frames, wire messages, the volume, readers, the evaluation,
+virtual cameras) checks it with :func:`check_pose`.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from openfusion.errors import OpenFusionError
+
+#: Tolerance of the rigidity check: ``R @ R.T`` may differ from the identity by this much
+#: (poses written as text with 6 decimals pass).
+ROTATION_ATOL = 1e-3
+
+
+class InvalidPoseError(OpenFusionError, ValueError):
+    """A pose that is not a finite 4x4 rigid transform (the message says which part failed)."""
+
+
+def check_pose(T: np.ndarray, *, what: str = "T_world_cam", rotation_atol: float = ROTATION_ATOL) -> np.ndarray:
+    """``T`` as a float64 4x4 copy, or :class:`InvalidPoseError` naming ``what`` and the problem:
+    not 4x4, inf/NaN entries, a last row other than [0 0 0 1], a rotation that is not orthonormal."""
+    M = np.asarray(T, dtype=np.float64)
+    if M.shape != (4, 4) or not np.isfinite(M).all():
+        raise InvalidPoseError(f"{what} must be a finite 4x4 matrix, got shape {M.shape}"
+                               + ("" if M.shape != (4, 4) else " with inf/NaN entries"))
+    if np.abs(M[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-6:
+        raise InvalidPoseError(f"{what} last row must be [0 0 0 1], got {M[3].tolist()}")
+    R = M[:3, :3]
+    if np.abs(R @ R.T - np.eye(3)).max() > rotation_atol:
+        raise InvalidPoseError(f"{what} rotation is not orthonormal (not a rigid transform)")
+    return M.copy()
+
+
+def invert_pose(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform (``T_cam_world`` of a ``T_world_cam``)."""
+    R = T[:3, :3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ T[:3, 3]
+    return out
 
 
 def quat_to_matrix(q_xyzw: np.ndarray) -> np.ndarray:

@@ -45,7 +45,7 @@ def _text_encoder_for(space: str, name: str | None) -> Any:
 
 
 def _print_regions(text: str, space: str, regions: list[Any], *, as_json: bool) -> None:
-    from openfusion.app.run import region_record
+    from openfusion.app.outputs import region_record
 
     rows = [region_record(r) for r in regions]
     if as_json:

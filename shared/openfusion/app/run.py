@@ -24,16 +24,14 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
-import signal
-import socket
-import subprocess
 import sys
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from openfusion.app.launcher import Cluster, RunError, wait_for_services
+from openfusion.app.outputs import open_rerun, surface_mesh, write_query_outputs
+from openfusion.bus import free_loopback_port
 from openfusion.config import ServiceConfig, ZenohSettings
 
 logger = logging.getLogger(__name__)
@@ -42,163 +40,9 @@ DEFAULT_QUERIES = ("chair", "table", "something to sit on", "a plant", "monitor"
 SERVICE_START_TIMEOUT_S = 180.0
 
 
-class RunError(RuntimeError):
-    """The embedded run cannot continue (a service died or did not come up)."""
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@dataclass
-class ServiceProcess:
-    name: str
-    proc: subprocess.Popen[bytes]
-    log_path: Path
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def tail(self, lines: int = 15) -> str:
-        try:
-            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
-        except OSError:
-            return ""
-
-
-@dataclass
-class Cluster:
-    """Service processes of one embedded run, connected to a router session of this process."""
-
-    map_id: str
-    endpoint: str
-    log_dir: Path
-    processes: dict[str, ServiceProcess] = field(default_factory=dict)
-
-    def base_args(self) -> list[str]:
-        return ["--map", self.map_id, "--mode", "peer", "--connect", self.endpoint, "--no-multicast",
-                "--listen", "tcp/127.0.0.1:0"]
-
-    def start(self, name: str, extra: list[str], env: dict[str, str] | None = None) -> ServiceProcess:
-        self.log_dir.mkdir(parents=True, exist_ok=True)
-        log_path = self.log_dir / f"{name}.log"
-        log = open(log_path, "ab")  # noqa: SIM115 - closed when the process ends (child keeps its fd)
-        cmd = [sys.executable, "-m", "openfusion.app.cli", "service", name, *self.base_args(), *extra]
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                env={**os.environ, **(env or {})})
-        log.close()
-        sp = ServiceProcess(name, proc, log_path)
-        self.processes[name] = sp
-        return sp
-
-    def check_alive(self) -> None:
-        for sp in self.processes.values():
-            if not sp.alive():
-                raise RunError(f"the {sp.name} service exited with code {sp.proc.returncode}; "
-                               f"last lines of {sp.log_path}:\n{sp.tail()}")
-
-    def stop(self, name: str | None = None, *, timeout_s: float = 15.0) -> None:
-        targets = [self.processes[name]] if name else list(self.processes.values())
-        for sp in targets:
-            if sp.alive():
-                sp.proc.send_signal(signal.SIGTERM)
-        for sp in targets:
-            try:
-                sp.proc.wait(timeout_s)
-            except subprocess.TimeoutExpired:
-                logger.warning("%s did not stop within %.0f s; killing it", sp.name, timeout_s)
-                sp.proc.kill()
-                sp.proc.wait(5)
-
-
 def _counter(stats: dict[str, Any], service: str, name: str, default: float = 0.0) -> float:
     s = stats.get(service)
     return float(s.counters.get(name, default)) if s is not None else default
-
-
-def wait_for_services(client: Any, cluster: Cluster, names: set[str], timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while True:
-        cluster.check_alive()
-        live = set(client.live_services(timeout_s=1.0))
-        if names <= live:
-            return
-        if time.monotonic() > deadline:
-            raise RunError(f"services {sorted(names - live)} did not come up within {timeout_s:.0f} s "
-                           f"(logs in {cluster.log_dir})")
-        time.sleep(0.3)
-
-
-def region_record(region: Any) -> dict[str, Any]:
-    """A ranked region (bus ``RegionHit`` or library ``RegionResult``) as a JSON-ready dict."""
-    return {"key": int(region.key), "score": round(float(region.score), 4), "label": region.label,
-            "num_points": int(region.num_points),
-            "bbox_min": [round(float(v), 3) for v in region.bbox_min],
-            "bbox_max": [round(float(v), 3) for v in region.bbox_max]}
-
-
-def write_query_outputs(
-    out: Path,
-    replies: list[tuple[str, str, list[Any]]],
-    mesh: tuple[Any, Any, Any, Any] | Any | None,
-    *,
-    say: Any = None,
-) -> list[dict[str, Any]]:
-    """Write ``queries.json``, ``query_<i>.ply`` (points of each query's best region) and
-    ``mesh.ply`` (vertex colour + region key). ``replies``: (query, embedding space, ranked hits with
-    key/score/label/bbox_min/bbox_max/num_points/points); ``mesh``: a SurfaceMesh-like object or
-    (vertices, triangles, colors, keys)."""
-    from openfusion.io.ply import write_ply_vertices
-
-    records = []
-    for i, (text, space, hits) in enumerate(replies):
-        regions = [region_record(r) for r in hits]
-        record: dict[str, Any] = {"query": text, "embedding_space": space, "regions": regions}
-        if hits and hits[0].points is not None and len(hits[0].points):
-            p = hits[0].points
-            write_ply_vertices(out / f"query_{i}.ply", {"x": p[:, 0], "y": p[:, 1], "z": p[:, 2]})
-            record["points_file"] = f"query_{i}.ply"
-        records.append(record)
-        if say is not None:
-            best = hits[0] if hits else None
-            say(f"query {text!r}: " + (f"region {best.key} ({best.label or '?'}) score {best.score:.3f}, "
-                                        f"{best.num_points} points" if best else "no region"))
-    (out / "queries.json").write_text(json.dumps(records, indent=2))
-    if mesh is not None:
-        vertices, triangles, colors, keys = (mesh if isinstance(mesh, tuple)
-                                             else (mesh.vertices, mesh.triangles, mesh.colors, mesh.keys))
-        if len(vertices):
-            write_ply_vertices(out / "mesh.ply", {
-                "x": vertices[:, 0], "y": vertices[:, 1], "z": vertices[:, 2],
-                "red": colors[:, 0], "green": colors[:, 1], "blue": colors[:, 2],
-                "key": keys.astype("int32")}, faces=triangles)
-    return records
-
-
-def open_rerun(sink: str | None) -> Any:
-    """A :class:`openfusion.viz.rerun_log.RerunLogger` for ``--rerun SINK``, or None."""
-    if not sink:
-        return None
-    from openfusion.viz.rerun_log import RerunLogger
-
-    return RerunLogger(sink)
-
-
-def surface_mesh(vertices: Any, triangles: Any, colors: Any, keys: Any) -> Any:
-    """A :class:`openfusion.mapping.SurfaceMesh` (with vertex normals) from mesh arrays off the bus."""
-    import numpy as np
-    import open3d as o3d
-
-    from openfusion.mapping import SurfaceMesh
-
-    legacy = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.array(vertices, np.float64)),
-                                       o3d.utility.Vector3iVector(np.array(triangles, np.int32)))
-    legacy.compute_vertex_normals()
-    return SurfaceMesh(vertices=np.asarray(vertices, np.float32), triangles=np.asarray(triangles, np.int32),
-                       colors=np.asarray(colors, np.uint8), normals=np.asarray(legacy.vertex_normals, np.float32),
-                       keys=np.asarray(keys, np.int32), conf=np.ones(len(vertices), np.float32))
 
 
 def run_services(args: argparse.Namespace) -> dict[str, Any]:
@@ -210,7 +54,7 @@ def run_services(args: argparse.Namespace) -> dict[str, Any]:
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    port = free_port()
+    port = free_loopback_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     router_cfg = ServiceConfig(map_id=args.map_id, zenoh=ZenohSettings(mode="router", listen=[endpoint],
                                                                         multicast_scouting=False))
@@ -396,7 +240,7 @@ class RunCommand:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
         try:
             if args.in_process:
-                from openfusion.mapping.pipeline import run_in_process
+                from openfusion.app.run_in_process import run_in_process
 
                 summary = run_in_process(args)
             else:

@@ -39,6 +39,7 @@ import collections
 import logging
 import os
 import signal
+import socket
 import struct
 import threading
 import time
@@ -91,6 +92,13 @@ class RequestError(Exception):
         self.code = code
         self.reason = reason
         super().__init__(f"{code}: {reason}")
+
+
+def free_loopback_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (the embedded run's router, tests)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
 
 
 def open_session(config: ServiceConfig) -> zenoh.Session:

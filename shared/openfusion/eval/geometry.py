@@ -21,6 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from openfusion.frame import CameraIntrinsics
+from openfusion.poses import check_pose
 
 logger = logging.getLogger(__name__)
 
@@ -100,9 +101,7 @@ class ObservedSurface:
                 f"depth is {depth.shape[1]}x{depth.shape[0]}, intrinsics are for "
                 f"{intrinsics.width_px}x{intrinsics.height_px}"
             )
-        T = np.asarray(T_world_cam, dtype=np.float64)
-        if T.shape != (4, 4) or not np.isfinite(T).all():
-            raise ValueError("T_world_cam must be a finite 4x4 matrix")
+        T = check_pose(T_world_cam)
         R, t = T[:3, :3], T[:3, 3]
         p_cam = (self._points - t) @ R  # = R^T (p - t), row vectors
         z = p_cam[:, 2]

@@ -11,18 +11,14 @@ Used by ``openfusion run --in-process``, the evaluation and notebooks::
 
 from __future__ import annotations
 
-import argparse
-import json
 import logging
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import Any
 
 from openfusion.frame import Frame
 from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume, VolumeParams
-from openfusion.mapping.params import ROOM_SCALE_INITIAL_BLOCKS
 
 logger = logging.getLogger(__name__)
 
@@ -108,62 +104,3 @@ def map_scene(
     else:
         stats.frames_read = stats.frames_integrated
     return MapResult(volume, dictionary, stats)
-
-
-def run_in_process(args: argparse.Namespace) -> dict[str, Any]:
-    """``openfusion run --in-process``: the same outputs as the service run, in this process."""
-    from tqdm import tqdm
-
-    from openfusion.encoders import make_region_encoder, make_text_encoder
-    from openfusion.mapping import query_regions, save_map
-    from openfusion.sources import open_source
-
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    started = time.monotonic()
-    source = open_source(args.source, max_frames=args.frames)
-    options: dict[str, Any] = {"noise": args.noise} if (args.encoder == "gt" and args.noise) else {}
-    encoder = make_region_encoder(args.encoder, **options)
-    from openfusion.app.run import open_rerun
-
-    rerun = open_rerun(getattr(args, "rerun", None))
-    log_frame = rerun.frame_hook() if rerun is not None else None
-    bar = tqdm(total=args.frames, desc="frames integrated", unit="frame", disable=args.quiet)
-
-    def on_frame(frame: Frame, stats: PipelineStats) -> None:
-        bar.update(1)
-        if log_frame is not None:
-            log_frame(frame, stats)
-
-    try:
-        result = map_scene(
-            source,
-            region_encoder=encoder,
-            volume_params=VolumeParams(initial_block_count=ROOM_SCALE_INITIAL_BLOCKS),  # as the service
-            semantic_every=args.semantic_every,
-            on_frame=on_frame,
-        )
-    finally:
-        bar.close()
-    save_map(out / "map", result.volume, result.dictionary, meta={"map_id": args.map_id})
-    text = make_text_encoder(args.text_encoder)
-    from openfusion.app.run import write_query_outputs
-
-    replies = []
-    for query in args.queries:
-        vec = text.encode([query])[0]
-        hits = query_regions(result.dictionary, result.volume, vec, args.top_k, with_points=True, max_points=50_000,
-                             embedding_space=text.embedding_space)
-        replies.append((query, text.embedding_space, hits))
-    write_query_outputs(out, replies, result.volume.extract_mesh(), say=None if args.quiet else print)
-    if rerun is not None:
-        rerun.log_map(result.volume, result.dictionary)
-        for query, _space, hits in replies:
-            rerun.log_query(query, hits)
-        rerun.close()
-    summary = {"source": args.source, "encoder": args.encoder, "noise": args.noise or "off",
-               "semantic_every": args.semantic_every, "mode": "in-process", **result.stats.as_dict(),
-               "frames_published": result.stats.frames_integrated, "regions": len(result.dictionary),
-               "wall_s": round(time.monotonic() - started, 1), "map_dir": "map"}
-    (out / "run.json").write_text(json.dumps(summary, indent=2))
-    return summary

@@ -60,10 +60,11 @@ import open3d as o3d
 import open3d.core as o3c
 from scipy.spatial import cKDTree
 
-from openfusion.frame import CameraIntrinsics, Frame
+from openfusion.frame import CameraIntrinsics, Frame, resize_nearest
 from openfusion.mapping.errors import CapacityError
 from openfusion.mapping.params import VolumeParams
 from openfusion.mapping.update_rule import fuse_semantics
+from openfusion.poses import check_pose, invert_pose
 
 logger = logging.getLogger(__name__)
 
@@ -191,37 +192,6 @@ def range_map_down_factor(width_px: int, height_px: int) -> int:
         if width_px % factor == 0 and height_px % factor == 0:
             return factor
     return 1
-
-
-def resample_nearest(image: np.ndarray, size_hw: tuple[int, int]) -> np.ndarray:
-    """Nearest-neighbour resize with the pixel-centre convention of ``CameraIntrinsics.scaled``."""
-    H, W = image.shape[:2]
-    h, w = size_hw
-    if (H, W) == (h, w):
-        return image
-    rows = np.clip(np.floor((np.arange(h) + 0.5) * H / h), 0, H - 1).astype(np.int64)
-    cols = np.clip(np.floor((np.arange(w) + 0.5) * W / w), 0, W - 1).astype(np.int64)
-    return image[rows][:, cols]
-
-
-def _check_pose(T_world_cam: np.ndarray) -> np.ndarray:
-    T = np.asarray(T_world_cam, dtype=np.float64)
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise ValueError(f"T_world_cam must be a finite 4x4 matrix, got shape {T.shape}")
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
-        raise ValueError(f"T_world_cam last row must be [0 0 0 1], got {T[3]}")
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
-        raise ValueError("T_world_cam rotation is not orthonormal")
-    return T
-
-
-def _invert_pose(T: np.ndarray) -> np.ndarray:
-    R = T[:3, :3]
-    out = np.eye(4)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ T[:3, 3]
-    return out
 
 
 _F = TypeVar("_F", bound=Callable[..., Any])
@@ -464,7 +434,7 @@ class SemanticVolume:
         p = self.params
         depth_img, color_img, depth_scale = self._frame_images(frame)
         K = self._intrinsic_tensor(frame.intrinsics)
-        extrinsic = o3c.Tensor(_invert_pose(np.asarray(frame.T_world_cam, np.float64)))
+        extrinsic = o3c.Tensor(invert_pose(np.asarray(frame.T_world_cam, np.float64)))
         try:
             block_coords = self._vbg.compute_unique_block_coordinates(
                 depth_img, K, extrinsic, depth_scale, p.depth_max_m, p.trunc_voxels
@@ -597,7 +567,7 @@ class SemanticVolume:
     @_locked
     def ray_cast(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> RayHits:
         """Depth and the 8 voxels around the first surface hit of every pixel (depth-tested)."""
-        T = _check_pose(T_world_cam)
+        T = check_pose(T_world_cam)
         h, w = intrinsics.height_px, intrinsics.width_px
         pose_key = T.tobytes() + repr(intrinsics).encode()
         coords, fragments = self._frustum_blocks(T, intrinsics)
@@ -615,7 +585,7 @@ class SemanticVolume:
         result = self._vbg.ray_cast(
             o3c.Tensor(coords, device=self._device),
             self._intrinsic_tensor(intrinsics),
-            o3c.Tensor(_invert_pose(T)),
+            o3c.Tensor(invert_pose(T)),
             w,
             h,
             ["depth", "index", "interp_ratio", "mask"],
@@ -683,7 +653,7 @@ class SemanticVolume:
         truncation distance + 2 % of the depth) from the observed depth is skipped. This stops
         labels of an object's silhouette pixels from landing on the background behind it.
         """
-        T = _check_pose(T_world_cam)
+        T = check_pose(T_world_cam)
         h, w = intrinsics.height_px, intrinsics.width_px
         key_map = np.asarray(key_map)
         conf_map = np.asarray(conf_map)
@@ -707,7 +677,7 @@ class SemanticVolume:
             hits = self.ray_cast(T, intrinsics)
         use = (key_map >= 0) & (conf_map > 0) & (hits.depth_m > 0)
         if observed_depth_m is not None:
-            observed = resample_nearest(np.asarray(observed_depth_m, np.float32), (h, w))
+            observed = resize_nearest(np.asarray(observed_depth_m, np.float32), (h, w))
             tol = (
                 (self.params.trunc_m + 0.02 * hits.depth_m)
                 if depth_tolerance_m is None

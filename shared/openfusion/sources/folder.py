@@ -38,9 +38,9 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from openfusion.frame import CameraIntrinsics, Frame
-from openfusion.io.images import check_pose, numeric_key, read_matrix, read_rgbd_frame
 from openfusion.poses import pose_from_tum
 from openfusion.sources.base import NOMINAL_FPS, IndexedFrameSource, SkipFrame
+from openfusion.sources.files import numeric_key, pose_or_skip, read_matrix, read_rgbd_frame
 from openfusion.sources.redwood import read_trajectory_log
 from openfusion.sources.replica import read_trajectory_lines
 
@@ -201,7 +201,7 @@ class FolderSource(IndexedFrameSource):
                 raise SkipFrame("unreadable_pose", f"{ctx}: pose entry {index} is malformed")
             if pose_stamp is not None:
                 stamp = pose_stamp
-        T = check_pose(raw, context=ctx)
+        T = pose_or_skip(raw, context=ctx)
         if self.config.poses.convention == "w2c":
             T = np.linalg.inv(T)
         if self.config.poses.camera_axes == "opengl":

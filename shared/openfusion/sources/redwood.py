@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics, Frame
-from openfusion.io.images import check_pose, numeric_key, read_rgbd_frame
 from openfusion.sources.base import NOMINAL_FPS, IndexedFrameSource, SkipFrame
+from openfusion.sources.files import numeric_key, pose_or_skip, read_rgbd_frame
 
 logger = logging.getLogger(__name__)
 
@@ -136,7 +136,7 @@ class RedwoodSource(IndexedFrameSource):
         ctx = f"{self.root.name} frame {frame_idx}"
         if raw is None:
             raise SkipFrame("unreadable_pose", f"{ctx}: trajectory block {index} is malformed")
-        T = check_pose(raw, context=ctx)
+        T = pose_or_skip(raw, context=ctx)
         if not 0 <= frame_idx < len(self._pairs):
             raise SkipFrame("missing_color", f"{ctx}: trajectory refers to frame {frame_idx}, only {len(self._pairs)} images")
         color_path, depth_path = self._pairs[frame_idx]

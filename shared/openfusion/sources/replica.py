@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics, Frame
-from openfusion.io.images import check_pose, read_rgbd_frame
 from openfusion.sources.base import NOMINAL_FPS, IndexedFrameSource, SkipFrame
+from openfusion.sources.files import pose_or_skip, read_rgbd_frame
 
 logger = logging.getLogger(__name__)
 
@@ -106,7 +106,7 @@ class ReplicaSource(IndexedFrameSource):
         raw = self._poses[index]
         if raw is None:
             raise SkipFrame("unreadable_pose", f"{ctx}: traj.txt line {index + 1} is not 16 numbers")
-        T = check_pose(raw, context=ctx)
+        T = pose_or_skip(raw, context=ctx)
         color_path = results / f"frame{index:06d}.jpg"
         if not color_path.exists() and (results / f"frame{index:06d}.png").exists():
             color_path = results / f"frame{index:06d}.png"

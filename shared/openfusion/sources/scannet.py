@@ -33,16 +33,16 @@ from pathlib import Path
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics, Frame
-from openfusion.io.images import (
-    check_pose,
+from openfusion.sources.base import NOMINAL_FPS, IndexedFrameSource, SkipFrame
+from openfusion.sources.files import (
     image_size,
     numeric_key,
+    pose_or_skip,
     read_color,
     read_depth_u16,
     read_label_image,
     read_matrix,
 )
-from openfusion.sources.base import NOMINAL_FPS, IndexedFrameSource, SkipFrame
 
 logger = logging.getLogger(__name__)
 
@@ -212,7 +212,7 @@ class ScanNetSource(IndexedFrameSource):
         size = (self.intrinsics.width_px, self.intrinsics.height_px)
         ctx = f"{d.name} frame {idx}"
         pose_path = self._pose.get(idx, d / "pose" / f"{idx}.txt")
-        T = check_pose(read_matrix(pose_path, what="pose"), context=f"{ctx} ({pose_path})")
+        T = pose_or_skip(read_matrix(pose_path, what="pose"), context=f"{ctx} ({pose_path})")
         depth = read_depth_u16(self._depth.get(idx, d / "depth" / f"{idx}.png"), size=size)
         color = read_color(self._color.get(idx, d / "color" / f"{idx}.jpg"), size=size)
         instance = None

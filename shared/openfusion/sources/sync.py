@@ -55,9 +55,8 @@ from typing import Literal
 import numpy as np
 from PIL import Image
 
-from openfusion.frame import CameraIntrinsics, Frame
-from openfusion.io.images import resize_nearest
-from openfusion.poses import matrix_to_quat, quat_to_matrix, slerp
+from openfusion.frame import CameraIntrinsics, Frame, resize_nearest
+from openfusion.poses import InvalidPoseError, check_pose, matrix_to_quat, quat_to_matrix, slerp
 
 logger = logging.getLogger(__name__)
 
@@ -97,10 +96,7 @@ class SyncConfig:
         if self.reorder_window_ns < 0 or self.pose_history_ns <= self.reorder_window_ns:
             raise ValueError("need 0 <= reorder_window_ns < pose_history_ns")
         if self.T_tracker_cam is not None:
-            T = np.asarray(self.T_tracker_cam, dtype=np.float64)
-            R = T[:3, :3] if T.shape == (4, 4) else None
-            if R is None or not np.isfinite(T).all() or not np.allclose(R @ R.T, np.eye(3), atol=1e-6):
-                raise ValueError("T_tracker_cam must be a finite 4x4 rigid transform (camera pose in the T265 frame)")
+            check_pose(self.T_tracker_cam, what="T_tracker_cam (the camera pose in the T265 frame)", rotation_atol=1e-6)
         if self.output_size is not None and (self.output_size[0] <= 0 or self.output_size[1] <= 0):
             raise ValueError(f"output_size must be (width, height) > 0, got {self.output_size}")
 
@@ -170,8 +166,9 @@ class PoseBuffer:
 
     def add(self, stamp_ns: int, T: np.ndarray) -> bool:
         """Insert a pose; False (and counted) when it is late, a duplicate or not finite."""
-        T = np.asarray(T, dtype=np.float64)
-        if T.shape != (4, 4) or not np.isfinite(T).all():
+        try:
+            T = check_pose(T, what="tracker pose")
+        except InvalidPoseError:
             self.stats.reject("invalid")
             return False
         newest = self.newest_ns
@@ -235,7 +232,7 @@ def downsample_rgbd(
     if (intrinsics.width_px, intrinsics.height_px) == (w, h):
         return color, depth, intrinsics
     color_out = np.asarray(Image.fromarray(color).resize((w, h), Image.Resampling.BILINEAR))
-    depth_out = resize_nearest(depth, (w, h))
+    depth_out = resize_nearest(depth, (h, w))
     return color_out, depth_out, intrinsics.scaled(w, h)
 
 

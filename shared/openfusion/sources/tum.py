@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics, Frame
-from openfusion.io.images import check_pose, read_color, read_depth_u16
 from openfusion.poses import PoseTrack, pose_from_tum
 from openfusion.sources.base import IndexedFrameSource, SkipFrame
+from openfusion.sources.files import pose_or_skip, read_color, read_depth_u16
 
 logger = logging.getLogger(__name__)
 
@@ -187,7 +187,7 @@ class TumSource(IndexedFrameSource):
         T, reason = self._track.interpolate(stamp)
         if T is None:
             raise SkipFrame(reason, f"{ctx}: no ground-truth pose at t={t:.6f}")
-        T = check_pose(T, context=ctx)
+        T = pose_or_skip(T, context=ctx)
         size = (self.intrinsics.width_px, self.intrinsics.height_px)
         depth = read_depth_u16(self.sequence_dir / depth_name, size=size)
         color = read_color(self.sequence_dir / rgb_name, size=size)

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics, Frame
+from openfusion.poses import look_at
 
 _FACE_NAMES = ("wall", "wall", "wall", "wall", "floor", "ceiling")  # -x, +x, -y, +y, -z, +z
 
@@ -181,23 +182,6 @@ class AnalyticScene:
         stacked = np.stack(candidates)
         nearest = stacked.argmin(axis=0)
         return np.stack(ids)[nearest, np.arange(len(points))].astype(np.int32)
-
-
-def look_at(
-    eye: np.ndarray, target: np.ndarray, up: tuple[float, float, float] = (0.0, 0.0, 1.0)
-) -> np.ndarray:
-    """``T_world_cam`` (OpenCV axes) of a camera at ``eye`` looking at ``target`` (``up``: world up)."""
-    eye = np.asarray(eye, np.float64)
-    forward = np.asarray(target, np.float64) - eye
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, np.asarray(up, np.float64))
-    if np.linalg.norm(right) < 1e-9:
-        right = np.cross(forward, np.array([0.0, 1.0, 0.0]))
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = right, down, forward, eye
-    return T
 
 
 def furnished_room(seed: int = 0) -> AnalyticScene:

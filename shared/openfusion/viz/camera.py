@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics
-from openfusion.poses import look_at
+from openfusion.poses import InvalidPoseError, check_pose, look_at
 from openfusion.viz.errors import VizError
 
 UP_AXES: dict[str, tuple[float, float, float]] = {
@@ -178,7 +178,8 @@ def overview_camera(
 
 def camera_from_pose(T_world_cam: np.ndarray, *, width_px: int, height_px: int, fov_deg: float = 60.0) -> VirtualCamera:
     """A virtual camera at a given pose (e.g. one of the recorded camera poses)."""
-    T = np.asarray(T_world_cam, np.float64)
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise VizError(f"a camera pose must be a finite 4x4 matrix, got shape {T.shape}")
-    return VirtualCamera(T.copy(), pinhole(width_px, height_px, fov_deg=fov_deg))
+    try:
+        T = check_pose(T_world_cam, what="a camera pose")
+    except InvalidPoseError as exc:
+        raise VizError(str(exc)) from None
+    return VirtualCamera(T, pinhole(width_px, height_px, fov_deg=fov_deg))

@@ -42,15 +42,15 @@ import math
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated, Any, TypeVar
+from typing import Annotated, Any, TypeVar
 
 import msgpack
 import numpy as np
 from pydantic import BaseModel, ValidationError
 from pydantic_core import PydanticCustomError, core_schema
 
-if TYPE_CHECKING:
-    from openfusion.wire.schemas import Message
+from openfusion.errors import OpenFusionError
+from openfusion.wire.message import Message, message_class
 
 DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 """Largest payload :func:`encode` writes and :func:`decode` reads unless told otherwise."""
@@ -112,7 +112,7 @@ _ARRAY_REASONS = ("too_large", "bad_dtype", "array_size_mismatch")
 M = TypeVar("M", bound=BaseModel)
 
 
-class DecodeError(ValueError):
+class DecodeError(OpenFusionError, ValueError):
     """Bytes that are not a valid message. ``reason`` is one of :data:`DECODE_REASONS`."""
 
     def __init__(self, reason: str, detail: str, *, schema: str | None = None) -> None:
@@ -124,7 +124,7 @@ class DecodeError(ValueError):
         super().__init__(f"{reason}{where}: {detail}")
 
 
-class EncodeError(ValueError):
+class EncodeError(OpenFusionError, ValueError):
     """A message that cannot be put on the wire (too large, or an array of an unsupported dtype)."""
 
 
@@ -434,8 +434,6 @@ def decode(
     ``expected``: refuse any other schema (reason ``unexpected_schema``).
     ``max_bytes`` / ``max_array_elements``: size limits for this call.
     """
-    from openfusion.wire.schemas import message_class
-
     schema, version, body, arraydata = _unpack(data, max_bytes=max_bytes)
     if expected is not None and schema != expected.schema_name:
         raise DecodeError(

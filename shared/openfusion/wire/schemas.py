@@ -19,14 +19,14 @@ import logging
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
 from openfusion.frame import CameraIntrinsics, Frame
+from openfusion.poses import check_pose
 from openfusion.wire.codec import ndarray
+from openfusion.wire.message import Message, Record
 
 logger = logging.getLogger(__name__)
-
-_REGISTRY: dict[str, type[Message]] = {}
 
 # Array field types used below.
 Pose4x4 = ndarray("float64", shape=(4, 4))
@@ -39,53 +39,6 @@ FloatMap = ndarray("float32", shape=(None, None))
 KeyList = ndarray("int32", shape=(None,))
 Points3f = ndarray("float32", shape=(None, 3))
 Colors3u8 = ndarray("uint8", shape=(None, 3))
-
-
-class Record(BaseModel):
-    """Base of every wire model (messages and their nested parts): strict about unknown fields
-    and non-finite floats."""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, arbitrary_types_allowed=True)
-
-
-class Message(Record):
-    """A top-level bus message. Subclasses set ``schema_name`` and ``schema_version``."""
-
-    schema_name: ClassVar[str]
-    schema_version: ClassVar[int]
-
-    @classmethod
-    def __pydantic_init_subclass__(cls, **kwargs: Any) -> None:
-        super().__pydantic_init_subclass__(**kwargs)
-        if "schema_name" not in cls.__dict__:
-            return  # an abstract base (e.g. PinholeMessage)
-        if not isinstance(cls.__dict__.get("schema_version"), int):
-            raise TypeError(f"{cls.__qualname__} sets schema_name but no integer schema_version")
-        name = cls.schema_name
-        previous = _REGISTRY.get(name)
-        if previous is not None and previous.__qualname__ != cls.__qualname__:
-            raise TypeError(
-                f"schema {name!r} is already registered by {previous.__module__}.{previous.__qualname__}"
-            )
-        # Same qualname: the module was imported twice (e.g. as __main__ and by name); keep the newest.
-        _REGISTRY[name] = cls
-
-
-def message_class(schema_name: str) -> type[Message] | None:
-    """The message class registered under ``schema_name``, or None."""
-    return _REGISTRY.get(schema_name)
-
-
-def registered_schemas() -> dict[str, type[Message]]:
-    """A copy of the registry: schema name -> message class."""
-    return dict(_REGISTRY)
-
-
-def _check_pose(T: np.ndarray, *, name: str = "T_world_cam") -> None:
-    if not np.isfinite(T).all():
-        raise ValueError(f"{name} must be finite")
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
-        raise ValueError(f"{name} last row must be [0 0 0 1], got {T[3].tolist()}")
 
 
 class PinholeMessage(Message):
@@ -267,7 +220,7 @@ class RenderRequest(PinholeMessage):
 
     @model_validator(mode="after")
     def _check(self) -> RenderRequest:
-        _check_pose(self.T_world_cam)
+        check_pose(self.T_world_cam)
         return self
 
 
@@ -424,7 +377,7 @@ class SemanticUpdate(PinholeMessage):
 
     @model_validator(mode="after")
     def _check(self) -> SemanticUpdate:
-        _check_pose(self.T_world_cam)
+        check_pose(self.T_world_cam)
         self._check_image("key_map", self.key_map)
         self._check_image("conf_map", self.conf_map)
         if self.depth_m is not None:

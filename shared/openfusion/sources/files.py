@@ -15,6 +15,8 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from openfusion.frame import CameraIntrinsics, Frame
+from openfusion.poses import InvalidPoseError
+from openfusion.poses import check_pose as _check_pose
 from openfusion.sources.base import SkipFrame
 
 logger = logging.getLogger(__name__)
@@ -126,15 +128,6 @@ def read_label_image(path: Path, *, what: str, size: tuple[int, int] | None = No
         return _gray_to_array(img, path, what).astype(np.int32)
 
 
-def resize_nearest(arr: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Nearest-neighbour resize of the first two axes to ``size=(width, height)`` (pixel centres)."""
-    h_in, w_in = arr.shape[:2]
-    w_out, h_out = size
-    rows = np.minimum(((np.arange(h_out) + 0.5) * (h_in / h_out)).astype(np.int64), h_in - 1)
-    cols = np.minimum(((np.arange(w_out) + 0.5) * (w_in / w_out)).astype(np.int64), w_in - 1)
-    return arr[rows[:, None], cols[None, :]]
-
-
 def image_size(path: Path) -> tuple[int, int]:
     """(width, height) from the image header, without decoding pixels."""
     with Image.open(path) as img:
@@ -154,15 +147,12 @@ def read_matrix(path: Path, *, what: str = "pose", shape: tuple[int, int] = (4, 
     return values.reshape(shape)
 
 
-def check_pose(T_world_cam: np.ndarray, *, context: str) -> np.ndarray:
+def pose_or_skip(T_world_cam: np.ndarray, *, context: str) -> np.ndarray:
     """Return a float64 copy or raise ``SkipFrame('invalid_pose')`` for inf/NaN or non-rigid poses."""
-    T = np.asarray(T_world_cam, dtype=np.float64)
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise SkipFrame("invalid_pose", f"{context}: pose has inf/NaN entries")
-    R = T[:3, :3]
-    if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6) or not np.allclose(R @ R.T, np.eye(3), atol=1e-3):
-        raise SkipFrame("invalid_pose", f"{context}: pose is not a rigid transform")
-    return T.copy()
+    try:
+        return _check_pose(T_world_cam, what="pose")
+    except InvalidPoseError as exc:
+        raise SkipFrame("invalid_pose", f"{context}: {exc}") from None
 
 
 def numeric_key(path: Path) -> int | None:
