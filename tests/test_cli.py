@@ -26,6 +26,7 @@ from helpers_bus import (
 from openfusion.app import cli
 from openfusion.bus import Publisher, Subscriber, open_session
 from openfusion.config import ServiceConfig
+from openfusion.sources.base import SourceError
 from openfusion.wire.keys import KeySpace
 from openfusion.wire.schemas import TextQuery
 
@@ -118,39 +119,48 @@ def test_router_relays_between_clients_and_exits_0_on_sigterm() -> None:
         assert router.wait(10) == 0, router.output()
 
 
-def test_registry_skips_missing_modules_and_loads_only_the_chosen_one(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A registered subcommand whose module does not exist is left out; `version` does not
-    import the heavy modules other subcommands need."""
+def test_registry_loads_only_the_chosen_command_and_a_broken_one_fails_loudly(monkeypatch: pytest.MonkeyPatch) -> None:
+    """`version` does not import the heavy modules other subcommands need; a registered
+    subcommand whose module cannot be imported is listed and fails when chosen (it used to be
+    dropped silently, so a typo hid a whole command)."""
     extra = cli.Subcommand("later", "openfusion.no_such_module_yet:Command", "added by a later issue")
     monkeypatch.setattr(cli, "SUBCOMMANDS", [*cli.SUBCOMMANDS, extra])
     parser, loaded = cli.build_parser(["version"])
     assert set(loaded) == {"version"}
-    assert "later" not in parser.format_help() and "health" in parser.format_help()
+    assert "later" in parser.format_help() and "health" in parser.format_help()
+    with pytest.raises(ModuleNotFoundError, match="no_such_module_yet"):
+        cli.build_parser(["later"])
     code = "import sys; from openfusion.app.cli import main; main(['version']); print('torch' in sys.modules)"
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=subprocess_env())
     assert proc.stdout.strip().splitlines()[-1] == "False"
 
 
 class _FailingCommand:
-    """A subcommand whose library call refuses bad input with a plain ValueError."""
+    """A subcommand whose library call refuses bad input (a UserError) or hits a bug."""
 
     @staticmethod
     def add_arguments(parser) -> None:
         parser.add_argument("--spec", default="nosuch:/x")
+        parser.add_argument("--bug", action="store_true")
 
     @staticmethod
     def run(args) -> int:
-        raise ValueError(f"unknown source scheme in {args.spec!r}")
+        if args.bug:
+            raise KeyError("a bug")
+        raise SourceError(f"unknown source scheme in {args.spec!r}")
 
 
-def test_library_value_errors_are_one_line_with_a_debug_hint(monkeypatch, capsys) -> None:
-    """A ValueError from library code (bad user input) ends as one stderr line, exit 1, and
-    OPENFUSION_DEBUG=1 brings the traceback back."""
+def test_user_errors_are_one_line_exit_2_and_bugs_keep_their_traceback(monkeypatch, capsys) -> None:
+    """A UserError from library code (bad user input) ends as one stderr line and exit code 2;
+    OPENFUSION_DEBUG=1 brings the traceback back; an exception outside the package's error tree
+    (a bug) is not swallowed into one line."""
     monkeypatch.setattr(cli, "SUBCOMMANDS", [cli.Subcommand("failing", f"{__name__}:_FailingCommand", "fails")])
     monkeypatch.delenv("OPENFUSION_DEBUG", raising=False)
-    assert cli.main(["failing"]) == 1
+    assert cli.main(["failing"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["openfusion failing: error: unknown source scheme in 'nosuch:/x' (OPENFUSION_DEBUG=1 shows the traceback)"]
+    assert err == ["openfusion failing: error: unknown source scheme in 'nosuch:/x'"]
+    with pytest.raises(KeyError, match="a bug"):
+        cli.main(["failing", "--bug"])
     monkeypatch.setenv("OPENFUSION_DEBUG", "1")
-    with pytest.raises(ValueError, match="unknown source scheme"):
+    with pytest.raises(SourceError, match="unknown source scheme"):
         cli.main(["failing"])

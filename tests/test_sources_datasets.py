@@ -13,6 +13,7 @@ from PIL import Image
 from openfusion.frame import CameraIntrinsics
 from openfusion.poses import matrix_to_quat, quat_to_matrix, rotation_angle_deg
 from openfusion.sources import open_source
+from openfusion.sources.base import SourceError
 from openfusion.sources.folder import FolderSource
 from openfusion.sources.redwood import RedwoodSource
 from openfusion.sources.replica import REPLICA_INTRINSICS, ReplicaSource
@@ -307,5 +308,5 @@ def test_unknown_scheme_suggests_the_right_one(tum: Path) -> None:
         open_source("scanet:/data/x")
     with pytest.raises(ValueError, match="needs a path"):
         open_source("tum:")
-    with pytest.raises(FileNotFoundError, match="recording"):
+    with pytest.raises(SourceError, match="recording"):
         open_source(f"replay:{tum / 'missing.ofrec'}")

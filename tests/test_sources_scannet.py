@@ -11,6 +11,7 @@ import pytest
 from PIL import Image
 
 from openfusion.sources import SkipFrame, open_source
+from openfusion.sources.base import SourceError
 from openfusion.sources.files import read_depth_u16
 from openfusion.sources.scannet import LABEL_TSV_COLUMNS, ScanNetSource, majority_labels, read_label_tsv
 
@@ -158,7 +159,7 @@ def test_not_a_scannet_folder(tmp_path: Path) -> None:
         (tmp_path / sub).mkdir()
     with pytest.raises(FileNotFoundError, match="intrinsic_depth.txt"):
         ScanNetSource(tmp_path)
-    with pytest.raises(FileNotFoundError, match="does not exist"):
+    with pytest.raises(SourceError, match="does not exist"):
         open_source(f"scannet:{tmp_path / 'nope'}")
 
 

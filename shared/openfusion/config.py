@@ -57,6 +57,7 @@ from typing import Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from openfusion.errors import UserError
 from openfusion.wire.keys import DEFAULT_PREFIX, KeySpace, validate_map_id, validate_prefix
 
 try:
@@ -74,7 +75,7 @@ _ENDPOINT = re.compile(r"^[a-z][a-z0-9\-]*/\S+$")
 C = TypeVar("C", bound="ServiceConfig")
 
 
-class ConfigError(ValueError):
+class ConfigError(UserError, ValueError):
     """Invalid configuration; the message names field, value and source."""
 
 

@@ -17,16 +17,14 @@ import json
 import logging
 from pathlib import Path
 
-from openfusion.app.cli import CliError
 from openfusion.app.viz_args import (
-    EXIT_USAGE,
     add_colour_arguments,
     add_map_arguments,
     check_colour_arguments,
     check_export_target,
-    cli_error,
     make_text_encoder_for,
 )
+from openfusion.errors import UsageError
 from openfusion.viz.errors import VizError
 
 logger = logging.getLogger(__name__)
@@ -53,47 +51,41 @@ class ExportCommand:
         out = Path(args.out)
         suffix = out.suffix.lower()
         if suffix not in (".ply", ".glb"):
-            raise CliError(f"--out must end in .ply or .glb, got {out}", EXIT_USAGE)
+            raise UsageError(f"--out must end in .ply or .glb, got {out}")
         if args.points and suffix != ".ply":
-            raise CliError("--points writes a .ply point cloud; use an --out ending in .ply", EXIT_USAGE)
+            raise UsageError("--points writes a .ply point cloud; use an --out ending in .ply")
         if args.max_points is not None and (not args.points or args.max_points < 1):
-            raise CliError("--max-points needs --points and a value >= 1", EXIT_USAGE)
+            raise UsageError("--max-points needs --points and a value >= 1")
         check_export_target(out, "--out")
         classes = check_colour_arguments(args)
-        try:
-            loaded = open_map(args.map_dir)
-        except VizError as exc:
-            raise cli_error(exc) from exc
+        loaded = open_map(args.map_dir)
         text_encoder = make_text_encoder_for(args, loaded.dictionary)
-        try:
-            hits = None
-            if args.query is not None:
-                if len(loaded.dictionary) == 0:
-                    raise VizError("the map has no regions to query (it was mapped without semantics)")
-                hits = query_text(loaded.dictionary, args.query, top_k=args.top_k, text_encoder=text_encoder)
-            if args.points:
-                geometry = loaded.volume.extract_points(max_points=args.max_points)
-            else:
-                geometry = loaded.volume.extract_mesh()
-            if len(geometry.keys) == 0:
-                raise VizError("the map has no surface to export (no integrated geometry)")
-            colouring = None
-            if args.colour != "rgb" or hits is not None:
-                colouring = colour_mesh(
-                    geometry,
-                    loaded.dictionary,
-                    colour=args.colour,
-                    hits=hits,
-                    query=args.query or "",
-                    class_names=classes,
-                    text_encoder=text_encoder,
-                )
-            if args.points:
-                written = export_points(geometry, out, colouring=colouring)
-            else:
-                written = export_mesh(geometry, out, colouring=colouring)
-        except VizError as exc:
-            raise cli_error(exc) from exc
+        hits = None
+        if args.query is not None:
+            if len(loaded.dictionary) == 0:
+                raise VizError("the map has no regions to query (it was mapped without semantics)")
+            hits = query_text(loaded.dictionary, args.query, top_k=args.top_k, text_encoder=text_encoder)
+        if args.points:
+            geometry = loaded.volume.extract_points(max_points=args.max_points)
+        else:
+            geometry = loaded.volume.extract_mesh()
+        if len(geometry.keys) == 0:
+            raise VizError("the map has no surface to export (no integrated geometry)")
+        colouring = None
+        if args.colour != "rgb" or hits is not None:
+            colouring = colour_mesh(
+                geometry,
+                loaded.dictionary,
+                colour=args.colour,
+                hits=hits,
+                query=args.query or "",
+                class_names=classes,
+                text_encoder=text_encoder,
+            )
+        if args.points:
+            written = export_points(geometry, out, colouring=colouring)
+        else:
+            written = export_mesh(geometry, out, colouring=colouring)
         summary = {
             "files": [str(p) for p in written],
             "elements": int(len(geometry.keys)),

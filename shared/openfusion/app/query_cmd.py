@@ -22,25 +22,25 @@ from openfusion.config import add_config_arguments, config_from_args, setup_logg
 
 
 def _load_saved_map(map_dir: Path) -> Any:
-    from openfusion.app.cli import CliError
+    from openfusion.errors import UsageError
     from openfusion.mapping import MapFormatError, load_map
     from openfusion.mapping.mapfile import resolve_map_path
 
     if not resolve_map_path(map_dir).exists():
-        raise CliError(f"no map at {map_dir} (expected {resolve_map_path(map_dir)}; make one with `openfusion run`)", 2)
+        raise UsageError(f"no map at {map_dir} (expected {resolve_map_path(map_dir)}; make one with `openfusion run`)")
     try:
         return load_map(map_dir)
     except MapFormatError as exc:
-        raise CliError(f"cannot read the map at {map_dir}: {exc}", 2) from None
+        raise UsageError(f"cannot read the map at {map_dir}: {exc}") from None
 
 
 def _text_encoder_for(space: str, name: str | None) -> Any:
-    from openfusion.app.cli import CliError
     from openfusion.encoders import make_text_encoder
+    from openfusion.errors import UsageError
 
     encoder = make_text_encoder(name or "minilm")
     if encoder.embedding_space != space:
-        raise CliError(f"the map is in embedding space {space!r} but --text-encoder gives {encoder.embedding_space!r}", 2)
+        raise UsageError(f"the map is in embedding space {space!r} but --text-encoder gives {encoder.embedding_space!r}")
     return encoder
 
 
@@ -85,10 +85,10 @@ class QueryCommand:
 
     @staticmethod
     def run(args: argparse.Namespace) -> int:
-        from openfusion.app.cli import CliError
+        from openfusion.errors import UsageError
 
         if args.top_k < 1:
-            raise CliError(f"--top-k must be >= 1, got {args.top_k}", 2)
+            raise UsageError(f"--top-k must be >= 1, got {args.top_k}")
         with_points = args.out is not None
         if args.map_dir is not None:
             from openfusion.mapping import query_regions
@@ -99,16 +99,12 @@ class QueryCommand:
             regions = query_regions(loaded.dictionary, loaded.volume, encoder.encode([args.text])[0], args.top_k,
                                     with_points=with_points, max_points=200_000)
         else:
-            from openfusion.bus import QueryError
             from openfusion.client import OpenFusionClient
 
             config = config_from_args(args)
             setup_logging(config.log_level if args.log_level else "WARNING")
             with OpenFusionClient.from_config(config, timeout_s=args.timeout) as client:
-                try:
-                    reply = client.query_text(args.text, top_k=args.top_k, with_points=with_points)
-                except QueryError as exc:
-                    raise CliError(str(exc)) from None
+                reply = client.query_text(args.text, top_k=args.top_k, with_points=with_points)
             space, regions = reply.embedding_space, reply.regions
         _print_regions(args.text, space, regions, as_json=args.json)
         if args.out is not None:
@@ -127,13 +123,13 @@ class SegmentCommand:
 
     @staticmethod
     def run(args: argparse.Namespace) -> int:
-        from openfusion.app.cli import CliError
+        from openfusion.errors import UsageError
         from openfusion.io.ply import write_ply_vertices
         from openfusion.mapping import segment_points
 
         classes = [c.strip() for c in args.classes.split(",") if c.strip()]
         if not classes:
-            raise CliError("--classes needs at least one class name", 2)
+            raise UsageError("--classes needs at least one class name")
         loaded = _load_saved_map(args.map_dir)
         encoder = _text_encoder_for(loaded.dictionary.embedding_space, args.text_encoder)
         points, labels = segment_points(loaded.volume, loaded.dictionary, encoder.encode(classes))

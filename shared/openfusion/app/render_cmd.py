@@ -16,18 +16,15 @@ import json
 import logging
 from pathlib import Path
 
-from openfusion.app.cli import CliError
 from openfusion.app.viz_args import (
-    EXIT_USAGE,
     add_colour_arguments,
     add_map_arguments,
     add_view_arguments,
     check_colour_arguments,
     check_export_target,
-    cli_error,
     make_text_encoder_for,
 )
-from openfusion.viz.errors import VizError
+from openfusion.errors import UsageError
 
 logger = logging.getLogger(__name__)
 
@@ -59,19 +56,16 @@ class RenderCommand:
 
         out = Path(args.out)
         if out.suffix.lower() != ".png":
-            raise CliError(f"--out must name a .png file, got {out}", EXIT_USAGE)
+            raise UsageError(f"--out must name a .png file, got {out}")
         if not out.parent.is_dir():
-            raise CliError(f"--out: folder {out.parent} does not exist", EXIT_USAGE)
+            raise UsageError(f"--out: folder {out.parent} does not exist")
         if not 1 <= args.supersample <= MAX_SUPERSAMPLE:
-            raise CliError(f"--supersample must be 1..{MAX_SUPERSAMPLE}, got {args.supersample}", EXIT_USAGE)
+            raise UsageError(f"--supersample must be 1..{MAX_SUPERSAMPLE}, got {args.supersample}")
         classes = check_colour_arguments(args)
         if args.export_mesh is not None:
             check_export_target(args.export_mesh, "--export-mesh")
-        try:
-            check_image_size(args.width, args.height)
-            loaded = open_map(args.map_dir)
-        except VizError as exc:
-            raise cli_error(exc) from exc
+        check_image_size(args.width, args.height)
+        loaded = open_map(args.map_dir)
         text_encoder = make_text_encoder_for(args, loaded.dictionary)
         view = ViewOptions(
             width_px=args.width,
@@ -83,24 +77,21 @@ class RenderCommand:
             supersample=args.supersample,
         )
         map_name = Path(args.map_dir).name or str(args.map_dir)
-        try:
-            picture = picture_of_map(
-                loaded,
-                view=view,
-                colour=args.colour,
-                query=args.query,
-                top_k=args.top_k,
-                text_encoder=text_encoder,
-                class_names=classes,
-                caption=not args.no_caption,
-                map_name=map_name,
-            )
-            save_png(picture.image, out)
-            written = [out]
-            if args.export_mesh is not None:
-                written += export_mesh(picture.mesh, args.export_mesh, colouring=picture.colouring)
-        except VizError as exc:
-            raise cli_error(exc) from exc
+        picture = picture_of_map(
+            loaded,
+            view=view,
+            colour=args.colour,
+            query=args.query,
+            top_k=args.top_k,
+            text_encoder=text_encoder,
+            class_names=classes,
+            caption=not args.no_caption,
+            map_name=map_name,
+        )
+        save_png(picture.image, out)
+        written = [out]
+        if args.export_mesh is not None:
+            written += export_mesh(picture.mesh, args.export_mesh, colouring=picture.colouring)
         summary = {
             "out": str(out),
             "size_px": [args.width, args.height],

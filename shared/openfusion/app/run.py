@@ -222,31 +222,28 @@ class RunCommand:
 
     @staticmethod
     def run(args: argparse.Namespace) -> int:
-        from openfusion.app.cli import CliError
+        from openfusion.errors import UsageError
         from openfusion.wire.keys import validate_map_id
 
         try:
             validate_map_id(args.map_id)
         except ValueError as exc:
-            raise CliError(str(exc), 2) from None
+            raise UsageError(str(exc)) from None
         if args.frames <= 0:
-            raise CliError(f"--frames must be positive, got {args.frames}", 2)
+            raise UsageError(f"--frames must be positive, got {args.frames}")
         if args.semantic_every < 0:
-            raise CliError(f"--semantic-every must be >= 0, got {args.semantic_every}", 2)
+            raise UsageError(f"--semantic-every must be >= 0, got {args.semantic_every}")
         args.queries = args.queries or list(DEFAULT_QUERIES)
         if args.source == "synthetic":
             # The built-in scene: one lap of the room in the frames played, so the map covers it.
             args.source = f"synthetic:lap={args.frames}"
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-        try:
-            if args.in_process:
-                from openfusion.app.run_in_process import run_in_process
+        if args.in_process:
+            from openfusion.app.run_in_process import run_in_process
 
-                summary = run_in_process(args)
-            else:
-                summary = run_services(args)
-        except RunError as exc:
-            raise CliError(str(exc)) from None
+            summary = run_in_process(args)
+        else:
+            summary = run_services(args)
         print(json.dumps(summary, indent=2))
         _say(args, f"outputs in {args.out.resolve()}")
         return 0

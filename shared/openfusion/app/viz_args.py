@@ -1,7 +1,7 @@
 """Arguments shared by ``openfusion render`` and ``openfusion export``, and their checking.
 
 Every problem a user can cause (no map there, not a map, an unknown colour mode or embedding
-space, a bad size) becomes :class:`openfusion.app.cli.CliError` with one clear line.
+space, a bad size) is a :class:`~openfusion.errors.UserError` (one clear line, exit code 2).
 """
 
 from __future__ import annotations
@@ -10,20 +10,11 @@ import argparse
 import logging
 from pathlib import Path
 
-from openfusion.app.cli import CliError
+from openfusion.errors import UsageError
 from openfusion.viz.camera import UP_AXES
-from openfusion.viz.errors import MissingDependencyError, VizError
+from openfusion.viz.errors import MissingDependencyError
 
 logger = logging.getLogger(__name__)
-
-EXIT_USAGE = 2
-EXIT_FAILURE = 1
-
-
-def cli_error(exc: VizError) -> CliError:
-    """The CliError for a VizError: missing optional packages exit 1, everything else the user gave exits 2."""
-    return CliError(str(exc), EXIT_FAILURE if isinstance(exc, MissingDependencyError) else EXIT_USAGE)
-
 
 def add_map_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
@@ -71,16 +62,16 @@ def add_view_arguments(parser: argparse.ArgumentParser) -> None:
 def check_colour_arguments(args: argparse.Namespace) -> list[str] | None:
     """Validate query/colour options; returns the class list (or None)."""
     if args.top_k < 1:
-        raise CliError(f"--top-k must be >= 1, got {args.top_k}", EXIT_USAGE)
+        raise UsageError(f"--top-k must be >= 1, got {args.top_k}")
     if args.query is not None and not args.query.strip():
-        raise CliError("--query is empty", EXIT_USAGE)
+        raise UsageError("--query is empty")
     classes = None
     if args.classes is not None:
         classes = [c.strip() for c in args.classes.split(",") if c.strip()]
         if not classes:
-            raise CliError("--classes is empty; give names separated by commas", EXIT_USAGE)
+            raise UsageError("--classes is empty; give names separated by commas")
         if args.colour != "label":
-            raise CliError("--classes only applies with --colour label", EXIT_USAGE)
+            raise UsageError("--classes only applies with --colour label")
     return classes
 
 
@@ -90,21 +81,18 @@ def make_text_encoder_for(args: argparse.Namespace, dictionary):  # noqa: ANN001
         return None
     from openfusion.viz.query import text_encoder_for_map
 
-    try:
-        return text_encoder_for_map(dictionary, name=args.text_encoder, model=args.text_model)
-    except VizError as exc:
-        raise cli_error(exc) from exc
+    return text_encoder_for_map(dictionary, name=args.text_encoder, model=args.text_model)
 
 
 def check_export_target(path: Path, option: str) -> None:
     """Refuse a mesh target we cannot write before any work is done: suffix, folder, trimesh for .glb."""
     suffix = Path(path).suffix.lower()
     if suffix not in (".ply", ".glb"):
-        raise CliError(f"{option} must end in .ply or .glb, got {path}", EXIT_USAGE)
+        raise UsageError(f"{option} must end in .ply or .glb, got {path}")
     if not Path(path).parent.is_dir():
-        raise CliError(f"{option}: folder {Path(path).parent} does not exist", EXIT_USAGE)
+        raise UsageError(f"{option}: folder {Path(path).parent} does not exist")
     if suffix == ".glb":
         try:
             import trimesh  # noqa: F401
         except ImportError as exc:
-            raise cli_error(MissingDependencyError("trimesh", "GLB export")) from exc
+            raise MissingDependencyError("trimesh", "GLB export") from exc

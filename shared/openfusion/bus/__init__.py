@@ -51,6 +51,7 @@ import numpy as np
 import zenoh
 
 from openfusion.config import ServiceConfig, zenoh_config
+from openfusion.errors import OpenFusionError
 from openfusion.wire.codec import (
     DEFAULT_MAX_ARRAY_ELEMENTS,
     DEFAULT_MAX_MESSAGE_BYTES,
@@ -69,11 +70,11 @@ _ATTACHMENT = struct.Struct("<8sQ")
 _POLL_S = 0.2
 
 
-class BusError(RuntimeError):
+class BusError(OpenFusionError):
     """The Zenoh network could not be joined or an entity could not be declared."""
 
 
-class QueryError(RuntimeError):
+class QueryError(OpenFusionError):
     """A ``get`` failed: ``code`` (``timeout``, ``bad_reply:<reason>``, or the service's
     :class:`ErrorReply` code) and ``reason`` (human text, from the remote service when it answered)."""
 
@@ -84,7 +85,7 @@ class QueryError(RuntimeError):
         super().__init__(f"{key}: {reason}" if code == "timeout" else f"{key}: {code}: {reason}")
 
 
-class RequestError(Exception):
+class RequestError(OpenFusionError):
     """Raise in a queryable handler to refuse a request with your own ``code`` and ``reason``
     (answered as ``reply_err``; counted as ``refused``, not as a service error)."""
 

@@ -7,6 +7,7 @@ with :func:`make_region_encoder` / :func:`make_text_encoder`; pick devices with 
 
 from openfusion.encoders.base import (
     DEFAULT_OUTPUT_SCALE,
+    EncoderConfigError,
     EncoderError,
     ImageQueryEncoder,
     RegionEncoder,
@@ -29,6 +30,7 @@ __all__ = [
     "NOISE_PROFILES",
     "REGION_ENCODER_NAMES",
     "TEXT_ENCODER_NAMES",
+    "EncoderConfigError",
     "EncoderError",
     "ImageQueryEncoder",
     "NoiseProfile",

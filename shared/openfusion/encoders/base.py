@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from openfusion.errors import OpenFusionError, UserError
 from openfusion.frame import Frame
 
 logger = logging.getLogger(__name__)
@@ -26,8 +27,13 @@ DEFAULT_OUTPUT_SCALE = 0.25
 MIN_EMBEDDING_NORM = 1e-8
 
 
-class EncoderError(ValueError):
+class EncoderError(OpenFusionError, ValueError):
     """Bad input to an encoder (a frame without ground truth, an empty query, ...)."""
+
+
+class EncoderConfigError(EncoderError, UserError):
+    """An encoder that cannot be built as configured: an unknown name, a missing model file or
+    folder, an option that does not apply (the message names it and what would be valid)."""
 
 
 @dataclass

@@ -25,7 +25,7 @@ import numpy as np
 
 from openfusion.encoders.base import (
     DEFAULT_OUTPUT_SCALE,
-    EncoderError,
+    EncoderConfigError,
     TextEncoder,
     check_texts,
     normalize_rows,
@@ -78,13 +78,13 @@ def _resolve_space(model: str, folder: Path | None, config: Any, embedding_space
         try:
             space = json.loads((folder / SPACE_FILE).read_text(encoding="utf-8")).get("embedding_space")
         except (OSError, json.JSONDecodeError, AttributeError) as exc:
-            raise EncoderError(f"{folder / SPACE_FILE}: cannot read embedding_space: {exc}") from exc
+            raise EncoderConfigError(f"{folder / SPACE_FILE}: cannot read embedding_space: {exc}") from exc
         if space:
             return str(space)
     for name in (model, getattr(config, "_name_or_path", "") or "", getattr(config, "name_or_path", "") or ""):
         if name in KNOWN_CLIP_SPACES:
             return KNOWN_CLIP_SPACES[name]
-    raise EncoderError(
+    raise EncoderConfigError(
         f"cannot tell the embedding space of CLIP weights {model!r}: pass embedding_space=... or write "
         f"{SPACE_FILE} with {{\"embedding_space\": ...}} in the model folder (known hub names: "
         f"{', '.join(KNOWN_CLIP_SPACES)})"
@@ -105,14 +105,14 @@ def load_clip(model: str = DEFAULT_CLIP_MODEL, *, device: str = "auto", embeddin
         folder = Path(model).expanduser()
         is_local = folder.is_dir()
         if not is_local and ("/" not in str(model) or str(model).startswith((".", "/", "~"))):
-            raise EncoderError(f"CLIP weights {model!r}: no such folder, and not a hub name like {DEFAULT_CLIP_MODEL}")
+            raise EncoderConfigError(f"CLIP weights {model!r}: no such folder, and not a hub name like {DEFAULT_CLIP_MODEL}")
         source = str(folder) if is_local else str(model)
         t0 = time.perf_counter()
         try:
             clip = CLIPModel.from_pretrained(source, attn_implementation="eager", dtype=torch.float32)
             tokenizer = CLIPTokenizer.from_pretrained(source)
         except OSError as exc:
-            raise EncoderError(
+            raise EncoderConfigError(
                 f"cannot load CLIP weights {model!r}: {exc}. Without internet the weights must be in the "
                 "local Hugging Face cache or a local folder (save_pretrained of model + tokenizer)."
             ) from exc

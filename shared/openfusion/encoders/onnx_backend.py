@@ -21,6 +21,7 @@ from PIL import Image
 from openfusion.encoders.base import (
     DEFAULT_OUTPUT_SCALE,
     MIN_EMBEDDING_NORM,
+    EncoderConfigError,
     EncoderError,
     RegionEncoder,
     RegionObservation,
@@ -216,11 +217,11 @@ def make_onnx_region_encoder(
     :class:`GraphSegmentationProposer` (``proposer_options`` go to whichever is used).
     """
     if model_path is None:
-        raise EncoderError("the onnx region encoder needs model_path=<file.onnx> (docs/ENCODERS.md)")
+        raise EncoderConfigError("the onnx region encoder needs model_path=<file.onnx> (docs/ENCODERS.md)")
     model = load_onnx_model(model_path, expected_kind=("region-model", "crop-embedder"), device=device)
     if model.kind == "region-model":
         if mask_model_path is not None:
-            raise EncoderError(f"{model.path.name} is a region-model (it makes its own masks); mask_model_path does not apply")
+            raise EncoderConfigError(f"{model.path.name} is a region-model (it makes its own masks); mask_model_path does not apply")
         return OnnxRegionEncoder(model, output_scale=output_scale, min_peak_conf=min_peak_conf)
     embedder = OnnxCropEmbedder(model, padding=crop_padding, mask_background=mask_background)
     proposer: RegionProposer
@@ -250,7 +251,7 @@ class OnnxTextEncoder(TextEncoder):
         expect_dim: int | None = None,
     ) -> None:
         if model_path is None:
-            raise EncoderError("the onnx text encoder needs model_path=<file.onnx> (docs/ENCODERS.md)")
+            raise EncoderConfigError("the onnx text encoder needs model_path=<file.onnx> (docs/ENCODERS.md)")
         from tokenizers import Tokenizer
 
         self.model = load_onnx_model(model_path, expected_kind="text-model", device=device)

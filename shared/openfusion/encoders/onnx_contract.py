@@ -28,6 +28,7 @@ from typing import Any
 
 from openfusion.encoders.base import EncoderError
 from openfusion.encoders.device import onnx_providers, select_device
+from openfusion.errors import UserError
 
 logger = logging.getLogger(__name__)
 
@@ -78,7 +79,7 @@ REQUIRED_METADATA: dict[str, tuple[str, ...]] = {
 }
 
 
-class EncoderContractError(EncoderError):
+class EncoderContractError(EncoderError, UserError):
     """An ONNX model (or model pair) does not follow the contract in docs/ENCODERS.md."""
 
 

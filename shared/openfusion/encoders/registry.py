@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from openfusion.encoders.base import RegionEncoder, TextEncoder
+from openfusion.encoders.base import EncoderConfigError, RegionEncoder, TextEncoder
 
 REGION_ENCODER_NAMES = ("gt", "onnx", "clip-regions")
 TEXT_ENCODER_NAMES = ("gt", "onnx", "clip-regions", "minilm", "hash")
@@ -45,7 +45,7 @@ def make_text_encoder(name: str, **options: Any) -> TextEncoder:
         from openfusion.encoders.clip_regions import ClipTextEncoder
 
         return ClipTextEncoder(**options)
-    raise ValueError(f"unknown text encoder {name!r}; known: {', '.join(TEXT_ENCODER_NAMES)}")
+    raise EncoderConfigError(f"unknown text encoder {name!r}; known: {', '.join(TEXT_ENCODER_NAMES)}")
 
 
 def make_region_encoder(name: str, **options: Any) -> RegionEncoder:
@@ -66,7 +66,7 @@ def make_region_encoder(name: str, **options: Any) -> RegionEncoder:
         if isinstance(text, str):
             text = make_text_encoder(text, **text_options)
         elif text_options:
-            raise ValueError("text_options only apply when text_encoder is given by name")
+            raise EncoderConfigError("text_options only apply when text_encoder is given by name")
         return GroundTruthRegionEncoder(text, **options)
     if key == "onnx":
         from openfusion.encoders.onnx_backend import make_onnx_region_encoder
@@ -76,4 +76,4 @@ def make_region_encoder(name: str, **options: Any) -> RegionEncoder:
         from openfusion.encoders.clip_regions import ClipRegionEncoder
 
         return ClipRegionEncoder(**options)
-    raise ValueError(f"unknown region encoder {name!r}; known: {', '.join(REGION_ENCODER_NAMES)}")
+    raise EncoderConfigError(f"unknown region encoder {name!r}; known: {', '.join(REGION_ENCODER_NAMES)}")

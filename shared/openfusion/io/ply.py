@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from openfusion.errors import UserError
+
 logger = logging.getLogger(__name__)
 
 _PLY_TYPES = {
@@ -27,7 +29,7 @@ _PLY_TYPES = {
 _MAX_HEADER_BYTES = 64 * 1024
 
 
-class PlyError(ValueError):
+class PlyError(UserError, ValueError):
     """The file is not a PLY this reader understands (message names the file and the problem)."""
 
 

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+from openfusion.errors import OpenFusionError, UserError
 
-class MappingError(Exception):
+
+class MappingError(OpenFusionError):
     """Base class of every error raised by ``openfusion.mapping``."""
 
 
@@ -20,11 +22,11 @@ class CapacityError(MappingError):
         self.blocks_free = blocks_free
 
 
-class MapFormatError(MappingError):
+class MapFormatError(MappingError, UserError):
     """A map file is truncated, corrupt, of an unknown format version or internally inconsistent."""
 
 
-class EmbeddingSpaceError(MappingError):
+class EmbeddingSpaceError(MappingError, UserError):
     """Embeddings or a query come from another embedding space (or dimension) than the map's."""
 
 

@@ -17,6 +17,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
+from openfusion.errors import OpenFusionError, UserError
 from openfusion.frame import Frame
 
 logger = logging.getLogger(__name__)
@@ -53,7 +54,12 @@ class Skip:
     detail: str
 
 
-class SkipFrame(Exception):  # noqa: N818 - control flow, not an error for the caller
+class SourceError(UserError, ValueError):
+    """A source that cannot be opened: unknown scheme, bad options, a missing path or a folder
+    that is not the layout its scheme reads (the message names the spec and what would be valid)."""
+
+
+class SkipFrame(OpenFusionError):  # noqa: N818 - control flow, not an error for the caller
     """Raised inside ``IndexedFrameSource._load`` to skip one item with a reason."""
 
     def __init__(self, reason: str, detail: str) -> None:

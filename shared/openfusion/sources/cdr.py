@@ -33,12 +33,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from openfusion.errors import OpenFusionError
+
 ENCAPSULATION_LE = b"\x00\x01\x00\x00"
 ENCAPSULATION_BE = b"\x00\x00\x00\x00"
 MAX_STRING_BYTES = 1 << 16
 
 
-class CdrError(ValueError):
+class CdrError(OpenFusionError, ValueError):
     """A payload that is not a valid CDR encoding of the expected message."""
 
 

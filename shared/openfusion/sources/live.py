@@ -29,6 +29,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from openfusion.errors import UserError
 from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.poses import pose_from_tum
 from openfusion.sources.base import FrameSource, Skip
@@ -40,7 +41,7 @@ KINECT_DEPTH_SCALE = 1000.0
 T265_MAX_LIBREALSENSE = (2, 53, 1)
 
 
-class LiveDependencyError(ImportError):
+class LiveDependencyError(UserError, ImportError):
     """A live-sensor driver package is missing (the message says what to install)."""
 
 

@@ -25,6 +25,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from types import TracebackType
 
+from openfusion.errors import UserError
 from openfusion.frame import Frame
 from openfusion.sources.base import FrameSource, Skip
 from openfusion.wire.codec import DEFAULT_MAX_MESSAGE_BYTES, DecodeError, decode, encode, unpack_envelope
@@ -38,7 +39,7 @@ _HEADER = struct.Struct("<8sII")
 _LENGTH = struct.Struct("<I")
 
 
-class RecordingError(ValueError):
+class RecordingError(UserError, ValueError):
     """A file that is not a recording this build can read (message names the file and why)."""
 
 

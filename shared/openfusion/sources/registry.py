@@ -17,7 +17,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from openfusion.sources.base import FrameSource
+from openfusion.errors import OpenFusionError
+from openfusion.sources.base import FrameSource, SourceError
 
 logger = logging.getLogger(__name__)
 
@@ -33,10 +34,10 @@ def _path_reader(module: str, cls: str) -> Callable[[str, dict[str, Any]], Frame
         import importlib
 
         if not rest:
-            raise ValueError(f"source spec needs a path after the scheme, e.g. {module}:/data/scene")
+            raise SourceError(f"source spec needs a path after the scheme, e.g. {module}:/data/scene")
         path = Path(rest).expanduser()
         if not path.exists():
-            raise FileNotFoundError(f"{module} source: {path} does not exist (check the path after '{module}:')")
+            raise SourceError(f"{module} source: {path} does not exist (check the path after '{module}:')")
         reader = getattr(importlib.import_module(f"openfusion.sources.{module}"), cls)
         return reader(path, **options)
 
@@ -45,10 +46,10 @@ def _path_reader(module: str, cls: str) -> Callable[[str, dict[str, Any]], Frame
 
 def _replay(rest: str, options: dict[str, Any]) -> FrameSource:
     if not rest:
-        raise ValueError("source spec needs a file after the scheme, e.g. replay:/data/run.ofrec")
+        raise SourceError("source spec needs a file after the scheme, e.g. replay:/data/run.ofrec")
     path = Path(rest).expanduser()
     if not path.is_file():
-        raise FileNotFoundError(f"replay source: recording {path} does not exist (record one with FrameRecorder)")
+        raise SourceError(f"replay source: recording {path} does not exist (record one with FrameRecorder)")
     from openfusion.sources.record import ReplaySource
 
     return ReplaySource(path, **options)
@@ -56,7 +57,7 @@ def _replay(rest: str, options: dict[str, Any]) -> FrameSource:
 
 def _live(rest: str, options: dict[str, Any]) -> FrameSource:
     if rest not in ("", "kinect-t265"):
-        raise ValueError(f"unknown live device set {rest!r}; supported: live:kinect-t265")
+        raise SourceError(f"unknown live device set {rest!r}; supported: live:kinect-t265")
     from openfusion.sources.live import KinectT265Source
 
     return KinectT265Source(**options)
@@ -82,7 +83,7 @@ def parse_key_values(text: str, *, scheme: str) -> dict[str, str]:
     for item in filter(None, (part.strip() for part in text.split(","))):
         key, sep, value = item.partition("=")
         if not sep or not key.strip() or not value.strip():
-            raise ValueError(f"{scheme} option {item!r} must look like key=value (e.g. {scheme}:seed=1,frames=100)")
+            raise SourceError(f"{scheme} option {item!r} must look like key=value (e.g. {scheme}:seed=1,frames=100)")
         out[key.strip()] = value.strip()
     return out
 
@@ -108,10 +109,11 @@ def _guess_scheme(path: Path) -> str | None:
 def open_source(spec: str, **options: Any) -> FrameSource:
     """Open a frame source from ``scheme:argument`` (see module docstring).
 
-    Raises ValueError for an unknown scheme or bad options, FileNotFoundError for a missing path.
+    Raises :class:`SourceError` (a user error) for an unknown scheme, bad options, a missing path
+    or a folder its reader cannot read.
     """
     if not isinstance(spec, str) or not spec.strip():
-        raise ValueError(f"source spec must be a non-empty string like 'synthetic' or 'scannet:PATH', got {spec!r}")
+        raise SourceError(f"source spec must be a non-empty string like 'synthetic' or 'scannet:PATH', got {spec!r}")
     spec = spec.strip()
     scheme, sep, rest = spec.partition(":")
     scheme = scheme.lower()
@@ -120,7 +122,12 @@ def open_source(spec: str, **options: Any) -> FrameSource:
         guess = _guess_scheme(Path(spec).expanduser())
         if guess is not None:
             hint = f"; {spec!r} looks like a {guess} source: use '{guess}:{spec}'"
-        raise ValueError(f"unknown source scheme {scheme!r} in {spec!r}; known: {', '.join(SCHEMES)}{hint}")
-    source = _SCHEMES[scheme](rest if sep else "", options)
+        raise SourceError(f"unknown source scheme {scheme!r} in {spec!r}; known: {', '.join(SCHEMES)}{hint}")
+    try:
+        source = _SCHEMES[scheme](rest if sep else "", options)
+    except OpenFusionError:
+        raise
+    except (ValueError, TypeError, OSError) as exc:  # a reader refusing its folder or options
+        raise SourceError(f"cannot open source {spec!r}: {exc}") from exc
     logger.info("opened source %s from spec %r", source.name, spec)
     return source

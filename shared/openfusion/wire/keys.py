@@ -25,6 +25,8 @@ import re
 from dataclasses import dataclass
 from typing import Literal
 
+from openfusion.errors import UserError
+
 DEFAULT_PREFIX = "openfusion"
 MAX_SEGMENT_CHARS = 128
 
@@ -35,6 +37,13 @@ ANY_DEEP = "**"
 
 CONTROL_ACTIONS: tuple[str, ...] = ("save", "load", "reset")
 ControlAction = Literal["save", "load", "reset"]
+
+
+
+class InvalidKeyError(UserError, ValueError):
+    """A map id, prefix, service name or key part that is not a valid key segment (the message
+    names the value and why)."""
+
 
 _VALID_SEGMENT = re.compile(r"^[A-Za-z0-9_\-][A-Za-z0-9_.\-]*$")
 _SPECIAL_CHARS = {
@@ -69,26 +78,26 @@ def segment_error(value: object) -> str | None:
 
 
 def validate_segment(value: str, *, what: str = "map id") -> str:
-    """Return ``value`` if it is one valid key segment, else raise ValueError naming it and why."""
+    """Return ``value`` if it is one valid key segment, else raise InvalidKeyError naming it and why."""
     why = segment_error(value)
     if why is not None:
-        raise ValueError(f"{what} {value!r} is not a valid key segment: it {why}")
+        raise InvalidKeyError(f"{what} {value!r} is not a valid key segment: it {why}")
     return value
 
 
 def validate_map_id(map_id: str) -> str:
-    """Return ``map_id`` if it is one valid key segment, else raise ValueError naming it and why."""
+    """Return ``map_id`` if it is one valid key segment, else raise InvalidKeyError naming it and why."""
     return validate_segment(map_id, what="map id")
 
 
 def validate_prefix(prefix: str) -> str:
     """Return ``prefix`` if each of its '/'-separated segments is valid, else raise ValueError."""
     if not isinstance(prefix, str) or prefix == "":
-        raise ValueError(f"key prefix {prefix!r} is not valid: it is empty")
+        raise InvalidKeyError(f"key prefix {prefix!r} is not valid: it is empty")
     for segment in prefix.split("/"):
         why = segment_error(segment)
         if why is not None:
-            raise ValueError(f"key prefix {prefix!r} is not valid: segment {segment!r} {why}")
+            raise InvalidKeyError(f"key prefix {prefix!r} is not valid: segment {segment!r} {why}")
     return prefix
 
 
@@ -97,12 +106,12 @@ def key_for(map_id: str, *parts: str, prefix: str = DEFAULT_PREFIX) -> str:
 
     Every part must be a valid segment, or exactly :data:`ANY` (``*``) / :data:`ANY_DEEP`
     (``**``) for wildcard subscriptions and queries. ``map_id`` and ``prefix`` are never
-    wildcards. Raises ValueError naming the offending id and why.
+    wildcards. Raises InvalidKeyError naming the offending id and why.
     """
     validate_prefix(prefix)
     validate_map_id(map_id)
     if not parts:
-        raise ValueError("key_for needs at least one part after the map id (e.g. 'sensor', 'rgbd')")
+        raise InvalidKeyError("key_for needs at least one part after the map id (e.g. 'sensor', 'rgbd')")
     for part in parts:
         if part in (ANY, ANY_DEEP):
             continue
@@ -216,7 +225,7 @@ class KeySpace:
     def control(self, action: str) -> str:
         """queryable: ControlRequest -> ControlReply, for ``action`` in save/load/reset."""
         if action not in CONTROL_ACTIONS:
-            raise ValueError(f"control action {action!r} is not one of {', '.join(CONTROL_ACTIONS)}")
+            raise InvalidKeyError(f"control action {action!r} is not one of {', '.join(CONTROL_ACTIONS)}")
         return self.key("control", action)
 
     # presence and stats
@@ -240,7 +249,7 @@ class KeySpace:
         key = str(key)
         rest = key[len(head) :] if key.startswith(head) else ""
         if segment_error(rest) is not None:
-            raise ValueError(f"{key!r} is not a health key of map {self.map_id!r} (expected {head}<service>)")
+            raise InvalidKeyError(f"{key!r} is not a health key of map {self.map_id!r} (expected {head}<service>)")
         return rest
 
 

@@ -1,0 +1,133 @@
+"""``openfusion router`` and ``openfusion health``: the bus itself and who is alive on it."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import threading
+import time
+from types import FrameType
+from typing import Any
+
+import zenoh
+
+from openfusion.bus import collect_health, live_services, open_session
+from openfusion.config import add_config_arguments, config_from_args, setup_logging
+from openfusion.errors import OpenFusionError, UsageError
+
+logger = logging.getLogger(__name__)
+
+
+def stop_on_signals() -> threading.Event:
+    """An event set by SIGINT/SIGTERM."""
+    stop = threading.Event()
+
+    def _handler(signum: int, _frame: FrameType | None) -> None:
+        logger.info("got %s, stopping", signal.Signals(signum).name)
+        stop.set()
+
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, _handler)
+    return stop
+
+
+class ServicesNotAlive(OpenFusionError):
+    """``openfusion health`` found none (or not all required) of the map's services alive."""
+
+
+class RouterCommand:
+    """``openfusion router``: a Zenoh router from Python until SIGINT/SIGTERM."""
+
+    DEFAULT_LISTEN = "tcp/[::]:7447"
+
+    @staticmethod
+    def add_arguments(parser: argparse.ArgumentParser) -> None:
+        add_config_arguments(parser)
+
+    @staticmethod
+    def run(args: argparse.Namespace) -> int:
+        args.mode = "router"
+        config = config_from_args(args)
+        if not config.zenoh.listen:
+            config.zenoh.listen = [RouterCommand.DEFAULT_LISTEN]
+        setup_logging(config.log_level)
+        stop = stop_on_signals()
+        session = open_session(config)
+        try:
+            print(f"router {session.zid()} listening on {', '.join(config.zenoh.listen)}", flush=True)
+            while not stop.wait(0.2):
+                pass
+        finally:
+            try:
+                session.close()
+            except zenoh.ZError as exc:
+                logger.warning("closing the router session: %s", exc)
+        return 0
+
+
+class HealthCommand:
+    """``openfusion health``: live services of a map (liveliness) with their latest stats."""
+
+    @staticmethod
+    def add_arguments(parser: argparse.ArgumentParser) -> None:
+        add_config_arguments(parser)
+        parser.add_argument("--timeout", type=float, default=3.0, metavar="S", help="wait up to S seconds (default 3)")
+        parser.add_argument("--json", action="store_true", help="print JSON")
+        parser.add_argument(
+            "--require", action="append", default=[], metavar="SERVICE",
+            help="exit 0 only when this service is alive (repeatable; for container health checks)",
+        )
+
+    @staticmethod
+    def run(args: argparse.Namespace) -> int:
+        if args.timeout <= 0:
+            raise UsageError(f"--timeout must be positive, got {args.timeout}")
+        config = config_from_args(args)
+        setup_logging(config.log_level if args.log_level else "WARNING")
+        keys = config.keys
+        deadline = time.monotonic() + args.timeout
+        session = open_session(config)
+        try:
+            live: list[str] = []
+            while True:
+                remaining = deadline - time.monotonic()
+                live = live_services(session, keys, timeout_s=max(0.1, min(1.0, remaining)))
+                satisfied = set(args.require) <= set(live) if args.require else bool(live)
+                if satisfied or time.monotonic() >= deadline:
+                    break
+                time.sleep(0.1)
+            stats = collect_health(session, keys, timeout_s=max(0.5, deadline - time.monotonic())) if live else {}
+        finally:
+            session.close()
+        if args.json:
+            services = [
+                {"service": name, "alive": True, "stats": stats[name].model_dump() if name in stats else None}
+                for name in live
+            ]
+            print(json.dumps({"map_id": keys.map_id, "prefix": keys.prefix, "services": services}))
+        elif live:
+            print(_health_table(live, stats))
+        if not live:
+            raise ServicesNotAlive(f"no live services on map {keys.map_id!r} (waited {args.timeout:g} s)")
+        missing = sorted(set(args.require) - set(live))
+        if missing:
+            raise ServicesNotAlive(f"required service(s) not alive on map {keys.map_id!r}: {', '.join(missing)}")
+        return 0
+
+
+def _health_table(live: list[str], stats: dict[str, Any]) -> str:
+    header = ("service", "pid", "uptime_s", "fps", "latency_ms_p50", "latency_ms_p99", "drops", "errors")
+    rows = [header]
+    for name in live:
+        s = stats.get(name)
+        if s is None:
+            rows.append((name, "?", "?", "?", "?", "?", "?", "?"))
+        else:
+            rows.append(
+                (name, str(s.pid), f"{s.uptime_s:.1f}", f"{s.fps:.1f}", f"{s.latency_ms_p50:.2f}",
+                 f"{s.latency_ms_p99:.2f}", str(s.drops), str(s.errors))
+            )
+    widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
+    return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip() for row in rows)
