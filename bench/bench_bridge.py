@@ -25,6 +25,7 @@ from openfusion.bus import free_loopback_port as free_port  # noqa: E402
 from openfusion.config import ServiceConfig, ZenohSettings  # noqa: E402
 from openfusion.sources import open_source  # noqa: E402
 from openfusion.sources.scannet_writer import write_scannet_layout  # noqa: E402
+from openfusion.wire.endpoints import SENSOR_RGBD
 from openfusion.wire.schemas import RgbdFrame  # noqa: E402
 
 
@@ -53,7 +54,7 @@ def main() -> None:
     session = open_session(ServiceConfig(map_id=map_id, zenoh=ZenohSettings(
         mode="router", listen=[endpoint], multicast_scouting=False)))
     stamps: list[float] = []
-    sub = Subscriber(session, ServiceConfig(map_id=map_id).keys.sensor_rgbd, RgbdFrame,
+    sub = Subscriber(session, SENSOR_RGBD.key(ServiceConfig(map_id=map_id).keys), RgbdFrame,
                      lambda _m: stamps.append(time.perf_counter()), queue_size=1024)
     cluster = Cluster(map_id, endpoint, tmp / "logs")
     try:

@@ -51,6 +51,7 @@ from openfusion.services.dictionary_sync import snapshot_message  # noqa: E402
 from openfusion.services.geometry.service import GeometrySection  # noqa: E402
 from openfusion.sources.record import FrameRecorder  # noqa: E402
 from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld  # noqa: E402
+from openfusion.wire.endpoints import GEOMETRY_POINTS, SEMANTIC_DICTIONARY
 from openfusion.wire.schemas import DictionaryRequest, HealthStats, PointsReply, PointsRequest  # noqa: E402
 
 
@@ -289,7 +290,7 @@ def main() -> None:
     )
     try:
         fake_semantic = Queryable(
-            session, bus.client.keys.semantic_dictionary, DictionaryRequest, lambda _r: snapshot
+            session, SEMANTIC_DICTIONARY.key(bus.client.keys), DictionaryRequest, lambda _r: snapshot
         )
         bus.cluster.start("geometry", ["--checkpoint-period-s", "0", "--map-dir", str(map_dir)])
         bus.cluster.start("query", [])
@@ -308,7 +309,7 @@ def main() -> None:
             t = time.perf_counter()  # what the query path asked geometry for before summaries were cached
             get(
                 bus.client.session,
-                bus.client.keys.geometry_points,
+                GEOMETRY_POINTS.key(bus.client.keys),
                 PointsRequest(keys=[r.key for r in reply.regions], max_points=200_000),
                 PointsReply,
                 timeout_s=30,

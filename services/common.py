@@ -2,10 +2,11 @@
 and config to :func:`openfusion.bus.run_service`.
 
 A service module defines a :class:`ServiceDefinition`: its name, its config model (a
-:class:`~openfusion.config.ServiceConfig` subclass with its own typed section), the service's own
-command-line flags and how they map onto that section, and a factory that builds the service
-object (plain library code; ``setup(runner)`` declares its entities, ``loop(runner)`` optionally
-runs until ``runner.stopping``, ``close()`` releases what it holds).
+:class:`~openfusion.config.ServiceConfig` subclass with one typed section named after the
+service) and a factory that builds the service object (plain library code; ``setup(runner)``
+declares its entities, ``loop(runner)`` optionally runs until ``runner.stopping``, ``close()``
+releases what it holds). The service's flags are derived from its section's fields
+(:func:`openfusion.config.add_section_options`), so a parameter is declared once, in the section.
 """
 
 from __future__ import annotations
@@ -17,7 +18,13 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from openfusion.bus import ServiceRunner, run_service
-from openfusion.config import ServiceConfig, add_config_arguments, cli_values, load_config, setup_logging
+from openfusion.config import (
+    ServiceConfig,
+    add_config_arguments,
+    add_section_options,
+    config_from_args,
+    setup_logging,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -35,26 +42,19 @@ class ServiceDefinition:
     name: str
     help: str
     config_model: type[ServiceConfig]
-    add_options: Callable[[argparse.ArgumentParser], None]
-    options_to_config: Callable[[argparse.Namespace], dict[str, Any]]
     build: Callable[[Any], ServiceApp]
+
+    @property
+    def section_model(self) -> Any:
+        """The model of the service's own config section (the field named after the service)."""
+        return self.config_model.model_fields[self.name].annotation
 
     def add_arguments(self, parser: argparse.ArgumentParser) -> None:
         add_config_arguments(parser)
-        self.add_options(parser)
+        add_section_options(parser, self.section_model, self.name)
 
     def config_from_args(self, args: argparse.Namespace) -> Any:
-        cli = cli_values(args)
-        for section, values in self.options_to_config(args).items():
-            given = {k: v for k, v in values.items() if v is not None}
-            if given:
-                cli.setdefault(section, {}).update(given)
-        return load_config(
-            self.config_model,
-            config_file=getattr(args, "config", None),
-            cli=cli,
-            overrides=getattr(args, "overrides", None) or (),
-        )
+        return config_from_args(args, self.config_model, sections=[self.name])
 
     def run(self, args: argparse.Namespace) -> int:
         config = self.config_from_args(args)

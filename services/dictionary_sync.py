@@ -9,12 +9,12 @@ import logging
 import threading
 
 import numpy as np
-import zenoh
 
-from openfusion.bus import QueryError, get
+from openfusion.bus import QueryError, ServiceRunner
 from openfusion.mapping import DictionaryDelta as LibDelta
 from openfusion.mapping import DictionarySnapshot as LibSnapshot
 from openfusion.mapping import EmbeddingSpaceError, RegionDictionary, StaleVersionError
+from openfusion.wire.endpoints import Endpoint
 from openfusion.wire.schemas import DictionaryDelta, DictionaryRequest, DictionarySnapshot
 
 logger = logging.getLogger(__name__)
@@ -130,9 +130,12 @@ class DictionaryReplica:
             return {int(k): (d.label(int(k)) if d is not None and int(k) in d else None) or "" for k in keys}
 
     @staticmethod
-    def fetch_snapshot(session: zenoh.Session, key: str, *, timeout_s: float = 3.0) -> DictionarySnapshot | None:
+    def fetch_snapshot(
+        runner: ServiceRunner, endpoint: Endpoint[DictionaryRequest, DictionarySnapshot], *, timeout_s: float = 3.0
+    ) -> DictionarySnapshot | None:
+        """A snapshot from ``endpoint`` (the semantic service's or geometry's), None when it does not answer."""
         try:
-            return get(session, key, DictionaryRequest(), DictionarySnapshot, timeout_s=timeout_s)
+            return runner.call(endpoint, DictionaryRequest(), timeout_s=timeout_s)
         except QueryError as exc:
-            logger.info("no dictionary snapshot from %s: %s", key, exc.reason)
+            logger.info("no dictionary snapshot from %s: %s", endpoint.path, exc.reason)
             return None

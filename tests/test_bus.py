@@ -27,6 +27,7 @@ from openfusion.bus import (
 )
 from openfusion.testing.demo_service import PingReply, PingRequest
 from openfusion.wire.codec import decode, encode
+from openfusion.wire.endpoints import CONTROL, GEOMETRY_RENDER, Endpoint
 from openfusion.wire.keys import KeySpace
 from openfusion.wire.schemas import (
     ControlReply,
@@ -166,7 +167,7 @@ def test_query_reply_and_every_refusal_reason(sessions, keys) -> None:
     crashes come back as QueryError with the code and reason; the queryable keeps answering."""
     a, b, _ = sessions
     stats = ServiceStats()
-    key = keys.control("save")
+    key = CONTROL["save"].key(keys)
     qbl = Queryable(a, key, ControlRequest, _control_handler, stats=stats)
     time.sleep(0.3)
     assert get(b, key, ControlRequest(action="save", path="/x"), ControlReply).message == "save /x"
@@ -203,10 +204,10 @@ def test_get_without_a_service_names_key_and_service(sessions, keys) -> None:
     """Nobody serving the key: a clear QueryError naming the key, the wait and the service."""
     _, b, _ = sessions
     with pytest.raises(QueryError) as info:
-        get(b, keys.geometry_render, ControlRequest(action="save"), ControlReply, timeout_s=0.5)
+        get(b, GEOMETRY_RENDER.key(keys), ControlRequest(action="save"), ControlReply, timeout_s=0.5)
     assert info.value.code == "timeout"
     assert str(info.value).endswith(
-        f"no service answered on {keys.geometry_render} within 0.5 s: is the geometry service running?"
+        f"no service answered on {GEOMETRY_RENDER.key(keys)} within 0.5 s: is the geometry service running?"
     )
 
 
@@ -276,7 +277,8 @@ def test_service_runner_health_liveliness_and_close(sessions, keys) -> None:
     published = Subscriber(b, keys.health("unit"), HealthStats, queue_size=100)
     runner = ServiceRunner(config, "unit").start()
     try:
-        runner.queryable(keys.key("unit", "ping"), PingRequest, lambda r: PingReply(text=r.text, pid=0, count=1))
+        unit_ping = Endpoint(("unit", "ping"), PingRequest, PingReply, owner="unit")
+        runner.queryable(unit_ping, lambda r: PingReply(text=r.text, pid=0, count=1))
         time.sleep(0.3)
         assert live_services(b, keys, timeout_s=1) == []  # not alive before ready()
         runner.ready()

@@ -19,6 +19,7 @@ from openfusion.config import (
     load_config,
     zenoh_config,
 )
+from openfusion.wire.endpoints import SENSOR_RGBD
 
 
 class _VolumeSection(ConfigSection):
@@ -43,7 +44,7 @@ def test_defaults_when_nothing_is_given() -> None:
     assert cfg == ServiceConfig()
     assert (cfg.map_id, cfg.prefix, cfg.health_period_s, cfg.log_level) == ("default", "openfusion", 1.0, "INFO")
     assert cfg.zenoh.mode is None and cfg.zenoh.multicast_scouting is None and cfg.zenoh.connect == []
-    assert cfg.keys.sensor_rgbd == "openfusion/default/sensor/rgbd"
+    assert SENSOR_RGBD.key(cfg.keys) == "openfusion/default/sensor/rgbd"
 
 
 def test_precedence_defaults_file_env_cli_per_leaf(tmp_path: Path) -> None:

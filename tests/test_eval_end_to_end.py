@@ -8,7 +8,11 @@ from pathlib import Path
 
 import pytest
 
-from openfusion.app.eval_cmd import main
+from openfusion.app.cli import main as cli_main
+
+
+def main(argv: list[str]) -> int:
+    return cli_main(["eval", *argv])
 
 pytest.importorskip("open3d")
 

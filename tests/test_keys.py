@@ -6,46 +6,54 @@ from __future__ import annotations
 import pytest
 import zenoh
 
+from openfusion.wire.endpoints import CONTROL, ENDPOINTS, GEOMETRY_RENDER, SENSOR_RGBD, TOPICS
 from openfusion.wire.keys import KeySpace, health_all_maps, key_for, validate_map_id
+from openfusion.wire.schemas import RenderReply, RenderRequest, RgbdFrame
 
 
 def test_keyspace_builds_the_documented_keys() -> None:
-    """Every named key of design §2, under the default and a multi-segment prefix."""
+    """Every topic and queryable of the key table (README, docs/ARCHITECTURE.md), under the
+    default and a multi-segment prefix, declared once in openfusion.wire.endpoints."""
     keys = KeySpace("openfusion", "lab-1")
-    assert keys.sensor_rgbd == "openfusion/lab-1/sensor/rgbd"
-    assert keys.sensor_instance == "openfusion/lab-1/sensor/instance"
-    assert keys.geometry_render == "openfusion/lab-1/geometry/render"
-    assert keys.geometry_points == "openfusion/lab-1/geometry/points"
-    assert keys.geometry_mesh == "openfusion/lab-1/geometry/mesh"
-    assert keys.geometry_regions == "openfusion/lab-1/geometry/regions"
-    assert keys.semantic_update == "openfusion/lab-1/semantic/update"
-    assert keys.semantic_dictionary == "openfusion/lab-1/semantic/dictionary"
-    assert keys.semantic_dictionary_delta == "openfusion/lab-1/semantic/dictionary/delta"
-    assert keys.query_text == "openfusion/lab-1/query/text"
-    assert keys.query_image == "openfusion/lab-1/query/image"
-    assert keys.query_point == "openfusion/lab-1/query/point"
-    assert [keys.control(a) for a in ("save", "load", "reset")] == [
-        "openfusion/lab-1/control/save",
-        "openfusion/lab-1/control/load",
-        "openfusion/lab-1/control/reset",
-    ]
+    documented = {
+        "sensor/rgbd", "sensor/instance", "geometry/progress", "geometry/render", "geometry/points",
+        "geometry/mesh", "geometry/regions", "geometry/dictionary", "semantic/update", "semantic/dictionary",
+        "semantic/dictionary/delta", "query/text", "query/image", "query/point", "control/save", "control/load",
+        "control/reset",
+    }
+    declared = [*TOPICS, *ENDPOINTS]
+    assert {d.path for d in declared} == documented
+    for d in declared:
+        assert d.key(keys) == f"openfusion/lab-1/{d.path}"
+    assert SENSOR_RGBD.key(keys) == "openfusion/lab-1/sensor/rgbd"
+    assert CONTROL["reset"].key(keys) == "openfusion/lab-1/control/reset"
     assert keys.health("geometry") == keys.liveliness("geometry") == "openfusion/lab-1/health/geometry"
     assert keys.health_all == "openfusion/lab-1/health/*"
-    assert KeySpace("fleet/openfusion", "r2").sensor_rgbd == "fleet/openfusion/r2/sensor/rgbd"
+    assert SENSOR_RGBD.key(KeySpace("fleet/openfusion", "r2")) == "fleet/openfusion/r2/sensor/rgbd"
     assert key_for("lab", "sensor", "rgbd") == "openfusion/lab/sensor/rgbd"
     assert health_all_maps() == "openfusion/*/health/*"
+
+
+def test_every_endpoint_names_its_types_and_a_known_owner() -> None:
+    """Each declaration carries the message types the bus checks and the service that publishes
+    or answers (the owner a timeout message names)."""
+    services = {"bridge", "geometry", "semantic", "query"}
+    assert {t.publisher for t in TOPICS} <= services
+    assert {e.owner for e in ENDPOINTS} <= services
+    assert GEOMETRY_RENDER.request is RenderRequest and GEOMETRY_RENDER.reply is RenderReply
+    assert SENSOR_RGBD.message is RgbdFrame
 
 
 def test_every_key_is_a_canonical_zenoh_key_expression() -> None:
     """Zenoh accepts each key as-is (canonical form), and the health wildcard matches each service."""
     keys = KeySpace("openfusion", "lab")
-    every = [keys.sensor_rgbd, keys.sensor_instance, keys.geometry_render, keys.semantic_dictionary_delta, keys.control("reset")]
+    every = [d.key(keys) for d in (*TOPICS, *ENDPOINTS)]
     for key in every + [keys.health_all, keys.all]:
         assert str(zenoh.KeyExpr(key)) == key
     wildcard = zenoh.KeyExpr(keys.health_all)
     assert wildcard.intersects(keys.health("semantic"))
     assert not wildcard.intersects(KeySpace("openfusion", "other").health("semantic"))
-    assert zenoh.KeyExpr(keys.all).includes(keys.sensor_rgbd)
+    assert zenoh.KeyExpr(keys.all).includes(SENSOR_RGBD.key(keys))
 
 
 @pytest.mark.parametrize(
@@ -90,8 +98,7 @@ def test_invalid_prefixes_parts_services_and_actions_are_refused() -> None:
         key_for("lab")
     with pytest.raises(ValueError, match="service name 'geo\\*'"):
         KeySpace().health("geo*")
-    with pytest.raises(ValueError, match="not one of save, load, reset"):
-        KeySpace().control("drop")
+    assert sorted(CONTROL) == ["load", "reset", "save"]  # no other admin key exists to be reached
 
 
 def test_service_names_are_parsed_back_from_health_keys() -> None:

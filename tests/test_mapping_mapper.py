@@ -15,6 +15,7 @@ from openfusion.mapping import (
     query_regions,
     segment_points,
 )
+from openfusion.mapping.params import MatchParams
 from openfusion.poses import look_at
 from openfusion.testing.analytic_scene import (
     AnalyticScene,
@@ -174,7 +175,7 @@ def test_min_embedding_cos_refuses_a_match_whose_embedding_disagrees() -> None:
     outcomes = {}
     for gate in (None, 0.5):
         volume = SemanticVolume(VolumeParams())
-        mapper = SemanticMapper(volume, RegionDictionary(SPACE, DIM), min_embedding_cos=gate)
+        mapper = SemanticMapper(volume, RegionDictionary(SPACE, DIM), params=MatchParams(min_embedding_cos=gate))
         for i, T in enumerate(POSES[:2]):
             frame = scene.make_frame(T, K_FULL, frame_id=i)
             volume.integrate(frame)

@@ -15,6 +15,7 @@ from openfusion.mapping import (
     soft_iou_matrix,
 )
 from openfusion.mapping.matching import mask_edge_weights
+from openfusion.mapping.params import MatchParams
 from openfusion.testing.analytic_scene import SimpleObservation
 
 H, W = 30, 40
@@ -165,7 +166,7 @@ def test_plan_update_embedding_gate() -> None:
     assert plan_update(obs, rendered, d).matched == [(0, k)]
     d2 = RegionDictionary("s", 2)
     k2 = d2.add(np.array([1.0, 0.0], np.float32))
-    plan = plan_update(obs, rendered_from(np.full((H, W), k2), np.ones((H, W))), d2, min_embedding_cos=0.5)
+    plan = plan_update(obs, rendered_from(np.full((H, W), k2), np.ones((H, W))), d2, MatchParams(min_embedding_cos=0.5))
     assert plan.matched == [] and len(plan.new_keys) == 1
 
 
@@ -215,12 +216,12 @@ def test_plan_update_mask_edge_option() -> None:
     conf[1][:, 20:] = 0.6
     obs = SimpleObservation(conf, np.eye(2, dtype=np.float32), "s")
     empty = rendered_from(np.full((H, W), -1), np.zeros((H, W)))
-    plan = plan_update(obs, empty, d, mask_edge_px=0)
+    plan = plan_update(obs, empty, d, MatchParams(mask_edge_px=0))
     np.testing.assert_allclose(plan.conf_map[:, :20], 0.8)
     np.testing.assert_allclose(plan.conf_map[:, 20:], 0.6)
-    plan = plan_update(obs, empty, RegionDictionary("s", 2), mask_edge_px=4)
+    plan = plan_update(obs, empty, RegionDictionary("s", 2), MatchParams(mask_edge_px=4))
     np.testing.assert_allclose(plan.conf_map[:, 19], 0.8 / 5, atol=1e-6)
     np.testing.assert_allclose(plan.conf_map[:, 16], 0.8 * 4 / 5, atol=1e-6)
     np.testing.assert_allclose(plan.conf_map[:, :16], 0.8, atol=1e-6)
     with pytest.raises(ValueError, match="mask_edge_px"):
-        plan_update(obs, empty, RegionDictionary("s", 2), mask_edge_px=float("nan"))
+        MatchParams(mask_edge_px=float("nan"))

@@ -25,6 +25,7 @@ from helpers_bus import (
 from openfusion.bus import Subscriber, collect_health, open_session
 from openfusion.config import ServiceConfig
 from openfusion.sources import open_source
+from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
 from openfusion.wire.schemas import HealthStats, InstanceFrame, RgbdFrame
 
 
@@ -38,9 +39,9 @@ def test_bridge_publishes_every_frame_of_the_source_intact() -> None:
     instances: dict[int, InstanceFrame] = {}
     try:
         keys = loopback_config(map_id).keys
-        inst_sub = Subscriber(session, keys.sensor_instance, InstanceFrame,
+        inst_sub = Subscriber(session, SENSOR_INSTANCE.key(keys), InstanceFrame,
                               lambda m: instances.__setitem__(m.frame_id, m), queue_size=64)
-        sub = Subscriber(session, keys.sensor_rgbd, RgbdFrame, got.append, queue_size=64)
+        sub = Subscriber(session, SENSOR_RGBD.key(keys), RgbdFrame, got.append, queue_size=64)
         args = ["service", "bridge", *loopback_args(map_id, connect=[port]), "--source", spec, "--rate-hz", "0"]
         with ServiceProcess("openfusion.app.cli", args) as proc:
             wait_until(lambda: len(got) >= len(expected) and len(instances) >= len(expected), timeout_s=60)

@@ -29,6 +29,7 @@ from openfusion.services.query.service import (
     region_hits,
 )
 from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld
+from openfusion.wire.endpoints import SEMANTIC_DICTIONARY
 from openfusion.wire.schemas import (
     ControlRequest,
     DictionaryRequest,
@@ -222,7 +223,7 @@ def make_cluster() -> Iterator:
         holder = {"dictionary": dictionary}
         qbl = Queryable(
             sem,
-            ServiceConfig(**cfg("client")).keys.semantic_dictionary,
+            SEMANTIC_DICTIONARY.key(ServiceConfig(**cfg("client")).keys),
             DictionaryRequest,
             lambda _r: snapshot_message(holder["dictionary"]),
         )

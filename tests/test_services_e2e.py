@@ -24,6 +24,22 @@ from openfusion.bus import QueryError, collect_health, get, open_session
 from openfusion.bus import free_loopback_port as free_port
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings
+from openfusion.wire.endpoints import (
+    CONTROL,
+    DICTIONARY_DELTA,
+    GEOMETRY_DICTIONARY,
+    GEOMETRY_MESH,
+    GEOMETRY_POINTS,
+    GEOMETRY_REGIONS,
+    GEOMETRY_RENDER,
+    QUERY_IMAGE,
+    QUERY_POINT,
+    QUERY_TEXT,
+    SEMANTIC_DICTIONARY,
+    SEMANTIC_UPDATE,
+    SENSOR_INSTANCE,
+    SENSOR_RGBD,
+)
 from openfusion.wire.schemas import (
     ControlReply,
     ControlRequest,
@@ -177,7 +193,7 @@ def test_oversize_requests_are_refused_naming_the_limit(env: Env) -> None:
         env.client.query_text("chair", top_k=5000)
     assert info.value.code == "too_large" and "max_top_k" in info.value.reason
     with pytest.raises(QueryError) as info:
-        get(env.client.session, env.client.keys.geometry_points, PointsRequest(max_points=10**9), PointsReply)
+        get(env.client.session, GEOMETRY_POINTS.key(env.client.keys), PointsRequest(max_points=10**9), PointsReply)
     assert "max_points_reply" in info.value.reason
 
 
@@ -192,21 +208,21 @@ def test_malformed_payloads_on_every_key_are_counted_and_change_nothing(env: Env
     wrong = ControlRequest(action="reset")
     from openfusion.wire.codec import encode
 
-    for key in (keys.sensor_rgbd, keys.sensor_instance, keys.semantic_update, keys.semantic_dictionary_delta):
+    for key in (SENSOR_RGBD.key(keys), SENSOR_INSTANCE.key(keys), SEMANTIC_UPDATE.key(keys), DICTIONARY_DELTA.key(keys)):
         for payload in [*garbage, encode(wrong)]:
             session.put(key, payload)
     for key in (
-        keys.geometry_render,
-        keys.geometry_points,
-        keys.geometry_mesh,
-        keys.geometry_regions,
-        keys.geometry_dictionary,
-        keys.semantic_dictionary,
-        keys.query_text,
-        keys.query_image,
-        keys.query_point,
-        keys.control("save"),
-        keys.control("reset"),
+        GEOMETRY_RENDER.key(keys),
+        GEOMETRY_POINTS.key(keys),
+        GEOMETRY_MESH.key(keys),
+        GEOMETRY_REGIONS.key(keys),
+        GEOMETRY_DICTIONARY.key(keys),
+        SEMANTIC_DICTIONARY.key(keys),
+        QUERY_TEXT.key(keys),
+        QUERY_IMAGE.key(keys),
+        QUERY_POINT.key(keys),
+        CONTROL["save"].key(keys),
+        CONTROL["reset"].key(keys),
     ):
         for payload in garbage:
             replies = list(session.get(key, payload=payload, timeout=10))
@@ -231,7 +247,7 @@ def test_render_answers_keys_of_the_map_with_a_depth_test(env: Env) -> None:
     K = frame.intrinsics.scaled(80, 60)
     reply = get(
         env.client.session,
-        env.client.keys.geometry_render,
+        GEOMETRY_RENDER.key(env.client.keys),
         RenderRequest(frame_id=0, T_world_cam=frame.T_world_cam, **RenderRequest.intrinsics_fields(K)),
         RenderReply,
         timeout_s=20,
@@ -275,7 +291,7 @@ def test_kill_geometry_after_save_and_restart_loses_nothing_saved(env: Env) -> N
     assert len(restored.points) == len(saved.points)
     np.testing.assert_array_equal(np.sort(restored.keys), np.sort(saved.keys))
     snap = get(
-        env.client.session, env.client.keys.geometry_dictionary, DictionaryRequest(), DictionarySnapshot
+        env.client.session, GEOMETRY_DICTIONARY.key(env.client.keys), DictionaryRequest(), DictionarySnapshot
     )
     assert len(snap.keys) > 0
 

@@ -31,7 +31,6 @@ less than a fresh one. ``block_when_congested`` (default: by source) overrides t
 
 from __future__ import annotations
 
-import argparse
 import logging
 import time
 from typing import Any
@@ -45,26 +44,40 @@ from openfusion.frame import Frame
 from openfusion.services.common import ServiceDefinition
 from openfusion.sources import FrameSource, open_source
 from openfusion.wire.codec import EncodeError
-from openfusion.wire.schemas import GeometryProgress, InstanceFrame, RgbdFrame
+from openfusion.wire.counters import BridgeCounter
+from openfusion.wire.endpoints import GEOMETRY_PROGRESS, SENSOR_INSTANCE, SENSOR_RGBD
+from openfusion.wire.schemas import InstanceFrame, RgbdFrame
 
 logger = logging.getLogger(__name__)
 
 
 class BridgeSection(ConfigSection):
-    source: str = "synthetic"
-    rate_hz: float | None = Field(default=None, ge=0)
-    loop: bool = False
-    max_frames: int | None = Field(default=None, ge=0)
-    wait_for_subscribers_s: float = Field(default=10.0, ge=0)
-    progress: bool = False
+    """The bridge's settings."""
+
+    source: str = Field(
+        "synthetic", description="frame source spec: synthetic[:seed=N,...], scannet:PATH, replica:PATH, tum:PATH, "
+        "redwood:PATH, folder:PATH, replay:FILE, live:kinect-t265"
+    )
+    rate_hz: float | None = Field(
+        None, ge=0, description="publish rate; 0 = as fast as geometry takes frames; none = the frames' timestamps"
+    )
+    loop: bool = Field(False, description="replay the source forever")
+    max_frames: int | None = Field(None, ge=0, description="stop after this many frames")
+    progress: bool = Field(False, description="show a progress bar")
+    wait_for_subscribers_s: float = Field(
+        10.0, ge=0, description="before the first frame, wait this long for a subscriber (geometry starting)"
+    )
     # Playback must not lose frames: block (back-pressure) instead of letting Zenoh drop a frame
     # when the link is congested, and wait for geometry (flow control). Live sensors must not
-    # wait: a stale frame is worth less than a fresh one. None = by source (live or not).
-    block_when_congested: bool | None = None
-    # Playback flow control: frames published and not yet taken by geometry (0 = off). Well under
-    # geometry's frame queue (64), so none is dropped there.
-    max_in_flight: int = Field(default=16, ge=0)
-    flow_wait_s: float = Field(default=5.0, gt=0)
+    # wait: a stale frame is worth less than a fresh one.
+    block_when_congested: bool | None = Field(
+        None, description="block instead of dropping when the link is congested (none = by source: playback blocks)"
+    )
+    max_in_flight: int = Field(
+        16, ge=0, description="playback: frames published and not yet taken by geometry (0 = do not wait for geometry); "
+        "well under geometry's frame queue"
+    )
+    flow_wait_s: float = Field(5.0, gt=0, description="playback: without an acknowledgement this long, go open loop")
 
 
 class BridgeConfig(ServiceConfig):
@@ -120,12 +133,11 @@ class BridgeService:
                     f"blocks when congested, at most {self.window.limit} frames ahead of geometry"
                     if self.window is not None else "blocks when congested" if self.blocking
                     else "never blocks (frames may be dropped under congestion)")
-        self._pub = runner.publisher(runner.keys.sensor_rgbd, congestion_control=congestion)
-        self._instance_pub = runner.publisher(runner.keys.sensor_instance, congestion_control=congestion)
+        self._pub = runner.publisher(SENSOR_RGBD, congestion_control=congestion)
+        self._instance_pub = runner.publisher(SENSOR_INSTANCE, congestion_control=congestion)
         if self.window is not None:
             window = self.window
-            runner.subscriber(runner.keys.geometry_progress, GeometryProgress,
-                              lambda m: window.acknowledge(m.frame_id, m.stamp_ns), queue_size=256)
+            runner.subscriber(GEOMETRY_PROGRESS, lambda m: window.acknowledge(m.frame_id, m.stamp_ns), queue_size=256)
 
     def _publish(self, runner: ServiceRunner, frame: Frame) -> None:
         assert self._pub is not None and self._instance_pub is not None
@@ -136,17 +148,17 @@ class BridgeService:
             # The instance image goes first, so a subscriber that has the frame has it too.
             if instance is not None:
                 self._instance_pub.put(instance)
-                runner.stats.incr("instances_published")
+                runner.stats.incr(BridgeCounter.INSTANCES_PUBLISHED)
             self._pub.put(rgbd)
             if self.window is not None:
                 self.window.sent(frame.frame_id, frame.stamp_ns)
         except (EncodeError, ValueError) as exc:
             logger.warning("bridge: frame %d not published: %s", frame.frame_id, exc)
             runner.stats.add_error()
-            runner.stats.incr("skipped_unencodable")
+            runner.stats.incr(BridgeCounter.SKIPPED_UNENCODABLE)
             return
         runner.stats.record(time.monotonic() - started)
-        runner.stats.incr("frames_published")
+        runner.stats.incr(BridgeCounter.FRAMES_PUBLISHED)
 
     def _wait_for_geometry(self, runner: ServiceRunner) -> bool:
         """Flow control: wait until geometry has room for another frame. False when stopping."""
@@ -159,20 +171,20 @@ class BridgeService:
                 return False
             if time.monotonic() >= deadline:
                 self.window.give_up()
-                runner.stats.set("flow_timeouts", self.window.timeouts)
+                runner.stats.set(BridgeCounter.FLOW_TIMEOUTS, self.window.timeouts)
                 logger.warning(
                     "bridge: geometry took none of the last %d frames within %.1f s (acknowledged on %s); "
                     "publishing without waiting until it does", self.window.limit, self.section.flow_wait_s,
-                    runner.keys.geometry_progress)
+                    GEOMETRY_PROGRESS.key(runner.keys))
                 break
-        runner.stats.incr("flow_wait_s", time.monotonic() - started)
+        runner.stats.incr(BridgeCounter.FLOW_WAIT_S, time.monotonic() - started)
         return True
 
     def _sync_source_stats(self, runner: ServiceRunner) -> None:
         st = self.source.stats
-        runner.stats.set("frames_read_pass", st.read)
+        runner.stats.set(BridgeCounter.FRAMES_READ_PASS, st.read)
         for reason, n in st.skipped.items():
-            runner.stats.set(f"skipped_{reason}", n)
+            runner.stats.set(BridgeCounter.skipped(reason), n)
 
     def loop(self, runner: ServiceRunner) -> None:
         assert self._pub is not None
@@ -182,14 +194,14 @@ class BridgeService:
             logger.warning("bridge: no subscriber on %s after %.1f s; publishing anyway", self._pub.key,
                            self.section.wait_for_subscribers_s)
         progress = _progress(self.source, enabled=self.section.progress)
-        runner.stats.set("playback_done", 0)
+        runner.stats.set(BridgeCounter.PLAYBACK_DONE, 0)
         passes = 0
         while not runner.stopping:
             pacer = Pacer(self.section.rate_hz)
             for frame in self.source:
                 if runner.stopping:
                     break
-                runner.stats.incr("frames_read")
+                runner.stats.incr(BridgeCounter.FRAMES_READ)
                 wait_s = pacer.due_s(frame.stamp_ns)
                 if wait_s > 0 and runner.wait(wait_s):
                     break
@@ -205,8 +217,8 @@ class BridgeService:
                 break
         if progress is not None:
             progress.close()
-        runner.stats.set("playback_done", 1)
-        runner.stats.set("passes", passes)
+        runner.stats.set(BridgeCounter.PLAYBACK_DONE, 1)
+        runner.stats.set(BridgeCounter.PASSES, passes)
         logger.info("bridge: playback done (%d pass(es), %s)", passes, self.source.stats)
         runner.wait()
 
@@ -228,29 +240,9 @@ def _progress(source: FrameSource, *, enabled: bool) -> Any:
     return tqdm(total=total, desc=f"bridge {source.name}", unit="frame")
 
 
-def _add_options(parser: argparse.ArgumentParser) -> None:
-    g = parser.add_argument_group("bridge")
-    g.add_argument("--source", help="frame source spec: synthetic[:seed=N,...], scannet:PATH, replica:PATH, "
-                   "tum:PATH, redwood:PATH, folder:PATH, replay:FILE (default synthetic)")
-    g.add_argument("--rate-hz", type=float, help="publish rate; 0 = as fast as possible; default: the frames' timestamps")
-    g.add_argument("--loop", action="store_true", default=None, help="replay the source forever")
-    g.add_argument("--max-frames", type=int, help="stop after N frames")
-    g.add_argument("--progress", action="store_true", default=None, help="show a progress bar")
-    g.add_argument("--max-in-flight", type=int, help="playback: frames published and not yet taken by geometry "
-                   "(default 16; 0 = do not wait for geometry)")
-
-
-def _options(args: argparse.Namespace) -> dict[str, Any]:
-    return {"bridge": {"source": args.source, "rate_hz": args.rate_hz, "loop": args.loop,
-                       "max_frames": args.max_frames, "progress": args.progress,
-                       "max_in_flight": args.max_in_flight}}
-
-
 DEFINITION = ServiceDefinition(
     name="bridge",
     help="publish RGB-D frames from a dataset, the synthetic scene, a recording or live sensors",
     config_model=BridgeConfig,
-    add_options=_add_options,
-    options_to_config=_options,
     build=BridgeService,
 )

@@ -31,7 +31,6 @@ covered: a covered key that is not listed has no surface points).
 
 from __future__ import annotations
 
-import argparse
 import logging
 import threading
 import time
@@ -40,10 +39,10 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from openfusion.bus import Publisher, RequestError, ServiceRunner, Subscriber
-from openfusion.config import ConfigSection, ServiceConfig
+from openfusion.config import ServiceConfig
 from openfusion.mapping import (
     CapacityError,
     RegionDictionary,
@@ -53,10 +52,23 @@ from openfusion.mapping import (
     save_map,
 )
 from openfusion.mapping.mapfile import resolve_map_path
-from openfusion.mapping.params import ROOM_SCALE_INITIAL_BLOCKS
 from openfusion.mapping.queries import region_summaries
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_sync import DictionaryReplica
+from openfusion.wire.counters import GeometryCounter
+from openfusion.wire.endpoints import (
+    CONTROL,
+    DICTIONARY_DELTA,
+    GEOMETRY_DICTIONARY,
+    GEOMETRY_MESH,
+    GEOMETRY_POINTS,
+    GEOMETRY_PROGRESS,
+    GEOMETRY_REGIONS,
+    GEOMETRY_RENDER,
+    SEMANTIC_DICTIONARY,
+    SEMANTIC_UPDATE,
+    SENSOR_RGBD,
+)
 from openfusion.wire.schemas import (
     ControlReply,
     ControlRequest,
@@ -81,35 +93,35 @@ logger = logging.getLogger(__name__)
 NO_EMBEDDING_SPACE = "none"
 
 
-class GeometrySection(ConfigSection):
-    map_dir: Path | None = None
-    checkpoint_period_s: float = Field(default=30.0, ge=0)
-    voxel_size_m: float = Field(default=0.02, gt=0)
-    block_resolution: int = Field(default=8, gt=0)
-    trunc_voxels: float = Field(default=4.0, gt=0)
-    depth_min_m: float = Field(default=0.1, ge=0)
-    depth_max_m: float = Field(default=6.0, gt=0)
-    max_blocks: int | None = Field(default=None, gt=0)
-    # Blocks allocated at start (see openfusion.mapping.params.ROOM_SCALE_INITIAL_BLOCKS).
-    initial_blocks: int = Field(default=ROOM_SCALE_INITIAL_BLOCKS, gt=0)
-    device: str = "CPU:0"
-    frame_queue_size: int = Field(default=64, gt=0)
-    max_points_reply: int = Field(default=500_000, gt=0)
-    max_render_pixels: int = Field(default=640 * 480, gt=0)
-    regions_min_interval_s: float = Field(default=0.5, ge=0)
-    load_on_start: bool = True
+class GeometrySection(VolumeParams):
+    """The geometry service's settings: every volume parameter (:class:`VolumeParams`, declared
+    there once) plus the service's own."""
+
+    map_dir: Path | None = Field(None, description="checkpoint folder (the map is saved to MAP_DIR/MAP_ID)")
+    checkpoint_period_s: float = Field(30.0, ge=0, description="seconds between checkpoints (0 = only on control/save)")
+    load_on_start: bool = Field(True, description="load the checkpoint in MAP_DIR/MAP_ID at start when there is one")
+    frame_queue_size: int = Field(
+        64, gt=0, description="frames waiting for integration; when full the oldest is dropped and counted"
+    )
+    max_points_reply: int = Field(500_000, gt=0, description="most surface points or mesh vertices in one reply")
+    max_render_pixels: int = Field(640 * 480, gt=0, description="largest render request (width x height)")
+    regions_min_interval_s: float = Field(
+        0.5, ge=0, description="a changed map's region summaries are recomputed at most this often (unless fresh)"
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _renamed(cls, data: Any) -> Any:
+        # ``initial_blocks`` was this section's name of VolumeParams.initial_block_count.
+        if isinstance(data, dict) and "initial_blocks" in data:
+            data = dict(data)
+            value = data.pop("initial_blocks")
+            data.setdefault("initial_block_count", value)
+            logger.warning("geometry.initial_blocks is deprecated; use geometry.initial_block_count")
+        return data
 
     def volume_params(self) -> VolumeParams:
-        return VolumeParams(
-            voxel_size_m=self.voxel_size_m,
-            block_resolution=self.block_resolution,
-            trunc_voxels=self.trunc_voxels,
-            depth_min_m=self.depth_min_m,
-            depth_max_m=self.depth_max_m,
-            max_blocks=self.max_blocks,
-            initial_block_count=self.initial_blocks,
-            device=self.device,
-        )
+        return VolumeParams.from_section(self)
 
 
 class GeometryConfig(ServiceConfig):
@@ -215,7 +227,7 @@ class GeometryService:
             )
             self._dirty = False
         self._last_checkpoint = time.monotonic()
-        self._count("checkpoints")
+        self._count(GeometryCounter.CHECKPOINTS)
         logger.info("geometry: saved map to %s", written)
         return written
 
@@ -241,7 +253,7 @@ class GeometryService:
                 self._dirty = True
         except CapacityError as exc:
             logger.warning("geometry: frame %d refused: %s", frame.frame_id, exc)
-            self._count("capacity_refused")
+            self._count(GeometryCounter.CAPACITY_REFUSED)
             self._acknowledge(msg, integrated=False)
             return
         self._acknowledge(msg, integrated=True)
@@ -249,11 +261,11 @@ class GeometryService:
             ended = time.monotonic()
             elapsed = ended - started
             self._runner.stats.record(elapsed)
-            self._runner.stats.incr("integrate_busy_s", elapsed)
-            self._runner.stats.set("last_integrated_at_s", ended)
-            self._runner.stats.set("frames_integrated", self.frames_integrated)
-            self._runner.stats.set("num_blocks", self.volume.num_blocks)
-            self._runner.stats.set("last_frame_id", frame.frame_id)
+            self._runner.stats.incr(GeometryCounter.INTEGRATE_BUSY_S, elapsed)
+            self._runner.stats.set(GeometryCounter.LAST_INTEGRATED_AT_S, ended)
+            self._runner.stats.set(GeometryCounter.FRAMES_INTEGRATED, self.frames_integrated)
+            self._runner.stats.set(GeometryCounter.NUM_BLOCKS, self.volume.num_blocks)
+            self._runner.stats.set(GeometryCounter.LAST_FRAME_ID, frame.frame_id)
 
     def _acknowledge(self, msg: RgbdFrame, *, integrated: bool) -> None:
         """Tell the bridge this frame left the queue (its flow control waits for this)."""
@@ -277,14 +289,14 @@ class GeometryService:
             if msg.key_map.size:
                 self._key_horizon = max(self._key_horizon, int(msg.key_map.max()) + 1)
             self._dirty = True
-        self._count("updates_applied")
+        self._count(GeometryCounter.UPDATES_APPLIED)
         if self._runner is not None:
-            self._runner.stats.set("last_update_frame_id", msg.frame_id)
+            self._runner.stats.set(GeometryCounter.LAST_UPDATE_FRAME_ID, msg.frame_id)
 
     def on_delta(self, msg: DictionaryDelta) -> None:
         merges = self.replica.merges_of(msg)
         if not self.replica.apply_delta(msg):
-            self._count("dictionary_resyncs")
+            self._count(GeometryCounter.DICTIONARY_RESYNCS)
             self._resync_dictionary()
         with self._lock:
             if merges:
@@ -295,7 +307,7 @@ class GeometryService:
     def _resync_dictionary(self) -> None:
         if self._runner is None:
             return
-        snapshot = self.replica.fetch_snapshot(self._runner.session, self._runner.keys.semantic_dictionary)
+        snapshot = self.replica.fetch_snapshot(self._runner, SEMANTIC_DICTIONARY)
         if snapshot is not None:
             self.replica.apply_snapshot(snapshot)
 
@@ -392,26 +404,19 @@ class GeometryService:
     # ------------------------------------------------------------------------ wiring
     def setup(self, runner: ServiceRunner) -> None:
         self._runner = runner
-        keys = runner.keys
-        self._progress_pub = runner.publisher(keys.geometry_progress)
-        self._frames_sub = runner.subscriber(
-            keys.sensor_rgbd, RgbdFrame, self.on_frame, queue_size=self.section.frame_queue_size
-        )
-        runner.subscriber(keys.semantic_update, SemanticUpdate, self.on_update, queue_size=64)
-        runner.subscriber(keys.semantic_dictionary_delta, DictionaryDelta, self.on_delta, queue_size=256)
-        runner.queryable(keys.geometry_render, RenderRequest, self.handle_render)
-        runner.queryable(keys.geometry_points, PointsRequest, self.handle_points)
-        runner.queryable(keys.geometry_mesh, MeshRequest, self.handle_mesh)
-        runner.queryable(keys.geometry_regions, RegionSummaryRequest, self.handle_regions)
-        runner.queryable(keys.geometry_dictionary, DictionaryRequest, self.handle_dictionary)
-        for action in ("save", "load", "reset"):
-            runner.queryable(
-                keys.control(action),
-                ControlRequest,
-                lambda req, action=action: self.handle_control(req, action=action),
-            )
-        runner.stats.set("frames_integrated", self.frames_integrated)
-        runner.stats.set("num_blocks", self.volume.num_blocks)
+        self._progress_pub = runner.publisher(GEOMETRY_PROGRESS)
+        self._frames_sub = runner.subscriber(SENSOR_RGBD, self.on_frame, queue_size=self.section.frame_queue_size)
+        runner.subscriber(SEMANTIC_UPDATE, self.on_update, queue_size=64)
+        runner.subscriber(DICTIONARY_DELTA, self.on_delta, queue_size=256)
+        runner.queryable(GEOMETRY_RENDER, self.handle_render)
+        runner.queryable(GEOMETRY_POINTS, self.handle_points)
+        runner.queryable(GEOMETRY_MESH, self.handle_mesh)
+        runner.queryable(GEOMETRY_REGIONS, self.handle_regions)
+        runner.queryable(GEOMETRY_DICTIONARY, self.handle_dictionary)
+        for action, endpoint in CONTROL.items():
+            runner.queryable(endpoint, lambda req, action=action: self.handle_control(req, action=action))
+        runner.stats.set(GeometryCounter.FRAMES_INTEGRATED, self.frames_integrated)
+        runner.stats.set(GeometryCounter.NUM_BLOCKS, self.volume.num_blocks)
 
     def loop(self, runner: ServiceRunner) -> None:
         period = self.section.checkpoint_period_s
@@ -436,32 +441,9 @@ class GeometryService:
                 logger.error("geometry: final checkpoint failed: %s", exc)
 
 
-def _add_options(parser: argparse.ArgumentParser) -> None:
-    g = parser.add_argument_group("geometry")
-    g.add_argument("--map-dir", type=Path, help="checkpoint folder (the map is saved to MAP_DIR/MAP_ID)")
-    g.add_argument(
-        "--checkpoint-period-s", type=float, help="seconds between checkpoints (0 = only on control/save)"
-    )
-    g.add_argument("--voxel-size-m", type=float, help="voxel size in metres (default 0.02)")
-    g.add_argument("--device", help="Open3D device, e.g. CPU:0 or CUDA:0")
-
-
-def _options(args: argparse.Namespace) -> dict[str, Any]:
-    return {
-        "geometry": {
-            "map_dir": args.map_dir,
-            "checkpoint_period_s": args.checkpoint_period_s,
-            "voxel_size_m": args.voxel_size_m,
-            "device": args.device,
-        }
-    }
-
-
 DEFINITION = ServiceDefinition(
     name="geometry",
     help="integrate frames into the semantic TSDF, render region keys, serve points/meshes, checkpoint",
     config_model=GeometryConfig,
-    add_options=_add_options,
-    options_to_config=_options,
     build=GeometryService,
 )

@@ -40,7 +40,6 @@ forward, see ``openfusion.encoders.text_minilm``).
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 import threading
@@ -48,14 +47,24 @@ import time
 from typing import Any
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
-from openfusion.bus import QueryError, RequestError, ServiceRunner, get
+from openfusion.bus import QueryError, RequestError, ServiceRunner
 from openfusion.config import ConfigSection, ServiceConfig
-from openfusion.encoders import make_text_encoder
+from openfusion.encoders import TEXT_ENCODER_NAMES, make_text_encoder
 from openfusion.mapping.queries import candidates_for, region_summaries, subsample_points
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_sync import DictionaryReplica
+from openfusion.wire.counters import QueryCounter
+from openfusion.wire.endpoints import (
+    DICTIONARY_DELTA,
+    GEOMETRY_POINTS,
+    GEOMETRY_REGIONS,
+    QUERY_IMAGE,
+    QUERY_POINT,
+    QUERY_TEXT,
+    SEMANTIC_DICTIONARY,
+)
 from openfusion.wire.schemas import (
     DictionaryDelta,
     ImageQuery,
@@ -73,19 +82,32 @@ logger = logging.getLogger(__name__)
 
 
 class QuerySection(ConfigSection):
-    text_encoder: str = "minilm"
-    model_path: str | None = None
-    device: str = "auto"
-    max_text_chars: int = Field(default=512, gt=0)
-    max_top_k: int = Field(default=100, gt=0)
-    max_points_reply: int = Field(default=200_000, gt=0)
-    geometry_timeout_s: float = Field(default=5.0, gt=0)
-    resync_period_s: float = Field(default=5.0, gt=0)
-    summary_max_age_s: float = Field(default=2.0, gt=0)
-    summary_refresh_s: float = Field(default=1.0, gt=0)
-    summary_recheck_s: float = Field(default=0.25, ge=0)
-    summary_keep_warm_s: float = Field(default=10.0, ge=0)
-    torch_threads: int = Field(default=1, ge=0)  # 0 = leave torch's default
+    """The query service's settings."""
+
+    text_encoder: str = Field(
+        "minilm", description=f"text encoder of the map's embedding space: {', '.join(TEXT_ENCODER_NAMES)}"
+    )
+    model_path: str | None = Field(None, description="model of the clip-regions / onnx text encoder")
+    device: str = Field("auto", description="text encoder device: auto, cpu or cuda")
+    torch_threads: int = Field(1, ge=0, description="intra-op threads of a torch text encoder (0 = torch's default)")
+    max_text_chars: int = Field(512, gt=0, description="longest query text")
+    max_top_k: int = Field(100, gt=0, description="most regions one query may ask for")
+    max_points_reply: int = Field(200_000, gt=0, description="most points in one reply")
+    geometry_timeout_s: float = Field(5.0, gt=0, description="wait this long for geometry's summaries or points")
+    resync_period_s: float = Field(5.0, gt=0, description="without a dictionary, ask the semantic service this often")
+    summary_max_age_s: float = Field(2.0, gt=0, description="a region summary used in a reply is at most this old")
+    summary_refresh_s: float = Field(1.0, gt=0, description="background refresh of the summaries while queries come")
+    summary_recheck_s: float = Field(
+        0.25, ge=0, description="a region newer than the summaries triggers a fresh fetch at most this often"
+    )
+    summary_keep_warm_s: float = Field(10.0, ge=0, description="keep refreshing this long after the last query")
+
+    @field_validator("text_encoder")
+    @classmethod
+    def _text_encoder(cls, value: str) -> str:
+        if value not in TEXT_ENCODER_NAMES:
+            raise ValueError(f"unknown text encoder {value!r}; known: {', '.join(TEXT_ENCODER_NAMES)}")
+        return value
 
 
 class QueryConfig(ServiceConfig):
@@ -173,18 +195,23 @@ def region_hits(
     return hits
 
 
+def text_encoder_from_section(section: QuerySection) -> Any:
+    """The text encoder a query section describes (the service and the in-process run)."""
+    opts: dict[str, Any] = {}
+    if section.text_encoder != "hash":
+        opts["device"] = section.device
+    if section.model_path:
+        opts["model_path" if section.text_encoder == "onnx" else "model"] = section.model_path
+    return make_text_encoder(section.text_encoder, **opts)
+
+
 class QueryService:
     """Dictionary replica + text encoder; handlers are plain methods (tests call them without a bus)."""
 
     def __init__(self, config: QueryConfig, *, text_encoder: Any = None) -> None:
         self.config = config
         self.section = config.query
-        opts: dict[str, Any] = {}
-        if self.section.model_path:
-            opts["model_path" if self.section.text_encoder == "onnx" else "model"] = self.section.model_path
-        self.text_encoder = (
-            text_encoder if text_encoder is not None else make_text_encoder(self.section.text_encoder, **opts)
-        )
+        self.text_encoder = text_encoder if text_encoder is not None else text_encoder_from_section(self.section)
         self.replica = DictionaryReplica()
         self._runner: ServiceRunner | None = None
         self._resync_lock = threading.Lock()
@@ -198,19 +225,19 @@ class QueryService:
         if self._runner is None:
             return False
         with self._resync_lock:
-            snap = self.replica.fetch_snapshot(self._runner.session, self._runner.keys.semantic_dictionary)
+            snap = self.replica.fetch_snapshot(self._runner, SEMANTIC_DICTIONARY)
             if snap is None:
                 return False
             self.replica.apply_snapshot(snap)
-            self._runner.stats.incr("dictionary_resyncs")
-            self._runner.stats.set("regions", len(self.replica))
+            self._runner.stats.incr(QueryCounter.DICTIONARY_RESYNCS)
+            self._runner.stats.set(QueryCounter.REGIONS, len(self.replica))
             return True
 
     def on_delta(self, msg: DictionaryDelta) -> None:
         if not self.replica.apply_delta(msg):
             self.resync()
         if self._runner is not None:
-            self._runner.stats.set("regions", len(self.replica))
+            self._runner.stats.set(QueryCounter.REGIONS, len(self.replica))
 
     # -------------------------------------------------------------------- queries
     def _check_space(self, requested: str | None) -> str:
@@ -247,14 +274,8 @@ class QueryService:
         if self._runner is None or (keys is not None and not keys):
             return None
         try:
-            return get(
-                self._runner.session,
-                self._runner.keys.geometry_points,
-                PointsRequest(keys=keys, max_points=max_points),
-                PointsReply,
-                timeout_s=self.section.geometry_timeout_s,
-                service="geometry",
-            )
+            return self._runner.call(GEOMETRY_POINTS, PointsRequest(keys=keys, max_points=max_points),
+                                     timeout_s=self.section.geometry_timeout_s)
         except QueryError as exc:
             logger.warning("query: no points from geometry (%s); answering without geometry", exc.reason)
             return None
@@ -271,24 +292,18 @@ class QueryService:
                 return True
             asked_at = time.monotonic()
             try:
-                reply = get(
-                    self._runner.session,
-                    self._runner.keys.geometry_regions,
-                    RegionSummaryRequest(fresh=fresh),
-                    RegionSummaryReply,
-                    timeout_s=self.section.geometry_timeout_s,
-                    service="geometry",
-                )
+                reply = self._runner.call(GEOMETRY_REGIONS, RegionSummaryRequest(fresh=fresh),
+                                          timeout_s=self.section.geometry_timeout_s)
             except QueryError as exc:
                 self._summary_failed_at = time.monotonic()
-                self._runner.stats.incr("summary_failures")
+                self._runner.stats.incr(QueryCounter.SUMMARY_FAILURES)
                 logger.warning(
                     "query: no region summaries from geometry (%s); answering from the cache", exc.reason
                 )
                 return False
             self.summaries = RegionSummaries(reply, asked_at)
             self._summary_failed_at = None
-            self._runner.stats.incr("summary_fetches")
+            self._runner.stats.incr(QueryCounter.SUMMARY_FETCHES)
             return True
 
     def _summaries_for(self, keys: list[int]) -> RegionSummaries | None:
@@ -417,19 +432,18 @@ class QueryService:
 
     def _note(self, started: float) -> None:
         if self._runner is not None:
-            self._runner.stats.incr("queries")
+            self._runner.stats.incr(QueryCounter.QUERIES)
 
     # ------------------------------------------------------------------------ wiring
     def setup(self, runner: ServiceRunner) -> None:
         self._runner = runner
         set_torch_threads(self.section.torch_threads)
-        keys = runner.keys
-        runner.subscriber(keys.semantic_dictionary_delta, DictionaryDelta, self.on_delta, queue_size=256)
+        runner.subscriber(DICTIONARY_DELTA, self.on_delta, queue_size=256)
         self.resync()
-        runner.queryable(keys.query_text, TextQuery, self.handle_text)
-        runner.queryable(keys.query_image, ImageQuery, self.handle_image)
-        runner.queryable(keys.query_point, PointQuery, self.handle_point)
-        runner.stats.set("regions", len(self.replica))
+        runner.queryable(QUERY_TEXT, self.handle_text)
+        runner.queryable(QUERY_IMAGE, self.handle_image)
+        runner.queryable(QUERY_POINT, self.handle_point)
+        runner.stats.set(QueryCounter.REGIONS, len(self.replica))
 
     def loop(self, runner: ServiceRunner) -> None:
         period = min(self.section.summary_refresh_s, self.section.resync_period_s)
@@ -453,23 +467,9 @@ def set_torch_threads(n: int) -> None:
         logger.info("query: torch uses %d intra-op thread(s)", n)
 
 
-def _add_options(parser: argparse.ArgumentParser) -> None:
-    g = parser.add_argument_group("query")
-    g.add_argument(
-        "--text-encoder", help="text encoder matching the map's space: minilm (gt maps), clip-regions, onnx"
-    )
-    g.add_argument("--model-path", help="model for clip-regions / onnx text encoders")
-
-
-def _options(args: argparse.Namespace) -> dict[str, Any]:
-    return {"query": {"text_encoder": args.text_encoder, "model_path": args.model_path}}
-
-
 DEFINITION = ServiceDefinition(
     name="query",
     help="answer text, image and 3D-point queries with ranked regions",
     config_model=QueryConfig,
-    add_options=_add_options,
-    options_to_config=_options,
     build=QueryService,
 )

@@ -23,27 +23,36 @@ service continues with the same keys and embeddings.
 
 from __future__ import annotations
 
-import argparse
 import logging
 import time
 from typing import Any
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
-from openfusion.bus import Publisher, QueryError, ServiceRunner, Subscriber, get
+from openfusion.bus import Publisher, QueryError, ServiceRunner, Subscriber
 from openfusion.bus.instance_join import InstanceBuffer
-from openfusion.config import ConfigSection, ServiceConfig
-from openfusion.encoders import make_region_encoder
+from openfusion.config import ServiceConfig
+from openfusion.encoders import NOISE_PROFILES, REGION_ENCODER_NAMES, make_region_encoder
 from openfusion.frame import resize_nearest
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
+from openfusion.mapping.params import MatchParams
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_sync import delta_message, dictionary_from_snapshot, snapshot_message
+from openfusion.wire.counters import SemanticCounter
+from openfusion.wire.endpoints import (
+    DICTIONARY_DELTA,
+    GEOMETRY_DICTIONARY,
+    GEOMETRY_RENDER,
+    SEMANTIC_DICTIONARY,
+    SEMANTIC_UPDATE,
+    SENSOR_INSTANCE,
+    SENSOR_RGBD,
+)
 from openfusion.wire.schemas import (
     DictionaryRequest,
     DictionarySnapshot,
     InstanceFrame,
-    RenderReply,
     RenderRequest,
     RgbdFrame,
     SemanticUpdate,
@@ -52,22 +61,43 @@ from openfusion.wire.schemas import (
 logger = logging.getLogger(__name__)
 
 
-class SemanticSection(ConfigSection):
-    encoder: str = "gt"
-    noise: str = "off"
-    seed: int = 0
-    every_k: int = Field(default=1, ge=0)
-    max_hz: float | None = Field(default=None, gt=0)
-    min_iou: float = Field(default=0.10, ge=0, le=1)
-    render_timeout_s: float = Field(default=5.0, gt=0)
-    # How long a frame waits for its instance image (gt encoder) before it is skipped.
-    instance_wait_s: float = Field(default=0.5, ge=0, le=10)
-    recover_timeout_s: float = Field(default=10.0, ge=0)
-    model_path: str | None = None
-    device: str = "auto"
-    # Fault injection: sleep this long after every encoder call, as a slower encoder would
-    # (used by the "10x slower encoder" test; 0 in normal use).
-    simulate_latency_s: float = Field(default=0.0, ge=0, le=60)
+class SemanticSection(MatchParams):
+    """The semantic service's settings: every matching parameter (:class:`MatchParams`, declared
+    there once) plus the encoder and the service's own."""
+
+    encoder: str = Field("gt", description=f"region encoder: {', '.join(REGION_ENCODER_NAMES)}")
+    model_path: str | None = Field(None, description="model file or folder of the onnx / clip-regions encoder")
+    device: str = Field("auto", description="encoder device: auto, cpu or cuda")
+    noise: str = Field("off", description=f"gt encoder noise profile: {', '.join(NOISE_PROFILES)}")
+    seed: int = Field(0, description="seed of the gt encoder's noise")
+    every_k: int = Field(
+        1, ge=0, description="semantics on every k-th frame id (0 = off)", json_schema_extra={"flag": "--semantic-every"}
+    )
+    max_hz: float | None = Field(None, gt=0, description="at most this many semantic frames per second")
+    render_timeout_s: float = Field(5.0, gt=0, description="wait this long for geometry's render of a frame")
+    instance_wait_s: float = Field(
+        0.5, ge=0, le=10, description="gt encoder: wait this long for a frame's instance image, then skip the frame"
+    )
+    recover_timeout_s: float = Field(
+        10.0, ge=0, description="at start, try this long to recover the map's dictionary from geometry (0 = never)"
+    )
+    simulate_latency_s: float = Field(
+        0.0, ge=0, le=60, description="fault injection: sleep this long after every encoder call (tests)"
+    )
+
+    @field_validator("encoder")
+    @classmethod
+    def _encoder(cls, value: str) -> str:
+        if value not in REGION_ENCODER_NAMES:
+            raise ValueError(f"unknown region encoder {value!r}; known: {', '.join(REGION_ENCODER_NAMES)}")
+        return value
+
+    @field_validator("noise")
+    @classmethod
+    def _noise(cls, value: str) -> str:
+        if value not in NOISE_PROFILES:
+            raise ValueError(f"unknown noise profile {value!r}; known: {', '.join(NOISE_PROFILES)}")
+        return value
 
 
 class SemanticConfig(ServiceConfig):
@@ -91,13 +121,15 @@ class SemanticSwitch:
         return True
 
 
-def _encoder_options(section: SemanticSection) -> dict[str, Any]:
+def region_encoder_from_section(section: SemanticSection) -> Any:
+    """The region encoder a semantic section describes (the service and the in-process run)."""
     if section.encoder == "gt":
-        return {"noise": section.noise, "seed": section.seed}
-    opts: dict[str, Any] = {"device": section.device}
-    if section.model_path:
-        opts["model_path" if section.encoder == "onnx" else "model"] = section.model_path
-    return opts
+        opts: dict[str, Any] = {"noise": section.noise, "seed": section.seed}
+    else:
+        opts = {"device": section.device}
+        if section.model_path:
+            opts["model_path" if section.encoder == "onnx" else "model"] = section.model_path
+    return make_region_encoder(section.encoder, **opts)
 
 
 class SemanticService:
@@ -106,9 +138,9 @@ class SemanticService:
     def __init__(self, config: SemanticConfig, *, encoder: Any = None) -> None:
         self.config = config
         self.section = config.semantic
-        self.encoder = encoder if encoder is not None else make_region_encoder(
-            self.section.encoder, **_encoder_options(self.section))
+        self.encoder = encoder if encoder is not None else region_encoder_from_section(self.section)
         self.dictionary = RegionDictionary(self.encoder.embedding_space, self.encoder.dim)
+        self.match_params = MatchParams.from_section(self.section)
         self.switch = SemanticSwitch(self.section.every_k, self.section.max_hz)
         self._frames: Subscriber[RgbdFrame] | None = None
         self._instances: InstanceBuffer | None = InstanceBuffer() if self.encoder.needs_instances else None
@@ -126,8 +158,8 @@ class SemanticService:
         deadline = time.monotonic() + self.section.recover_timeout_s
         while True:
             try:
-                snap = get(runner.session, runner.keys.geometry_dictionary, DictionaryRequest(), DictionarySnapshot,
-                           timeout_s=max(0.5, min(3.0, deadline - time.monotonic())), service="geometry")
+                snap = runner.call(GEOMETRY_DICTIONARY, DictionaryRequest(),
+                                   timeout_s=max(0.5, min(3.0, deadline - time.monotonic())))
                 break
             except QueryError as exc:
                 if exc.code != "timeout" or time.monotonic() >= deadline:
@@ -159,13 +191,12 @@ class SemanticService:
         h, w = obs.conf_maps.shape[1:] if obs.conf_maps.ndim == 3 else self.encoder.output_size(
             frame.intrinsics.height_px, frame.intrinsics.width_px)
         K_small = frame.intrinsics.scaled(w, h)
-        reply = get(runner.session, runner.keys.geometry_render,
-                    RenderRequest(frame_id=frame.frame_id, T_world_cam=frame.T_world_cam,
-                                  **RenderRequest.intrinsics_fields(K_small)),
-                    RenderReply, timeout_s=self.section.render_timeout_s, service="geometry")
+        reply = runner.call(GEOMETRY_RENDER, RenderRequest(frame_id=frame.frame_id, T_world_cam=frame.T_world_cam,
+                                                           **RenderRequest.intrinsics_fields(K_small)),
+                            timeout_s=self.section.render_timeout_s)
         rendered = RenderedView(key_map=reply.key_map, conf_map=reply.conf_map, depth_m=reply.depth_m)
         prev_version = self.dictionary.version
-        planned = plan_update(obs, rendered, self.dictionary, min_iou=self.section.min_iou)
+        planned = plan_update(obs, rendered, self.dictionary, self.match_params)
         assert self._update_pub is not None and self._delta_pub is not None
         # The delta goes first, so a key never reaches geometry before its dictionary row.
         delta = delta_message(self.dictionary, since_version=self._published_version)
@@ -179,28 +210,27 @@ class SemanticService:
             depth_m=resize_nearest(frame.depth_m(), (h, w)).astype(np.float32)))
         stats = runner.stats
         stats.record(time.monotonic() - started)
-        stats.incr("semantic_frames")
-        stats.incr("matched", len(planned.matched))
-        stats.incr("new_regions", len(planned.new_keys))
-        stats.set("regions", len(self.dictionary))
-        stats.set("dictionary_version", self.dictionary.version)
-        stats.set("last_frame_id", frame.frame_id)
-        stats.incr("busy_s", time.monotonic() - started)
+        stats.incr(SemanticCounter.SEMANTIC_FRAMES)
+        stats.incr(SemanticCounter.MATCHED, len(planned.matched))
+        stats.incr(SemanticCounter.NEW_REGIONS, len(planned.new_keys))
+        stats.set(SemanticCounter.REGIONS, len(self.dictionary))
+        stats.set(SemanticCounter.DICTIONARY_VERSION, self.dictionary.version)
+        stats.set(SemanticCounter.LAST_FRAME_ID, frame.frame_id)
+        stats.incr(SemanticCounter.BUSY_S, time.monotonic() - started)
         logger.debug("semantic: frame %d: %d regions, %d matched, %d new (dictionary v%d -> v%d)",
                      frame.frame_id, obs.conf_maps.shape[0], len(planned.matched), len(planned.new_keys),
                      prev_version, self.dictionary.version)
 
     def setup(self, runner: ServiceRunner) -> None:
-        keys = runner.keys
         self.recover(runner)
-        self._update_pub = runner.publisher(keys.semantic_update)
-        self._delta_pub = runner.publisher(keys.semantic_dictionary_delta)
-        runner.queryable(keys.semantic_dictionary, DictionaryRequest, self.handle_snapshot)
+        self._update_pub = runner.publisher(SEMANTIC_UPDATE)
+        self._delta_pub = runner.publisher(DICTIONARY_DELTA)
+        runner.queryable(SEMANTIC_DICTIONARY, self.handle_snapshot)
         if self._instances is not None:
-            runner.subscriber(keys.sensor_instance, InstanceFrame, self._instances.add, queue_size=8)
-        self._frames = runner.subscriber(keys.sensor_rgbd, RgbdFrame, latest_only=True)
-        runner.stats.set("semantic_frames", 0)
-        runner.stats.set("regions", len(self.dictionary))
+            runner.subscriber(SENSOR_INSTANCE, self._instances.add, queue_size=8)
+        self._frames = runner.subscriber(SENSOR_RGBD, latest_only=True)
+        runner.stats.set(SemanticCounter.SEMANTIC_FRAMES, 0)
+        runner.stats.set(SemanticCounter.REGIONS, len(self.dictionary))
 
     def loop(self, runner: ServiceRunner) -> None:
         assert self._frames is not None
@@ -209,12 +239,12 @@ class SemanticService:
             if msg is None:
                 continue
             if not self.switch.accept(msg.frame_id, time.monotonic()):
-                runner.stats.incr("skipped_switch")
+                runner.stats.incr(SemanticCounter.SKIPPED_SWITCH)
                 continue
             instance = None
             if self._instances is not None and msg.instance is None:
                 instance = self._instances.take(msg, timeout_s=self.section.instance_wait_s)
-                runner.stats.set("instances_evicted", self._instances.evicted)
+                runner.stats.set(SemanticCounter.INSTANCES_EVICTED, self._instances.evicted)
                 if instance is None:
                     self._skip_without_instance(runner, msg)
                     continue
@@ -222,44 +252,28 @@ class SemanticService:
                 self.process(runner, msg, instance)
             except QueryError as exc:
                 logger.warning("semantic: frame %d skipped: %s", msg.frame_id, exc)
-                runner.stats.incr("skipped_no_render")
+                runner.stats.incr(SemanticCounter.SKIPPED_NO_RENDER)
             except ValueError as exc:
                 logger.warning("semantic: frame %d refused: %s", msg.frame_id, exc)
                 runner.stats.add_error()
 
     def _skip_without_instance(self, runner: ServiceRunner, msg: RgbdFrame) -> None:
-        runner.stats.incr("skipped_no_instance")
+        runner.stats.incr(SemanticCounter.SKIPPED_NO_INSTANCE)
         self._frames_without_instance += 1
         if self._frames_without_instance % 100 == 1:  # the first, then every 100th
             logger.warning(
                 "semantic: frame %d skipped: its instance image did not arrive on %s within %.2f s (%d such "
                 "frames so far; the %r encoder needs a source with instance labels)", msg.frame_id,
-                runner.keys.sensor_instance, self.section.instance_wait_s, self._frames_without_instance,
+                SENSOR_INSTANCE.key(runner.keys), self.section.instance_wait_s, self._frames_without_instance,
                 self.section.encoder)
 
     def close(self) -> None:
         return None
 
 
-def _add_options(parser: argparse.ArgumentParser) -> None:
-    g = parser.add_argument_group("semantic")
-    g.add_argument("--encoder", help="region encoder: gt, onnx, clip-regions (default gt)")
-    g.add_argument("--noise", help="gt encoder noise profile: off, standard, heavy")
-    g.add_argument("--semantic-every", dest="every_k", type=int, help="semantics on every k-th frame (0 = off)")
-    g.add_argument("--max-hz", type=float, help="at most this many semantic frames per second")
-    g.add_argument("--model-path", help="model file/folder for onnx or clip-regions")
-
-
-def _options(args: argparse.Namespace) -> dict[str, Any]:
-    return {"semantic": {"encoder": args.encoder, "noise": args.noise, "every_k": args.every_k,
-                         "max_hz": args.max_hz, "model_path": args.model_path}}
-
-
 DEFINITION = ServiceDefinition(
     name="semantic",
     help="encode regions of the latest frame, match them to the map, send updates, own the dictionary",
     config_model=SemanticConfig,
-    add_options=_add_options,
-    options_to_config=_options,
     build=SemanticService,
 )

@@ -7,19 +7,34 @@
             print(region.key, region.score, region.label, region.bbox_min, region.bbox_max)
 
 Every call is a Zenoh ``get`` with a timeout; a refusal or a service that does not answer
-raises :class:`openfusion.bus.QueryError` with the service's reason.
+raises :class:`openfusion.bus.QueryError` with the service's reason. Keys, message types and
+owners come from :mod:`openfusion.wire.endpoints`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TypeVar
 
 import numpy as np
 import zenoh
 
-from openfusion.bus import get, live_services, open_session
+from openfusion.bus import call, live_services, open_session
 from openfusion.config import ServiceConfig, ZenohSettings
+from openfusion.errors import UsageError
+from openfusion.wire.endpoints import (
+    CONTROL,
+    GEOMETRY_MESH,
+    GEOMETRY_POINTS,
+    GEOMETRY_REGIONS,
+    QUERY_IMAGE,
+    QUERY_POINT,
+    QUERY_TEXT,
+    SEMANTIC_DICTIONARY,
+    Endpoint,
+)
 from openfusion.wire.keys import KeySpace
+from openfusion.wire.message import Message
 from openfusion.wire.schemas import (
     ControlReply,
     ControlRequest,
@@ -36,6 +51,9 @@ from openfusion.wire.schemas import (
     RegionSummaryRequest,
     TextQuery,
 )
+
+Q = TypeVar("Q", bound=Message)
+R = TypeVar("R", bound=Message)
 
 
 class OpenFusionClient:
@@ -86,112 +104,50 @@ class OpenFusionClient:
         max_points: int = 20_000,
         embedding_space: str | None = None,
     ) -> QueryReply:
-        return get(
-            self.session,
-            self.keys.query_text,
-            TextQuery(
-                text=text,
-                top_k=top_k,
-                with_points=with_points,
-                max_points=max_points,
-                embedding_space=embedding_space,
-            ),
-            QueryReply,
-            timeout_s=self.timeout_s,
-            service="query",
-        )
+        request = TextQuery(text=text, top_k=top_k, with_points=with_points, max_points=max_points,
+                            embedding_space=embedding_space)
+        return self._call(QUERY_TEXT, request)
 
     def query_image(
         self, image_rgb: np.ndarray, *, top_k: int = 5, with_points: bool = False, max_points: int = 20_000
     ) -> QueryReply:
-        return get(
-            self.session,
-            self.keys.query_image,
-            ImageQuery(
-                image=np.ascontiguousarray(image_rgb, np.uint8),
-                top_k=top_k,
-                with_points=with_points,
-                max_points=max_points,
-            ),
-            QueryReply,
-            timeout_s=self.timeout_s,
-            service="query",
-        )
+        request = ImageQuery(image=np.ascontiguousarray(image_rgb, np.uint8), top_k=top_k, with_points=with_points,
+                             max_points=max_points)
+        return self._call(QUERY_IMAGE, request)
 
     def query_point(
-        self,
-        point_world: Sequence[float],
-        *,
-        radius_m: float = 0.1,
-        top_k: int = 5,
-        with_points: bool = False,
+        self, point_world: Sequence[float], *, radius_m: float = 0.1, top_k: int = 5, with_points: bool = False
     ) -> QueryReply:
-        return get(
-            self.session,
-            self.keys.query_point,
-            PointQuery(
-                point_world=np.asarray(point_world, np.float64),
-                radius_m=radius_m,
-                top_k=top_k,
-                with_points=with_points,
-            ),
-            QueryReply,
-            timeout_s=self.timeout_s,
-            service="query",
-        )
+        request = PointQuery(point_world=np.asarray(point_world, np.float64), radius_m=radius_m, top_k=top_k,
+                             with_points=with_points)
+        return self._call(QUERY_POINT, request)
 
     # geometry
     def points(self, keys: Sequence[int] | None = None, *, max_points: int | None = None) -> PointsReply:
-        return get(
-            self.session,
-            self.keys.geometry_points,
-            PointsRequest(keys=list(keys) if keys is not None else None, max_points=max_points),
-            PointsReply,
-            timeout_s=self.timeout_s,
-            service="geometry",
-        )
+        return self._call(GEOMETRY_POINTS, PointsRequest(keys=_key_list(keys), max_points=max_points))
 
     def regions(self, keys: Sequence[int] | None = None, *, fresh: bool = False) -> RegionSummaryReply:
         """Per-region bounding boxes and surface point counts (``fresh``: of the current map)."""
-        return get(
-            self.session,
-            self.keys.geometry_regions,
-            RegionSummaryRequest(keys=list(keys) if keys is not None else None, fresh=fresh),
-            RegionSummaryReply,
-            timeout_s=max(self.timeout_s, 30.0),
-            service="geometry",
-        )
+        return self._call(GEOMETRY_REGIONS, RegionSummaryRequest(keys=_key_list(keys), fresh=fresh), min_timeout_s=30.0)
 
     def mesh(self, keys: Sequence[int] | None = None) -> MeshReply:
-        return get(
-            self.session,
-            self.keys.geometry_mesh,
-            MeshRequest(keys=list(keys) if keys is not None else None),
-            MeshReply,
-            timeout_s=max(self.timeout_s, 30.0),
-            service="geometry",
-        )
+        return self._call(GEOMETRY_MESH, MeshRequest(keys=_key_list(keys)), min_timeout_s=30.0)
 
     def dictionary(self) -> DictionarySnapshot:
-        return get(
-            self.session,
-            self.keys.semantic_dictionary,
-            DictionaryRequest(),
-            DictionarySnapshot,
-            timeout_s=self.timeout_s,
-            service="semantic",
-        )
+        return self._call(SEMANTIC_DICTIONARY, DictionaryRequest())
 
     # admin
     def control(self, action: str, path: str | None = None) -> ControlReply:
-        return get(
-            self.session,
-            self.keys.control(action),
-            ControlRequest(action=action, path=path),
-            ControlReply,
-            timeout_s=max(self.timeout_s, 60.0),
-            service="geometry",
-        )
+        if action not in CONTROL:
+            raise UsageError(f"control action {action!r} is not one of {', '.join(CONTROL)}")
+        return self._call(CONTROL[action], ControlRequest(action=action, path=path), min_timeout_s=60.0)
 
     def live_services(self, *, timeout_s: float = 2.0) -> list[str]:
         return live_services(self.session, self.keys, timeout_s=timeout_s)
+
+    def _call(self, endpoint: Endpoint[Q, R], request: Q, *, min_timeout_s: float = 0.0) -> R:
+        return call(self.session, self.keys, endpoint, request, timeout_s=max(self.timeout_s, min_timeout_s))
+
+
+def _key_list(keys: Sequence[int] | None) -> list[int] | None:
+    return list(keys) if keys is not None else None

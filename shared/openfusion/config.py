@@ -49,6 +49,7 @@ import json
 import logging
 import os
 import re
+import tomllib
 import types
 import typing
 from collections.abc import Mapping, Sequence
@@ -59,11 +60,6 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from openfusion.errors import UserError
 from openfusion.wire.keys import DEFAULT_PREFIX, KeySpace, validate_map_id, validate_prefix
-
-try:
-    import tomllib
-except ModuleNotFoundError:  # Python 3.10: TOML files need Python >= 3.11 (JSON works everywhere)
-    tomllib = None  # type: ignore[assignment]
 
 logger = logging.getLogger(__name__)
 
@@ -208,8 +204,6 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"config file {path} is not UTF-8 text") from None
     suffix = path.suffix.lower()
     if suffix == ".toml":
-        if tomllib is None:
-            raise ConfigError(f"config file {path}: reading TOML needs Python >= 3.11; use a .json file")
         try:
             data: Any = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
@@ -301,6 +295,34 @@ def _describe_errors(exc: ValidationError, flat: Mapping[Path_, tuple[Any, str]]
     return "invalid configuration: " + "; ".join(lines)
 
 
+def _layers(
+    model: type[BaseModel],
+    *,
+    config_file: str | Path | None,
+    environ: Mapping[str, str] | None,
+    cli: Mapping[str, Any] | None,
+    overrides: Sequence[str],
+) -> dict[Path_, tuple[Any, str]]:
+    environ = os.environ if environ is None else environ
+    if config_file is None and environ.get(ENV_CONFIG_FILE):
+        config_file = environ[ENV_CONFIG_FILE]
+    flat: dict[Path_, tuple[Any, str]] = {}
+    if config_file is not None:
+        flat.update(_file_layer(model, Path(config_file)))
+    flat.update(_env_layer(model, environ))
+    if cli:
+        flat.update(_flatten(cli, "command line"))
+    flat.update(_overrides_layer(model, overrides))
+    return flat
+
+
+def _validate(model: type[C], flat: Mapping[Path_, tuple[Any, str]]) -> C:
+    try:
+        return model.model_validate(_nest(flat))
+    except ValidationError as exc:
+        raise ConfigError(_describe_errors(exc, flat)) from None
+
+
 def load_config(
     model: type[C] = ServiceConfig,  # type: ignore[assignment]
     *,
@@ -312,20 +334,41 @@ def load_config(
     """Merge defaults < ``config_file`` (or ``$OPENFUSION_CONFIG``) < ``environ`` (default
     ``os.environ``) < ``cli`` (nested mapping of explicitly given values) < ``overrides``
     (``KEY=VALUE`` strings) and validate. Raises :class:`ConfigError`."""
-    environ = os.environ if environ is None else environ
-    if config_file is None and environ.get(ENV_CONFIG_FILE):
-        config_file = environ[ENV_CONFIG_FILE]
-    flat: dict[Path_, tuple[Any, str]] = {}
-    if config_file is not None:
-        flat.update(_file_layer(model, Path(config_file)))
-    flat.update(_env_layer(model, environ))
-    if cli:
-        flat.update(_flatten(cli, "command line"))
-    flat.update(_overrides_layer(model, overrides))
-    try:
-        return model.model_validate(_nest(flat))
-    except ValidationError as exc:
-        raise ConfigError(_describe_errors(exc, flat)) from None
+    flat = _layers(model, config_file=config_file, environ=environ, cli=cli, overrides=overrides)
+    return _validate(model, flat)
+
+
+def explain_config(
+    model: type[C] = ServiceConfig,  # type: ignore[assignment]
+    *,
+    config_file: str | Path | None = None,
+    environ: Mapping[str, str] | None = None,
+    cli: Mapping[str, Any] | None = None,
+    overrides: Sequence[str] = (),
+) -> tuple[C, list[tuple[str, Any, str]]]:
+    """The config :func:`load_config` gives, and for every leaf parameter ``(dotted name, effective
+    value, where it came from)``: ``default``, ``file PATH``, ``environment NAME``, ``command line``
+    or ``--set KEY`` (what ``openfusion config --show`` prints)."""
+    flat = _layers(model, config_file=config_file, environ=environ, cli=cli, overrides=overrides)
+    config = _validate(model, flat)
+    rows: list[tuple[str, Any, str]] = []
+
+    def walk(obj: BaseModel, prefix: Path_) -> None:
+        for name in type(obj).model_fields:
+            value = getattr(obj, name)
+            path = (*prefix, name)
+            if isinstance(value, BaseModel):
+                walk(value, path)
+                continue
+            source = "default"
+            for n in range(len(path), 0, -1):
+                if path[:n] in flat:
+                    source = flat[path[:n]][1]
+                    break
+            rows.append((".".join(path), value, source))
+
+    walk(config, ())
+    return config, rows
 
 
 # ----------------------------------------------------------------------------- command line
@@ -378,18 +421,87 @@ def cli_values(args: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
+def option_flag(model: type[BaseModel], name: str) -> str:
+    """The command-line flag of a section field: ``--voxel-size-m`` for ``voxel_size_m``, or the
+    field's own ``json_schema_extra={"flag": ...}`` (``--semantic-every`` for ``every_k``)."""
+    extra = model.model_fields[name].json_schema_extra
+    flag = extra.get("flag") if isinstance(extra, dict) else None
+    return str(flag) if flag else "--" + name.replace("_", "-")
+
+
+def _option_help(info: Any) -> str:
+    text = info.description or ""
+    default = info.get_default(call_default_factory=True)
+    shown = "none" if default is None else default
+    return f"{text} (default {shown})" if text else f"default {shown}"
+
+
+def _metavar(name: str, annotation: Any) -> str:
+    for suffix in ("_m", "_s", "_hz", "_px"):
+        if name.endswith(suffix):
+            return suffix[1:].upper()
+    return {int: "N", float: "X", Path: "PATH"}.get(annotation, "VALUE")
+
+
+def add_section_options(
+    parser: argparse.ArgumentParser,
+    model: type[BaseModel],
+    section: str,
+    *,
+    fields: Sequence[str] | None = None,
+    title: str | None = None,
+) -> None:
+    """One flag per field of a config section (``section`` is its name in the config), typed and
+    documented from the field itself; every flag defaults to "not given", so lower sources
+    (file, environment) stay in effect. ``fields``: only these (in this order). The values come
+    back with :func:`section_values`."""
+    group = parser.add_argument_group(title or f"{section} (also [{section}] in a config file, "
+                                      f"OPENFUSION_{section.upper()}__<NAME> in the environment)")
+    names = list(fields) if fields is not None else list(model.model_fields)
+    for name in names:
+        info = model.model_fields[name]
+        annotation = _unwrap_optional(info.annotation)
+        kwargs: dict[str, Any] = {"dest": f"{section}__{name}", "default": None, "help": _option_help(info)}
+        if annotation is bool:
+            kwargs["action"] = argparse.BooleanOptionalAction
+        elif typing.get_origin(annotation) is Literal:
+            kwargs["choices"] = [str(v) for v in typing.get_args(annotation)]
+        elif annotation in (int, float, Path):
+            kwargs["type"] = annotation
+            kwargs["metavar"] = _metavar(name, annotation)
+        elif _is_list_type(annotation):
+            kwargs["type"] = lambda text: [item.strip() for item in text.split(",") if item.strip()]
+            kwargs["metavar"] = "A,B"
+        else:
+            kwargs["metavar"] = "TEXT"
+        group.add_argument(option_flag(model, name), **kwargs)
+
+
+def section_values(args: argparse.Namespace, section: str) -> dict[str, Any]:
+    """The explicitly given flags of ``section`` (added by :func:`add_section_options`)."""
+    head = f"{section}__"
+    return {k[len(head):]: v for k, v in vars(args).items() if k.startswith(head) and v is not None}
+
+
 def config_from_args(
     args: argparse.Namespace,
     model: type[C] = ServiceConfig,  # type: ignore[assignment]
     *,
+    sections: Sequence[str] = (),
     environ: Mapping[str, str] | None = None,
 ) -> C:
-    """The validated config of a parser built with :func:`add_config_arguments`."""
+    """The validated config of a parser built with :func:`add_config_arguments` (and
+    :func:`add_section_options` for each of ``sections``)."""
+    cli = cli_values(args)
+    for section in sections:
+        given = section_values(args, section)
+        if given:
+            cli.setdefault(section, {}).update(given)
     return load_config(
         model,
         config_file=getattr(args, "config", None),
         environ=environ,
-        cli=cli_values(args),
+        cli=cli,
         overrides=getattr(args, "overrides", None) or (),
     )
 

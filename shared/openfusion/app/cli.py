@@ -66,6 +66,7 @@ SUBCOMMANDS: list[Subcommand] = [
     Subcommand("eval", "openfusion.app.eval_cmd:EvalCommand", "evaluate mapping quality, geometry and speed"),
     Subcommand("render", "openfusion.app.render_cmd:RenderCommand", "headless PNG render of a saved map"),
     Subcommand("export", "openfusion.app.export_cmd:ExportCommand", "export a saved map as PLY/GLB, coloured"),
+    Subcommand("config", "openfusion.app.config_cmd:ConfigCommand", "print a service's parameters and their sources"),
 ]
 
 

@@ -9,7 +9,7 @@ Writes ``results.json`` and ``results.md`` into ``--out``. Exit codes: 0 ok, 2 b
 input (one line on stderr), 1 a target missed with ``--check-targets``.
 
 Wiring: :class:`EvalCommand` fits the ``openfusion`` CLI registry (``add_arguments`` +
-``run``); :func:`main` runs it standalone (``python -m openfusion.eval``).
+``run``); ``python -m openfusion.eval`` runs the same command.
 """
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from collections.abc import Sequence
 from dataclasses import replace
 
+from openfusion.errors import OpenFusionError, UsageError
 from openfusion.eval.classes import DEFAULT_BACKGROUND_CLASSES
 from openfusion.eval.runner import FULL, QUICK, EvalConfig
 
@@ -103,15 +103,16 @@ def config_from_args(args: argparse.Namespace) -> EvalConfig:
         ("frames", "frames"),
         ("width", "width_px"),
         ("height", "height_px"),
-        ("voxel_size", "voxel_size_m"),
         ("semantic_every", "semantic_every"),
         ("gt_spacing", "gt_spacing_m"),
     ):
         v = getattr(args, opt)
         if v is not None:
             overrides[key] = v
+    if args.voxel_size is not None:
+        overrides["volume"] = base.volume.with_changes(voxel_size_m=args.voxel_size)
     if overrides["exclude_background"] and not overrides["background_classes"]:
-        raise ValueError("--exclude-background needs at least one class in --background-classes")
+        raise UsageError("--exclude-background needs at least one class in --background-classes")
     return replace(base, **overrides)
 
 
@@ -121,8 +122,13 @@ def run(args: argparse.Namespace) -> int:
     from openfusion.eval.runner import run_eval
     from openfusion.eval.scenes import parse_scene_specs
 
-    specs = parse_scene_specs(args.scenes)
-    config = config_from_args(args)
+    try:
+        specs = parse_scene_specs(args.scenes)
+        config = config_from_args(args)
+    except OpenFusionError:
+        raise
+    except (ValueError, OSError) as exc:  # a bad option value or scene path: the user's to fix
+        raise UsageError(str(exc)) from exc
     results = run_eval(specs, config)
     json_path, md_path = write_results(results, args.out)
     summary = results["summary"]
@@ -145,24 +151,3 @@ class EvalCommand:
 
     add_arguments = staticmethod(add_arguments)
     run = staticmethod(run)
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """Standalone entry: parse ``argv`` and run; bad input ends with one line on stderr and 2."""
-    parser = argparse.ArgumentParser(prog="openfusion eval", description=__doc__.split("\n\n")[0])
-    add_arguments(parser)
-    parser.add_argument("--log-level", default="WARNING", help="logging level (default WARNING)")
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=args.log_level.upper(), format="%(levelname)s %(name)s: %(message)s")
-    try:
-        return run(args)
-    except (ValueError, FileNotFoundError) as exc:
-        print(f"openfusion eval: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("openfusion eval: interrupted", file=sys.stderr)
-        return 130
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -49,19 +50,29 @@ class Cluster:
     map_id: str
     endpoint: str
     log_dir: Path
+    #: The run's config file (``RunConfig``); when set, children get it and no OPENFUSION_* variables
+    #: (the file already holds them, and the environment must not override the launcher's options).
+    config_file: Path | None = None
     processes: dict[str, ServiceProcess] = field(default_factory=dict)
 
     def base_args(self) -> list[str]:
-        return ["--map", self.map_id, "--mode", "peer", "--connect", self.endpoint, "--no-multicast",
+        args = ["--map", self.map_id, "--mode", "peer", "--connect", self.endpoint, "--no-multicast",
                 "--listen", "tcp/127.0.0.1:0"]
+        return args + (["--config", str(self.config_file)] if self.config_file is not None else [])
 
-    def start(self, name: str, extra: list[str], env: dict[str, str] | None = None) -> ServiceProcess:
+    def _environment(self, extra: dict[str, str] | None) -> dict[str, str]:
+        env = dict(os.environ)
+        if self.config_file is not None:
+            env = {k: v for k, v in env.items() if not k.startswith("OPENFUSION_") or k == "OPENFUSION_DEBUG"}
+        return {**env, **(extra or {})}
+
+    def start(self, name: str, extra: Sequence[str] = (), env: dict[str, str] | None = None) -> ServiceProcess:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         log_path = self.log_dir / f"{name}.log"
         log = open(log_path, "ab")  # noqa: SIM115 - closed when the process ends (child keeps its fd)
         cmd = [sys.executable, "-m", "openfusion.app.cli", "service", name, *self.base_args(), *extra]
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                env={**os.environ, **(env or {})})
+                                env=self._environment(env))
         log.close()
         sp = ServiceProcess(name, proc, log_path)
         self.processes[name] = sp

@@ -4,33 +4,34 @@ process and without a bus (for notebooks and debugging)."""
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
-from typing import Any
 
 from openfusion.app.outputs import open_rerun, write_query_outputs
-from openfusion.encoders import make_region_encoder, make_text_encoder
+from openfusion.app.run_config import RunConfig
+from openfusion.app.summary import RunSummary
 from openfusion.frame import Frame
-from openfusion.mapping import VolumeParams, query_regions, save_map
-from openfusion.mapping.params import ROOM_SCALE_INITIAL_BLOCKS
+from openfusion.mapping import query_regions, save_map
+from openfusion.mapping.params import MatchParams
 from openfusion.mapping.pipeline import PipelineStats, map_scene
+from openfusion.services.query.service import text_encoder_from_section
+from openfusion.services.semantic.service import region_encoder_from_section
 from openfusion.sources import open_source
 
 
-def run_in_process(args: argparse.Namespace) -> dict[str, Any]:
-    """``openfusion run --in-process``: the same outputs as the service run, in this process."""
+def run_in_process(args: argparse.Namespace, config: RunConfig) -> RunSummary:
+    """``openfusion run --in-process``: the same outputs as the service run, in this process, from
+    the same config sections the services read."""
     from tqdm import tqdm
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    source = open_source(args.source, max_frames=args.frames)
-    options: dict[str, Any] = {"noise": args.noise} if (args.encoder == "gt" and args.noise) else {}
-    encoder = make_region_encoder(args.encoder, **options)
+    source = open_source(config.bridge.source, max_frames=config.bridge.max_frames)
+    encoder = region_encoder_from_section(config.semantic)
     rerun = open_rerun(getattr(args, "rerun", None))
     log_frame = rerun.frame_hook() if rerun is not None else None
-    bar = tqdm(total=args.frames, desc="frames integrated", unit="frame", disable=args.quiet)
+    bar = tqdm(total=config.bridge.max_frames, desc="frames integrated", unit="frame", disable=args.quiet)
 
     def on_frame(frame: Frame, stats: PipelineStats) -> None:
         bar.update(1)
@@ -41,14 +42,15 @@ def run_in_process(args: argparse.Namespace) -> dict[str, Any]:
         result = map_scene(
             source,
             region_encoder=encoder,
-            volume_params=VolumeParams(initial_block_count=ROOM_SCALE_INITIAL_BLOCKS),  # as the service
-            semantic_every=args.semantic_every,
+            volume_params=config.geometry.volume_params(),
+            match_params=MatchParams.from_section(config.semantic),
+            semantic_every=config.semantic.every_k,
             on_frame=on_frame,
         )
     finally:
         bar.close()
-    save_map(out / "map", result.volume, result.dictionary, meta={"map_id": args.map_id})
-    text = make_text_encoder(args.text_encoder)
+    save_map(out / "map", result.volume, result.dictionary, meta={"map_id": config.map_id})
+    text = text_encoder_from_section(config.query)
     replies = []
     for query in args.queries:
         vec = text.encode([query])[0]
@@ -61,9 +63,8 @@ def run_in_process(args: argparse.Namespace) -> dict[str, Any]:
         for query, _space, hits in replies:
             rerun.log_query(query, hits)
         rerun.close()
-    summary = {"source": args.source, "encoder": args.encoder, "noise": args.noise or "off",
-               "semantic_every": args.semantic_every, "mode": "in-process", **result.stats.as_dict(),
-               "frames_published": result.stats.frames_integrated, "regions": len(result.dictionary),
-               "wall_s": round(time.monotonic() - started, 1), "map_dir": "map"}
-    (out / "run.json").write_text(json.dumps(summary, indent=2))
+    summary = RunSummary.from_pipeline(
+        result.stats, regions=len(result.dictionary), source=config.bridge.source, encoder=config.semantic.encoder,
+        noise=config.semantic.noise, semantic_every=config.semantic.every_k, wall_s=time.monotonic() - started)
+    (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
     return summary

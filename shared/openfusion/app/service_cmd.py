@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import importlib.util
 
+from openfusion.errors import UsageError
 from openfusion.services.common import ServiceDefinition
 
 SERVICE_NAMES = ("bridge", "geometry", "semantic", "query")
@@ -14,7 +14,7 @@ SERVICE_NAMES = ("bridge", "geometry", "semantic", "query")
 def definition(name: str) -> ServiceDefinition:
     """The :class:`ServiceDefinition` of service ``name`` (imports only that service)."""
     if name not in SERVICE_NAMES:
-        raise ValueError(f"unknown service {name!r}; known: {', '.join(SERVICE_NAMES)}")
+        raise UsageError(f"unknown service {name!r}; known: {', '.join(SERVICE_NAMES)}")
     module = importlib.import_module(f"openfusion.services.{name}.service")
     return module.DEFINITION
 
@@ -26,8 +26,6 @@ class ServiceCommand:
     def add_arguments(parser: argparse.ArgumentParser) -> None:
         sub = parser.add_subparsers(dest="service_name", metavar="SERVICE", required=True)
         for name in SERVICE_NAMES:
-            if importlib.util.find_spec(f"openfusion.services.{name}.service") is None:
-                continue
             defn = definition(name)
             p = sub.add_parser(name, help=defn.help, description=defn.help)
             defn.add_arguments(p)

@@ -252,7 +252,7 @@ def apply_region_noise(
                 report.eroded += 1
 
     out_maps = np.stack(maps).astype(np.float32) if maps else np.zeros((0, h, w), np.float32)
-    mass = out_maps.reshape(out_maps.shape[0], -1).sum(axis=1)
+    mass = out_maps.reshape(out_maps.shape[0], h * w).sum(axis=1)  # explicit size: works for 0 regions
     alive = mass >= min_area_px
     report.vanished = int((~alive).sum())
     out_maps = np.ascontiguousarray(np.clip(out_maps[alive], 0.0, 1.0))

@@ -2,6 +2,6 @@
 
 import sys
 
-from openfusion.app.eval_cmd import main
+from openfusion.app.cli import main
 
-sys.exit(main())
+sys.exit(main(["eval", *sys.argv[1:]]))

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
+from openfusion.encoders import make_region_encoder, make_text_encoder
 from openfusion.eval.baselines import (
     FrameRecord,
     RawOpen3DIntegrator,
@@ -41,6 +42,8 @@ from openfusion.eval.protocol import (
     labels_from_region_keys,
 )
 from openfusion.eval.scenes import SceneSpec, check_scene_inputs, open_scene
+from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume, segment_points
+from openfusion.mapping.params import MatchParams, VolumeParams
 
 logger = logging.getLogger(__name__)
 
@@ -64,11 +67,9 @@ class EvalConfig:
     frames: int = 24
     width_px: int = 640
     height_px: int = 480
-    voxel_size_m: float = 0.02
-    block_resolution: int = 8
-    trunc_voxels: float = 4.0
-    depth_max_m: float = 6.0
-    initial_block_count: int | None = None  # None: ROOM_SCALE_INITIAL_BLOCKS, as the geometry service
+    # The map's parameters: the same models (and defaults) as the geometry and semantic services.
+    volume: VolumeParams = field(default_factory=VolumeParams)
+    match: MatchParams = field(default_factory=MatchParams)
     semantic_every: int = 1
     exclude_background: bool = False
     background_classes: tuple[str, ...] = DEFAULT_BACKGROUND_CLASSES
@@ -86,7 +87,7 @@ class EvalConfig:
             raise ValueError(f"frames must be >= 1, got {self.frames}")
         if self.semantic_every < 1:
             raise ValueError(f"semantic_every must be >= 1, got {self.semantic_every}")
-        for name in ("voxel_size_m", "gt_spacing_m", "completeness_voxels", "depth_max_m"):
+        for name in ("gt_spacing_m", "completeness_voxels"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.unlabelled not in ("miss", "ignore"):
@@ -96,8 +97,15 @@ class EvalConfig:
     def excluded_classes(self) -> tuple[str, ...]:
         return tuple(self.background_classes) if self.exclude_background else ()
 
+    @property
+    def voxel_size_m(self) -> float:
+        return self.volume.voxel_size_m
+
     def to_dict(self) -> dict:
-        d = dict(self.__dict__)
+        """Plain JSON (results.json): the volume's and matching parameters flattened into the top level."""
+        d = {k: v for k, v in self.__dict__.items() if k not in ("volume", "match")}
+        d.update(self.volume.to_dict())
+        d.update(self.match.model_dump())
         d["background_classes"] = list(self.background_classes)
         return d
 
@@ -133,7 +141,8 @@ def map_scene_for_eval(
     source: object,
     *,
     region_encoder: object,
-    volume_params: object,
+    volume_params: VolumeParams,
+    match_params: MatchParams | None = None,
     semantic_every: int = 1,
     observed: ObservedSurface | None = None,
     record_for_baselines: bool = True,
@@ -145,11 +154,10 @@ def map_scene_for_eval(
     separately, interleaved with ours, first on every other frame, so both see the same machine
     load and cache state).
     """
-    from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume
 
     volume = SemanticVolume(volume_params)
     dictionary = RegionDictionary(region_encoder.embedding_space, region_encoder.dim)
-    mapper = SemanticMapper(volume, dictionary)
+    mapper = SemanticMapper(volume, dictionary, params=match_params)
     run = MappingRun(volume=volume, dictionary=dictionary)
     raw = None
     if raw_open3d_baseline:
@@ -220,7 +228,6 @@ def _segment_with_library(
 ) -> np.ndarray | None:
     """Per-point classes from :func:`openfusion.mapping.segment_points` (what users get), offered
     only the allowed classes; ``None`` if its point set differs from ``points``."""
-    from openfusion.mapping import segment_points
 
     allowed_idx = np.flatnonzero(allowed)
     seg_points, seg_labels = segment_points(volume, dictionary, class_emb[allowed_idx])
@@ -256,8 +263,6 @@ def evaluate_scene(
     text_encoder: object,
 ) -> dict:
     """Map one scene and measure it; returns the scene's results (JSON-ready dict)."""
-    from openfusion.mapping import VolumeParams
-    from openfusion.mapping.params import ROOM_SCALE_INITIAL_BLOCKS
 
     t_start = time.perf_counter()
     scene = open_scene(
@@ -271,25 +276,20 @@ def evaluate_scene(
     t_gt = time.perf_counter() - t_start
     if not gt.class_names:
         raise ValueError(f"{spec.name}: the ground truth has no labelled class")
-    voxel = config.voxel_size_m
-    params = VolumeParams(
-        voxel_size_m=voxel,
-        block_resolution=config.block_resolution,
-        trunc_voxels=config.trunc_voxels,
-        depth_max_m=config.depth_max_m,
-        initial_block_count=config.initial_block_count or ROOM_SCALE_INITIAL_BLOCKS,
-    )
+    voxel = config.volume.voxel_size_m
+    params = config.volume
     observed = ObservedSurface(
         gt.points,
         depth_tolerance_m=config.completeness_voxels * voxel,
         depth_min_m=scene.depth_min_m,
-        depth_max_m=config.depth_max_m,
+        depth_max_m=config.volume.depth_max_m,
     )
     logger.info("%s: mapping %s frames", spec.name, config.frames)
     run = map_scene_for_eval(
         scene.source,
         region_encoder=region_encoder,
         volume_params=params,
+        match_params=config.match,
         semantic_every=config.semantic_every,
         observed=observed,
         record_for_baselines=config.baselines,
@@ -332,7 +332,7 @@ def evaluate_scene(
     # ---- memory + query time of the region map
     n_blocks = int(volume.num_blocks)
     d = region_emb.shape[1] if region_emb.ndim == 2 else 0
-    voxel_sem_bytes = n_blocks * config.block_resolution**3 * (4 + 4)  # key int32 + conf float32
+    voxel_sem_bytes = n_blocks * config.volume.block_resolution**3 * (4 + 4)  # key int32 + conf float32
     dict_bytes = len(region_keys) * (d * 4 + 4 + 8)  # embedding + count + key
     q = class_emb[:1]
     memory = {
@@ -380,7 +380,7 @@ def evaluate_scene(
             points,
             keys,
             voxel_size_m=voxel,
-            block_resolution=config.block_resolution,
+            block_resolution=config.volume.block_resolution,
             samples_per_block=config.samples_per_block,
             seed=config.encoder_seed,
         )
@@ -433,7 +433,6 @@ def evaluate_scene(
 
 def make_encoders(config: EvalConfig) -> tuple[object, object]:
     """(region encoder, matching text encoder) for the run."""
-    from openfusion.encoders import make_region_encoder, make_text_encoder
 
     if config.encoder == "gt":
         text = make_text_encoder(config.text_encoder)

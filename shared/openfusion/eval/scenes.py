@@ -8,12 +8,18 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from openfusion.errors import UserError
 from openfusion.eval.ground_truth import GroundTruth, load_scannet_ground_truth, synthetic_ground_truth
 
 logger = logging.getLogger(__name__)
 
 SCENE_KINDS = ("synthetic", "scannet")
 _SYNTHETIC_OPTIONS = {"seed", "frames", "width", "height", "noise"}
+
+
+
+class SceneError(UserError, ValueError):
+    """A scene spec that cannot be evaluated: unknown kind, bad options, a missing folder or mesh."""
 
 
 @dataclass(frozen=True)
@@ -48,7 +54,7 @@ def parse_scene_specs(texts: Iterable[str]) -> list[SceneSpec]:
             if sep and kind in SCENE_KINDS:
                 if kind == "scannet":
                     if not rest:
-                        raise ValueError(
+                        raise SceneError(
                             "scene 'scannet:' needs a path: scannet:/data/scannet/scans/scene0000_00"
                         )
                     raw.append((kind, rest, {}))
@@ -59,7 +65,7 @@ def parse_scene_specs(texts: Iterable[str]) -> list[SceneSpec]:
             elif "=" in item and not sep and raw and raw[-1][0] == "synthetic":
                 raw[-1][2].update(_parse_options(item, item))
             else:
-                raise ValueError(
+                raise SceneError(
                     f"bad scene {item!r}: expected synthetic[:seed=N] or scannet:PATH (known kinds: {', '.join(SCENE_KINDS)})"
                 )
     specs = []
@@ -67,25 +73,25 @@ def parse_scene_specs(texts: Iterable[str]) -> list[SceneSpec]:
         if kind == "synthetic":
             unknown = set(opts) - _SYNTHETIC_OPTIONS
             if unknown:
-                raise ValueError(
+                raise SceneError(
                     f"unknown synthetic scene option(s) {sorted(unknown)}; known: {sorted(_SYNTHETIC_OPTIONS)}"
                 )
             try:
                 seed = int(opts.pop("seed", "0"))
                 for k in ("frames", "width", "height"):
                     if k in opts and int(opts[k]) <= 0:
-                        raise ValueError(f"{k} must be positive")
+                        raise SceneError(f"{k} must be positive")
             except ValueError as exc:
-                raise ValueError(f"bad synthetic scene options {opts}: {exc}") from exc
+                raise SceneError(f"bad synthetic scene options {opts}: {exc}") from exc
             specs.append(SceneSpec("synthetic", seed=seed, options=opts))
         else:
             specs.append(SceneSpec("scannet", path=path))
     if not specs:
-        raise ValueError("no scenes given")
+        raise SceneError("no scenes given")
     names = [s.name for s in specs]
     dupes = sorted({n for n in names if names.count(n) > 1})
     if dupes:
-        raise ValueError(f"scene(s) given twice: {dupes}")
+        raise SceneError(f"scene(s) given twice: {dupes}")
     return specs
 
 
@@ -94,7 +100,7 @@ def _parse_options(item: str, text: str) -> dict[str, str]:
     for part in (p for p in text.split(",") if p):
         key, eq, value = part.partition("=")
         if not eq or not key.strip() or not value.strip():
-            raise ValueError(f"bad scene option {part!r} in {item!r}: expected key=value")
+            raise SceneError(f"bad scene option {part!r} in {item!r}: expected key=value")
         out[key.strip()] = value.strip()
     return out
 
@@ -106,9 +112,9 @@ def check_scene_inputs(specs: Iterable[SceneSpec]) -> None:
             continue
         path = Path(spec.path or "")
         if not path.is_dir():
-            raise ValueError(f"{spec.name}: scene folder {path} does not exist")
+            raise SceneError(f"{spec.name}: scene folder {path} does not exist")
         if not list(path.glob("*_vh_clean_2.labels.ply")):
-            raise ValueError(
+            raise SceneError(
                 f"{spec.name}: no <scene>_vh_clean_2.labels.ply ground-truth mesh in {path} "
                 "(copy it from the ScanNet release next to the exported frames)"
             )
@@ -161,4 +167,4 @@ def open_scene(
             "%s: %d frames in the scan, using every %d-th (at most %d)", spec.name, total, stride, frames
         )
         return OpenedScene(spec, source, gt, depth_min_m=0.1)
-    raise ValueError(f"unknown scene kind {spec.kind!r}")
+    raise SceneError(f"unknown scene kind {spec.kind!r}")

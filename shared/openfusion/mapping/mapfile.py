@@ -26,7 +26,7 @@ import tempfile
 import time
 import zipfile
 import zlib
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -209,7 +209,7 @@ def _load_archive(target: Path, npz: np.lib.npyio.NpzFile, device: str | None) -
         arrays[name] = arr
     params = VolumeParams.from_dict(header["volume_params"])
     if device is not None:
-        params = replace(params, device=device)
+        params = params.with_changes(device=device)
     volume = SemanticVolume.from_arrays(params, {n: arrays[f"volume_{n}"] for n in _VOLUME_ARRAYS})
     d = header["dictionary"]
     snapshot = DictionarySnapshot(

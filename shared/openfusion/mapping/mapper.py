@@ -16,7 +16,8 @@ import numpy as np
 
 from openfusion.frame import CameraIntrinsics
 from openfusion.mapping.dictionary import RegionDictionary
-from openfusion.mapping.matching import DEFAULT_MASK_EDGE_PX, DEFAULT_MIN_IOU, PlannedUpdate, plan_update
+from openfusion.mapping.matching import PlannedUpdate, plan_update
+from openfusion.mapping.params import MatchParams
 from openfusion.mapping.volume import SemanticVolume, UpdateStats
 
 logger = logging.getLogger(__name__)
@@ -43,32 +44,16 @@ class StepStats:
 
 
 class SemanticMapper:
-    """Owns nothing but wiring: a volume, a dictionary and the matching options.
-
-    ``min_iou``, ``min_pixel_conf``, ``min_embedding_cos`` and ``mask_edge_px`` are passed to
-    :func:`openfusion.mapping.matching.plan_update` (see there).
-    """
+    """Owns nothing but wiring: a volume, a dictionary and the matching parameters
+    (:class:`~openfusion.mapping.params.MatchParams`, passed to
+    :func:`openfusion.mapping.matching.plan_update`)."""
 
     def __init__(
-        self,
-        volume: SemanticVolume,
-        dictionary: RegionDictionary,
-        *,
-        min_iou: float = DEFAULT_MIN_IOU,
-        min_pixel_conf: float = 0.05,
-        min_embedding_cos: float | None = None,
-        mask_edge_px: float = DEFAULT_MASK_EDGE_PX,
+        self, volume: SemanticVolume, dictionary: RegionDictionary, *, params: MatchParams | None = None
     ) -> None:
-        if not 0.0 <= min_iou <= 1.0:
-            raise ValueError(f"min_iou must be within [0, 1], got {min_iou}")
-        if not (np.isfinite(mask_edge_px) and mask_edge_px >= 0):
-            raise ValueError(f"mask_edge_px must be finite and >= 0, got {mask_edge_px}")
         self.volume = volume
         self.dictionary = dictionary
-        self.min_iou = min_iou
-        self.min_pixel_conf = min_pixel_conf
-        self.min_embedding_cos = min_embedding_cos
-        self.mask_edge_px = float(mask_edge_px)
+        self.params = params if params is not None else MatchParams()
         self.last_plan: PlannedUpdate | None = None
         self.last_update: UpdateStats | None = None
 
@@ -96,15 +81,7 @@ class SemanticMapper:
         t0 = time.perf_counter()
         rendered = self.volume.render(T_world_cam, intr)
         t1 = time.perf_counter()
-        plan = plan_update(
-            obs,
-            rendered,
-            self.dictionary,
-            min_iou=self.min_iou,
-            min_pixel_conf=self.min_pixel_conf,
-            min_embedding_cos=self.min_embedding_cos,
-            mask_edge_px=self.mask_edge_px,
-        )
+        plan = plan_update(obs, rendered, self.dictionary, self.params)
         t2 = time.perf_counter()
         update = self.volume.apply_update(
             T_world_cam, intr, plan.key_map, plan.conf_map, rendered=rendered, observed_depth_m=depth_m

@@ -41,12 +41,12 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from openfusion.mapping.dictionary import RegionDictionary
+from openfusion.mapping.params import MatchParams
 from openfusion.mapping.volume import RenderedView
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_MIN_IOU = 0.10
-DEFAULT_MASK_EDGE_PX = 2.0
+DEFAULT_MIN_IOU = MatchParams.model_fields["min_iou"].default
 
 
 def region_conf_maps(rendered: RenderedView) -> tuple[np.ndarray, np.ndarray]:
@@ -237,17 +237,13 @@ def plan_update(
     obs: Any,
     rendered: RenderedView,
     dictionary: RegionDictionary,
-    *,
-    min_iou: float = DEFAULT_MIN_IOU,
-    min_pixel_conf: float = 0.05,
-    min_embedding_cos: float | None = None,
-    mask_edge_px: float = DEFAULT_MASK_EDGE_PX,
-    rendered_conf_weighted: bool = True,
+    params: MatchParams | None = None,
 ) -> PlannedUpdate:
     """Match the observation to the rendered map and update the dictionary (one version batch).
 
     ``obs`` is any object with ``conf_maps`` (n, h, w), ``embeddings`` (n, d), ``labels`` (list or
-    None) and optionally ``embedding_space`` (checked against the dictionary's).
+    None) and optionally ``embedding_space`` (checked against the dictionary's). ``params``
+    (:class:`~openfusion.mapping.params.MatchParams`, defaults when None) holds every option below.
 
     Each pixel takes the frame region with the highest confidence there (pixels below
     ``min_pixel_conf`` take none). Regions that win no pixel are skipped. A matched region
@@ -270,10 +266,7 @@ def plan_update(
     labels = getattr(obs, "labels", None)
     if labels is not None and len(labels) != n:
         raise ValueError(f"labels has {len(labels)} entries for {n} regions")
-    if not 0.0 <= min_iou <= 1.0:
-        raise ValueError(f"min_iou must be within [0, 1], got {min_iou}")
-    if not (math.isfinite(mask_edge_px) and mask_edge_px >= 0):
-        raise ValueError(f"mask_edge_px must be finite and >= 0, got {mask_edge_px}")
+    p = params if params is not None else MatchParams()
     h, w = rendered.key_map.shape
     if n == 0:
         return PlannedUpdate(
@@ -281,10 +274,11 @@ def plan_update(
         )
     winner = conf_maps.argmax(axis=0)
     best_conf = np.take_along_axis(conf_maps, winner[None], axis=0)[0]
-    covered = best_conf >= max(min_pixel_conf, 1e-12)
+    covered = best_conf >= max(p.min_pixel_conf, 1e-12)
     pixels_won = np.bincount(winner[covered], minlength=n)
     gate = None
-    if min_embedding_cos is not None:
+    if p.min_embedding_cos is not None:
+        min_embedding_cos = p.min_embedding_cos
         unit = embeddings / np.maximum(np.linalg.norm(embeddings, axis=1, keepdims=True), 1e-12)
 
         def gate(rkeys: np.ndarray) -> np.ndarray:
@@ -294,7 +288,7 @@ def plan_update(
                     allowed[:, j] = unit @ dictionary.embedding(int(key)) >= min_embedding_cos
             return allowed
 
-    match = _match_checked(conf_maps, rendered, min_iou, gate, rendered_conf_weighted)
+    match = _match_checked(conf_maps, rendered, p.min_iou, gate, p.rendered_conf_weighted)
     key_of = np.full(n, -1, np.int64)
     plan = PlannedUpdate(np.full((h, w), -1, np.int32), np.zeros((h, w), np.float32), match=match)
     with dictionary.batch():
@@ -327,8 +321,8 @@ def plan_update(
     pixel_keys = key_of[winner]
     use = covered & (pixel_keys >= 0)
     pixel_conf = best_conf
-    if mask_edge_px > 0:
-        pixel_conf = best_conf * mask_edge_weights(np.where(covered, winner, -1), mask_edge_px)
+    if p.mask_edge_px > 0:
+        pixel_conf = best_conf * mask_edge_weights(np.where(covered, winner, -1), p.mask_edge_px)
     plan.key_map[use] = pixel_keys[use]
     plan.conf_map[use] = pixel_conf[use]
     plan.dictionary_version = dictionary.version

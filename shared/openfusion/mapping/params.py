@@ -1,21 +1,27 @@
-"""Parameters of the semantic TSDF volume, with units in every name and validation in one place."""
+"""Parameters of the map core, each declared once: default, unit (in the name), limits and help.
+
+:class:`VolumeParams` (the semantic TSDF volume and its update rule) and :class:`MatchParams`
+(region matching and the planned update) are config sections (:class:`openfusion.config.ConfigSection`):
+the geometry service's config section *is* a ``VolumeParams`` plus its own service settings, the
+semantic service's *is* a ``MatchParams`` plus its own, and the in-process pipeline and the
+evaluation build the same models. So a parameter's default, limits and help text exist in one
+place, and config files (``[geometry] voxel_size_m = 0.02``), ``OPENFUSION_GEOMETRY__VOXEL_SIZE_M``,
+command-line flags (``--voxel-size-m``) and ``openfusion config --show geometry`` all derive from
+these fields.
+"""
 
 from __future__ import annotations
 
-import math
 import re
-from dataclasses import asdict, dataclass
 from typing import Any, Literal
+
+from pydantic import ConfigDict, Field, field_validator, model_validator
+
+from openfusion.config import ConfigSection
 
 _DEVICE_RE = re.compile(r"^(CPU|CUDA):(\d+)$")
 
 WhenFull = Literal["raise", "drop_new"]
-
-#: Blocks a long-running map (the geometry service, ``openfusion run --in-process``, the evaluation)
-#: allocates at start: 16384 blocks of 8^3 voxels x 28 B = 230 MiB, a furnished room at 2 cm. The
-#: grid doubles when full and each doubling copies every block while integration waits (~0.5 s
-#: measured), so these start big enough for a room; the library default stays small for tests.
-ROOM_SCALE_INITIAL_BLOCKS = 16384
 
 
 def normalise_device(device: str) -> str:
@@ -28,79 +34,62 @@ def normalise_device(device: str) -> str:
     return text
 
 
-@dataclass(frozen=True)
-class VolumeParams:
-    """Geometry and semantic-fusion parameters of a :class:`SemanticVolume`.
+class VolumeParams(ConfigSection):
+    """Geometry and semantic-fusion parameters of a :class:`~openfusion.mapping.SemanticVolume`."""
 
-    - ``voxel_size_m``: voxel edge length in metres (2 cm default).
-    - ``block_resolution``: voxels per block edge (Open3D allocates blocks of ``block_resolution**3``).
-    - ``trunc_voxels``: TSDF truncation distance in voxels (paper: 4); passed to Open3D as
-      ``trunc_voxel_multiplier`` (whose own default is 8).
-    - ``depth_min_m`` / ``depth_max_m``: depth measurements outside this range are ignored.
-    - ``initial_block_count``: blocks allocated up front; the grid grows by doubling when needed.
-    - ``max_blocks``: block budget; ``None`` lets the grid grow. When set, a frame that needs more
-      blocks than the budget allows is refused (``when_full="raise"``: :class:`CapacityError`, nothing
-      written) or integrated into its already allocated blocks only (``when_full="drop_new"``).
-    - ``min_weight``: a voxel counts as observed surface (for render, update and extraction) once it
-      has at least this many depth observations.
-    - ``conf_history_weight`` (w >= 0): the weight of a voxel's stored semantic confidence against
-      one new observation (``openfusion.mapping.update_rule``): the same key averages,
-      ``(w * conf + c) / (w + 1)``; another key removes ``c / (w + 1)`` and takes the voxel only
-      when that uses the stored confidence up. Default 3: a voxel at confidence 1 needs 4
-      full-confidence contrary observations to change key; 0 reacts to every single observation.
-    - ``label_fill_radius_m``: when surface points are read out (queries, segmentation, exports), a
-      point with no labelled voxel among the 8 corners of its cell takes the key of the nearest
-      labelled surface point within this distance (0 turns it off). The update labels voxels at the
-      ray hits of the encoder-sized view (e.g. 160x120), so structures thinner than a pixel there
-      (lamp poles, plant stems, chair legs) are otherwise never labelled.
-    - ``device``: ``"CPU:0"`` or ``"CUDA:0"`` (when the installed Open3D has CUDA).
-    """
+    model_config = ConfigDict(allow_inf_nan=False)
 
-    voxel_size_m: float = 0.02
-    block_resolution: int = 8
-    trunc_voxels: float = 4.0
-    depth_min_m: float = 0.1
-    depth_max_m: float = 6.0
-    initial_block_count: int = 4096
-    max_blocks: int | None = None
-    when_full: WhenFull = "raise"
-    min_weight: float = 1.0
-    conf_history_weight: float = 3.0
-    label_fill_radius_m: float = 0.06
-    device: str = "CPU:0"
+    voxel_size_m: float = Field(0.02, gt=0, le=1.0, description="voxel edge length")
+    block_resolution: int = Field(8, ge=2, le=32, description="voxels per block edge (Open3D blocks of resolution^3)")
+    trunc_voxels: float = Field(
+        4.0, gt=0, description="TSDF truncation distance in voxels (paper: 4; Open3D's own default is 8)"
+    )
+    depth_min_m: float = Field(0.1, ge=0, description="depth below this is ignored")
+    depth_max_m: float = Field(6.0, gt=0, description="depth beyond this is ignored")
+    initial_block_count: int = Field(
+        16384,
+        ge=1,
+        description=(
+            "blocks allocated at start: 16384 blocks of 8^3 voxels x 28 B = 230 MiB, a furnished room at 2 cm. "
+            "The grid doubles when full and each doubling copies every block while integration waits (~0.5 s), "
+            "so a map starts big enough for a room"
+        ),
+    )
+    max_blocks: int | None = Field(
+        None, ge=1, description="block budget; none = grow. A frame needing more is refused or clipped (when_full)"
+    )
+    when_full: WhenFull = Field(
+        "raise",
+        description="over max_blocks: 'raise' refuses the frame (nothing written, counted), "
+        "'drop_new' integrates into already allocated blocks only",
+    )
+    min_weight: float = Field(
+        1.0, gt=0, description="depth observations a voxel needs to count as surface (render, update, read-out)"
+    )
+    conf_history_weight: float = Field(
+        3.0,
+        ge=0,
+        description="weight w of a voxel's stored confidence against one new observation (update rule): same key "
+        "(w*conf + c)/(w+1); another key removes c/(w+1) and takes the voxel when that uses it up",
+    )
+    label_fill_radius_m: float = Field(
+        0.06,
+        ge=0,
+        description="read-out: an unlabelled surface point takes the key of the nearest same-facing labelled point "
+        "within this distance (thin structures the encoder-sized view misses); 0 = off",
+    )
+    device: str = Field("CPU:0", description="Open3D device of the volume: CPU:0 or CUDA:<n>")
 
-    def __post_init__(self) -> None:
-        def finite_positive(name: str, value: float) -> None:
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a finite positive number, got {value!r}")
+    @field_validator("device")
+    @classmethod
+    def _device(cls, value: str) -> str:
+        return normalise_device(value)
 
-        finite_positive("voxel_size_m", self.voxel_size_m)
-        if self.voxel_size_m > 1.0:
-            raise ValueError(f"voxel_size_m must be at most 1 m, got {self.voxel_size_m}")
-        if not isinstance(self.block_resolution, int) or not 2 <= self.block_resolution <= 32:
-            raise ValueError(f"block_resolution must be an int in [2, 32], got {self.block_resolution!r}")
-        finite_positive("trunc_voxels", self.trunc_voxels)
-        if not (math.isfinite(self.depth_min_m) and self.depth_min_m >= 0):
-            raise ValueError(f"depth_min_m must be finite and >= 0, got {self.depth_min_m}")
-        finite_positive("depth_max_m", self.depth_max_m)
+    @model_validator(mode="after")
+    def _depth_range(self) -> VolumeParams:
         if self.depth_max_m <= self.depth_min_m:
             raise ValueError(f"depth_max_m ({self.depth_max_m}) must exceed depth_min_m ({self.depth_min_m})")
-        if not isinstance(self.initial_block_count, int) or self.initial_block_count < 1:
-            raise ValueError(f"initial_block_count must be an int >= 1, got {self.initial_block_count!r}")
-        if self.max_blocks is not None and (not isinstance(self.max_blocks, int) or self.max_blocks < 1):
-            raise ValueError(f"max_blocks must be None or an int >= 1, got {self.max_blocks!r}")
-        if self.when_full not in ("raise", "drop_new"):
-            raise ValueError(f"when_full must be 'raise' or 'drop_new', got {self.when_full!r}")
-        finite_positive("min_weight", self.min_weight)
-        if not (math.isfinite(self.conf_history_weight) and self.conf_history_weight >= 0):
-            raise ValueError(f"conf_history_weight must be finite and >= 0, got {self.conf_history_weight}")
-        if not (
-            isinstance(self.label_fill_radius_m, (int, float))
-            and math.isfinite(self.label_fill_radius_m)
-            and self.label_fill_radius_m >= 0
-        ):
-            raise ValueError(f"label_fill_radius_m must be finite and >= 0, got {self.label_fill_radius_m!r}")
-        object.__setattr__(self, "device", normalise_device(self.device))
+        return self
 
     @property
     def trunc_m(self) -> float:
@@ -113,14 +102,46 @@ class VolumeParams:
         return self.block_resolution * self.voxel_size_m
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain-JSON form (for map files and messages)."""
-        return asdict(self)
+        """Plain-JSON form (for map files)."""
+        return {name: getattr(self, name) for name in VolumeParams.model_fields}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> VolumeParams:
         """Inverse of :meth:`to_dict`; unknown keys are refused so a typo is not silently ignored."""
-        known = set(cls.__dataclass_fields__)
-        unknown = set(data) - known
-        if unknown:
-            raise ValueError(f"unknown VolumeParams fields: {sorted(unknown)}")
-        return cls(**data)
+        return cls.model_validate(data)
+
+    def with_changes(self, **changes: Any) -> VolumeParams:
+        """A validated copy with ``changes`` (e.g. another ``device`` for a loaded map)."""
+        return VolumeParams.model_validate({**self.to_dict(), **changes})
+
+    @classmethod
+    def from_section(cls, section: ConfigSection) -> VolumeParams:
+        """The volume parameters of a config section that extends this model (the geometry service's)."""
+        return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})
+
+
+class MatchParams(ConfigSection):
+    """How a frame's regions are matched to the map's and turned into a planned update
+    (:func:`openfusion.mapping.matching.plan_update`; the soft IoU, the assignment and the
+    mask-edge weighting are described in that module)."""
+
+    model_config = ConfigDict(allow_inf_nan=False)
+
+    min_iou: float = Field(0.10, ge=0, le=1, description="assigned pairs below this soft IoU count as new regions")
+    min_pixel_conf: float = Field(
+        0.05, ge=0, le=1, description="a pixel whose best region confidence is below this takes no region"
+    )
+    min_embedding_cos: float | None = Field(
+        None, ge=-1, le=1, description="a pair may match only when its embeddings agree this much (none = geometry only)"
+    )
+    mask_edge_px: float = Field(
+        2.0, ge=0, description="planned confidences fall off within this many pixels of a region border (0 = off)"
+    )
+    rendered_conf_weighted: bool = Field(
+        True, description="match against the rendered confidences (the paper) instead of the rendered key masks"
+    )
+
+    @classmethod
+    def from_section(cls, section: ConfigSection) -> MatchParams:
+        """The matching parameters of a config section that extends this model (the semantic service's)."""
+        return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})

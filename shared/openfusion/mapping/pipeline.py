@@ -18,34 +18,57 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from openfusion.frame import Frame
-from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume, VolumeParams
+from openfusion.mapping.dictionary import RegionDictionary
+from openfusion.mapping.errors import CapacityError
+from openfusion.mapping.mapper import SemanticMapper
+from openfusion.mapping.params import MatchParams, VolumeParams
+from openfusion.mapping.volume import SemanticVolume
 
 logger = logging.getLogger(__name__)
 
 
+def reconstruction_rates(
+    *, frames_integrated: float, integrate_s: float, semantic_frames: float, semantic_s: float
+) -> tuple[float | None, float | None]:
+    """(3D-Rec fps, Sem-3D-Rec fps) from counts and busy times, the one definition every report uses.
+
+    3D-Rec = frames integrated / time spent integrating them. Sem-3D-Rec = 1 / (integration time
+    per frame + semantic time per semantic frame): the rate of a pipeline that runs semantics
+    (encode + render + match + update) on every frame, from the same measurements. None when a
+    count or time is 0.
+    """
+    per_frame = integrate_s / frames_integrated if frames_integrated and integrate_s > 0 else None
+    per_sem = semantic_s / semantic_frames if semantic_frames and semantic_s > 0 else None
+    rec = 1.0 / per_frame if per_frame else None
+    sem = 1.0 / (per_frame + per_sem) if per_frame and per_sem else None
+    return rec, sem
+
+
 @dataclass
 class PipelineStats:
-    """Counts and times of one pipeline run; fps as defined in :mod:`openfusion.app.run`."""
+    """Counts and times of one pipeline run; fps by :func:`reconstruction_rates`."""
 
     frames_read: int = 0
     frames_skipped: dict[str, int] = field(default_factory=dict)
     frames_integrated: int = 0
     semantic_frames: int = 0
+    semantic_failed: int = 0  # frames whose encoder or semantic step raised (logged, geometry kept)
     integrate_s: float = 0.0
     encode_s: float = 0.0
     semantic_step_s: float = 0.0
 
+    def _rates(self) -> tuple[float | None, float | None]:
+        return reconstruction_rates(frames_integrated=self.frames_integrated, integrate_s=self.integrate_s,
+                                    semantic_frames=self.semantic_frames,
+                                    semantic_s=self.encode_s + self.semantic_step_s)
+
     @property
     def rec_fps(self) -> float | None:
-        return self.frames_integrated / self.integrate_s if self.integrate_s > 0 else None
+        return self._rates()[0]
 
     @property
     def sem_rec_fps(self) -> float | None:
-        if not self.semantic_frames or not self.frames_integrated:
-            return None
-        per_frame = self.integrate_s / self.frames_integrated
-        per_sem = (self.encode_s + self.semantic_step_s) / self.semantic_frames
-        return 1.0 / (per_frame + per_sem)
+        return self._rates()[1]
 
     def as_dict(self) -> dict[str, Any]:
         out = asdict(self)
@@ -66,35 +89,52 @@ def map_scene(
     *,
     region_encoder: Any,
     volume_params: VolumeParams | None = None,
+    match_params: MatchParams | None = None,
     semantic_every: int = 1,
     max_frames: int | None = None,
-    min_iou: float = 0.10,
     on_frame: Callable[[Frame, PipelineStats], None] | None = None,
 ) -> MapResult:
     """Integrate every frame of ``source``; run the semantic step on every ``semantic_every``-th
-    frame id (0 = geometry only). Returns the map and its stats."""
+    frame id (0 = geometry only). Returns the map and its stats.
+
+    One bad frame never ends the run, as in the services: a frame the volume refuses for its
+    block budget is skipped (``frames_skipped["capacity_refused"]``), and a frame whose encoder or
+    semantic step raises is logged with its frame id and counted (``semantic_failed``) while its
+    geometry stays integrated. An observation with no regions is a normal frame.
+    """
     if semantic_every < 0:
         raise ValueError(f"semantic_every must be >= 0, got {semantic_every}")
     volume = SemanticVolume(volume_params or VolumeParams())
     dictionary = RegionDictionary(region_encoder.embedding_space, region_encoder.dim)
-    mapper = SemanticMapper(volume, dictionary, min_iou=min_iou)
+    mapper = SemanticMapper(volume, dictionary, params=match_params)
     stats = PipelineStats()
+    refused: dict[str, int] = {}
     for frame in source:
         if max_frames is not None and stats.frames_integrated >= max_frames:
             break
         t0 = time.perf_counter()
-        volume.integrate(frame)
+        try:
+            volume.integrate(frame)
+        except CapacityError as exc:
+            logger.warning("frame %d refused: %s", frame.frame_id, exc)
+            refused["capacity_refused"] = refused.get("capacity_refused", 0) + 1
+            continue
         t1 = time.perf_counter()
         stats.integrate_s += t1 - t0
         stats.frames_integrated += 1
         if semantic_every and frame.frame_id % semantic_every == 0:
-            obs = region_encoder.encode(frame)
-            t2 = time.perf_counter()
-            mapper.step(obs, frame.T_world_cam, frame.intrinsics, depth_m=frame.depth_m())
-            t3 = time.perf_counter()
-            stats.encode_s += t2 - t1
-            stats.semantic_step_s += t3 - t2
-            stats.semantic_frames += 1
+            try:
+                obs = region_encoder.encode(frame)
+                t2 = time.perf_counter()
+                mapper.step(obs, frame.T_world_cam, frame.intrinsics, depth_m=frame.depth_m())
+            except Exception:  # one frame's encoder or step failure is logged and counted, never fatal
+                logger.exception("frame %d: the semantic step failed; the frame keeps its geometry", frame.frame_id)
+                stats.semantic_failed += 1
+            else:
+                t3 = time.perf_counter()
+                stats.encode_s += t2 - t1
+                stats.semantic_step_s += t3 - t2
+                stats.semantic_frames += 1
         if on_frame is not None:
             on_frame(frame, stats)
     source_stats = getattr(source, "stats", None)
@@ -102,5 +142,7 @@ def map_scene(
         stats.frames_read = int(source_stats.read)
         stats.frames_skipped = dict(source_stats.skipped)
     else:
-        stats.frames_read = stats.frames_integrated
+        stats.frames_read = stats.frames_integrated + sum(refused.values())
+    for reason, n in refused.items():
+        stats.frames_skipped[reason] = stats.frames_skipped.get(reason, 0) + n
     return MapResult(volume, dictionary, stats)

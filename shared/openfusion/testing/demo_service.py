@@ -22,6 +22,7 @@ from pydantic import Field
 
 from openfusion.bus import RequestError, ServiceRunner, run_service
 from openfusion.config import ConfigError, add_config_arguments, config_from_args, setup_logging
+from openfusion.wire.endpoints import Endpoint
 from openfusion.wire.schemas import Message
 
 logger = logging.getLogger(__name__)
@@ -50,8 +51,8 @@ class PingReply(Message):
     count: int
 
 
-def ping_key(runner: ServiceRunner) -> str:
-    return runner.keys.key(SERVICE, "ping")
+#: The demo service's one queryable, declared like the product's (:mod:`openfusion.wire.endpoints`).
+PING = Endpoint((SERVICE, "ping"), PingRequest, PingReply, owner=SERVICE)
 
 
 class DemoService:
@@ -72,7 +73,7 @@ class DemoService:
         return PingReply(text=request.text, pid=os.getpid(), count=count)
 
     def setup(self, runner: ServiceRunner) -> None:
-        runner.queryable(ping_key(runner), PingRequest, self.handle_ping)
+        runner.queryable(PING, self.handle_ping)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

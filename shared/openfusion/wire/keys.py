@@ -1,4 +1,4 @@
-"""Every Zenoh key expression of OpenFusion-Z is built here (design §2).
+"""The key grammar of OpenFusion-Z: every Zenoh key expression is built here.
 
 Key space: ``{prefix}/{map_id}/{service}/{...}``; the default prefix is ``openfusion``.
 ``map_id`` names one map (a robot, a site, a session) and must be ONE key segment. The prefix
@@ -9,14 +9,15 @@ A valid segment is non-empty, at most 128 characters, made only of ASCII letters
 in Zenoh key expressions (``/``, ``*``, ``$``, ``?``, ``#``, ``@``) and whitespace, so a user id
 can never widen a subscription or escape its map.
 
-Use :class:`KeySpace` in services::
+Use :class:`KeySpace`::
 
     keys = KeySpace("openfusion", "lab")
-    keys.sensor_rgbd            # "openfusion/lab/sensor/rgbd"
+    keys.key("sensor", "rgbd")  # "openfusion/lab/sensor/rgbd"
     keys.health("geometry")     # "openfusion/lab/health/geometry"
     keys.health_all             # "openfusion/lab/health/*"
 
-and :func:`key_for` for anything else (it is what every property calls).
+The topics and queryables of a map (key parts, message types, owners) are declared once in
+:mod:`openfusion.wire.endpoints` (``SENSOR_RGBD.key(keys)``); :func:`key_for` builds any key.
 """
 
 from __future__ import annotations
@@ -143,90 +144,6 @@ class KeySpace:
     def all(self) -> str:
         """Every key of this map: ``{prefix}/{map_id}/**``."""
         return self.key(ANY_DEEP)
-
-    # sensors
-    @property
-    def sensor_rgbd(self) -> str:
-        """pub/sub of :class:`openfusion.wire.schemas.RgbdFrame`."""
-        return self.key("sensor", "rgbd")
-
-    @property
-    def sensor_instance(self) -> str:
-        """pub/sub of :class:`openfusion.wire.schemas.InstanceFrame`: the ground-truth instance image
-        of the frame with the same id on :attr:`sensor_rgbd` (read by the gt encoder only)."""
-        return self.key("sensor", "instance")
-
-    # geometry
-    @property
-    def geometry_progress(self) -> str:
-        """pub/sub of :class:`openfusion.wire.schemas.GeometryProgress`: one per frame geometry took
-        from its queue (the bridge's flow control during playback)."""
-        return self.key("geometry", "progress")
-
-    @property
-    def geometry_render(self) -> str:
-        """queryable: RenderRequest -> RenderReply."""
-        return self.key("geometry", "render")
-
-    @property
-    def geometry_points(self) -> str:
-        """queryable: PointsRequest -> PointsReply."""
-        return self.key("geometry", "points")
-
-    @property
-    def geometry_mesh(self) -> str:
-        """queryable: MeshRequest -> MeshReply."""
-        return self.key("geometry", "mesh")
-
-    @property
-    def geometry_regions(self) -> str:
-        """queryable: RegionSummaryRequest -> RegionSummaryReply (per-region bbox + point count)."""
-        return self.key("geometry", "regions")
-
-    @property
-    def geometry_dictionary(self) -> str:
-        """queryable: DictionaryRequest -> DictionarySnapshot of the dictionary the geometry
-        service checkpoints with the volume (the semantic service recovers from it on restart)."""
-        return self.key("geometry", "dictionary")
-
-    # semantic
-    @property
-    def semantic_update(self) -> str:
-        """pub/sub of SemanticUpdate (semantic -> geometry)."""
-        return self.key("semantic", "update")
-
-    @property
-    def semantic_dictionary(self) -> str:
-        """queryable: DictionaryRequest -> DictionarySnapshot."""
-        return self.key("semantic", "dictionary")
-
-    @property
-    def semantic_dictionary_delta(self) -> str:
-        """pub/sub of DictionaryDelta."""
-        return self.key("semantic", "dictionary", "delta")
-
-    # queries
-    @property
-    def query_text(self) -> str:
-        """queryable: TextQuery -> QueryReply."""
-        return self.key("query", "text")
-
-    @property
-    def query_image(self) -> str:
-        """queryable: ImageQuery -> QueryReply."""
-        return self.key("query", "image")
-
-    @property
-    def query_point(self) -> str:
-        """queryable: PointQuery -> QueryReply."""
-        return self.key("query", "point")
-
-    # admin
-    def control(self, action: str) -> str:
-        """queryable: ControlRequest -> ControlReply, for ``action`` in save/load/reset."""
-        if action not in CONTROL_ACTIONS:
-            raise InvalidKeyError(f"control action {action!r} is not one of {', '.join(CONTROL_ACTIONS)}")
-        return self.key("control", action)
 
     # presence and stats
     def health(self, service: str) -> str:

@@ -580,6 +580,10 @@ class HealthStats(Message):
     errors: int = Field(ge=0)
     counters: dict[str, float] = Field(default_factory=dict)
 
+    def counter(self, name: str, default: float = 0.0) -> float:
+        """One named counter (names: :mod:`openfusion.wire.counters`), ``default`` when absent."""
+        return float(self.counters.get(str(name), default))
+
 
 class ErrorReply(Message):
     """The payload of every ``reply_err``: a machine-readable ``code`` and a human ``reason``.

@@ -1,0 +1,76 @@
+"""The named counters each service publishes in its :class:`~openfusion.wire.schemas.HealthStats`.
+
+``HealthStats.counters`` is a ``{name: value}`` map on the wire; these enums are its contract:
+services count with them (``stats.incr(GeometryCounter.FRAMES_INTEGRATED)``) and readers
+(``openfusion run``'s ``run.json``, ``openfusion health``, benches, tests) read with them
+(``stats.counter(GeometryCounter.FRAMES_INTEGRATED)``), so a renamed counter breaks at import
+time, not silently in a report. Values are floats; times end in ``_s``.
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+
+
+class CommonCounter(StrEnum):
+    """Counted by the bus helpers for every service."""
+
+    PUBLISHED = "published"  # messages published
+    REFUSED = "refused"  # queries refused with a reason (RequestError)
+
+
+class BridgeCounter(StrEnum):
+    FRAMES_READ = "frames_read"  # frames taken from the source (all passes)
+    FRAMES_READ_PASS = "frames_read_pass"  # the source's own count of the current pass
+    FRAMES_PUBLISHED = "frames_published"
+    INSTANCES_PUBLISHED = "instances_published"
+    PLAYBACK_DONE = "playback_done"  # 1 once the source is exhausted
+    PASSES = "passes"
+    FLOW_WAIT_S = "flow_wait_s"  # time spent waiting for geometry's acknowledgements
+    FLOW_TIMEOUTS = "flow_timeouts"
+    SKIPPED_UNENCODABLE = "skipped_unencodable"
+
+    @staticmethod
+    def skipped(reason: str) -> str:
+        """Frames the source skipped for ``reason`` (``skipped_invalid_pose``, ...)."""
+        return f"{SKIPPED_PREFIX}{reason}"
+
+
+#: Prefix of the bridge's per-reason skip counters.
+SKIPPED_PREFIX = "skipped_"
+
+
+class GeometryCounter(StrEnum):
+    FRAMES_INTEGRATED = "frames_integrated"
+    INTEGRATE_BUSY_S = "integrate_busy_s"  # time spent integrating
+    LAST_INTEGRATED_AT_S = "last_integrated_at_s"  # CLOCK_MONOTONIC of the last integration
+    LAST_FRAME_ID = "last_frame_id"
+    UPDATES_APPLIED = "updates_applied"
+    LAST_UPDATE_FRAME_ID = "last_update_frame_id"
+    CAPACITY_REFUSED = "capacity_refused"
+    NUM_BLOCKS = "num_blocks"
+    CHECKPOINTS = "checkpoints"
+    DICTIONARY_RESYNCS = "dictionary_resyncs"
+
+
+class SemanticCounter(StrEnum):
+    SEMANTIC_FRAMES = "semantic_frames"  # frames fused (encoded, matched, update sent)
+    BUSY_S = "busy_s"  # time spent on those frames
+    REGIONS = "regions"  # regions in the dictionary
+    DICTIONARY_VERSION = "dictionary_version"
+    MATCHED = "matched"
+    NEW_REGIONS = "new_regions"
+    LAST_FRAME_ID = "last_frame_id"
+    SKIPPED_SWITCH = "skipped_switch"  # frames the semantic switch left out (every_k, max_hz)
+    SKIPPED_NO_INSTANCE = "skipped_no_instance"  # gt encoder: the instance image did not come
+    SKIPPED_NO_RENDER = "skipped_no_render"  # geometry did not answer the render request
+    FRAMES_FAILED = "frames_failed"  # the encoder or a step raised on the frame (logged, skipped)
+    INSTANCES_EVICTED = "instances_evicted"
+
+
+class QueryCounter(StrEnum):
+    QUERIES = "queries"
+    REGIONS = "regions"
+    DICTIONARY_RESYNCS = "dictionary_resyncs"
+    SUMMARY_FETCHES = "summary_fetches"
+    SUMMARY_FAILURES = "summary_failures"

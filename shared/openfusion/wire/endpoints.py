@@ -1,0 +1,114 @@
+"""Every topic and queryable of a map, declared once: key, message types and owner.
+
+A :class:`Topic` is a pub/sub key: the message that travels on it and the service that
+publishes it. An :class:`Endpoint` is a queryable: request type, reply type and the service
+that answers. Publishers, subscribers, queryables and every ``get`` use these declarations
+(``openfusion.bus``: ``runner.publisher(SENSOR_RGBD)``, ``runner.queryable(GEOMETRY_RENDER,
+handler)``, ``call(session, keys, GEOMETRY_RENDER, request)``), so a key, its types and its
+owner are never restated at a call site. The key grammar (prefix, map id, segment rules) is
+:mod:`openfusion.wire.keys`; health and liveliness keys, which carry a service name, are there
+too (:meth:`~openfusion.wire.keys.KeySpace.health`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+from openfusion.wire.keys import CONTROL_ACTIONS, KeySpace
+from openfusion.wire.message import Message
+from openfusion.wire.schemas import (
+    ControlReply,
+    ControlRequest,
+    DictionaryDelta,
+    DictionaryRequest,
+    DictionarySnapshot,
+    GeometryProgress,
+    ImageQuery,
+    InstanceFrame,
+    MeshReply,
+    MeshRequest,
+    PointQuery,
+    PointsReply,
+    PointsRequest,
+    QueryReply,
+    RegionSummaryReply,
+    RegionSummaryRequest,
+    RenderReply,
+    RenderRequest,
+    RgbdFrame,
+    SemanticUpdate,
+    TextQuery,
+)
+
+M = TypeVar("M", bound=Message)
+Q = TypeVar("Q", bound=Message)
+R = TypeVar("R", bound=Message)
+
+
+@dataclass(frozen=True)
+class Topic(Generic[M]):
+    """A pub/sub key of one map: ``{prefix}/{map}/{parts...}`` carrying ``message``, published by
+    the ``publisher`` service."""
+
+    parts: tuple[str, ...]
+    message: type[M]
+    publisher: str
+
+    def key(self, keys: KeySpace) -> str:
+        return keys.key(*self.parts)
+
+    @property
+    def path(self) -> str:
+        """The key below ``{prefix}/{map}`` (``sensor/rgbd``), as the docs' key tables write it."""
+        return "/".join(self.parts)
+
+
+@dataclass(frozen=True)
+class Endpoint(Generic[Q, R]):
+    """A queryable of one map: ``request`` in, ``reply`` out, answered by the ``owner`` service."""
+
+    parts: tuple[str, ...]
+    request: type[Q]
+    reply: type[R]
+    owner: str
+
+    def key(self, keys: KeySpace) -> str:
+        return keys.key(*self.parts)
+
+    @property
+    def path(self) -> str:
+        return "/".join(self.parts)
+
+
+# ----------------------------------------------------------------------------------- topics
+SENSOR_RGBD = Topic(("sensor", "rgbd"), RgbdFrame, publisher="bridge")
+#: Ground-truth instance images, next to their frame (read by the gt encoder only).
+SENSOR_INSTANCE = Topic(("sensor", "instance"), InstanceFrame, publisher="bridge")
+#: One acknowledgement per frame geometry took from its queue (the bridge's flow control).
+GEOMETRY_PROGRESS = Topic(("geometry", "progress"), GeometryProgress, publisher="geometry")
+SEMANTIC_UPDATE = Topic(("semantic", "update"), SemanticUpdate, publisher="semantic")
+DICTIONARY_DELTA = Topic(("semantic", "dictionary", "delta"), DictionaryDelta, publisher="semantic")
+
+# -------------------------------------------------------------------------------- queryables
+GEOMETRY_RENDER = Endpoint(("geometry", "render"), RenderRequest, RenderReply, owner="geometry")
+GEOMETRY_POINTS = Endpoint(("geometry", "points"), PointsRequest, PointsReply, owner="geometry")
+GEOMETRY_MESH = Endpoint(("geometry", "mesh"), MeshRequest, MeshReply, owner="geometry")
+#: Per-region bounding box and surface point count (what the query service ranks with).
+GEOMETRY_REGIONS = Endpoint(("geometry", "regions"), RegionSummaryRequest, RegionSummaryReply, owner="geometry")
+#: The dictionary geometry checkpoints with the volume (a restarted semantic service recovers it).
+GEOMETRY_DICTIONARY = Endpoint(("geometry", "dictionary"), DictionaryRequest, DictionarySnapshot, owner="geometry")
+SEMANTIC_DICTIONARY = Endpoint(("semantic", "dictionary"), DictionaryRequest, DictionarySnapshot, owner="semantic")
+QUERY_TEXT = Endpoint(("query", "text"), TextQuery, QueryReply, owner="query")
+QUERY_IMAGE = Endpoint(("query", "image"), ImageQuery, QueryReply, owner="query")
+QUERY_POINT = Endpoint(("query", "point"), PointQuery, QueryReply, owner="query")
+#: Admin actions (access-controlled in production): save, load, reset.
+CONTROL: dict[str, Endpoint[ControlRequest, ControlReply]] = {
+    action: Endpoint(("control", action), ControlRequest, ControlReply, owner="geometry") for action in CONTROL_ACTIONS
+}
+
+TOPICS: tuple[Topic, ...] = (SENSOR_RGBD, SENSOR_INSTANCE, GEOMETRY_PROGRESS, SEMANTIC_UPDATE, DICTIONARY_DELTA)
+ENDPOINTS: tuple[Endpoint, ...] = (
+    GEOMETRY_RENDER, GEOMETRY_POINTS, GEOMETRY_MESH, GEOMETRY_REGIONS, GEOMETRY_DICTIONARY,
+    SEMANTIC_DICTIONARY, QUERY_TEXT, QUERY_IMAGE, QUERY_POINT, *CONTROL.values(),
+)
