@@ -47,7 +47,6 @@ from openfusion.client import OpenFusionClient  # noqa: E402
 from openfusion.config import ServiceConfig, ZenohSettings  # noqa: E402
 from openfusion.encoders import make_text_encoder  # noqa: E402
 from openfusion.mapping import RegionDictionary, SemanticVolume, VolumeParams, save_map  # noqa: E402
-from openfusion.services.dictionary_sync import snapshot_message  # noqa: E402
 from openfusion.services.geometry.service import GeometrySection  # noqa: E402
 from openfusion.sources.record import FrameRecorder  # noqa: E402
 from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld  # noqa: E402
@@ -267,7 +266,7 @@ def main() -> None:
     with dictionary.batch():
         for i in range(10_000):
             dictionary.add(rng.standard_normal(text.dim).astype(np.float32), label=f"region {i}")
-    snapshot = snapshot_message(dictionary)
+    snapshot = dictionary.snapshot()
     map_dir = tmp / "maps"
     regions_in_map = labelled_map(frames, dictionary, map_dir / "bench-query")
     queries = [f"object number {i}" for i in range(n_queries)]

@@ -19,7 +19,7 @@ from openfusion.encoders.gt import GroundTruthRegionEncoder
 from openfusion.encoders.masks import area_downsample_labels
 from openfusion.encoders.noise import apply_region_noise, perturb_embeddings
 from openfusion.encoders.text_hash import HashTextEncoder
-from openfusion.testing.images import Box, grid_boxes, make_box_frame
+from openfusion.testing.images import PixelRect, grid_boxes, make_box_frame
 
 CATEGORIES = ["office chair", "table", "sofa", "bed", "bookshelf", "cabinet", "lamp", "monitor"]
 
@@ -42,9 +42,9 @@ def test_noise_off_regions_equal_ground_truth(text):
     """Clean gt regions are exactly the instance masks at 1/4 size: a wrong downsampling, a shifted
     pixel grid, a lost region or the wrong category text would all change the result."""
     boxes = [
-        Box(1, "office chair", 40, 80, 200, 240),  # 4-px aligned: binary at 1/4
-        Box(2, "table", 240, 320, 400, 600),
-        Box(7, "lamp", 10, 401, 50, 443),  # not aligned: soft boundary cells
+        PixelRect(1, "office chair", 40, 80, 200, 240),  # 4-px aligned: binary at 1/4
+        PixelRect(2, "table", 240, 320, 400, 600),
+        PixelRect(7, "lamp", 10, 401, 50, 443),  # not aligned: soft boundary cells
     ]
     frame = make_box_frame(boxes, height_px=480, width_px=640)
     enc = GroundTruthRegionEncoder(text, noise="off")
@@ -83,7 +83,7 @@ def test_area_downsample_handles_non_integer_ratio():
 
 def test_frame_without_ground_truth_is_a_clear_error(text):
     """A live camera frame has no instance image: the gt encoder must say so, not crash."""
-    frame = make_box_frame([Box(1, "table", 0, 0, 8, 8)], height_px=32, width_px=32, with_instances=False)
+    frame = make_box_frame([PixelRect(1, "table", 0, 0, 8, 8)], height_px=32, width_px=32, with_instances=False)
     enc = GroundTruthRegionEncoder(text)
     with pytest.raises(EncoderError, match="no ground-truth instance image"):
         enc.encode(frame)
@@ -94,7 +94,7 @@ def test_frame_without_ground_truth_is_a_clear_error(text):
 
 def test_instances_without_category_are_skipped_and_counted(text):
     """An instance id missing from instance_categories is skipped (counted), the others still encode."""
-    frame = make_box_frame([Box(1, "table", 0, 0, 16, 16), Box(2, "sofa", 16, 16, 32, 32)], height_px=32, width_px=32)
+    frame = make_box_frame([PixelRect(1, "table", 0, 0, 16, 16), PixelRect(2, "sofa", 16, 16, 32, 32)], height_px=32, width_px=32)
     del frame.instance_categories[2]
     enc = GroundTruthRegionEncoder(text)
     obs = enc.encode(frame)
@@ -104,7 +104,7 @@ def test_instances_without_category_are_skipped_and_counted(text):
 
 def test_tiny_regions_below_min_area_are_skipped(text):
     """A 2x2-pixel instance is a quarter of one output pixel: below min_area_px=1 it is not a region."""
-    frame = make_box_frame([Box(1, "table", 0, 0, 16, 16), Box(2, "lamp", 20, 20, 22, 22)], height_px=32, width_px=32)
+    frame = make_box_frame([PixelRect(1, "table", 0, 0, 16, 16), PixelRect(2, "lamp", 20, 20, 22, 22)], height_px=32, width_px=32)
     obs = GroundTruthRegionEncoder(text, min_area_px=1.0).encode(frame)
     assert obs.labels == ["table"]
     obs = GroundTruthRegionEncoder(text, min_area_px=0.1).encode(frame)
@@ -154,7 +154,7 @@ def test_drop_rate_matches_profile_in_the_output(text):
 
 def test_boundary_noise_moves_boundaries_by_two_pixels(text):
     """Boundary-only noise (2 px): a region's >=0.5 support grows or shrinks by 2 output px per side."""
-    box = Box(1, "table", 64, 64, 192, 256)  # output cells rows 16..47, cols 16..63
+    box = PixelRect(1, "table", 64, 64, 192, 256)  # output cells rows 16..47, cols 16..63
     enc = GroundTruthRegionEncoder(text, noise=NoiseProfile("edge", boundary_px=2), seed=0)
     outcomes = set()
     for fid in range(12):

@@ -9,7 +9,7 @@ from openfusion.encoders import EncoderError
 from openfusion.encoders.crops import CLIP_MEAN, CropSpec, preprocess_image, region_crops
 from openfusion.encoders.graph_segmentation import GraphSegmentationProposer, felzenszwalb_segment
 from openfusion.encoders.masks import area_downsample_labels
-from openfusion.testing.images import Box, grid_boxes, make_box_frame
+from openfusion.testing.images import PixelRect, grid_boxes, make_box_frame
 
 
 def _noisy(frame, *, sigma: float, shade: float, seed: int = 0):
@@ -38,7 +38,7 @@ def test_proposals_follow_objects_despite_shading_and_noise():
 
 def test_depth_edges_separate_same_colored_objects():
     """A grey box in front of a grey wall is invisible to color; the depth jump must separate it."""
-    box = Box(1, "box", 40, 60, 120, 160, rgb=(90, 90, 90), depth_m=1.0)
+    box = PixelRect(1, "box", 40, 60, 120, 160, rgb=(90, 90, 90), depth_m=1.0)
     frame = make_box_frame([box], height_px=160, width_px=240, background_rgb=(90, 90, 90), background_depth_m=3.0)
     masks = GraphSegmentationProposer(min_region_px=4).propose(frame, (40, 60))
     assert masks.shape[0] == 2

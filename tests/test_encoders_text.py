@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from openfusion.encoders import EncoderError, make_region_encoder, make_text_encoder
-from openfusion.testing.images import Box, make_box_frame
+from openfusion.testing.images import PixelRect, make_box_frame
 
 CATALOGUE = [
     "chair", "table", "sofa", "bed", "bookshelf", "cabinet", "lamp", "monitor",
@@ -53,7 +53,7 @@ def test_text_encoders_reject_bad_input(minilm):
 
 def test_gt_embeddings_are_minilm_of_raw_category(minilm):
     """The gt encoder embeds the RAW category ("office chair"), cached per category, in MiniLM space."""
-    frame = make_box_frame([Box(1, "office chair", 0, 0, 32, 32), Box(2, "office chair", 32, 32, 64, 64)],
+    frame = make_box_frame([PixelRect(1, "office chair", 0, 0, 32, 32), PixelRect(2, "office chair", 32, 32, 64, 64)],
                            height_px=64, width_px=64)
     enc = make_region_encoder("gt", text_encoder=minilm)
     obs = enc.encode(frame)

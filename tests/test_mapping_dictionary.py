@@ -126,7 +126,7 @@ def test_delta_replica_tracks_the_owner() -> None:
     owner.merge(a, b)
     owner.remove(c)
     delta2 = owner.delta_since(v1)
-    np.testing.assert_array_equal(delta2.merges, [[b, a]])
+    assert RegionDictionary.merges_of(delta2) == {b: a}  # b merged into a, c deleted
     np.testing.assert_array_equal(np.sort(delta2.removed_keys), [b, c])
     with pytest.raises(StaleVersionError, match="snapshot"):
         replica.apply_delta(delta2)  # delta1 missing
@@ -137,10 +137,10 @@ def test_delta_replica_tracks_the_owner() -> None:
     mine, theirs = owner.snapshot(), replica.snapshot()
     order_o, order_r = np.argsort(mine.keys), np.argsort(theirs.keys)
     np.testing.assert_array_equal(mine.keys[order_o], theirs.keys[order_r])
-    np.testing.assert_allclose(mine.mean_embeddings[order_o], theirs.mean_embeddings[order_r])
+    np.testing.assert_allclose(mine.embeddings[order_o], theirs.embeddings[order_r])
     np.testing.assert_array_equal(mine.counts[order_o], theirs.counts[order_r])
     assert [mine.labels[i] for i in order_o] == [theirs.labels[i] for i in order_r]
-    assert owner.delta_since(owner.version).is_empty
+    assert owner.delta_since(owner.version) is None  # nothing changed since
     with pytest.raises(StaleVersionError):
         owner.delta_since(owner.version + 1)
     with pytest.raises(StaleVersionError, match="history"):
@@ -148,11 +148,16 @@ def test_delta_replica_tracks_the_owner() -> None:
 
 
 def test_from_snapshot_rejects_inconsistent_arrays() -> None:
-    """A snapshot whose arrays disagree (e.g. from a bad message) is refused, not half-built."""
+    """A snapshot whose arrays disagree is refused by the message itself; one whose keys reach
+    past next_key (a bad owner) is refused by the dictionary; neither is half-built."""
     snap = RegionDictionary("s", 2).snapshot()
-    snap.keys = np.array([0], np.int64)
-    with pytest.raises(ValueError, match="disagree"):
-        RegionDictionary.from_snapshot(snap)
+    with pytest.raises(ValueError, match="differ in length|must be"):
+        snap.model_validate({**snap.model_dump(), "keys": np.array([0], np.int32)})
+    owner = RegionDictionary("s", 2)
+    owner.add(unit([1, 0]))
+    bad = owner.snapshot().model_copy(update={"next_key": 0})
+    with pytest.raises(ValueError, match="below next_key"):
+        RegionDictionary.from_snapshot(bad)
 
 
 def test_delta_of_other_space_is_refused() -> None:

@@ -19,7 +19,6 @@ from openfusion.encoders import make_text_encoder
 from openfusion.frame import Frame
 from openfusion.mapping import RegionDictionary
 from openfusion.mapping.queries import query_regions, region_summaries
-from openfusion.services.dictionary_sync import delta_message, snapshot_message
 from openfusion.services.geometry.service import GeometryConfig, GeometrySection, GeometryService
 from openfusion.services.query.service import (
     QueryConfig,
@@ -225,7 +224,7 @@ def make_cluster() -> Iterator:
             sem,
             SEMANTIC_DICTIONARY.key(ServiceConfig(**cfg("client")).keys),
             DictionaryRequest,
-            lambda _r: snapshot_message(holder["dictionary"]),
+            lambda _r: holder["dictionary"].snapshot(),
         )
         closers.append(qbl.close)
         if geometry is not None:
@@ -315,7 +314,7 @@ def test_query_cache_follows_new_integration_and_new_regions(make_cluster) -> No
         dictionary.add(TEXT.encode([WORLD.categories[key + 1]])[0], label=WORLD.categories[key + 1])
     for f in FRAMES[:4]:
         geo.on_update(_update(f, 25))
-    cluster.query.on_delta(delta_message(dictionary, since_version=since))
+    cluster.query.on_delta(dictionary.delta_since(since))
     assert len(cluster.query.replica) == 26
     table = cluster.client.query_text("table", top_k=1).regions[0]
     assert table.key == 20 and table.num_points > 0

@@ -54,7 +54,7 @@ from openfusion.mapping import (
 from openfusion.mapping.mapfile import resolve_map_path
 from openfusion.mapping.queries import region_summaries
 from openfusion.services.common import ServiceDefinition
-from openfusion.services.dictionary_sync import DictionaryReplica
+from openfusion.services.dictionary_replica import DictionaryReplica
 from openfusion.wire.counters import GeometryCounter
 from openfusion.wire.endpoints import (
     CONTROL,
@@ -294,7 +294,7 @@ class GeometryService:
             self._runner.stats.set(GeometryCounter.LAST_UPDATE_FRAME_ID, msg.frame_id)
 
     def on_delta(self, msg: DictionaryDelta) -> None:
-        merges = self.replica.merges_of(msg)
+        merges = RegionDictionary.merges_of(msg)
         if not self.replica.apply_delta(msg):
             self._count(GeometryCounter.DICTIONARY_RESYNCS)
             self._resync_dictionary()
@@ -376,7 +376,7 @@ class GeometryService:
         )
 
     def handle_dictionary(self, _req: DictionaryRequest) -> DictionarySnapshot:
-        snap = self.replica.snapshot_message()
+        snap = self.replica.snapshot()
         if snap is None:
             raise RequestError("no_dictionary", "the geometry service holds no dictionary yet")
         return snap

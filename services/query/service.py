@@ -54,7 +54,7 @@ from openfusion.config import ConfigSection, ServiceConfig
 from openfusion.encoders import TEXT_ENCODER_NAMES, make_text_encoder
 from openfusion.mapping.queries import candidates_for, region_summaries, subsample_points
 from openfusion.services.common import ServiceDefinition
-from openfusion.services.dictionary_sync import DictionaryReplica
+from openfusion.services.dictionary_replica import DictionaryReplica
 from openfusion.wire.counters import QueryCounter
 from openfusion.wire.endpoints import (
     DICTIONARY_DELTA,

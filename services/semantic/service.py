@@ -38,7 +38,6 @@ from openfusion.frame import resize_nearest
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
 from openfusion.mapping.params import MatchParams
 from openfusion.services.common import ServiceDefinition
-from openfusion.services.dictionary_sync import delta_message, dictionary_from_snapshot, snapshot_message
 from openfusion.wire.counters import SemanticCounter
 from openfusion.wire.endpoints import (
     DICTIONARY_DELTA,
@@ -171,14 +170,14 @@ class SemanticService:
                          "(a new map id is safer)", snap.embedding_space, self.dictionary.embedding_space)
             runner.stats.add_error()
             return False
-        self.dictionary = dictionary_from_snapshot(snap)
+        self.dictionary = RegionDictionary.from_snapshot(snap)
         self._published_version = self.dictionary.version
         logger.info("semantic: recovered %d regions (version %d) from geometry", len(self.dictionary),
                     self.dictionary.version)
         return True
 
     def handle_snapshot(self, _req: DictionaryRequest) -> DictionarySnapshot:
-        return snapshot_message(self.dictionary)
+        return self.dictionary.snapshot()
 
     def process(self, runner: ServiceRunner, msg: RgbdFrame, instance: InstanceFrame | None = None) -> None:
         """One semantic step for one frame (called from the loop), with its instance image when
@@ -199,7 +198,7 @@ class SemanticService:
         planned = plan_update(obs, rendered, self.dictionary, self.match_params)
         assert self._update_pub is not None and self._delta_pub is not None
         # The delta goes first, so a key never reaches geometry before its dictionary row.
-        delta = delta_message(self.dictionary, since_version=self._published_version)
+        delta = self.dictionary.delta_since(self._published_version)
         if delta is not None:
             self._delta_pub.put(delta)
             self._published_version = self.dictionary.version
@@ -250,11 +249,12 @@ class SemanticService:
                     continue
             try:
                 self.process(runner, msg, instance)
-            except QueryError as exc:
+            except QueryError as exc:  # geometry did not answer (or refused) the render request
                 logger.warning("semantic: frame %d skipped: %s", msg.frame_id, exc)
                 runner.stats.incr(SemanticCounter.SKIPPED_NO_RENDER)
-            except ValueError as exc:
-                logger.warning("semantic: frame %d refused: %s", msg.frame_id, exc)
+            except Exception:  # the encoder, a step or the bus failed on this frame: logged, counted, next frame
+                logger.exception("semantic: frame %d failed and was skipped", msg.frame_id)
+                runner.stats.incr(SemanticCounter.FRAMES_FAILED)
                 runner.stats.add_error()
 
     def _skip_without_instance(self, runner: ServiceRunner, msg: RgbdFrame) -> None:

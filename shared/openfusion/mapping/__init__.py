@@ -4,7 +4,7 @@ See docs/ARCHITECTURE.md ("Map core") for the contract; the update rule is writt
 ``openfusion.mapping.volume`` and the soft IoU in ``openfusion.mapping.matching``.
 """
 
-from openfusion.mapping.dictionary import DictionaryDelta, DictionarySnapshot, RegionDictionary
+from openfusion.mapping.dictionary import RegionDictionary
 from openfusion.mapping.errors import (
     CapacityError,
     EmbeddingSpaceError,
@@ -23,7 +23,7 @@ from openfusion.mapping.matching import (
     region_conf_maps,
     soft_iou_matrix,
 )
-from openfusion.mapping.params import VolumeParams
+from openfusion.mapping.params import MatchParams, VolumeParams
 from openfusion.mapping.queries import RegionResult, classify_regions, query_regions, segment_points
 from openfusion.mapping.update_rule import fuse_semantics
 from openfusion.mapping.volume import (
@@ -40,11 +40,10 @@ from openfusion.mapping.volume import (
 
 __all__ = [
     "DEFAULT_MIN_IOU",
+    "MatchParams",
     "FORMAT_VERSION",
     "SEMANTIC_BYTES_PER_VOXEL",
     "CapacityError",
-    "DictionaryDelta",
-    "DictionarySnapshot",
     "EmbeddingSpaceError",
     "IntegrateStats",
     "LoadedMap",

@@ -6,9 +6,12 @@ dead), so a key seen in the volume always means the same region.
 
 Versioning: ``version`` increments once per change batch (one :meth:`RegionDictionary.batch`
 block, or one call of a mutating method outside a batch). ``delta_since(v)`` returns what changed
-after version ``v`` (upserted rows, removed keys, merges), ``apply_delta`` replays it on a replica,
-and ``snapshot`` / ``from_snapshot`` copy the whole dictionary. Deltas and snapshots hold plain
-numpy arrays and lists only, so the bus layer can wrap them in messages.
+after version ``v`` (upserted rows, removed keys and what each was merged into), ``apply_delta``
+replays it on a replica, and ``snapshot`` / ``from_snapshot`` copy the whole dictionary. Snapshots
+and deltas are the wire's own types (:class:`openfusion.wire.schemas.DictionarySnapshot`,
+:class:`~openfusion.wire.schemas.DictionaryDelta`): one type per concept, the same in the library,
+on the bus and in replicas, with no conversion in between. On the wire a label is ``""`` when a
+region has none; the dictionary's API speaks ``None``.
 """
 
 from __future__ import annotations
@@ -16,12 +19,12 @@ from __future__ import annotations
 import contextlib
 import logging
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from openfusion.mapping.errors import EmbeddingSpaceError, StaleVersionError
+from openfusion.wire.schemas import DictionaryDelta, DictionarySnapshot
 
 logger = logging.getLogger(__name__)
 
@@ -47,46 +50,6 @@ def _single_thread_blas() -> contextlib.AbstractContextManager[Any]:
     if _blas_controller is None:
         return contextlib.nullcontext()
     return _blas_controller.limit(limits=1, user_api="blas")
-
-
-@dataclass
-class DictionarySnapshot:
-    """The whole dictionary at ``version``; ``mean_embeddings`` are the un-normalised running means."""
-
-    embedding_space: str
-    dim: int
-    version: int
-    next_key: int
-    keys: np.ndarray  # (k,) int64
-    mean_embeddings: np.ndarray  # (k, d) float32
-    counts: np.ndarray  # (k,) int64
-    labels: list[str | None] = field(default_factory=list)
-
-
-@dataclass
-class DictionaryDelta:
-    """Changes between ``from_version`` (exclusive) and ``to_version`` (inclusive).
-
-    ``keys``/``mean_embeddings``/``counts``/``labels`` are the current rows of every key added or
-    changed; ``removed_keys`` are keys that no longer exist; ``merges`` (r, 2) holds
-    ``[merged_key, into_key]`` pairs so the volume can relabel voxels.
-    """
-
-    embedding_space: str
-    dim: int
-    from_version: int
-    to_version: int
-    next_key: int
-    keys: np.ndarray  # (k,) int64
-    mean_embeddings: np.ndarray  # (k, d) float32
-    counts: np.ndarray  # (k,) int64
-    labels: list[str | None]
-    removed_keys: np.ndarray  # (r,) int64
-    merges: np.ndarray  # (m, 2) int64
-
-    @property
-    def is_empty(self) -> bool:
-        return len(self.keys) == 0 and len(self.removed_keys) == 0
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -368,46 +331,44 @@ class RegionDictionary:
 
     # ------------------------------------------------------------------ deltas / snapshots
     def snapshot(self) -> DictionarySnapshot:
+        """The whole dictionary at its current version (running-mean embeddings, not normalised)."""
         n = self._size
         return DictionarySnapshot(
             embedding_space=self.embedding_space,
             dim=self.dim,
             version=self.version,
             next_key=self.next_key,
-            keys=self._keys[:n].copy(),
-            mean_embeddings=self._means[:n].copy(),
+            keys=self._keys[:n].astype(np.int32),
+            embeddings=self._means[:n].copy(),
             counts=self._counts[:n].copy(),
-            labels=list(self._labels),
+            labels=[label or "" for label in self._labels],
         )
 
     @classmethod
     def from_snapshot(cls, snapshot: DictionarySnapshot) -> RegionDictionary:
-        """A replica equal to the snapshot; raises ``ValueError`` on inconsistent arrays."""
+        """A replica equal to the snapshot; raises ``ValueError`` on keys beyond ``next_key``, counts
+        below 1 or non-finite embeddings (the message itself checks shapes and uniqueness)."""
         keys = np.asarray(snapshot.keys, np.int64).reshape(-1)
-        means = np.asarray(snapshot.mean_embeddings, np.float32)
+        means = np.asarray(snapshot.embeddings, np.float32)
         counts = np.asarray(snapshot.counts, np.int64).reshape(-1)
         k = len(keys)
-        if means.shape != (k, int(snapshot.dim)) or counts.shape != (k,) or len(snapshot.labels) != k:
-            raise ValueError(
-                f"snapshot arrays disagree: keys {keys.shape}, embeddings {means.shape}, counts {counts.shape}, "
-                f"labels {len(snapshot.labels)} for dim {snapshot.dim}"
-            )
-        if k and (len(np.unique(keys)) != k or keys.min() < 0 or keys.max() >= snapshot.next_key):
-            raise ValueError("snapshot keys must be unique, >= 0 and below next_key")
+        if k and (keys.min() < 0 or keys.max() >= snapshot.next_key):
+            raise ValueError("snapshot keys must be >= 0 and below next_key")
         if k and (counts.min() < 1 or not np.isfinite(means).all()):
             raise ValueError("snapshot counts must be >= 1 and embeddings finite")
         d = cls(snapshot.embedding_space, int(snapshot.dim), initial_capacity=max(k, 1))
         for i in range(k):
-            d._insert_row(int(keys[i]), means[i], int(counts[i]), snapshot.labels[i])
+            d._insert_row(int(keys[i]), means[i], int(counts[i]), snapshot.labels[i] or None)
         d.next_key = int(snapshot.next_key)
         d.version = int(snapshot.version)
         d._history_start = d.version
         d._changed_at = {int(key): d.version for key in keys}
         return d
 
-    def delta_since(self, version: int) -> DictionaryDelta:
-        """Everything that changed after ``version``; raises :class:`StaleVersionError` if this
-        dictionary's history does not reach back that far (the replica should fetch a snapshot)."""
+    def delta_since(self, version: int) -> DictionaryDelta | None:
+        """Everything that changed after ``version`` (None when nothing did); raises
+        :class:`StaleVersionError` if this dictionary's history does not reach back that far (the
+        replica should fetch a snapshot)."""
         version = int(version)
         if version > self.version:
             raise StaleVersionError(f"version {version} is newer than the dictionary's {self.version}")
@@ -415,61 +376,65 @@ class RegionDictionary:
             raise StaleVersionError(
                 f"history starts at version {self._history_start}; cannot build a delta from {version}"
             )
+        if version == self.version:
+            return None
         changed = sorted(k for k, v in self._changed_at.items() if v > version)
         rows = np.array([self._row_of[k] for k in changed], np.int64)
         removed = sorted(k for k, v in self._removed_at.items() if v > version)
-        merges = [(b, a) for b, a, v in self._merges if v > version]
+        merged_into = {b: a for b, a, v in self._merges if v > version}
         return DictionaryDelta(
             embedding_space=self.embedding_space,
             dim=self.dim,
-            from_version=version,
-            to_version=self.version,
+            version=self.version,
+            prev_version=version,
             next_key=self.next_key,
-            keys=np.array(changed, np.int64),
-            mean_embeddings=self._means[rows].copy() if len(rows) else np.zeros((0, self.dim), np.float32),
+            keys=np.array(changed, np.int32),
+            embeddings=self._means[rows].copy() if len(rows) else np.zeros((0, self.dim), np.float32),
             counts=self._counts[rows].copy() if len(rows) else np.zeros(0, np.int64),
-            labels=[self._labels[r] for r in rows],
-            removed_keys=np.array(removed, np.int64),
-            merges=np.array(merges, np.int64).reshape(-1, 2),
+            labels=[self._labels[r] or "" for r in rows],
+            removed_keys=np.array(removed, np.int32),
+            merged_into=np.array([merged_into.get(k, -1) for k in removed], np.int32),
         )
 
     def apply_delta(self, delta: DictionaryDelta) -> None:
         """Replay a delta on a replica. Raises :class:`StaleVersionError` when versions between this
         replica and the delta are missing, :class:`EmbeddingSpaceError` for another space."""
         self.check_space(delta.embedding_space, int(delta.dim))
-        if delta.from_version > self.version:
+        if delta.prev_version > self.version:
             raise StaleVersionError(
-                f"delta starts at version {delta.from_version} but the replica is at {self.version}; "
+                f"delta starts at version {delta.prev_version} but the replica is at {self.version}; "
                 "fetch a snapshot"
             )
-        if delta.to_version <= self.version:
+        if delta.version <= self.version:
             return  # already applied
         keys = np.asarray(delta.keys, np.int64).reshape(-1)
-        means = np.asarray(delta.mean_embeddings, np.float32)
+        means = np.asarray(delta.embeddings, np.float32)
         counts = np.asarray(delta.counts, np.int64).reshape(-1)
-        if (
-            means.shape != (len(keys), self.dim)
-            or counts.shape != keys.shape
-            or len(delta.labels) != len(keys)
-        ):
-            raise ValueError("delta arrays disagree in length or dimension")
-        for key in np.asarray(delta.removed_keys, np.int64).reshape(-1):
+        to_version = int(delta.version)
+        for key, into in zip(np.asarray(delta.removed_keys, np.int64), np.asarray(delta.merged_into, np.int64),
+                             strict=True):
             if int(key) in self._row_of:
                 self._remove_row(int(key))
                 self._changed_at.pop(int(key), None)
-            self._removed_at[int(key)] = int(delta.to_version)
+            self._removed_at[int(key)] = to_version
+            if into >= 0:
+                self._merges.append((int(key), int(into), to_version))
         for i, key in enumerate(keys):
             key = int(key)
+            label = delta.labels[i] or None
             if key in self._row_of:
                 row = self._row_of[key]
                 self._means[row] = means[i]
                 self._units_t[:, row] = _unit(means[i])
                 self._counts[row] = counts[i]
-                self._labels[row] = delta.labels[i]
+                self._labels[row] = label
             else:
-                self._insert_row(key, means[i], int(counts[i]), delta.labels[i])
-            self._changed_at[key] = int(delta.to_version)
-        for b, a in np.asarray(delta.merges, np.int64).reshape(-1, 2):
-            self._merges.append((int(b), int(a), int(delta.to_version)))
+                self._insert_row(key, means[i], int(counts[i]), label)
+            self._changed_at[key] = to_version
         self.next_key = max(self.next_key, int(delta.next_key))
-        self.version = int(delta.to_version)
+        self.version = to_version
+
+    @staticmethod
+    def merges_of(delta: DictionaryDelta) -> dict[int, int]:
+        """``{merged key: key it was merged into}`` of a delta (the volume relabels those voxels)."""
+        return {int(r): int(m) for r, m in zip(delta.removed_keys, delta.merged_into, strict=True) if m >= 0}

@@ -32,10 +32,11 @@ from typing import Any
 
 import numpy as np
 
-from openfusion.mapping.dictionary import DictionarySnapshot, RegionDictionary
+from openfusion.mapping.dictionary import RegionDictionary
 from openfusion.mapping.errors import MapFormatError
 from openfusion.mapping.params import VolumeParams
 from openfusion.mapping.volume import SemanticVolume
+from openfusion.wire.schemas import DictionarySnapshot
 
 logger = logging.getLogger(__name__)
 
@@ -81,7 +82,7 @@ def save_map(
     arrays: dict[str, np.ndarray] = {f"volume_{k}": v for k, v in volume.to_arrays().items()}
     snap = dictionary.snapshot()
     arrays["dict_keys"] = snap.keys.astype(np.int64)
-    arrays["dict_mean_embeddings"] = snap.mean_embeddings.astype(np.float32)
+    arrays["dict_mean_embeddings"] = snap.embeddings.astype(np.float32)
     arrays["dict_counts"] = snap.counts.astype(np.int64)
     header = {
         "format": FORMAT_NAME,
@@ -93,7 +94,7 @@ def save_map(
             "dim": snap.dim,
             "version": snap.version,
             "next_key": snap.next_key,
-            "labels": snap.labels,
+            "labels": [label or None for label in snap.labels],  # JSON null = no label
         },
         "meta": user_meta,
         "arrays": {
@@ -217,10 +218,10 @@ def _load_archive(target: Path, npz: np.lib.npyio.NpzFile, device: str | None) -
         dim=int(d["dim"]),
         version=int(d["version"]),
         next_key=int(d["next_key"]),
-        keys=arrays["dict_keys"],
-        mean_embeddings=arrays["dict_mean_embeddings"],
+        keys=arrays["dict_keys"].astype(np.int32),
+        embeddings=arrays["dict_mean_embeddings"],
         counts=arrays["dict_counts"],
-        labels=list(d["labels"]),
+        labels=[label or "" for label in d["labels"]],
     )
     dictionary = RegionDictionary.from_snapshot(snapshot)
     used = arrays["volume_key"]

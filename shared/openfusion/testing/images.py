@@ -14,7 +14,7 @@ from openfusion.frame import CameraIntrinsics, Frame
 
 
 @dataclass(frozen=True)
-class Box:
+class PixelRect:
     """A box of pixels [y0, y1) x [x0, x1) with one instance id, category, color and depth."""
 
     instance_id: int
@@ -28,7 +28,7 @@ class Box:
 
 
 def make_box_frame(
-    boxes: list[Box],
+    boxes: list[PixelRect],
     *,
     height_px: int = 480,
     width_px: int = 640,
@@ -66,7 +66,7 @@ def make_box_frame(
 
 def grid_boxes(
     *, height_px: int, width_px: int, rows: int, cols: int, categories: list[str], gap_px: int = 0, seed: int = 0
-) -> list[Box]:
+) -> list[PixelRect]:
     """rows x cols boxes tiling the image (optionally with gaps), cycling through ``categories``."""
     rng = np.random.default_rng(seed)
     boxes = []
@@ -76,7 +76,7 @@ def grid_boxes(
         for c in range(cols):
             rgb = tuple(int(v) for v in rng.integers(0, 256, 3))
             boxes.append(
-                Box(
+                PixelRect(
                     instance_id=k + 1,
                     category=categories[k % len(categories)],
                     y0=r * cell_h + gap_px,

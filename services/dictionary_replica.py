@@ -1,0 +1,85 @@
+"""The copy of the region dictionary that geometry (for checkpoints) and query (for rankings)
+keep: a snapshot, then the semantic service's deltas; a gap or a stale version means "fetch a
+snapshot". Snapshots and deltas are the wire types the dictionary itself produces
+(:meth:`openfusion.mapping.RegionDictionary.snapshot` / ``delta_since``), so nothing is converted.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import numpy as np
+
+from openfusion.bus import QueryError, ServiceRunner
+from openfusion.mapping import EmbeddingSpaceError, RegionDictionary, StaleVersionError
+from openfusion.wire.endpoints import Endpoint
+from openfusion.wire.schemas import DictionaryDelta, DictionaryRequest, DictionarySnapshot
+
+logger = logging.getLogger(__name__)
+
+
+class DictionaryReplica:
+    """A thread-safe copy of the semantic service's dictionary, kept by deltas."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.dictionary: RegionDictionary | None = None
+
+    def __len__(self) -> int:
+        return len(self.dictionary) if self.dictionary is not None else 0
+
+    @property
+    def embedding_space(self) -> str | None:
+        return self.dictionary.embedding_space if self.dictionary is not None else None
+
+    def reset(self, dictionary: RegionDictionary | None) -> None:
+        with self._lock:
+            self.dictionary = dictionary
+
+    def apply_snapshot(self, msg: DictionarySnapshot) -> None:
+        dictionary = RegionDictionary.from_snapshot(msg)
+        with self._lock:
+            self.dictionary = dictionary
+
+    def apply_delta(self, msg: DictionaryDelta) -> bool:
+        """Apply a delta; False when it cannot be applied (no base, a gap, another space): resync."""
+        with self._lock:
+            if self.dictionary is None:
+                if msg.prev_version != 0:
+                    return False
+                self.dictionary = RegionDictionary(msg.embedding_space, msg.dim)
+            try:
+                self.dictionary.apply_delta(msg)
+            except (StaleVersionError, EmbeddingSpaceError) as exc:
+                logger.info("dictionary replica out of sync (%s); a snapshot is needed", exc)
+                return False
+        return True
+
+    def snapshot(self) -> DictionarySnapshot | None:
+        with self._lock:
+            return self.dictionary.snapshot() if self.dictionary is not None else None
+
+    def top_k(self, vector: np.ndarray, k: int) -> list[tuple[int, float]]:
+        with self._lock:
+            if self.dictionary is None:
+                return []
+            keys, scores = self.dictionary.top_k(vector, k)
+        return [(int(a), float(b)) for a, b in zip(keys, scores, strict=True)]
+
+    def labels_for(self, keys: list[int]) -> dict[int, str]:
+        """Label text of each of ``keys`` ("" when none or unknown)."""
+        with self._lock:
+            d = self.dictionary
+            return {int(k): (d.label(int(k)) if d is not None and int(k) in d else None) or "" for k in keys}
+
+    @staticmethod
+    def fetch_snapshot(
+        runner: ServiceRunner, endpoint: Endpoint[DictionaryRequest, DictionarySnapshot], *, timeout_s: float = 3.0
+    ) -> DictionarySnapshot | None:
+        """A snapshot from ``endpoint`` (the semantic service's or geometry's), None when it does not answer."""
+        try:
+            return runner.call(endpoint, DictionaryRequest(), timeout_s=timeout_s)
+        except QueryError as exc:
+            logger.info("no dictionary snapshot from %s: %s", endpoint.path, exc.reason)
+            return None
