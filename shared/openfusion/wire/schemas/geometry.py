@@ -1,0 +1,184 @@
+"""Messages of the geometry service: progress, render, points, regions, mesh."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from openfusion.poses import check_pose
+from openfusion.wire.codec import ndarray
+from openfusion.wire.message import Message
+from openfusion.wire.schemas.base import (
+    Colors3u8,
+    FloatMap,
+    KeyList,
+    KeyMap,
+    PinholeMessage,
+    Points3f,
+    Pose4x4,
+)
+
+
+class GeometryProgress(Message):
+    """The geometry service took frame (``frame_id``, ``stamp_ns``) out of its queue (integrated
+    it, or refused it for capacity), on ``…/geometry/progress``: the acknowledgement the bridge's
+    flow control (:mod:`openfusion.bus.flow_control`) waits for during playback."""
+
+    schema_name: ClassVar[str] = "geometry.progress"
+    schema_version: ClassVar[int] = 1
+
+    frame_id: int = Field(ge=0)
+    stamp_ns: int = Field(ge=0)
+    integrated: bool
+    frames_integrated: int = Field(ge=0)
+    queued: int = Field(ge=0)  # frames waiting in geometry's queue after this one
+
+
+class RenderRequest(PinholeMessage):
+    """Render the map's region keys from ``T_world_cam`` into a small ``width_px`` x ``height_px`` view."""
+
+    schema_name: ClassVar[str] = "geometry.render_request"
+    schema_version: ClassVar[int] = 1
+
+    frame_id: int = Field(ge=0)
+    T_world_cam: Pose4x4
+
+    @model_validator(mode="after")
+    def _check(self) -> RenderRequest:
+        check_pose(self.T_world_cam)
+        return self
+
+
+class RenderReply(Message):
+    """Per-pixel region key (-1 = none), its confidence and the rendered depth in metres."""
+
+    schema_name: ClassVar[str] = "geometry.render_reply"
+    schema_version: ClassVar[int] = 1
+
+    frame_id: int = Field(ge=0)
+    key_map: KeyMap
+    conf_map: FloatMap
+    depth_m: FloatMap
+
+    @model_validator(mode="after")
+    def _check(self) -> RenderReply:
+        if not (self.key_map.shape == self.conf_map.shape == self.depth_m.shape):
+            raise ValueError(
+                f"key_map {self.key_map.shape}, conf_map {self.conf_map.shape} and depth_m "
+                f"{self.depth_m.shape} must have the same shape"
+            )
+        return self
+
+
+class PointsRequest(Message):
+    """Surface points of the map, optionally only those of region ``keys``, at most ``max_points``."""
+
+    schema_name: ClassVar[str] = "geometry.points_request"
+    schema_version: ClassVar[int] = 1
+
+    keys: list[int] | None = None
+    max_points: int | None = Field(default=None, gt=0)
+
+
+class PointsReply(Message):
+    """Surface points (world frame, metres), their colors and region keys (-1 = none)."""
+
+    schema_name: ClassVar[str] = "geometry.points_reply"
+    schema_version: ClassVar[int] = 1
+
+    points: Points3f
+    colors: Colors3u8
+    keys: KeyList
+    truncated: bool = False
+
+    @model_validator(mode="after")
+    def _check(self) -> PointsReply:
+        n = len(self.points)
+        if len(self.colors) != n or len(self.keys) != n:
+            raise ValueError(
+                f"points ({n}), colors ({len(self.colors)}) and keys ({len(self.keys)}) differ in length"
+            )
+        return self
+
+
+class RegionSummaryRequest(Message):
+    """Ask geometry for per-region summaries (bounding box, surface point count) of the map.
+
+    ``keys``: only these regions (None = all). ``fresh``: recompute from the current map even
+    when the service's cached summary is of an older map version (without it the service may
+    answer its cached summary; its ``map_version`` and ``age_s`` say how old it is)."""
+
+    schema_name: ClassVar[str] = "geometry.regions_request"
+    schema_version: ClassVar[int] = 1
+
+    keys: list[int] | None = None
+    fresh: bool = False
+
+
+class RegionSummaryReply(Message):
+    """Per-region summaries of the surface points of the map at ``map_version``: for each key,
+    the axis-aligned bounding box (world, metres) and the number of surface points (the same
+    points ``geometry/points`` serves). ``key_horizon``: every region key below it is covered,
+    so a key under the horizon that is not listed has no surface points in that map version; a
+    key at or above it is newer than the summary (unknown). ``age_s``: seconds between the
+    computation of the summary and the reply."""
+
+    schema_name: ClassVar[str] = "geometry.regions_reply"
+    schema_version: ClassVar[int] = 1
+
+    map_version: int = Field(ge=0)
+    key_horizon: int = Field(ge=0)
+    age_s: float = Field(default=0.0, ge=0)
+    keys: KeyList
+    bbox_min: Points3f
+    bbox_max: Points3f
+    num_points: ndarray("int64", shape=(None,))
+
+    @model_validator(mode="after")
+    def _check(self) -> RegionSummaryReply:
+        n = len(self.keys)
+        if len(self.bbox_min) != n or len(self.bbox_max) != n or len(self.num_points) != n:
+            raise ValueError(
+                f"keys ({n}), bbox_min ({len(self.bbox_min)}), bbox_max ({len(self.bbox_max)}) and num_points "
+                f"({len(self.num_points)}) differ in length"
+            )
+        if n and len(np.unique(self.keys)) != n:
+            raise ValueError("keys must be unique")
+        if n and int(self.num_points.min()) < 0:
+            raise ValueError("num_points must be >= 0")
+        return self
+
+
+class MeshRequest(Message):
+    """The surface mesh, optionally only the vertices of region ``keys``."""
+
+    schema_name: ClassVar[str] = "geometry.mesh_request"
+    schema_version: ClassVar[int] = 1
+
+    keys: list[int] | None = None
+
+
+class MeshReply(Message):
+    """A triangle mesh in the world frame (metres) with per-vertex colors and region keys."""
+
+    schema_name: ClassVar[str] = "geometry.mesh_reply"
+    schema_version: ClassVar[int] = 1
+
+    vertices: Points3f
+    triangles: ndarray("int32", shape=(None, 3))
+    vertex_colors: Colors3u8
+    vertex_keys: KeyList
+
+    @model_validator(mode="after")
+    def _check(self) -> MeshReply:
+        v = len(self.vertices)
+        if len(self.vertex_colors) != v or len(self.vertex_keys) != v:
+            raise ValueError(
+                f"vertices ({v}), vertex_colors ({len(self.vertex_colors)}) and vertex_keys "
+                f"({len(self.vertex_keys)}) differ in length"
+            )
+        if self.triangles.size and (self.triangles.min() < 0 or self.triangles.max() >= v):
+            raise ValueError(f"triangles index vertices outside 0..{v - 1}")
+        return self

@@ -1,0 +1,89 @@
+"""Queries and their ranked answers."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from openfusion.wire.message import Message, Record
+from openfusion.wire.schemas.base import (
+    ImageRGB8,
+    Points3f,
+    Vec3f32,
+    Vec3f64,
+)
+
+
+class _QueryOptions(Message):
+    top_k: int = Field(default=5, gt=0, le=10_000)
+    with_points: bool = False
+    max_points: int = Field(default=20_000, gt=0)
+    embedding_space: str | None = None
+
+
+class TextQuery(_QueryOptions):
+    """Rank the map's regions against ``text``. ``embedding_space``: refuse a map of another space."""
+
+    schema_name: ClassVar[str] = "query.text"
+    schema_version: ClassVar[int] = 1
+
+    text: str = Field(min_length=1, max_length=4096)
+
+
+class ImageQuery(_QueryOptions):
+    """Rank the map's regions against an RGB image."""
+
+    schema_name: ClassVar[str] = "query.image"
+    schema_version: ClassVar[int] = 1
+
+    image: ImageRGB8
+
+    @model_validator(mode="after")
+    def _check(self) -> ImageQuery:
+        if self.image.shape[0] == 0 or self.image.shape[1] == 0:
+            raise ValueError(f"image must not be empty, got shape {self.image.shape}")
+        return self
+
+
+class PointQuery(Message):
+    """Regions within ``radius_m`` of a world point (metres), best ``top_k``."""
+
+    schema_name: ClassVar[str] = "query.point"
+    schema_version: ClassVar[int] = 1
+
+    point_world: Vec3f64
+    radius_m: float = Field(default=0.1, gt=0)
+    top_k: int = Field(default=5, gt=0, le=10_000)
+    with_points: bool = False
+    max_points: int = Field(default=20_000, gt=0)
+
+    @model_validator(mode="after")
+    def _check(self) -> PointQuery:
+        if not np.isfinite(self.point_world).all():
+            raise ValueError("point_world must be finite")
+        return self
+
+
+class RegionHit(Record):
+    """One ranked region: key, similarity score, label, axis-aligned bbox (world, metres)."""
+
+    key: int
+    score: float
+    label: str | None = None
+    bbox_min: Vec3f32
+    bbox_max: Vec3f32
+    num_points: int = Field(ge=0)
+    points: Points3f | None = None
+
+
+class QueryReply(Message):
+    """Regions ranked best first for the ``query`` (text, or a description of the image/point query)."""
+
+    schema_name: ClassVar[str] = "query.reply"
+    schema_version: ClassVar[int] = 1
+
+    embedding_space: str
+    query: str
+    regions: list[RegionHit] = Field(default_factory=list)

@@ -1,0 +1,122 @@
+"""Messages of the semantic service: updates and the region dictionary."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from openfusion.poses import check_pose
+from openfusion.wire.codec import ndarray
+from openfusion.wire.message import Message
+from openfusion.wire.schemas.base import (
+    FloatMap,
+    KeyList,
+    KeyMap,
+    PinholeMessage,
+    Pose4x4,
+)
+
+
+class SemanticUpdate(PinholeMessage):
+    """Per-pixel region keys and confidences to fuse into the volume, seen from ``T_world_cam``."""
+
+    schema_name: ClassVar[str] = "semantic.update"
+    schema_version: ClassVar[int] = 1
+
+    frame_id: int = Field(ge=0)
+    T_world_cam: Pose4x4
+    key_map: KeyMap
+    conf_map: FloatMap
+    new_keys: KeyList
+    # The frame's depth resampled to the key map (metres, 0 = none): enables the update's depth
+    # gate, so labels of an object's outline do not land on the background behind it.
+    depth_m: FloatMap | None = None
+
+    @model_validator(mode="after")
+    def _check(self) -> SemanticUpdate:
+        check_pose(self.T_world_cam)
+        self._check_image("key_map", self.key_map)
+        self._check_image("conf_map", self.conf_map)
+        if self.depth_m is not None:
+            self._check_image("depth_m", self.depth_m)
+        return self
+
+
+def _check_dictionary_rows(
+    *, dim: int, keys: np.ndarray, embeddings: np.ndarray, counts: np.ndarray, labels: list[str]
+) -> None:
+    m = len(keys)
+    if embeddings.shape != (m, dim):
+        raise ValueError(f"embeddings must be ({m}, {dim}) for {m} keys of dim {dim}, got {embeddings.shape}")
+    if len(counts) != m or len(labels) != m:
+        raise ValueError(f"keys ({m}), counts ({len(counts)}) and labels ({len(labels)}) differ in length")
+    if len(np.unique(keys)) != m:
+        raise ValueError("keys must be unique")
+
+
+class DictionaryRequest(Message):
+    """Ask the semantic service for a full :class:`DictionarySnapshot`."""
+
+    schema_name: ClassVar[str] = "semantic.dictionary_request"
+    schema_version: ClassVar[int] = 1
+
+
+class DictionarySnapshot(Message):
+    """The whole region dictionary: key -> running-mean embedding (not normalised), observation
+    count, label ("" = none); ``next_key`` is the key the owner allocates next."""
+
+    schema_name: ClassVar[str] = "semantic.dictionary"
+    schema_version: ClassVar[int] = 1
+
+    embedding_space: str = Field(min_length=1)
+    dim: int = Field(gt=0)
+    version: int = Field(ge=0)
+    next_key: int = Field(ge=0)
+    keys: KeyList
+    embeddings: ndarray("float32", shape=(None, None))
+    counts: ndarray("int64", shape=(None,))
+    labels: list[str]
+
+    @model_validator(mode="after")
+    def _check(self) -> DictionarySnapshot:
+        _check_dictionary_rows(
+            dim=self.dim, keys=self.keys, embeddings=self.embeddings, counts=self.counts, labels=self.labels
+        )
+        return self
+
+
+class DictionaryDelta(Message):
+    """Changes from dictionary ``prev_version`` to ``version``: upserted rows, removed keys and
+    what each removed key was merged into (-1 = deleted)."""
+
+    schema_name: ClassVar[str] = "semantic.dictionary_delta"
+    schema_version: ClassVar[int] = 1
+
+    embedding_space: str = Field(min_length=1)
+    dim: int = Field(gt=0)
+    version: int = Field(ge=0)
+    prev_version: int = Field(ge=0)
+    next_key: int = Field(ge=0)
+    keys: KeyList
+    embeddings: ndarray("float32", shape=(None, None))
+    counts: ndarray("int64", shape=(None,))
+    labels: list[str]
+    removed_keys: KeyList
+    merged_into: KeyList
+
+    @model_validator(mode="after")
+    def _check(self) -> DictionaryDelta:
+        if self.version <= self.prev_version:
+            raise ValueError(
+                f"version ({self.version}) must be greater than prev_version ({self.prev_version})"
+            )
+        _check_dictionary_rows(
+            dim=self.dim, keys=self.keys, embeddings=self.embeddings, counts=self.counts, labels=self.labels
+        )
+        if len(self.merged_into) != len(self.removed_keys):
+            raise ValueError(
+                f"merged_into ({len(self.merged_into)}) must have one entry per removed key ({len(self.removed_keys)})"
+            )
+        return self
