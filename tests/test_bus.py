@@ -12,7 +12,6 @@ from collections.abc import Iterator
 import pytest
 import zenoh
 
-from helpers_bus import ServiceProcess, loopback_args, loopback_config, open_pair, unique_map_id, wait_until
 from openfusion.bus import (
     Publisher,
     Queryable,
@@ -24,6 +23,14 @@ from openfusion.bus import (
     collect_health,
     get,
     live_services,
+)
+from openfusion.testing.bus import (
+    ServiceProcess,
+    loopback_args,
+    loopback_config,
+    open_pair,
+    unique_map_id,
+    wait_until,
 )
 from openfusion.testing.demo_service import PingReply, PingRequest
 from openfusion.wire.codec import decode, encode

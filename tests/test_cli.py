@@ -13,8 +13,11 @@ import pytest
 import zenoh
 
 import openfusion
-from helpers_bus import (
-    ROOT,
+from openfusion.app import cli
+from openfusion.bus import Publisher, Subscriber, open_session
+from openfusion.config import ServiceConfig
+from openfusion.sources.base import SourceError
+from openfusion.testing.bus import (
     ServiceProcess,
     endpoint,
     free_port,
@@ -23,12 +26,11 @@ from helpers_bus import (
     unique_map_id,
     wait_until,
 )
-from openfusion.app import cli
-from openfusion.bus import Publisher, Subscriber, open_session
-from openfusion.config import ServiceConfig
-from openfusion.sources.base import SourceError
 from openfusion.wire.keys import KeySpace
 from openfusion.wire.schemas import TextQuery
+
+#: The repository root (deploy files, docs, the README's commands).
+ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
 
 pytestmark = pytest.mark.timeout(120)
 

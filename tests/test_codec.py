@@ -17,7 +17,9 @@ from openfusion.wire import codec
 from openfusion.wire.codec import ALLOWED_DTYPES, DecodeError, EncodeError, decode, encode, ndarray
 from openfusion.wire.schemas import Message, RgbdFrame, TextQuery
 
-ROOT = Path(__file__).resolve().parents[1]
+#: The repository root (deploy files, docs, the README's commands).
+ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
+
 
 
 class AnyArrayMessage(Message):

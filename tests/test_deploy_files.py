@@ -26,7 +26,9 @@ import pytest
 import yaml
 import zenoh
 
-ROOT = Path(__file__).resolve().parents[1]
+#: The repository root (deploy files, docs, the README's commands).
+ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
+
 ZENOH_DIR = ROOT / "deploy" / "zenoh"
 TWO_HOST = ROOT / "deploy" / "two-host"
 IMAGE_ROOT = "/opt/openfusion"  # WORKDIR of both Dockerfiles: the repository root in the image

@@ -31,7 +31,7 @@ import pytest
 
 zenoh = pytest.importorskip("zenoh")
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
 PROD = ROOT / "deploy" / "zenoh" / "prod"
 GEN_CERTS = ROOT / "scripts" / "gen_dev_certs.sh"
 GEN_CREDENTIALS = PROD / "gen_credentials.sh"

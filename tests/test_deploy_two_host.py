@@ -19,12 +19,16 @@ from pathlib import Path
 
 import pytest
 
-from helpers_bus import ROOT, subprocess_env, unique_map_id, wait_until
 from openfusion.app.launcher import Cluster, wait_for_services
 from openfusion.bus import collect_health, live_services, open_session
 from openfusion.bus import free_loopback_port as free_port
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings
+from openfusion.testing.bus import subprocess_env, unique_map_id, wait_until
+
+#: The repository root (deploy files, docs, the README's commands).
+ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
+
 
 pytestmark = [pytest.mark.netns, pytest.mark.timeout(600)]
 

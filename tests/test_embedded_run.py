@@ -15,11 +15,14 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from helpers_bus import ROOT, subprocess_env
 from openfusion.encoders import make_text_encoder
 from openfusion.io.ply import read_ply
 from openfusion.mapping import load_map, query_regions
 from openfusion.sources.synthetic import SyntheticWorld
+from openfusion.testing.bus import subprocess_env
+
+#: The repository root (deploy files, docs, the README's commands).
+ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
 
 SOURCE = "synthetic:seed=1,frames=40,width=320,height=240"
 

@@ -128,7 +128,8 @@ def test_export_script_cli(clip_dir, tmp_path, capsys):
     import importlib.util
     from pathlib import Path
 
-    script = Path(__file__).resolve().parents[1] / "scripts" / "export_clip_onnx.py"
+    root = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
+    script = root / "scripts" / "export_clip_onnx.py"
     spec = importlib.util.spec_from_file_location("export_clip_onnx", script)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

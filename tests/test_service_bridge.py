@@ -12,8 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from helpers_bus import (
-    ROOT,
+from openfusion.bus import Subscriber, collect_health, open_session
+from openfusion.config import ServiceConfig
+from openfusion.sources import open_source
+from openfusion.testing.bus import (
     ServiceProcess,
     free_port,
     loopback_args,
@@ -22,11 +24,11 @@ from helpers_bus import (
     unique_map_id,
     wait_until,
 )
-from openfusion.bus import Subscriber, collect_health, open_session
-from openfusion.config import ServiceConfig
-from openfusion.sources import open_source
 from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
 from openfusion.wire.schemas import HealthStats, InstanceFrame, RgbdFrame
+
+#: The repository root (deploy files, docs, the README's commands).
+ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
 
 
 def test_bridge_publishes_every_frame_of_the_source_intact() -> None:

@@ -11,7 +11,6 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from helpers_bus import free_port, unique_map_id, wait_until
 from openfusion.bus import Queryable, ServiceRunner, collect_health, open_session
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings
@@ -28,6 +27,7 @@ from openfusion.services.query.service import (
     region_hits,
 )
 from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld
+from openfusion.testing.bus import free_port, unique_map_id, wait_until
 from openfusion.wire.endpoints import SEMANTIC_DICTIONARY
 from openfusion.wire.schemas import (
     ControlRequest,

@@ -18,12 +18,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from helpers_bus import ROOT, subprocess_env, unique_map_id, wait_until
 from openfusion.app.launcher import Cluster, wait_for_services
 from openfusion.bus import QueryError, collect_health, get, open_session
 from openfusion.bus import free_loopback_port as free_port
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings
+from openfusion.testing.bus import subprocess_env, unique_map_id, wait_until
 from openfusion.wire.endpoints import (
     CONTROL,
     DICTIONARY_DELTA,
@@ -51,6 +51,9 @@ from openfusion.wire.schemas import (
     RenderReply,
     RenderRequest,
 )
+
+#: The repository root (deploy files, docs, the README's commands).
+ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
 
 pytestmark = pytest.mark.timeout(600)
 

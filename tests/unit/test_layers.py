@@ -18,7 +18,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
 SOURCE_ROOTS = {"openfusion": ROOT / "shared" / "openfusion", "openfusion.services": ROOT / "services"}
 
 #: Lowest first. A module may import modules of its own layer (same package) or of lower layers.

@@ -98,7 +98,11 @@ class HealthCommand:
                 if satisfied or time.monotonic() >= deadline:
                     break
                 time.sleep(0.1)
-            stats = collect_health(session, keys, timeout_s=max(0.5, deadline - time.monotonic())) if live else {}
+            stats: dict[str, Any] = {}
+            while live:  # stats of every live service, or what came until the deadline
+                stats.update(collect_health(session, keys, timeout_s=max(0.5, min(2.0, deadline - time.monotonic()))))
+                if set(live) <= set(stats) or time.monotonic() >= deadline:
+                    break
         finally:
             session.close()
         if args.json:

@@ -75,9 +75,10 @@ class HealthReporter:
         self._queries: collections.deque[zenoh.Query] = collections.deque(maxlen=64)
         self._wake = threading.Condition()
         try:
-            self._token = session.liveliness().declare_token(keys.liveliness(service))
+            # The token last: whoever sees the service alive can already query its health.
             self._pub = session.declare_publisher(self.key)
             self._qbl = session.declare_queryable(self.key, zenoh.handlers.Callback(self._on_query))
+            self._token = session.liveliness().declare_token(keys.liveliness(service))
         except zenoh.ZError as exc:
             raise BusError(f"cannot declare health entities on {self.key}: {exc}") from None
         self._thread = threading.Thread(target=self._run, name=f"health:{service}", daemon=True)
@@ -117,7 +118,7 @@ class HealthReporter:
         with self._wake:
             self._wake.notify_all()
         self._thread.join(5.0)
-        for entity in (self._qbl, self._pub, self._token):
+        for entity in (self._token, self._qbl, self._pub):  # not alive before not answering
             try:
                 entity.undeclare()
             except zenoh.ZError as exc:

@@ -23,6 +23,7 @@ from openfusion.wire.codec import (
     decode,
     encode,
 )
+from openfusion.wire.counters import CommonCounter
 from openfusion.wire.message import Message
 
 logger = logging.getLogger(__name__)
@@ -69,7 +70,7 @@ class Publisher:
             self._pub.put(data, attachment=_ATTACHMENT.pack(self._source_id, seq))
             self.sent += 1
         if self._stats is not None:
-            self._stats.incr("published")
+            self._stats.incr(CommonCounter.PUBLISHED)
         return seq
 
     @property

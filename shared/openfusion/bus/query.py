@@ -22,6 +22,7 @@ from openfusion.wire.codec import (
     decode,
     encode,
 )
+from openfusion.wire.counters import CommonCounter
 from openfusion.wire.endpoints import Endpoint
 from openfusion.wire.keys import KeySpace
 from openfusion.wire.message import Message
@@ -173,7 +174,7 @@ class Queryable(Generic[M]):
             logger.info("queryable %s: refused (%s): %s", self.key, exc.code, exc.reason)
             self._count("refused")
             if self._stats is not None:
-                self._stats.incr("refused")
+                self._stats.incr(CommonCounter.REFUSED)
             query.reply_err(_error_payload(exc.code, exc.reason))
             return
         except Exception as exc:  # the service keeps running: logged with traceback, counted, answered

@@ -20,7 +20,7 @@ from openfusion.frame import Frame
 
 logger = logging.getLogger(__name__)
 
-#: Default output size as a fraction of the input image (design §1: H/4 x W/4).
+#: Default output size as a fraction of the input image (H/4 x W/4, as Open-Fusion's region encoder).
 DEFAULT_OUTPUT_SCALE = 0.25
 
 #: Embeddings whose L2 norm is below this are treated as invalid (cannot be normalised).

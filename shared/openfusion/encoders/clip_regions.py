@@ -39,7 +39,7 @@ logger = logging.getLogger(__name__)
 
 DEFAULT_CLIP_MODEL = "openai/clip-vit-base-patch32"
 
-#: Hub names -> embedding-space ids (design §3: spaces are named).
+#: Hub names -> embedding-space ids (every map records its named space).
 KNOWN_CLIP_SPACES = {
     "openai/clip-vit-base-patch32": "clip-vit-b-32",
     "openai/clip-vit-base-patch16": "clip-vit-b-16",

@@ -95,12 +95,3 @@ def resize_maps_bilinear(maps: np.ndarray, out_hw: tuple[int, int]) -> np.ndarra
     top = m[:, y0][:, :, x0] * (1 - wx) + m[:, y0][:, :, x1] * wx
     bottom = m[:, y1][:, :, x0] * (1 - wx) + m[:, y1][:, :, x1] * wx
     return (top * (1 - wy) + bottom * wy).astype(np.float32)
-
-
-def mask_bbox(mask: np.ndarray) -> tuple[int, int, int, int] | None:
-    """(y0, x0, y1, x1) half-open bounding box of the True pixels, or None when empty."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    if rows.size == 0:
-        return None
-    cols = np.flatnonzero(mask.any(axis=0))
-    return int(rows[0]), int(cols[0]), int(rows[-1]) + 1, int(cols[-1]) + 1

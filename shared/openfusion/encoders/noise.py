@@ -62,7 +62,7 @@ class NoiseProfile:
         )
 
 
-#: Named profiles. "standard" is the default stress test of the design (§5).
+#: Named profiles. "standard" is the default stress test of the fusion (docs/EVAL.md).
 NOISE_PROFILES: dict[str, NoiseProfile] = {
     "off": NoiseProfile("off"),
     "light": NoiseProfile("light", drop_prob=0.1, boundary_px=1, split_prob=0.05, merge_prob=0.05, embedding_cosine=0.95),

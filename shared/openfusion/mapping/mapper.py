@@ -38,10 +38,6 @@ class StepStats:
     update_ms: float
     dictionary_version: int
 
-    @property
-    def total_ms(self) -> float:
-        return self.render_ms + self.plan_ms + self.update_ms
-
 
 class SemanticMapper:
     """Owns nothing but wiring: a volume, a dictionary and the matching parameters

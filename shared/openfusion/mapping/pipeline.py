@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any
 
 from openfusion.frame import Frame
@@ -69,12 +69,6 @@ class PipelineStats:
     @property
     def sem_rec_fps(self) -> float | None:
         return self._rates()[1]
-
-    def as_dict(self) -> dict[str, Any]:
-        out = asdict(self)
-        out["rec_fps"] = round(self.rec_fps, 2) if self.rec_fps else None
-        out["sem_rec_fps"] = round(self.sem_rec_fps, 2) if self.sem_rec_fps else None
-        return out
 
 
 @dataclass

@@ -12,8 +12,8 @@ The rule: one new observation weighs 1 against the voxel's history, which weighs
     - other key:       conf <- conf - c / (w + 1); if that is negative the new key wins:
                        key <- k, conf <- c / (w + 1) - conf_old      (the remaining evidence)
 
-    A matched region keeps its key with the weighted average of its confidences (as issue #3 and
-    the design ask). A contrary observation carries the same weight 1/(w + 1) it would have in
+    A matched region keeps its key with the weighted average of its confidences (the Open-Fusion
+    update). A contrary observation carries the same weight 1/(w + 1) it would have in
     that average, so a voxel held at confidence ``conf`` needs contrary evidence worth
     ``(w + 1) * conf`` to change key: with w = 3 four full-confidence contrary observations for a
     voxel at 1.0, however they are spread in time. One or two contrary observations (a merged

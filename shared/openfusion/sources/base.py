@@ -38,10 +38,6 @@ class SourceStats:
     yielded: int = 0
     skipped: dict[str, int] = field(default_factory=dict)
 
-    @property
-    def skipped_total(self) -> int:
-        return sum(self.skipped.values())
-
     def count_skip(self, reason: str, count: int = 1) -> None:
         self.skipped[reason] = self.skipped.get(reason, 0) + count
 
@@ -169,13 +165,3 @@ class IndexedFrameSource(FrameSource):
         if not 0 <= index < self._num_items():
             raise IndexError(f"source {self.name!r} has {self._num_items()} items, asked for {index}")
         return self._load(index)
-
-
-def validated(frame: Frame, *, context: str) -> Frame:
-    """Run ``frame.validate()``; turn a failure into a counted skip with the context."""
-    try:
-        frame.validate()
-    except ValueError as exc:
-        reason = "invalid_pose" if "T_world_cam" in str(exc) else "invalid_frame"
-        raise SkipFrame(reason, f"{context}: {exc}") from exc
-    return frame

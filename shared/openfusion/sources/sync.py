@@ -15,7 +15,7 @@ Time
 
 Pairing
     ``mode="nearest"``: each image gets the pose nearest in time when one lies within
-    ``max_dt_ns`` (10 ms default, design §1), else it is dropped (``no_pose_within_tolerance``).
+    ``max_dt_ns`` (10 ms default), else it is dropped (``no_pose_within_tolerance``).
     ``mode="interpolate"``: the pose at the image time is interpolated between the two poses
     around it (linear translation, SLERP rotation) unless they are more than ``max_pose_gap_ns``
     apart (``pose_gap``); an image with no pose after it by the time it is resolved is dropped

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics
-from openfusion.poses import InvalidPoseError, check_pose, look_at
+from openfusion.poses import look_at
 from openfusion.viz.errors import VizError
 
 UP_AXES: dict[str, tuple[float, float, float]] = {
@@ -174,12 +174,3 @@ def overview_camera(
         target = target + T[:3, 0] * du + T[:3, 1] * dv
         distance = fit_distance(target)
     return VirtualCamera(pose_at(target, distance), intr)
-
-
-def camera_from_pose(T_world_cam: np.ndarray, *, width_px: int, height_px: int, fov_deg: float = 60.0) -> VirtualCamera:
-    """A virtual camera at a given pose (e.g. one of the recorded camera poses)."""
-    try:
-        T = check_pose(T_world_cam, what="a camera pose")
-    except InvalidPoseError as exc:
-        raise VizError(str(exc)) from None
-    return VirtualCamera(T, pinhole(width_px, height_px, fov_deg=fov_deg))

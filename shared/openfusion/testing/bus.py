@@ -1,18 +1,24 @@
-"""Shared helpers for bus tests: free loopback ports, isolated configs and sessions, a runner
-for service subprocesses, and polling.
+"""Bus doubles for tests and benches: free loopback ports, isolated configs and sessions, a
+runner for service subprocesses, and waiting on events instead of sleeping.
 
-Every session these helpers make is peer mode on tcp/127.0.0.1 with multicast scouting OFF,
-so tests never discover other runs on the same machine; map ids are unique per call.
+Part of :mod:`openfusion.testing` (shipped so that benches and users' own tests can use it; no
+product code imports it). Every session these helpers make is peer mode on tcp/127.0.0.1 with
+multicast scouting OFF, so tests never discover other runs on the same machine; map ids are
+unique per call.
+
+Waiting: tests wait for the state they need (a liveliness token, a counter, a reply), never for
+a fixed time. Deadlines are generous (a busy 2-core machine is slow, not broken) and scale with
+``OPENFUSION_TEST_TIMEOUT_SCALE`` (default 1).
 """
 
 from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import uuid
 from collections.abc import Callable, Sequence
@@ -21,17 +27,21 @@ from typing import Any
 
 import zenoh
 
-from openfusion.bus import open_session
+from openfusion.bus import ServiceRunner, ServiceStats, free_loopback_port, live_services, open_session
 from openfusion.config import ServiceConfig
 
-ROOT = Path(__file__).resolve().parents[1]
+#: Multiplies every deadline of these helpers (set it > 1 on a very slow machine).
+TIMEOUT_SCALE = float(os.environ.get("OPENFUSION_TEST_TIMEOUT_SCALE", "1") or 1)
+
+
+def scaled(timeout_s: float) -> float:
+    """``timeout_s`` times :data:`TIMEOUT_SCALE`."""
+    return timeout_s * TIMEOUT_SCALE
 
 
 def free_port() -> int:
     """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+    return free_loopback_port()
 
 
 def endpoint(port: int) -> str:
@@ -79,15 +89,18 @@ def open_pair(map_id: str) -> tuple[zenoh.Session, zenoh.Session, int]:
     return a, b, port
 
 
-def wait_until(predicate: Callable[[], Any], *, timeout_s: float = 10.0, interval_s: float = 0.05) -> Any:
-    """Poll ``predicate`` until it returns something truthy (returned) or fail after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
+def wait_until(predicate: Callable[[], Any], *, timeout_s: float = 60.0, interval_s: float = 0.05) -> Any:
+    """Wait until ``predicate`` returns something truthy (returned); fail after ``timeout_s``
+    (scaled). The state waited for is the event: no test assumes a fixed time is enough."""
+    deadline = time.monotonic() + scaled(timeout_s)
     while True:
         value = predicate()
         if value:
             return value
         if time.monotonic() > deadline:
-            raise AssertionError(f"condition not met within {timeout_s} s: {getattr(predicate, '__name__', predicate)}")
+            raise AssertionError(
+                f"condition not met within {scaled(timeout_s):g} s: {getattr(predicate, '__name__', predicate)}"
+            )
         time.sleep(interval_s)
 
 
@@ -112,7 +125,6 @@ class ServiceProcess:
             [sys.executable, "-m", module, *args],
             stdout=self._log,
             stderr=subprocess.STDOUT,
-            cwd=ROOT,
             env=env or subprocess_env(),
         )
 
@@ -151,3 +163,55 @@ class ServiceProcess:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def wait_for_services(
+    session: zenoh.Session, map_id: str, names: Sequence[str], *, timeout_s: float = 120.0
+) -> list[str]:
+    """Wait until the liveliness tokens of ``names`` on map ``map_id`` are present (a service
+    declares its token only once its queryables and subscribers exist); returns the live names."""
+    keys = ServiceConfig(map_id=map_id).keys
+
+    def all_live() -> list[str] | None:
+        live = live_services(session, keys, timeout_s=1.0)
+        return live if set(names) <= set(live) else None
+
+    return wait_until(all_live, timeout_s=timeout_s, interval_s=0.2)
+
+
+class ServiceThread:
+    """A service object (``setup(runner)``, optional ``loop(runner)``, ``close()``) run with a real
+    :class:`~openfusion.bus.ServiceRunner` on a thread of this process: the service's own logic
+    on a real bus, with its stats readable directly (``.stats``), no subprocess. Use as a
+    context manager; on exit the loop is stopped and everything undeclared."""
+
+    def __init__(self, app: Any, config: ServiceConfig, service: str) -> None:
+        self.app = app
+        self.runner = ServiceRunner(config, service)
+        self._thread: threading.Thread | None = None
+
+    @property
+    def stats(self) -> ServiceStats:
+        return self.runner.stats
+
+    def counter(self, name: str) -> float:
+        """One named counter of the service (names: :mod:`openfusion.wire.counters`)."""
+        return float(self.runner.stats.counters.get(str(name), 0.0))
+
+    def __enter__(self) -> ServiceThread:
+        self.runner.start()
+        self.app.setup(self.runner)
+        self.runner.ready()
+        loop = getattr(self.app, "loop", None)
+        if loop is not None:
+            self._thread = threading.Thread(target=loop, args=(self.runner,), name=f"svc:{self.runner.service}",
+                                            daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.runner.stop()
+        if self._thread is not None:
+            self._thread.join(scaled(30.0))
+        self.runner.close()
+        self.app.close()

@@ -1,0 +1,36 @@
+"""Encoder doubles: a real encoder that misbehaves on chosen frames (part of :mod:`openfusion.testing`)."""
+
+from __future__ import annotations
+
+from collections.abc import Collection
+from typing import Any
+
+import numpy as np
+
+from openfusion.encoders import EncoderError, RegionObservation, make_region_encoder
+from openfusion.frame import Frame
+
+
+class FlakyEncoder:
+    """The gt encoder (hash text space), except: no region at all on the frame ids in ``empty_on``
+    and an :class:`~openfusion.encoders.EncoderError` on those in ``fail_on``."""
+
+    def __init__(self, *, empty_on: Collection[int] = (2,), fail_on: Collection[int] = (3,), **gt_options: Any) -> None:
+        self.inner = make_region_encoder("gt", text_encoder="hash", **gt_options)
+        self.name = "flaky-gt"
+        self.embedding_space, self.dim = self.inner.embedding_space, self.inner.dim
+        self.needs_instances = True
+        self.empty_on, self.fail_on = set(empty_on), set(fail_on)
+
+    def output_size(self, height_px: int, width_px: int) -> tuple[int, int]:
+        return self.inner.output_size(height_px, width_px)
+
+    def encode(self, frame: Frame) -> RegionObservation:
+        if frame.frame_id in self.fail_on:
+            raise EncoderError(f"the model crashed on frame {frame.frame_id}")
+        obs = self.inner.encode(frame)
+        if frame.frame_id in self.empty_on:
+            h, w = obs.conf_maps.shape[1:]
+            return RegionObservation(np.zeros((0, h, w), np.float32), np.zeros((0, self.dim), np.float32),
+                                     self.embedding_space, [])
+        return obs

@@ -1,0 +1,76 @@
+"""The semantic service's logic on a real bus, in this process (no subprocess): the real
+geometry and semantic service objects, each with its own ServiceRunner and Zenoh session on
+loopback, frames published by the test as the bridge would.
+
+Bad inputs tried: a frame whose encoder returns no region (a normal frame: an update with no
+key is sent, nothing breaks), a frame whose encoder raises (logged, ``frames_failed`` counted,
+the next frame is processed), and a frame whose ground-truth instance image belongs to another
+image size (refused when joined; counted, the service keeps running)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from openfusion.bus import Publisher, open_session
+from openfusion.services.geometry.service import GeometryConfig, GeometryService
+from openfusion.services.semantic.service import SemanticConfig, SemanticService
+from openfusion.sources import open_source
+from openfusion.testing.bus import (
+    ServiceThread,
+    free_port,
+    loopback_config,
+    unique_map_id,
+    wait_for_services,
+    wait_until,
+)
+from openfusion.testing.encoders import FlakyEncoder
+from openfusion.wire.counters import GeometryCounter, SemanticCounter
+from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
+from openfusion.wire.schemas import InstanceFrame, RgbdFrame
+
+
+def _config(model, map_id: str, section: str, values: dict, **zenoh_ports):  # noqa: ANN001, ANN003, ANN202
+    base = loopback_config(map_id, **zenoh_ports).model_dump()
+    return model.model_validate({**base, section: values})
+
+
+def test_semantic_service_counts_failed_and_empty_frames_and_keeps_going() -> None:
+    """Six frames: frame 2 has no region, frame 3 makes the encoder raise, frame 4 carries an
+    instance image of the wrong size. Geometry integrates all six; the semantic service fuses
+    frames 0, 1, 2 and 5, counts two failures, and its dictionary has regions."""
+    map_id = unique_map_id("sem")
+    port = free_port()
+    geo_cfg = _config(GeometryConfig, map_id, "geometry", {"initial_block_count": 2048}, listen=[port])
+    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"recover_timeout_s": 0, "instance_wait_s": 10},
+                      connect=[port])
+    frames = list(open_source("synthetic:frames=6,width=160,height=120"))
+    with (
+        ServiceThread(GeometryService(geo_cfg), geo_cfg, "geometry") as geometry,
+        ServiceThread(SemanticService(sem_cfg, encoder=FlakyEncoder(empty_on=[2], fail_on=[3])), sem_cfg, "semantic") as semantic,
+    ):
+        session = open_session(loopback_config(map_id, connect=[port]))
+        try:
+            keys = geo_cfg.keys
+            rgbd = Publisher(session, SENSOR_RGBD.key(keys), message=RgbdFrame)
+            instances = Publisher(session, SENSOR_INSTANCE.key(keys), message=InstanceFrame)
+            # Both services' tokens are declared after their subscribers: once seen, frames reach both.
+            wait_for_services(session, map_id, ["geometry", "semantic"])
+            for frame in frames:
+                done_before = semantic.counter(SemanticCounter.SEMANTIC_FRAMES) + semantic.counter(
+                    SemanticCounter.FRAMES_FAILED)
+                instance = InstanceFrame.from_frame(frame)
+                if frame.frame_id == 4:  # a valid message, but for an image of another size
+                    instance = instance.model_copy(update={"instance": np.zeros((8, 8), np.int32)})
+                instances.put(instance)
+                rgbd.put(RgbdFrame.from_frame(frame, with_instance=False))
+                wait_until(lambda before=done_before: semantic.counter(SemanticCounter.SEMANTIC_FRAMES)
+                           + semantic.counter(SemanticCounter.FRAMES_FAILED) > before, timeout_s=120)
+            wait_until(lambda: geometry.counter(GeometryCounter.FRAMES_INTEGRATED) == 6, timeout_s=120)
+            wait_until(lambda: geometry.counter(GeometryCounter.UPDATES_APPLIED) == 4, timeout_s=120)
+        finally:
+            session.close()
+        assert semantic.counter(SemanticCounter.SEMANTIC_FRAMES) == 4
+        assert semantic.counter(SemanticCounter.FRAMES_FAILED) == 2
+        assert semantic.stats.errors == 2
+        assert len(semantic.app.dictionary) > 3
+        assert geometry.app.replica.embedding_space == semantic.app.dictionary.embedding_space
