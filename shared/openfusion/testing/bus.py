@@ -215,3 +215,22 @@ class ServiceThread:
             self._thread.join(scaled(30.0))
         self.runner.close()
         self.app.close()
+
+
+def wait_for_subscriber(session: zenoh.Session, key: str, *, timeout_s: float = 60.0) -> None:
+    """Wait until ``session`` knows a subscriber matching ``key`` (its declaration has arrived):
+    from then on, what this session puts on ``key`` reaches it."""
+    publisher = session.declare_publisher(key)
+    try:
+        wait_until(lambda: publisher.matching_status.matching, timeout_s=timeout_s, interval_s=0.01)
+    finally:
+        publisher.undeclare()
+
+
+def wait_for_queryable(session: zenoh.Session, key: str, *, timeout_s: float = 60.0) -> None:
+    """Wait until ``session`` knows a queryable matching ``key``: from then on its queries reach it."""
+    querier = session.declare_querier(key)
+    try:
+        wait_until(lambda: querier.matching_status.matching, timeout_s=timeout_s, interval_s=0.01)
+    finally:
+        querier.undeclare()

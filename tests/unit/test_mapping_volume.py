@@ -342,7 +342,7 @@ def test_tensor_path_matches_numpy_path(scene: AnalyticScene) -> None:
     results = []
     for use_views in (True, False):
         vol = integrated_volume()
-        vol._use_numpy_views = use_views
+        vol._storage.use_numpy_views = use_views
         keys = np.where(np.arange(160)[None, :] < 80, 2, 5).repeat(120, axis=0).astype(np.int32)
         vol.apply_update(POSES[0], K_SMALL, keys, np.full((120, 160), 0.6, np.float32))
         vol.relabel_keys({5: 6})

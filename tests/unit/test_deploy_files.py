@@ -14,11 +14,6 @@ import importlib
 import json
 import re
 import shlex
-import socket
-import threading
-import time
-from collections.abc import Callable, Iterator
-from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -104,30 +99,6 @@ def health_argv(service: dict[str, Any]) -> list[str]:
 def repo_path_of_image_path(image_path: str) -> Path:
     assert image_path.startswith(IMAGE_ROOT + "/"), f"{image_path} is not under {IMAGE_ROOT}"
     return ROOT / image_path[len(IMAGE_ROOT) + 1 :]
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-def _wait_until(predicate: Callable[[], bool], timeout_s: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(0.02)
-    return predicate()
-
-
-@contextmanager
-def _session(config: zenoh.Config) -> Iterator[zenoh.Session]:
-    session = zenoh.open(config)
-    try:
-        yield session
-    finally:
-        session.close()
 
 
 # --------------------------------------------------------------------------- docker-compose.yml
@@ -429,67 +400,6 @@ def test_plain_configs_parse_with_the_documented_modes() -> None:
     assert json.loads(client.get_json("connect/timeout_ms")) > 0
     for config in (dev, router, client):
         assert json.loads(config.get_json("scouting/multicast/enabled")) is False
-
-
-def test_plain_router_and_clients_route_between_clients() -> None:
-    """Two sessions from client.json5 talk through one from router.json5 (endpoints moved to a
-    free loopback port). Bad input guarded: a router config that cannot open, clients that need
-    multicast to find it."""
-    port = _free_port()
-    router_cfg = zenoh.Config.from_file(ZENOH_DIR / "router.json5")
-    router_cfg.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-
-    def client_cfg() -> zenoh.Config:
-        config = zenoh.Config.from_file(ZENOH_DIR / "client.json5")
-        config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-        return config
-
-    received: list[bytes] = []
-    lock = threading.Lock()
-
-    def on_sample(sample: zenoh.Sample) -> None:
-        with lock:
-            received.append(sample.payload.to_bytes())
-
-    with ExitStack() as stack:
-        stack.enter_context(_session(router_cfg))
-        subscriber_session = stack.enter_context(_session(client_cfg()))
-        publisher_session = stack.enter_context(_session(client_cfg()))
-        subscriber_session.declare_subscriber("openfusion/demo/sensor/rgbd", on_sample)
-        publisher = publisher_session.declare_publisher("openfusion/demo/sensor/rgbd")
-        assert _wait_until(lambda: publisher.matching_status.matching)
-        publisher.put(b"frame")
-        assert _wait_until(lambda: received == [b"frame"])
-
-
-def test_dev_peers_find_each_other_through_the_hub_without_multicast() -> None:
-    """Three dev.json5 peers: a hub listening on the port the others connect to, and two peers
-    that only know the hub. A put from one peer reaches the other (gossip over the hub link,
-    then a direct loopback link). Bad input guarded: a dev config that needs multicast."""
-    port = _free_port()
-
-    def dev_cfg(*, hub: bool) -> zenoh.Config:
-        config = zenoh.Config.from_file(ZENOH_DIR / "dev.json5")
-        if hub:
-            config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-            config.insert_json5("connect/endpoints", "[]")
-        else:
-            config.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-        return config
-
-    received: list[bytes] = []
-    with ExitStack() as stack:
-        stack.enter_context(_session(dev_cfg(hub=True)))
-        sender = stack.enter_context(_session(dev_cfg(hub=False)))
-        receiver = stack.enter_context(_session(dev_cfg(hub=False)))
-        receiver.declare_subscriber(
-            "openfusion/demo/sensor/rgbd", lambda sample: received.append(sample.payload.to_bytes())
-        )
-        publisher = sender.declare_publisher("openfusion/demo/sensor/rgbd")
-        assert _wait_until(lambda: publisher.matching_status.matching)
-        publisher.put(b"frame")
-        assert _wait_until(lambda: received == [b"frame"])
-        assert len(list(sender.info.peers_zid())) == 2
 
 
 # --------------------------------------------------------------------------- the real CLI

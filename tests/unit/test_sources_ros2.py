@@ -3,15 +3,12 @@ from bridged topics, plus one loopback Zenoh test."""
 
 from __future__ import annotations
 
-import socket
 import struct
-import threading
-import time
 
 import numpy as np
 import pytest
 
-from openfusion.poses import matrix_to_quat, pose_from_tum
+from openfusion.poses import matrix_to_quat
 from openfusion.sources.cdr import (
     CameraInfoMsg,
     CdrError,
@@ -30,7 +27,7 @@ from openfusion.sources.cdr import (
     encode_tf_message,
     image_to_array,
 )
-from openfusion.sources.ros2 import T_BODY_OPTICAL, Ros2Config, Ros2FrameAssembler, Ros2Source, Ros2Topics
+from openfusion.sources.ros2 import T_BODY_OPTICAL, Ros2Config, Ros2FrameAssembler, Ros2Topics
 
 MS = 1_000_000
 
@@ -241,55 +238,3 @@ def test_assembler_float_depth_tf_and_bad_messages() -> None:
     assert [s.reason for s in odo_cfg.feed("odometry", _odom(0, frame="map"))] == ["pose_wrong_frame"]
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def test_loopback_zenoh_source() -> None:
-    """End to end on loopback: a publisher session puts CDR payloads on the keys a
-    zenoh-bridge-ros2dds with namespace 'bot1' would use; Ros2Source yields the frames."""
-    import zenoh
-
-    port = _free_port()
-
-    def conf(*, listen: bool) -> zenoh.Config:
-        c = zenoh.Config()
-        c.insert_json5("mode", '"peer"')
-        c.insert_json5("scouting/multicast/enabled", "false")
-        if listen:
-            c.insert_json5("listen/endpoints", f'["tcp/127.0.0.1:{port}"]')
-        else:
-            c.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
-        return c
-
-    topics = Ros2Topics(namespace="bot1")
-    with zenoh.open(conf(listen=True)) as pub_session:
-        source = Ros2Source(Ros2Config(topics=topics), zenoh_config=conf(listen=False), idle_timeout_s=1.0)
-        assert source.keys["color"] == "bot1/camera/color/image_raw"
-        time.sleep(0.5)  # let the sessions connect and the subscriptions propagate
-        keys = source.keys
-
-        def publish() -> None:
-            for kind, payload in _stream():
-                pub_session.put(keys[kind], payload)
-                time.sleep(0.002)
-
-        thread = threading.Thread(target=publish)
-        thread.start()
-        try:
-            frames = list(source)
-        finally:
-            thread.join()
-            source.close()
-    assert [f.stamp_ns for f in frames] == [k * 100 * MS + 3 * MS for k in range(1, 6)]
-    assert source.dropped_samples == 0
-    np.testing.assert_allclose(
-        frames[-1].T_world_cam, pose_from_tum(*_pose_parts(frames[-1].stamp_ns)) @ T_BODY_OPTICAL, atol=2e-4
-    )
-
-
-def _pose_parts(t_ns: int):  # noqa: ANN202 - test helper
-    T = body_pose(t_ns)
-    return T[:3, 3], matrix_to_quat(T[:3, :3])
