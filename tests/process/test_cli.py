@@ -75,6 +75,42 @@ def test_user_errors_are_one_line_without_traceback() -> None:
     _assert_one_line_error(_run("health", "--set", "zenoh.mode=bogus"), 2, "zenoh.mode = 'bogus' (from --set zenoh.mode)")
 
 
+def _processes_mentioning(text: str) -> list[str]:
+    """Command lines of the processes on this machine that contain ``text``."""
+    found = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            args = cmdline.read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if any(text.encode() in a for a in args):
+            found.append(b" ".join(args).decode(errors="replace"))
+    return found
+
+
+def test_bad_values_are_refused_before_anything_starts(tmp_path: Path) -> None:
+    """The real command refuses a bad source, a bad --top-k and a bad service source with one line
+    and exit code 2 before it starts anything: no output folder, no service process of the map.
+    (`run --source scannet:MISSING` used to start every service and end with exit 1 after ~40 s;
+    `run --top-k 0` mapped the whole scene and ended with a pydantic traceback.)"""
+    map_id = unique_map_id("badarg")
+    out = tmp_path / "out"
+    cases = [
+        (["run", "--source", f"scannet:{tmp_path}/missing"], f"scannet source: {tmp_path}/missing does not exist"),
+        (["run", "--top-k", "0"], "--top-k 0: input should be greater than 0"),
+    ]
+    for args, text in cases:
+        proc = _run(*args, "--map", map_id, "--out", str(out), "--quiet")
+        _assert_one_line_error(proc, 2, text)
+        assert proc.stderr.startswith("openfusion run: error: "), proc.stderr
+        assert proc.stdout == ""
+    proc = _run("service", "bridge", "--source", "nosuch:/x", "--map", map_id, "--no-multicast")
+    _assert_one_line_error(proc, 2, "unknown source scheme 'nosuch' in 'nosuch:/x'")
+    assert proc.stderr.startswith("openfusion service: error: "), proc.stderr
+    assert not out.exists(), sorted(p.name for p in out.iterdir())
+    assert _processes_mentioning(map_id) == []
+
+
 def test_health_lists_a_live_service_with_its_stats() -> None:
     """With the demo service running, `openfusion health` shows it (table and JSON with its pid)."""
     map_id = unique_map_id("cli")

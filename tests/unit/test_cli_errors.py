@@ -3,7 +3,11 @@ code 2, a bug keeps its traceback, OPENFUSION_DEBUG=1 shows every traceback."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+
 import pytest
+import zenoh
 
 from openfusion.app import cli
 from openfusion.sources.base import SourceError
@@ -40,3 +44,82 @@ def test_user_errors_are_one_line_exit_2_and_bugs_keep_their_traceback(monkeypat
     monkeypatch.setenv("OPENFUSION_DEBUG", "1")
     with pytest.raises(SourceError, match="unknown source scheme"):
         cli.main(["failing"])
+
+
+class _Started(BaseException):
+    """Raised where a bad argument got as far as starting something (outside every except clause)."""
+
+
+#: One bad argument (or more) per subcommand: (argv, text the error line must contain). ``{tmp}`` is
+#: a fresh empty folder. Where the command takes a value our code checks, that value (not only an
+#: argparse choice) is used; the run's cases were refused only after its services had started.
+BAD_ARGUMENTS = [
+    (["version", "--bogus"], "unrecognized arguments: --bogus"),
+    (["router", "--listen", "notanendpoint", "--no-multicast"], "endpoint 'notanendpoint' is not of the form"),
+    (["health", "--map", "bad/map id", "--no-multicast"], "map id 'bad/map id' is not a valid key segment"),
+    (["service", "nosuch"], "invalid choice: 'nosuch'"),
+    (["service", "geometry", "--voxel-size-m", "-1", "--no-multicast"], "geometry.voxel_size_m = -1.0"),
+    (["run", "--encoder", "nosuch"], "unknown region encoder 'nosuch'; known: gt"),
+    (["run", "--source", "scannet:{tmp}/missing"], "scannet source: {tmp}/missing does not exist"),
+    (["run", "--source", "nosuch:/x"], "unknown source scheme 'nosuch' in 'nosuch:/x'; known: synthetic"),
+    (["run", "--source", "synthetic:seed"], "synthetic option 'seed' must look like key=value"),
+    (["run", "--top-k", "0"], "--top-k 0: input should be greater than 0"),
+    (["run", "--query", ""], "--query '': string should have at least 1 character"),
+    (["run", "--rerun", "bogus"], "unknown rerun sink 'bogus'"),
+    (["run", "--timeout-s", "0"], "--timeout-s must be positive, got 0"),
+    (["query", "--map-dir", "{tmp}/nomap", "chair"], "no map at {tmp}/nomap"),
+    (["query", "--top-k", "0", "chair"], "--top-k must be >= 1, got 0"),
+    (["segment", "--map-dir", "{tmp}/nomap", "--classes", "a", "--out", "{tmp}/seg.ply"], "no map at {tmp}/nomap"),
+    (["eval", "--scenes", "nosuch:1", "--out", "{tmp}/eval"], "bad scene 'nosuch:1'"),
+    (["eval", "--scenes", "scannet:{tmp}/missing", "--out", "{tmp}/eval"], "scene folder {tmp}/missing does not exist"),
+    (["eval", "--encoder", "nosuch", "--out", "{tmp}/eval"], "unknown region encoder 'nosuch'"),
+    (["render", "--map-dir", "{tmp}/nomap", "--out", "{tmp}/x.png"], "map folder {tmp}/nomap does not exist"),
+    (["export", "--map-dir", "{tmp}/nomap", "--out", "{tmp}/x.ply"], "map folder {tmp}/nomap does not exist"),
+    (["config", "--show", "nosuch"], "invalid choice: 'nosuch'"),
+    (["config", "--show", "run", "--set", "semantic.encoder=nosuch"], "semantic.encoder = 'nosuch'"),
+]
+
+
+def test_every_subcommand_is_fed_a_bad_argument() -> None:
+    """The table below covers every registered subcommand."""
+    assert {argv[0] for argv, _ in BAD_ARGUMENTS} == {c.name for c in cli.SUBCOMMANDS}
+
+
+@pytest.mark.parametrize(("argv", "expected"), BAD_ARGUMENTS, ids=[" ".join(a) for a, _ in BAD_ARGUMENTS])
+def test_a_bad_argument_is_one_line_exit_2_and_starts_nothing(
+    argv: list[str], expected: str, tmp_path, monkeypatch, capsys
+) -> None:
+    """Exit code 2, nothing on stdout, and stderr is exactly one line ``openfusion CMD: error: ...``
+    naming the bad value (argparse's errors too: the parser prints no usage block), no traceback;
+    and the value is refused before anything starts: no Zenoh session, no process, no output."""
+    def started(what: str):
+        def refuse(*_args, **_kwargs):
+            raise _Started(f"{' '.join(argv)}: {what} before the bad argument was refused")
+
+        return refuse
+
+    monkeypatch.setattr(zenoh, "open", started("a Zenoh session was opened"))
+    monkeypatch.setattr(subprocess, "Popen", started("a process was started"))
+    for name in [n for n in os.environ if n.startswith("OPENFUSION_")]:
+        monkeypatch.delenv(name)
+    tmp = str(tmp_path)
+    argv = [a.replace("{tmp}", tmp) for a in argv]
+    expected = expected.replace("{tmp}", tmp)
+    out = tmp_path / "out"
+    if argv[0] == "run":
+        argv += ["--out", str(out), "--quiet"]
+    try:
+        code = cli.main(argv)
+    except SystemExit as exc:  # argparse's own errors
+        code = exc.code
+    captured = capsys.readouterr()
+    lines = captured.err.splitlines()
+    assert code == 2, captured.err
+    assert captured.out == ""
+    assert len(lines) == 1, captured.err
+    assert lines[0].startswith(f"openfusion {argv[0]}") and ": error: " in lines[0], lines[0]
+    # The program name is the subcommand's (``openfusion service geometry`` for a service's own option).
+    assert lines[0].split(": error: ")[0] in (f"openfusion {argv[0]}", f"openfusion {' '.join(argv[:2])}"), lines[0]
+    assert expected in lines[0], lines[0]
+    assert "Traceback" not in captured.err
+    assert sorted(p.name for p in tmp_path.iterdir()) == [], "the command wrote files for a bad argument"

@@ -37,6 +37,9 @@ EXIT_OK, EXIT_FAILURE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 class OneLineParser(argparse.ArgumentParser):
     """argparse with usage errors on one line (``openfusion run: error: ... (see --help)``), exit 2."""
 
+    #: The subcommands' parsers by name (set on the top-level parser by :func:`build_parser`).
+    subcommand_parsers: dict[str, argparse.ArgumentParser]
+
     def error(self, message: str) -> NoReturn:
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
@@ -113,8 +116,10 @@ def build_parser(argv: Sequence[str] = ()) -> tuple[argparse.ArgumentParser, dic
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=OneLineParser)
     chosen = _chosen(argv, {c.name for c in SUBCOMMANDS})
     loaded: dict[str, Any] = {}
+    parser.subcommand_parsers = {}
     for command in SUBCOMMANDS:
         sp = sub.add_parser(command.name, help=command.help, description=command.help)
+        parser.subcommand_parsers[command.name] = sp
         if command.name == chosen:
             loaded[command.name] = command.load()
             loaded[command.name].add_arguments(sp)
@@ -125,7 +130,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``openfusion`` console script; returns the exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser, loaded = build_parser(argv)
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # named by the subcommand they were given to: `openfusion run: error: ...`
+        parser.subcommand_parsers.get(args.command, parser).error(f"unrecognized arguments: {' '.join(unknown)}")
     if args.command is None:
         parser.print_help(sys.stderr)
         return EXIT_USAGE

@@ -23,8 +23,11 @@ import argparse
 import logging
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
+
+from pydantic import ValidationError
 
 from openfusion.app.launcher import Cluster, RunError, wait_for_services
 from openfusion.app.outputs import open_rerun, surface_mesh, write_query_outputs
@@ -34,13 +37,17 @@ from openfusion.bus import collect_health, free_loopback_port, open_session
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings, add_section_options, config_from_args
 from openfusion.errors import UsageError
+from openfusion.sources.registry import check_source_spec
 from openfusion.wire.counters import BridgeCounter, GeometryCounter, SemanticCounter
 from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
 from openfusion.wire.keys import validate_map_id
+from openfusion.wire.schemas import TextQuery
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_QUERIES = ("chair", "table", "something to sit on", "a plant", "monitor")
+#: Points returned with each example query's regions.
+QUERY_MAX_POINTS = 50_000
 SERVICE_START_TIMEOUT_S = 180.0
 
 
@@ -92,7 +99,7 @@ def run_services(args: argparse.Namespace, config: RunConfig) -> RunSummary:
         client.control("save", str((out / "map").resolve()))
         replies = []
         for text in args.queries:
-            reply = client.query_text(text, top_k=args.top_k, with_points=True, max_points=50_000)
+            reply = client.query_text(text, top_k=args.top_k, with_points=True, max_points=QUERY_MAX_POINTS)
             replies.append((text, reply.embedding_space, reply.regions))
         mesh = client.mesh()
         write_query_outputs(out, replies, (mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys),
@@ -154,6 +161,18 @@ def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster) ->
     return stats
 
 
+def _check_queries(queries: Sequence[str], top_k: int) -> None:
+    """Refuse example queries the query service would refuse (empty text, ``--top-k`` out of range)
+    with the limits of its request message, before the scene is mapped."""
+    for text in queries:
+        try:
+            TextQuery(text=text, top_k=top_k, with_points=True, max_points=QUERY_MAX_POINTS)
+        except ValidationError as exc:
+            err = exc.errors(include_url=False)[0]
+            flag = {"text": "--query", "top_k": "--top-k"}.get(str(err["loc"][0]), str(err["loc"][0]))
+            raise UsageError(f"{flag} {err['input']!r}: {err['msg'][:1].lower()}{err['msg'][1:]}") from None
+
+
 def _say(args: argparse.Namespace, text: str) -> None:
     if not args.quiet:
         print(text, file=sys.stderr, flush=True)
@@ -190,8 +209,21 @@ class RunCommand:
         validate_map_id(args.map_id)
         if args.frames <= 0:
             raise UsageError(f"--frames must be positive, got {args.frames}")
+        if args.timeout_s <= 0:
+            raise UsageError(f"--timeout-s must be positive, got {args.timeout_s:g}")
+        _check_queries(args.queries or DEFAULT_QUERIES, args.top_k)
+        if args.rerun:  # the sink's form and the package; the run opens the sink only after the router
+            from openfusion.viz.errors import MissingDependencyError
+            from openfusion.viz.rerun_log import parse_sink, rerun_available
+
+            parse_sink(args.rerun)
+            if not rerun_available():
+                raise MissingDependencyError("rerun-sdk", "--rerun")
         config = config_from_args(args, RunConfig, sections=list(RUN_FLAGS))
         config.map_id = args.map_id
+        # The source's form (scheme, path, options): the bridge would refuse it only after the other
+        # services had started.
+        check_source_spec(config.bridge.source)
         if config.bridge.source == "synthetic":
             # The built-in scene: one lap of the room in the frames played, so the map covers it.
             config.bridge.source = f"synthetic:lap={args.frames}"

@@ -8,6 +8,7 @@ Specs::
 
 ``options`` are keyword arguments of the reader class (e.g. ``stride=2``, ``max_frames=100``,
 ``intrinsics=...``); readers are imported only when their scheme is used.
+``check_source_spec(spec)`` checks a spec's form (scheme, path, options) without opening it.
 """
 
 from __future__ import annotations
@@ -29,35 +30,49 @@ def _synthetic(rest: str, options: dict[str, Any]) -> FrameSource:
     return open_synthetic(parse_key_values(rest, scheme="synthetic"), **options)
 
 
+def _existing_path(module: str, rest: str) -> Path:
+    if not rest:
+        raise SourceError(f"source spec needs a path after the scheme, e.g. {module}:/data/scene")
+    path = Path(rest).expanduser()
+    if not path.exists():
+        raise SourceError(f"{module} source: {path} does not exist (check the path after '{module}:')")
+    return path
+
+
 def _path_reader(module: str, cls: str) -> Callable[[str, dict[str, Any]], FrameSource]:
     def build(rest: str, options: dict[str, Any]) -> FrameSource:
         import importlib
 
-        if not rest:
-            raise SourceError(f"source spec needs a path after the scheme, e.g. {module}:/data/scene")
-        path = Path(rest).expanduser()
-        if not path.exists():
-            raise SourceError(f"{module} source: {path} does not exist (check the path after '{module}:')")
+        path = _existing_path(module, rest)
         reader = getattr(importlib.import_module(f"openfusion.sources.{module}"), cls)
         return reader(path, **options)
 
     return build
 
 
-def _replay(rest: str, options: dict[str, Any]) -> FrameSource:
+def _recording(rest: str) -> Path:
     if not rest:
         raise SourceError("source spec needs a file after the scheme, e.g. replay:/data/run.ofrec")
     path = Path(rest).expanduser()
     if not path.is_file():
         raise SourceError(f"replay source: recording {path} does not exist (record one with FrameRecorder)")
+    return path
+
+
+def _replay(rest: str, options: dict[str, Any]) -> FrameSource:
+    path = _recording(rest)
     from openfusion.sources.record import ReplaySource
 
     return ReplaySource(path, **options)
 
 
-def _live(rest: str, options: dict[str, Any]) -> FrameSource:
+def _live_devices(rest: str) -> None:
     if rest not in ("", "kinect-t265"):
         raise SourceError(f"unknown live device set {rest!r}; supported: live:kinect-t265")
+
+
+def _live(rest: str, options: dict[str, Any]) -> FrameSource:
+    _live_devices(rest)
     from openfusion.sources.live import KinectT265Source
 
     return KinectT265Source(**options)
@@ -75,6 +90,15 @@ _SCHEMES: dict[str, Callable[[str, dict[str, Any]], FrameSource]] = {
 }
 
 SCHEMES: tuple[str, ...] = tuple(_SCHEMES)
+
+#: What :func:`check_source_spec` checks per scheme (the cheap part of opening: no reader imported).
+_CHECKS: dict[str, Callable[[str], object]] = {
+    "synthetic": lambda rest: parse_key_values(rest, scheme="synthetic"),
+    **{scheme: (lambda rest, scheme=scheme: _existing_path(scheme, rest))
+       for scheme in ("scannet", "replica", "tum", "redwood", "folder")},
+    "replay": _recording,
+    "live": _live_devices,
+}
 
 
 def parse_key_values(text: str, *, scheme: str) -> dict[str, str]:
@@ -106,16 +130,13 @@ def _guess_scheme(path: Path) -> str | None:
     return None
 
 
-def open_source(spec: str, **options: Any) -> FrameSource:
-    """Open a frame source from ``scheme:argument`` (see module docstring).
-
-    Raises :class:`SourceError` (a user error) for an unknown scheme, bad options, a missing path
-    or a folder its reader cannot read.
-    """
+def _split_spec(spec: str) -> tuple[str, str, str]:
+    """(stripped spec, known scheme, rest after ``scheme:``); SourceError for an empty spec or an
+    unknown scheme."""
     if not isinstance(spec, str) or not spec.strip():
         raise SourceError(f"source spec must be a non-empty string like 'synthetic' or 'scannet:PATH', got {spec!r}")
     spec = spec.strip()
-    scheme, sep, rest = spec.partition(":")
+    scheme, _sep, rest = spec.partition(":")
     scheme = scheme.lower()
     if scheme not in _SCHEMES:
         hint = ""
@@ -123,8 +144,29 @@ def open_source(spec: str, **options: Any) -> FrameSource:
         if guess is not None:
             hint = f"; {spec!r} looks like a {guess} source: use '{guess}:{spec}'"
         raise SourceError(f"unknown source scheme {scheme!r} in {spec!r}; known: {', '.join(SCHEMES)}{hint}")
+    return spec, scheme, rest
+
+
+def check_source_spec(spec: str) -> str:
+    """Refuse a spec :func:`open_source` would refuse for its form, without opening the source:
+    an unknown scheme, a missing path or recording, malformed ``key=value`` options, an unknown live
+    device set. Nothing is imported or read, so a command can check a source before it starts
+    anything (``openfusion run``); the reader still checks the folder's contents when it opens.
+    Returns the stripped spec; raises :class:`SourceError`."""
+    spec, scheme, rest = _split_spec(spec)
+    _CHECKS[scheme](rest)
+    return spec
+
+
+def open_source(spec: str, **options: Any) -> FrameSource:
+    """Open a frame source from ``scheme:argument`` (see module docstring).
+
+    Raises :class:`SourceError` (a user error) for an unknown scheme, bad options, a missing path
+    or a folder its reader cannot read.
+    """
+    spec, scheme, rest = _split_spec(spec)
     try:
-        source = _SCHEMES[scheme](rest if sep else "", options)
+        source = _SCHEMES[scheme](rest, options)
     except OpenFusionError:
         raise
     except (ValueError, TypeError, OSError) as exc:  # a reader refusing its folder or options
