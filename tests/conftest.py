@@ -39,6 +39,16 @@ def map_id() -> str:
     return unique_map_id("test")
 
 
+@pytest.fixture(scope="session")
+def minilm_onnx_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A cache folder (``OPENFUSION_CACHE``) holding the MiniLM ONNX export, made once per session."""
+    from openfusion.encoders.text_minilm_onnx import cached_onnx_model
+
+    cache = tmp_path_factory.mktemp("openfusion-cache")
+    cached_onnx_model(cache_dir=cache)
+    return cache
+
+
 @pytest.fixture
 def small_volume_params() -> VolumeParams:
     """Volume parameters with a small initial grid (the default preallocates a room: 230 MiB)."""

@@ -52,7 +52,7 @@ from openfusion.mapping import (
     save_map,
 )
 from openfusion.mapping.mapfile import resolve_map_path
-from openfusion.mapping.queries import region_summaries
+from openfusion.mapping.queries import RegionTable
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
 from openfusion.wire.counters import GeometryCounter
@@ -141,24 +141,26 @@ def check_update(msg: SemanticUpdate) -> None:
 
 
 class _Summary:
-    """A computed region summary of one map version (arrays of :func:`region_summaries`)."""
+    """The region table (:class:`RegionTable`) of one map version: what ``geometry/regions``
+    answers, and what a checkpoint of that version stores without reading the surface again."""
 
-    def __init__(self, map_version: int, key_horizon: int, arrays: tuple[np.ndarray, ...]) -> None:
+    def __init__(self, map_version: int, key_horizon: int, table: RegionTable) -> None:
         self.map_version = map_version
         self.key_horizon = key_horizon
-        self.keys, self.bbox_min, self.bbox_max, self.num_points = arrays
+        self.table = table
         self.computed_at = time.monotonic()
 
     def reply(self, keys: list[int] | None) -> RegionSummaryReply:
-        sel = slice(None) if keys is None else np.isin(self.keys, np.asarray(keys, np.int64))
+        t = self.table
+        sel = slice(None) if keys is None else np.isin(t.keys, np.asarray(keys, np.int64))
         return RegionSummaryReply(
             map_version=self.map_version,
             key_horizon=self.key_horizon,
             age_s=max(0.0, time.monotonic() - self.computed_at),
-            keys=self.keys[sel],
-            bbox_min=self.bbox_min[sel],
-            bbox_max=self.bbox_max[sel],
-            num_points=self.num_points[sel],
+            keys=t.keys[sel],
+            bbox_min=t.bbox_min[sel],
+            bbox_max=t.bbox_max[sel],
+            num_points=t.num_points[sel],
         )
 
 
@@ -219,11 +221,16 @@ class GeometryService:
         with self._lock:
             # A geometry-only map (semantics off) is saved with an empty placeholder dictionary.
             dictionary = self.replica.dictionary or RegionDictionary(NO_EMBEDDING_SPACE, 1)
+            # The region table of this very map version when a query already had it computed (a
+            # surface read-out saved); else save_map reads the surface out once.
+            cached = self._summary
+            regions = cached.table if cached is not None and cached.map_version == self.map_version else None
             written = save_map(
                 target,
                 self.volume,
                 dictionary,
                 meta={"map_id": self.config.map_id, "frames_integrated": self.frames_integrated},
+                regions=regions,
             )
             self._dirty = False
         self._last_checkpoint = time.monotonic()
@@ -356,10 +363,10 @@ class GeometryService:
                 with self._lock:
                     version, horizon = self.map_version, self._key_horizon
                     pts = self.volume.extract_points()
-                arrays = region_summaries(pts.keys, pts.points)
-                if len(arrays[0]):  # keys present in the map (e.g. loaded from a checkpoint) are covered too
-                    horizon = max(horizon, int(arrays[0][-1]) + 1)
-                cached = self._summary = _Summary(version, horizon, arrays)
+                table = RegionTable.of_points(pts.keys, pts.points)
+                if len(table):  # keys present in the map (e.g. loaded from a checkpoint) are covered too
+                    horizon = max(horizon, int(table.keys[-1]) + 1)
+                cached = self._summary = _Summary(version, horizon, table)
         return cached.reply(req.keys)
 
     def handle_mesh(self, req: MeshRequest) -> MeshReply:

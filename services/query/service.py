@@ -12,8 +12,11 @@
 | ``…/health/query`` | liveliness + stats | counters ``queries``, ``regions``, ``dictionary_resyncs``, ``summary_fetches``, ``summary_failures`` |
 
 It answers from the latest dictionary it has and never blocks mapping. Regions the cached
-summary knows to have no surface points (every voxel taken over by other regions) are left out
-of rankings, so ``top_k`` answers are regions with geometry (see ``drop_empty_regions``). A query whose
+summary knows to have fewer than ``min_region_points`` (default 50) surface points (stray
+fragments of a few voxels, regions whose voxels were taken over by other regions) are left out of
+rankings, so ``top_k`` answers are regions with geometry (see ``drop_empty_regions``); the parameter
+is declared once in :class:`~openfusion.mapping.params.QueryParams`, which ``openfusion query
+--map-dir`` applies to saved maps too. A query whose
 embedding space differs from the map's is refused with ``reply_err`` (code
 ``embedding_space_mismatch``) naming both spaces.
 
@@ -50,8 +53,9 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from openfusion.bus import QueryError, RequestError, ServiceRunner
-from openfusion.config import ConfigSection, ServiceConfig
+from openfusion.config import ServiceConfig
 from openfusion.encoders import TEXT_ENCODER_NAMES, make_text_encoder
+from openfusion.mapping.params import QueryParams
 from openfusion.mapping.queries import candidates_for, region_summaries, subsample_points
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
@@ -81,8 +85,8 @@ from openfusion.wire.schemas import (
 logger = logging.getLogger(__name__)
 
 
-class QuerySection(ConfigSection):
-    """The query service's settings."""
+class QuerySection(QueryParams):
+    """The query service's settings (``min_region_points`` comes from :class:`QueryParams`)."""
 
     text_encoder: str = Field(
         "minilm", description=f"text encoder of the map's embedding space: {', '.join(TEXT_ENCODER_NAMES)}"
@@ -151,13 +155,14 @@ class RegionSummaries:
 
 
 def drop_empty_regions(
-    ranked: list[tuple[int, float]], summaries: RegionSummaries | None
+    ranked: list[tuple[int, float]], summaries: RegionSummaries | None, *, min_points: int = 1
 ) -> list[tuple[int, float]]:
-    """``ranked`` without the regions the summary knows to have no surface points (every voxel
-    they labelled was taken over by other regions); regions it does not know yet stay."""
+    """``ranked`` without the regions the summary knows to have fewer than ``min_points`` surface
+    points (stray fragments; 0 when every voxel they labelled was taken over by other regions);
+    regions it does not know yet stay."""
     if summaries is None:
         return list(ranked)
-    return [(k, s) for k, s in ranked if not (summaries.covers(k) and summaries.get(k)[2] == 0)]
+    return [(k, s) for k, s in ranked if not (summaries.covers(k) and summaries.get(k)[2] < min_points)]
 
 
 def region_hits(
@@ -338,7 +343,7 @@ class QueryService:
     ) -> QueryReply:
         ranked = self.replica.top_k(vector, candidates_for(top_k))
         summaries = self._summaries_for([k for k, _ in ranked])
-        ranked = drop_empty_regions(ranked, summaries)[:top_k]
+        ranked = drop_empty_regions(ranked, summaries, min_points=self.section.min_region_points)[:top_k]
         keys = [k for k, _ in ranked]
         points = None
         if with_points:  # the points themselves: only geometry has them (box and count from them too)

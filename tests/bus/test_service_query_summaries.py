@@ -351,3 +351,34 @@ def test_ranked_regions_known_to_be_empty_are_dropped() -> None:
     ranked = [(4, 0.9), (1, 0.8), (2, 0.7), (12, 0.6)]
     assert drop_empty_regions(ranked, summaries) == [(1, 0.8), (12, 0.6)]
     assert drop_empty_regions(ranked, None) == ranked
+
+
+def test_query_service_leaves_out_regions_below_min_region_points() -> None:
+    """The query service and saved-map queries share one declaration (QueryParams, default 50):
+    a region the summary knows to have 2 surface points is not an answer, even at score 1."""
+    from openfusion.mapping.params import QueryParams
+    from openfusion.wire.schemas import RegionSummaryReply, TextQuery
+
+    assert QuerySection().min_region_points == QueryParams().min_region_points == 50
+    dictionary = RegionDictionary(TEXT.embedding_space, TEXT.dim)
+    for name in ("chair", "table", "lamp"):
+        dictionary.add(TEXT.encode([name])[0], label=name)
+    fragment = dictionary.add(dictionary.embedding(0), label="chair")  # ties with key 0 at score 1
+    service = QueryService(QueryConfig(map_id="unit"), text_encoder=TEXT)
+    service.replica.apply_snapshot(dictionary.snapshot())
+    reply = RegionSummaryReply(
+        map_version=1,
+        key_horizon=fragment + 1,
+        keys=np.array([0, 1, 2, fragment], np.int32),
+        bbox_min=np.zeros((4, 3), np.float32),
+        bbox_max=np.ones((4, 3), np.float32),
+        num_points=np.array([400, 300, 200, 2], np.int64),
+    )
+    service.summaries = RegionSummaries(reply, fetched_at=0.0)
+    text = "chair"
+    answer = service.handle_text(TextQuery(text=text, top_k=3))
+    assert fragment not in [h.key for h in answer.regions] and answer.regions[0].key == 0
+    loose = QueryService(QueryConfig(map_id="unit", query=QuerySection(min_region_points=1)), text_encoder=TEXT)
+    loose.replica.apply_snapshot(dictionary.snapshot())
+    loose.summaries = service.summaries
+    assert fragment in [h.key for h in loose.handle_text(TextQuery(text=text, top_k=3)).regions[:2]]

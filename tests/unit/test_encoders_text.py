@@ -81,3 +81,59 @@ def test_minilm_single_text_path_gives_the_batch_path_embedding(minilm):
     assert minilm._direct_path_ok()  # the fast path is the one being compared
     np.testing.assert_allclose(singles, batch, atol=1e-5)
     assert np.allclose(np.linalg.norm(singles, axis=1), 1.0, atol=1e-5)
+
+
+# ------------------------------------------------------------------- MiniLM through onnxruntime
+
+PHRASES = [
+    "chair", "a chair", "something to sit on near the window", "x", "A Potted PLANT!", "  monitor  ",
+    "été café naïve", "the 3 red sofas, 2 lamps & 1 bookshelf", "office chair", "where can I put my cup?",
+]  # fmt: skip
+LONG = "the quick brown fox jumps over the lazy dog " * 30  # over max_seq_length (256 tokens): truncated
+
+
+def test_minilm_onnx_gives_the_sentence_transformers_embeddings(minilm, minilm_onnx_cache):
+    """The onnxruntime + tokenizers path embeds like sentence-transformers (to 1e-4) in the same
+    space, batched and one text at a time."""
+    from openfusion.encoders.text_minilm_onnx import MiniLMOnnxTextEncoder
+
+    lean = make_text_encoder("minilm", backend="onnxruntime", device="cpu", cache_dir=minilm_onnx_cache)
+    assert isinstance(lean, MiniLMOnnxTextEncoder)
+    assert (lean.embedding_space, lean.dim) == (minilm.embedding_space, minilm.dim)
+    want = minilm.encode(PHRASES)
+    got = lean.encode(PHRASES)
+    assert got.shape == want.shape and got.dtype == np.float32
+    np.testing.assert_allclose(got, want, atol=1e-4, rtol=0)
+    for i in (0, 2, len(PHRASES) - 1):
+        np.testing.assert_allclose(lean.encode([PHRASES[i]])[0], want[i], atol=1e-4, rtol=0)
+    np.testing.assert_allclose(lean.encode([LONG]), minilm.encode([LONG]), atol=1e-4, rtol=0)
+    small_batches = make_text_encoder("minilm", backend="onnxruntime", device="cpu", batch_size=3,
+                                      cache_dir=minilm_onnx_cache)
+    np.testing.assert_allclose(small_batches.encode(PHRASES), want, atol=1e-4, rtol=0)
+    assert lean.encode([]).shape == (0, 384)
+    with pytest.raises(EncoderError, match="text 1 is empty"):
+        lean.encode(["chair", " "])
+
+
+def test_minilm_onnx_uses_its_cache_and_falls_back_when_the_export_fails(
+    minilm_onnx_cache, tmp_path, monkeypatch, caplog
+):
+    """With the export in the cache, no export runs; when the export fails (e.g. no torch), the
+    encoder is sentence-transformers', a log line says so, and no partial file is left behind."""
+    from openfusion.encoders import text_minilm_onnx
+    from openfusion.encoders.text_minilm import MiniLMTextEncoder
+
+    def broken_export(model_dir, out):
+        out.write_bytes(b"half a model")
+        raise ImportError("No module named 'torch'")
+
+    monkeypatch.setattr(text_minilm_onnx, "export_minilm_onnx", broken_export)
+    cached = make_text_encoder("minilm", backend="onnxruntime", device="cpu", cache_dir=minilm_onnx_cache)
+    assert isinstance(cached, text_minilm_onnx.MiniLMOnnxTextEncoder)
+    with caplog.at_level("WARNING", logger="openfusion.encoders.text_minilm_onnx"):
+        fallback = make_text_encoder("minilm", backend="onnxruntime", device="cpu", cache_dir=tmp_path)
+    assert type(fallback) is MiniLMTextEncoder
+    assert "using sentence-transformers" in caplog.text and "torch" in caplog.text
+    assert not list((tmp_path / text_minilm_onnx.CACHE_SUBDIR).glob("*.onnx*"))
+    with pytest.raises(EncoderError, match="unknown MiniLM backend"):
+        make_text_encoder("minilm", backend="tensorflow")

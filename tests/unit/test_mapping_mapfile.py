@@ -12,11 +12,15 @@ import pytest
 from openfusion.frame import CameraIntrinsics
 from openfusion.mapping import (
     MapFormatError,
+    QueryParams,
     RegionDictionary,
+    RegionTable,
     SemanticMapper,
     SemanticVolume,
     VolumeParams,
     load_map,
+    load_map_summary,
+    query_region_table,
     query_regions,
     save_map,
     segment_points,
@@ -30,6 +34,7 @@ from openfusion.testing.analytic_scene import (
     category_embedding,
     observation_from_instances,
 )
+from openfusion.testing.maps import plant_small_region, strip_region_summaries
 
 K_FULL = CameraIntrinsics(160, 120, 131.25, 131.25, 79.5, 59.5)
 DIM = 16
@@ -169,3 +174,86 @@ def test_single_array_file_is_refused(tmp_path: Path) -> None:
         np.save(fh, np.arange(5))
     with pytest.raises(MapFormatError, match="not an OpenFusion-Z map"):
         load_map(path)
+
+
+# ----------------------------------------------------------------------- region summaries
+
+
+def _rows(results: list) -> list[tuple]:
+    return [(r.key, round(r.score, 6), r.label, r.num_points) for r in results]
+
+
+def test_summary_answers_equal_the_full_map_answers(mapper: SemanticMapper, tmp_path: Path) -> None:
+    """A saved map carries per-region summaries (count, centroid, 1st-99th percentile box) of its
+    surface; ``load_map_summary`` reads them and the dictionary without the volume, and a query
+    from them returns the same regions, scores, counts and boxes as one from the loaded volume."""
+    path = save_map(tmp_path / "site", mapper.volume, mapper.dictionary)
+    summary = load_map_summary(path)
+    assert summary is not None and summary.volume_params == mapper.volume.params
+    surface = mapper.volume.extract_points()
+    want = RegionTable.of_points(surface.keys, surface.points)
+    np.testing.assert_array_equal(summary.regions.keys, want.keys)
+    np.testing.assert_array_equal(summary.regions.num_points, want.num_points)
+    for name in ("centroid", "bbox_min", "bbox_max"):
+        np.testing.assert_allclose(getattr(summary.regions, name), getattr(want, name), atol=1e-6)
+    chair = next(int(k) for k in want.keys if mapper.dictionary.label(int(k)) == "chair")
+    np.testing.assert_allclose(summary.regions.centroid[summary.regions.row(chair)],
+                               surface.points[surface.keys == chair].mean(axis=0), atol=1e-5)
+    loaded = load_map(path)
+    for name in ("chair", "table", "wall", "floor"):
+        vector = category_embedding(name, DIM)
+        for top_k in (1, 3, 5):
+            full = query_regions(loaded.dictionary, loaded.volume, vector, top_k)
+            lean = query_region_table(summary.dictionary, summary.regions, vector, top_k)
+            assert _rows(lean) == _rows(full) and lean
+            for a, b in zip(lean, full, strict=True):
+                np.testing.assert_allclose(a.bbox_min, b.bbox_min, atol=1e-6)
+                np.testing.assert_allclose(a.bbox_max, b.bbox_max, atol=1e-6)
+
+
+def test_a_region_of_a_few_points_is_not_an_answer(mapper: SemanticMapper, tmp_path: Path) -> None:
+    """A stray fragment (a region of a few surface points with the chair's embedding, so it ties
+    with the chair at score 1) is left out by both query paths under the declared default
+    ``min_region_points``, and comes back only when the caller asks for regions that small."""
+    chair = next(int(k) for k in mapper.dictionary.snapshot().keys if mapper.dictionary.label(int(k)) == "chair")
+    volume, dictionary, fragment = plant_small_region(mapper.volume, mapper.dictionary, like_key=chair,
+                                                      label="chair fragment")
+    path = save_map(tmp_path / "m.npz", volume, dictionary)
+    summary = load_map_summary(path)
+    assert summary is not None
+    n = int(summary.regions.num_points[summary.regions.row(fragment)])
+    assert 0 < n < QueryParams().min_region_points == 50
+    vector = category_embedding("chair", DIM)
+    for results in (query_regions(dictionary, volume, vector, 3),
+                    query_region_table(summary.dictionary, summary.regions, vector, 3)):
+        assert results[0].key == chair and fragment not in [r.key for r in results] and len(results) == 3
+        assert all(r.num_points >= 50 for r in results)
+    for results in (query_regions(dictionary, volume, vector, 3, min_points=1),
+                    query_region_table(summary.dictionary, summary.regions, vector, 3, min_points=1)):
+        assert fragment in [r.key for r in results[:2]]
+
+
+def test_map_saved_without_summaries_still_loads(mapper: SemanticMapper, tmp_path: Path) -> None:
+    """A map saved before summaries were stored: ``load_map`` reads it as before and
+    ``load_map_summary`` says there are none (None), so a query falls back to the volume."""
+    path = save_map(tmp_path / "m.npz", mapper.volume, mapper.dictionary)
+    old = strip_region_summaries(path, tmp_path / "old.npz")
+    with np.load(old) as npz:
+        assert not [n for n in npz.files if n.startswith("summary_")]
+    assert load_map_summary(old) is None
+    assert answers(load_map(old).volume, load_map(old).dictionary) == answers(mapper.volume, mapper.dictionary)
+
+
+def test_corrupt_summaries_are_refused_by_both_readers(mapper: SemanticMapper, tmp_path: Path) -> None:
+    """The summary members are checked like every array (the zip's and the header's CRC-32):
+    flipped bytes in them fail both ``load_map_summary`` and ``load_map`` (refused whole)."""
+    path = save_map(tmp_path / "m.npz", mapper.volume, mapper.dictionary)
+    data = bytearray(path.read_bytes())
+    start = data.find(b"summary_num_points.npy")
+    assert start > 0
+    offset = data.find(b"\n", data.find(b"{'descr'", start)) + 1  # first byte after the .npy header
+    data[offset : offset + 4] = bytes(b ^ 0xFF for b in data[offset : offset + 4])
+    path.write_bytes(bytes(data))
+    for read in (load_map_summary, load_map):
+        with pytest.raises(MapFormatError, match=r"CRC.*summary_num_points|summary_num_points.*CRC"):
+            read(path)

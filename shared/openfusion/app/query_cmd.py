@@ -6,12 +6,23 @@
 
 ``segment`` writes a binary little-endian PLY of the map's surface points with float ``x y z``
 and int ``label`` (index into the class list, -1 where the point has no region).
+
+``query --map-dir`` without ``--out`` reads only the map's dictionary and region summaries
+(:func:`openfusion.mapping.mapfile.load_map_summary`, never the volume) and embeds the text with
+MiniLM through onnxruntime (no torch import once the model is exported, see
+:mod:`openfusion.encoders.text_minilm_onnx`): well under 2 s cold. ``--out`` (points) and maps
+saved before summaries were stored (a log line says so) read the whole map. Regions with fewer than
+``--min-region-points`` surface points are not answers (the query service's ``min_region_points``).
+``OPENFUSION_QUERY_LEGACY=1`` answers as before all this (whole map, sentence-transformers), for
+benchmarks and cross-checks.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -19,6 +30,11 @@ from typing import Any
 import numpy as np
 
 from openfusion.config import add_config_arguments, config_from_args, setup_logging
+
+logger = logging.getLogger(__name__)
+
+#: ``1``: ``query --map-dir`` reads the whole map and uses sentence-transformers (the old path).
+LEGACY_PATH_ENV = "OPENFUSION_QUERY_LEGACY"
 
 
 def _load_saved_map(map_dir: Path) -> Any:
@@ -34,11 +50,56 @@ def _load_saved_map(map_dir: Path) -> Any:
         raise UsageError(f"cannot read the map at {map_dir}: {exc}") from None
 
 
-def _text_encoder_for(space: str, name: str | None) -> Any:
+def _load_saved_summary(map_dir: Path) -> Any:
+    """The map's dictionary + region summaries; None when it has none (saved before they were
+    stored) or cannot be read this way (then :func:`_load_saved_map` reads it or names the problem)."""
+    from openfusion.mapping import MapFormatError, load_map_summary
+    from openfusion.mapping.mapfile import resolve_map_path
+
+    if not resolve_map_path(map_dir).exists():
+        return None
+    try:
+        summary = load_map_summary(map_dir)
+    except MapFormatError:
+        return None
+    if summary is None:
+        logger.warning("the map at %s has no region summaries (saved before they were stored): reading the "
+                       "whole map, which is slow; save it again to make queries fast", map_dir)
+    return summary
+
+
+def _answer_saved_map(args: argparse.Namespace, with_points: bool) -> tuple[str, list[Any]]:
+    """(embedding space, ranked regions) of a saved map: from its summaries when they suffice."""
+    from openfusion.errors import UsageError
+    from openfusion.mapping.params import default_min_region_points
+    from openfusion.mapping.queries import query_region_table, query_regions
+
+    least = default_min_region_points() if args.min_region_points is None else args.min_region_points
+    if least < 1:
+        raise UsageError(f"--min-region-points must be >= 1, got {least}")
+    legacy = os.environ.get(LEGACY_PATH_ENV, "") == "1"
+    summary = None if (with_points or legacy) else _load_saved_summary(args.map_dir)
+    if summary is not None:
+        space = summary.dictionary.embedding_space
+        encoder = _text_encoder_for(space, args.text_encoder)
+        return space, query_region_table(summary.dictionary, summary.regions, encoder.encode([args.text])[0],
+                                         args.top_k, min_points=least)
+    loaded = _load_saved_map(args.map_dir)
+    space = loaded.dictionary.embedding_space
+    encoder = _text_encoder_for(space, args.text_encoder, lean=not legacy)
+    return space, query_regions(loaded.dictionary, loaded.volume, encoder.encode([args.text])[0], args.top_k,
+                                with_points=with_points, max_points=200_000, min_points=least)
+
+
+def _text_encoder_for(space: str, name: str | None, *, lean: bool = True) -> Any:
+    """The text encoder by name; MiniLM through onnxruntime when ``lean`` (sentence-transformers
+    when that is unavailable, logged)."""
     from openfusion.encoders import make_text_encoder
     from openfusion.errors import UsageError
 
-    encoder = make_text_encoder(name or "minilm")
+    name = name or "minilm"
+    minilm = name.strip().lower() in ("minilm", "gt")
+    encoder = make_text_encoder(name, **({"backend": "onnxruntime"} if lean and minilm else {}))
     if encoder.embedding_space != space:
         raise UsageError(f"the map is in embedding space {space!r} but --text-encoder gives {encoder.embedding_space!r}")
     return encoder
@@ -74,12 +135,17 @@ def _write_points(path: Path, regions: list[Any]) -> int:
 class QueryCommand:
     @staticmethod
     def add_arguments(parser: argparse.ArgumentParser) -> None:
+        from openfusion.mapping.params import default_min_region_points
+
         parser.add_argument("text", help="what to look for, e.g. 'something to sit on'")
         parser.add_argument("--map-dir", type=Path, help="query a saved map folder instead of running services")
         parser.add_argument("--top-k", type=int, default=5, help="regions to return (default 5)")
         parser.add_argument("--json", action="store_true", help="print JSON")
         parser.add_argument("--out", type=Path, help="write the points of the returned regions to this PLY")
         parser.add_argument("--text-encoder", help="text encoder (default: minilm, the gt encoder's space)")
+        parser.add_argument("--min-region-points", type=int, metavar="N",
+                            help="with --map-dir: regions with fewer surface points are not answers "
+                                 f"(default: the query service's min_region_points, {default_min_region_points()})")
         parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the services")
         add_config_arguments(parser)
 
@@ -91,13 +157,7 @@ class QueryCommand:
             raise UsageError(f"--top-k must be >= 1, got {args.top_k}")
         with_points = args.out is not None
         if args.map_dir is not None:
-            from openfusion.mapping import query_regions
-
-            loaded = _load_saved_map(args.map_dir)
-            space = loaded.dictionary.embedding_space
-            encoder = _text_encoder_for(space, args.text_encoder)
-            regions = query_regions(loaded.dictionary, loaded.volume, encoder.encode([args.text])[0], args.top_k,
-                                    with_points=with_points, max_points=200_000)
+            space, regions = _answer_saved_map(args, with_points)
         else:
             from openfusion.client import OpenFusionClient
 

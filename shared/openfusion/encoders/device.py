@@ -37,6 +37,22 @@ def select_device(preference: str = "auto") -> str:
     return device
 
 
+def select_onnx_device(preference: str = "auto") -> str:
+    """Return ``"cpu"`` or ``"cuda"`` for a model run by onnxruntime, without importing torch where
+    it cannot matter.
+
+    ``"auto"`` is CPU when the installed onnxruntime has no CUDA provider (the plain ``onnxruntime``
+    package); otherwise (``onnxruntime-gpu``) and for ``"cuda"`` the choice is :func:`select_device`'s.
+    """
+    pref = str(preference).strip().lower()
+    if pref == "auto":
+        import onnxruntime as ort
+
+        if "CUDAExecutionProvider" not in ort.get_available_providers():
+            return "cpu"
+    return select_device(pref)
+
+
 def onnx_providers(device: str) -> list[str]:
     """onnxruntime execution providers for ``device`` ("cpu" or "cuda"), best first.
 

@@ -14,6 +14,7 @@ from openfusion.encoders.base import EncoderConfigError, RegionEncoder, TextEnco
 
 REGION_ENCODER_NAMES = ("gt", "onnx", "clip-regions")
 TEXT_ENCODER_NAMES = ("gt", "onnx", "clip-regions", "minilm", "hash")
+MINILM_BACKENDS = ("sentence-transformers", "onnxruntime")
 
 
 def _normalise_name(name: str) -> str:
@@ -23,13 +24,26 @@ def _normalise_name(name: str) -> str:
 def make_text_encoder(name: str, **options: Any) -> TextEncoder:
     """A text encoder by name.
 
-    - ``minilm`` (alias ``gt``): MiniLM-L6-v2 sentence embeddings, space ``minilm-l6-v2``; options ``device``.
+    - ``minilm`` (alias ``gt``): MiniLM-L6-v2 sentence embeddings, space ``minilm-l6-v2``; options ``device``,
+      ``backend``: ``sentence-transformers`` (default, torch) or ``onnxruntime`` (the same
+      embeddings without importing torch at query time, :mod:`openfusion.encoders.text_minilm_onnx`;
+      falls back to sentence-transformers, logged, when it is unavailable).
     - ``hash``: hashed character trigrams, space ``hash-trigram-<dim>``; option ``dim``.
     - ``onnx``: an ONNX text model (docs/ENCODERS.md); options ``model_path``, ``device``.
     - ``clip-regions`` (alias ``clip``): the CLIP text tower; options ``model``, ``device``, ``embedding_space``.
     """
     key = _normalise_name(name)
     if key in ("minilm", "gt"):
+        backend = str(options.pop("backend", "sentence-transformers")).strip().lower()
+        if backend not in MINILM_BACKENDS:
+            raise EncoderConfigError(f"unknown MiniLM backend {backend!r}; known: {', '.join(MINILM_BACKENDS)}")
+        if backend == "onnxruntime":
+            from openfusion.encoders.text_minilm_onnx import make_minilm_onnx
+
+            onnx_only = {k: options.pop(k) for k in ("model_dir", "cache_dir") if k in options}
+            encoder = make_minilm_onnx(**options, **onnx_only)
+            if encoder is not None:
+                return encoder
         from openfusion.encoders.text_minilm import MiniLMTextEncoder
 
         return MiniLMTextEncoder(**options)

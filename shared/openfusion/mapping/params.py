@@ -7,7 +7,9 @@ semantic service's *is* a ``MatchParams`` plus its own, and the in-process pipel
 evaluation build the same models. So a parameter's default, limits and help text exist in one
 place, and config files (``[geometry] voxel_size_m = 0.02``), ``OPENFUSION_GEOMETRY__VOXEL_SIZE_M``,
 command-line flags (``--voxel-size-m``) and ``openfusion config --show geometry`` all derive from
-these fields.
+these fields. :class:`QueryParams` (how ranked regions are chosen) is the query service's section
+base and what ``openfusion query --map-dir`` and the in-process run use, so a saved map and a
+running map leave out the same regions.
 """
 
 from __future__ import annotations
@@ -145,3 +147,26 @@ class MatchParams(ConfigSection):
     def from_section(cls, section: ConfigSection) -> MatchParams:
         """The matching parameters of a config section that extends this model (the semantic service's)."""
         return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})
+
+
+class QueryParams(ConfigSection):
+    """How a query turns ranked regions into answers (the query service's section extends this;
+    :func:`openfusion.mapping.queries.query_regions`, ``openfusion query --map-dir`` and the
+    in-process run use the same declaration)."""
+
+    min_region_points: int = Field(
+        50,
+        ge=1,
+        description="regions with fewer surface points than this are not answers (stray fragments of a few "
+        "voxels, regions whose voxels other regions took over); 1 = leave out only regions without points",
+    )
+
+    @classmethod
+    def from_section(cls, section: ConfigSection) -> QueryParams:
+        """The query parameters of a config section that extends this model (the query service's)."""
+        return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})
+
+
+def default_min_region_points() -> int:
+    """The declared default of :attr:`QueryParams.min_region_points`."""
+    return int(QueryParams.model_fields["min_region_points"].default)

@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from openfusion.mapping.dictionary import RegionDictionary
-from openfusion.mapping.volume import SemanticVolume
+from openfusion.mapping.params import default_min_region_points
+
+if TYPE_CHECKING:  # the volume (Open3D) is imported only by callers that have one
+    from openfusion.mapping.dictionary import RegionDictionary
+    from openfusion.mapping.volume import SemanticVolume
 
 logger = logging.getLogger(__name__)
 
@@ -17,7 +21,7 @@ logger = logging.getLogger(__name__)
 BBOX_PERCENTILE = 1.0
 
 # Extra ranked regions looked at (at most this many, and at most top_k) so that top_k regions with
-# surface points remain after empty ones are left out.
+# enough surface points remain after empty and small ones are left out.
 EMPTY_REGION_SLACK = 16
 
 
@@ -34,6 +38,51 @@ class RegionResult:
     points: np.ndarray | None = None  # (p, 3) float32 when requested
 
 
+@dataclass
+class RegionTable:
+    """Per-region surface summaries of a map: what a text query reports without the volume.
+
+    Rows are sorted by key; ``bbox_min`` / ``bbox_max`` are :func:`region_summaries`' robust box
+    (1st-99th percentile per axis), ``centroid`` the mean of the region's surface points. Map files
+    store one (:func:`openfusion.mapping.mapfile.save_map`), so ``openfusion query --map-dir``
+    answers from it without reading the volume back.
+    """
+
+    keys: np.ndarray  # (n,) int32 ascending
+    num_points: np.ndarray  # (n,) int64
+    centroid: np.ndarray  # (n, 3) float32
+    bbox_min: np.ndarray  # (n, 3) float32
+    bbox_max: np.ndarray  # (n, 3) float32
+
+    @classmethod
+    def of_points(cls, keys: np.ndarray, points: np.ndarray) -> RegionTable:
+        """The table of surface ``points`` labelled ``keys`` (-1 = none, ignored)."""
+        k, lo, hi, n = region_summaries(keys, points)
+        return cls(k, n, region_centroids(k, keys, points), lo, hi)
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def row(self, key: int) -> int | None:
+        """Row of ``key``, None when the region has no surface points."""
+        i = int(np.searchsorted(self.keys, key))
+        return i if i < len(self.keys) and int(self.keys[i]) == int(key) else None
+
+
+def region_centroids(table_keys: np.ndarray, keys: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(len(table_keys), 3) float32 mean of the ``points`` labelled with each of ``table_keys``
+    (sorted ascending, every one present in ``keys``)."""
+    keys = np.asarray(keys)
+    labelled = keys >= 0
+    if not len(table_keys):
+        return np.zeros((0, 3), np.float32)
+    rows = np.searchsorted(table_keys, keys[labelled])
+    p = np.asarray(points, np.float64)[labelled]
+    counts = np.bincount(rows, minlength=len(table_keys)).astype(np.float64)
+    sums = np.stack([np.bincount(rows, weights=p[:, a], minlength=len(table_keys)) for a in range(3)], axis=1)
+    return (sums / np.maximum(counts, 1.0)[:, None]).astype(np.float32)
+
+
 def query_regions(
     dictionary: RegionDictionary,
     volume: SemanticVolume | None,
@@ -43,45 +92,83 @@ def query_regions(
     with_points: bool = False,
     max_points: int = 2000,
     embedding_space: str | None = None,
+    min_points: int | None = None,
 ) -> list[RegionResult]:
     """Regions ranked by cosine similarity to ``vector`` (best first).
 
     ``embedding_space`` names the space the query vector came from; a different space than the
     map's raises :class:`~openfusion.mapping.errors.EmbeddingSpaceError`. With a ``volume``, each
     result carries its surface-point count and robust bounding box (1st-99th percentile) (and up to
-    ``max_points`` points when ``with_points``), and regions without surface points (every voxel
-    they labelled was taken over by other regions) are left out, so up to ``top_k`` regions that
-    exist in the map come back; with ``volume=None`` only the ranking is returned (NaN boxes,
-    0 points).
+    ``max_points`` points when ``with_points``), and regions with fewer than ``min_points`` surface
+    points (default: :class:`~openfusion.mapping.params.QueryParams` ``min_region_points``; stray
+    fragments, or regions whose voxels were all taken over by other regions) are left out, so up
+    to ``top_k`` regions that exist in the map come back; with ``volume=None`` only the ranking is
+    returned (NaN boxes, 0 points). :func:`query_region_table` gives the same answers from a
+    saved :class:`RegionTable` without the volume.
     """
     dictionary.check_space(embedding_space)
-    candidates = top_k if volume is None else candidates_for(top_k)
-    keys, scores = dictionary.top_k(vector, candidates)
-    results = [
-        RegionResult(
-            int(k),
-            float(s),
-            dictionary.label(int(k)),
-            np.full(3, np.nan, np.float32),
-            np.full(3, np.nan, np.float32),
-            0,
-        )
-        for k, s in zip(keys, scores, strict=True)
-    ]
-    if volume is None or not results:
-        return results
+    if volume is None:
+        keys, scores = dictionary.top_k(vector, top_k)
+        return [
+            RegionResult(
+                int(k),
+                float(s),
+                dictionary.label(int(k)),
+                np.full(3, np.nan, np.float32),
+                np.full(3, np.nan, np.float32),
+                0,
+            )
+            for k, s in zip(keys, scores, strict=True)
+        ]
+    keys, scores = dictionary.top_k(vector, candidates_for(top_k))
+    if not len(keys):
+        return []
     surface = volume.extract_points(keys=keys)
-    box_keys, box_min, box_max, box_count = region_summaries(surface.keys, surface.points)
-    row = {int(key): i for i, key in enumerate(box_keys)}
-    for res in results:
-        i = row.get(res.key)
-        if i is None:
-            continue
-        res.num_points = int(box_count[i])
-        res.bbox_min, res.bbox_max = box_min[i], box_max[i]
-        if with_points:
+    results = _answers(dictionary, keys, scores, RegionTable.of_points(surface.keys, surface.points), top_k,
+                       min_points)
+    if with_points:
+        for res in results:
             res.points = subsample_points(surface.points[surface.keys == res.key], max_points, seed=res.key)
-    return [res for res in results if res.num_points > 0][:top_k]
+    return results
+
+
+def query_region_table(
+    dictionary: RegionDictionary,
+    table: RegionTable,
+    vector: np.ndarray,
+    top_k: int = 5,
+    *,
+    embedding_space: str | None = None,
+    min_points: int | None = None,
+) -> list[RegionResult]:
+    """:func:`query_regions` answered from a map's :class:`RegionTable` (no volume, no points):
+    the same ranking, candidates, counts, boxes and ``min_points`` rule."""
+    dictionary.check_space(embedding_space)
+    keys, scores = dictionary.top_k(vector, candidates_for(top_k))
+    return _answers(dictionary, keys, scores, table, top_k, min_points)
+
+
+def _answers(
+    dictionary: RegionDictionary,
+    keys: np.ndarray,
+    scores: np.ndarray,
+    table: RegionTable,
+    top_k: int,
+    min_points: int | None,
+) -> list[RegionResult]:
+    """Ranked candidates -> results with counts and boxes from ``table``; regions below
+    ``min_points`` surface points left out, at most ``top_k``."""
+    least = default_min_region_points() if min_points is None else max(1, int(min_points))
+    results = []
+    for k, s in zip(keys, scores, strict=True):
+        i = table.row(int(k))
+        if i is None or int(table.num_points[i]) < least:
+            continue
+        results.append(RegionResult(int(k), float(s), dictionary.label(int(k)), table.bbox_min[i].copy(),
+                                    table.bbox_max[i].copy(), int(table.num_points[i])))
+        if len(results) == top_k:
+            break
+    return results
 
 
 def region_summaries(
@@ -137,10 +224,9 @@ def subsample_points(points: np.ndarray, max_points: int, *, seed: int) -> np.nd
 
 
 def candidates_for(top_k: int) -> int:
-    """How many ranked regions to look at so that ``top_k`` with surface points usually remain
-    after empty ones (all voxels taken over by other regions) are dropped."""
+    """How many ranked regions to look at so that ``top_k`` with enough surface points usually
+    remain after empty and small ones (``min_region_points``) are dropped."""
     return int(top_k) + min(int(top_k), EMPTY_REGION_SLACK)
-
 
 
 def classify_regions(

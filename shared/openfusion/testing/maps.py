@@ -60,6 +60,59 @@ def build_synthetic_map(out_dir: str | os.PathLike[str], spec: SyntheticMapSpec 
     return path
 
 
+def plant_small_region(volume, dictionary, *, like_key: int, label: str, voxels: int = 1):  # noqa: ANN001, ANN201
+    """A copy of the map with a new region of a few surface points: a dictionary entry with region
+    ``like_key``'s embedding (so it ties with it in every query) that takes over the ``voxels``
+    surface voxels of ``like_key`` nearest the zero crossing. Returns (volume, dictionary, new key);
+    the stray fragments a query must not return look like this."""
+    from openfusion.mapping import RegionDictionary, SemanticVolume
+
+    dictionary = RegionDictionary.from_snapshot(dictionary.snapshot())
+    key = dictionary.add(dictionary.embedding(like_key), label=label)
+    arrays = volume.to_arrays()
+    candidates = np.flatnonzero(
+        (arrays["key"].reshape(-1) == like_key) & (arrays["weight"].reshape(-1) >= volume.params.min_weight)
+    )
+    if len(candidates) < voxels:
+        raise ValueError(f"region {like_key} has {len(candidates)} surface voxels, fewer than {voxels}")
+    nearest = candidates[np.argsort(np.abs(arrays["tsdf"].reshape(-1)[candidates]), kind="stable")[:voxels]]
+    arrays["key"].reshape(-1)[nearest] = key
+    arrays["conf"].reshape(-1)[nearest] = 1.0
+    return SemanticVolume.from_arrays(volume.params, arrays), dictionary, key
+
+
+def strip_region_summaries(map_path: str | os.PathLike[str], out_path: str | os.PathLike[str] | None = None) -> Path:
+    """Rewrite a saved map as maps were saved before region summaries were stored: the same
+    archive without the ``summary_*`` members and their header entries (in place, or to
+    ``out_path``: a file, or a folder that gets ``map.ofz.npz``). Returns the file written."""
+    import io
+    import json
+    import zipfile
+
+    from openfusion.mapping.mapfile import resolve_map_path
+
+    source = resolve_map_path(map_path)
+    target = resolve_map_path(out_path) if out_path is not None else source
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(f".{target.name}.strip.tmp")
+    with zipfile.ZipFile(source) as src, zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED, allowZip64=True) as dst:
+        for info in src.infolist():
+            if info.filename.startswith("summary_"):
+                continue
+            if info.filename == "meta_json.npy":
+                header = json.loads(str(np.load(io.BytesIO(src.read(info)), allow_pickle=False)[()]))
+                header["arrays"] = {k: v for k, v in header["arrays"].items() if not k.startswith("summary_")}
+                buf = io.BytesIO()
+                np.save(buf, np.array(json.dumps(header)), allow_pickle=False)
+                dst.writestr(info.filename, buf.getvalue())
+                continue
+            with src.open(info) as fin, dst.open(info.filename, "w", force_zip64=True) as fout:
+                while chunk := fin.read(1 << 22):
+                    fout.write(chunk)
+    os.replace(tmp, target)
+    return target
+
+
 def sample_instance_points(world, category: str, *, spacing_m: float = 0.005, seed: int = 0) -> np.ndarray:  # noqa: ANN001
     """(N, 3) points sampled uniformly (about one per ``spacing_m``^2) on every instance of
     ``category`` in a :class:`~openfusion.sources.synthetic.SyntheticWorld` (hidden faces included)."""
