@@ -1,7 +1,7 @@
 """The root of every exception OpenFusion-Z defines, and the two ways a failure is shown.
 
 Every exception class in the package derives from :class:`OpenFusionError`
-(``tests/unit/test_errors.py`` walks the package and checks it). Two branches decide what a
+(``tests/unit/test_errors.py`` walks the package and checks it). These branches decide what a
 user sees:
 
 - :class:`UserError`: something the user can fix: a bad option, value or config, a missing or
@@ -10,6 +10,8 @@ user sees:
 - any other :class:`OpenFusionError`: a failure at run time that is not a bug of this program
   (the bus could not be joined, a service refused or did not answer, a service process died).
   The command prints one line and exits with code 1.
+- :class:`Interrupted`: the user stopped the command and it kept its work (the message says
+  where): one line, exit code 130.
 
 Anything else that escapes is a bug: the command prints the traceback (exit code 1).
 
@@ -36,3 +38,10 @@ class UserError(OpenFusionError):
 
 class UsageError(UserError, ValueError):
     """A command-line option or argument with a bad value (named in the message)."""
+
+
+class Interrupted(OpenFusionError):
+    """The user stopped the command (Ctrl-C, SIGTERM) and it ended cleanly, keeping what it could
+    (the message says what and where): one line, exit code 130."""
+
+    exit_code = 130

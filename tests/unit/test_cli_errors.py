@@ -63,6 +63,8 @@ BAD_ARGUMENTS = [
     (["run", "--source", "scannet:{tmp}/missing"], "scannet source: {tmp}/missing does not exist"),
     (["run", "--source", "nosuch:/x"], "unknown source scheme 'nosuch' in 'nosuch:/x'; known: synthetic"),
     (["run", "--source", "synthetic:seed"], "synthetic option 'seed' must look like key=value"),
+    (["run", "--source", "synthetic:sed=1"], "unknown synthetic option 'sed'; known: fps, frames"),
+    (["run", "--source", "synthetic:lap=x"], "synthetic option lap='x' is not a valid int"),
     (["run", "--top-k", "0"], "--top-k 0: input should be greater than 0"),
     (["run", "--query", ""], "--query '': string should have at least 1 character"),
     (["run", "--rerun", "bogus"], "unknown rerun sink 'bogus'"),

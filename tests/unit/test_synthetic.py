@@ -15,6 +15,7 @@ from openfusion.sources import open_source
 from openfusion.sources.scannet import ScanNetSource
 from openfusion.sources.synthetic import (
     CATEGORIES,
+    LAP_FRAMES,
     SyntheticSource,
     SyntheticWorld,
     default_intrinsics,
@@ -205,3 +206,22 @@ def test_synthetic_spec_options() -> None:
         open_source("synthetic:frames=many")
     with pytest.raises(ValueError, match="key=value"):
         open_source("synthetic:seed")
+
+
+def test_a_source_longer_than_a_lap_walks_the_lap_again(world: SyntheticWorld) -> None:
+    """More frames than a lap: every frame is played, the poses of lap 2 are lap 1's exactly, frame
+    ids and stamps keep increasing, and the depth noise is drawn anew. Without ``lap=`` a lap is
+    LAP_FRAMES frames whatever the length (it used to stretch one lap over a long source)."""
+    src = open_source("synthetic:seed=3,frames=10,lap=4,width=32,height=24")
+    frames = list(src)
+    assert len(frames) == len(src) == 10 and src.lap == 4
+    assert [f.frame_id for f in frames] == list(range(10))
+    stamps = [f.stamp_ns for f in frames]
+    assert all(b > a for a, b in zip(stamps, stamps[1:], strict=False))
+    for i in range(4, 10):
+        np.testing.assert_array_equal(frames[i].T_world_cam, frames[i - 4].T_world_cam)
+    assert not np.array_equal(frames[1].T_world_cam, frames[0].T_world_cam)
+    assert not np.array_equal(frames[5].depth, frames[1].depth)  # same pose, fresh noise
+    long = world.camera_path(LAP_FRAMES + 3)
+    np.testing.assert_array_equal(long[LAP_FRAMES:], long[:3])
+    np.testing.assert_array_equal(world.camera_path(LAP_FRAMES)[:50], world.camera_path(50))

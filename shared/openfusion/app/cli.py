@@ -11,7 +11,10 @@ Errors (``openfusion.errors``): a :class:`~openfusion.errors.UserError` (bad opt
 config or file) prints one line naming it and exits with code 2, as do argparse's own usage
 errors; any other :class:`~openfusion.errors.OpenFusionError` (the bus, a service that refused
 or did not answer, a service that died) prints one line and exits with code 1; anything else is a
-bug and prints its traceback. ``OPENFUSION_DEBUG=1`` shows the traceback of every error.
+bug and prints its traceback. ``OPENFUSION_DEBUG=1`` shows the traceback of every error. An error
+with ``details`` (a dead service's last log lines) prints them above its one-line error. Ctrl-C
+(KeyboardInterrupt) and :class:`~openfusion.errors.Interrupted` (a command that stopped cleanly and
+says what it kept) print one line and exit with code 130.
 Exit codes: 0 ok, 1 failure, 2 bad usage or configuration, 130 interrupted.
 """
 
@@ -29,7 +32,7 @@ from dataclasses import dataclass
 from typing import Any, NoReturn
 
 import openfusion
-from openfusion.errors import OpenFusionError, UserError
+from openfusion.errors import Interrupted, OpenFusionError, UserError
 
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 
@@ -138,12 +141,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         return int(loaded[args.command].run(args) or 0)
-    except KeyboardInterrupt:
-        print("openfusion: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        print(f"openfusion {args.command}: interrupted" + (f": {exc}" if str(exc) else ""), file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except Interrupted as exc:  # stopped by the user, cleanly: the message says what was kept
+        print(f"openfusion {args.command}: {exc}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except OpenFusionError as exc:
         if os.environ.get("OPENFUSION_DEBUG"):
             raise
+        details = getattr(exc, "details", "")
+        if details:  # e.g. the last lines of a dead service's log, above the one-line error
+            print(details, file=sys.stderr)
         message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"openfusion {args.command}: error: {message}", file=sys.stderr)
         return EXIT_USAGE if isinstance(exc, UserError) else EXIT_FAILURE

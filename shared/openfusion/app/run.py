@@ -9,6 +9,18 @@ writes the mesh and query results, writes ``OUT/run.json`` and stops the service
 
 ``--in-process`` runs the same pipeline in this process (no bus), for notebooks and debugging.
 
+Frames: ``--frames N`` plays N frames. The built-in room (``--source synthetic[:...]``) plays N
+frames whatever N is: its camera walks a closed lap of :data:`BUILTIN_LAP_FRAMES` frames and walks it
+again for longer runs (same poses, frame ids and stamps keep increasing); a spec that sets
+``frames=`` or ``lap=`` keeps them. A source with fewer frames plays what it has, and the run says
+so (``played 300 of 2000 frames: the source has 300``) and records it in ``run.json``.
+
+Stopping: the first SIGINT (Ctrl-C) or SIGTERM stops playback (the bridge), lets geometry and
+semantic finish the frames they already have, saves the map to ``OUT/map``, writes ``run.json``
+(``interrupted: true``), skips the example queries and exits with code 130; a second signal aborts
+at once (every service killed, no map). The services run in their own process group, so a
+terminal's Ctrl-C reaches only this process, and none outlives it (:mod:`openfusion.app.launcher`).
+
 Settings: one :class:`~openfusion.app.run_config.RunConfig` (every service's section), validated
 before anything starts, written to ``OUT/run-config.json`` and read by every service.
 
@@ -29,7 +41,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from openfusion.app.launcher import Cluster, RunError, wait_for_services
+from openfusion.app.launcher import Cluster, RunError, StopSignals, wait_for_services
 from openfusion.app.outputs import open_rerun, surface_mesh, write_query_outputs
 from openfusion.app.run_config import RUN_FLAGS, SECTION_MODELS, RunConfig, write_service_config
 from openfusion.app.summary import RunSummary
@@ -37,7 +49,7 @@ from openfusion.bus import collect_health, free_loopback_port, open_session
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings, add_section_options, config_from_args
 from openfusion.errors import UsageError
-from openfusion.sources.registry import check_source_spec
+from openfusion.sources.registry import check_source_spec, parse_key_values
 from openfusion.wire.counters import BridgeCounter, GeometryCounter, SemanticCounter
 from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
 from openfusion.wire.keys import validate_map_id
@@ -49,6 +61,11 @@ DEFAULT_QUERIES = ("chair", "table", "something to sit on", "a plant", "monitor"
 #: Points returned with each example query's regions.
 QUERY_MAX_POINTS = 50_000
 SERVICE_START_TIMEOUT_S = 180.0
+#: Frames of one lap of the built-in room in ``openfusion run`` (the default ``--frames``, so the
+#: default run goes once round the room); longer runs walk the lap again.
+BUILTIN_LAP_FRAMES = 120
+#: geometry and semantic have settled when their counters did not change for this long.
+SETTLE_S = 2.0
 
 
 def _counter(stats: dict[str, Any], service: str, name: str) -> float:
@@ -56,8 +73,37 @@ def _counter(stats: dict[str, Any], service: str, name: str) -> float:
     return s.counter(name) if s is not None else 0.0
 
 
+def builtin_scene_spec(spec: str, frames: int) -> str:
+    """The source spec that plays ``frames`` frames of the built-in room: a ``synthetic`` spec gets
+    ``frames=N`` and ``lap=BUILTIN_LAP_FRAMES`` unless it sets them; any other spec is unchanged."""
+    scheme, _sep, rest = spec.strip().partition(":")
+    if scheme.lower() != "synthetic":
+        return spec
+    options = parse_key_values(rest, scheme="synthetic")
+    options.setdefault("frames", str(frames))
+    options.setdefault("lap", str(BUILTIN_LAP_FRAMES))
+    return "synthetic:" + ",".join(f"{k}={v}" for k, v in options.items())
+
+
+def shortfall_note(summary: RunSummary) -> str | None:
+    """``played 300 of 2000 frames: the source has 300`` when a finished run played fewer frames
+    than asked for, else None."""
+    wanted, played = summary.frames_requested, summary.frames_played
+    if summary.interrupted or wanted is None or played is None or played >= wanted:
+        return None
+    note = f"played {played} of {wanted} frames: the source has {played}"
+    skipped = sum(summary.frames_skipped.values())
+    if skipped:
+        reasons = ", ".join(f"{reason} {n}" for reason, n in sorted(summary.frames_skipped.items()))
+        note += f" usable frames ({skipped} skipped: {reasons})"
+    return note
+
+
 def run_services(args: argparse.Namespace, config: RunConfig) -> RunSummary:
-    """The multi-process embedded run; returns the run summary (also written to run.json)."""
+    """The multi-process embedded run; returns the run summary (also written to run.json).
+
+    Raises :class:`~openfusion.errors.Interrupted` after a first SIGINT/SIGTERM (the map kept as
+    far as it got) and KeyboardInterrupt after a second; the services are stopped on every path."""
     import zenoh
 
     out: Path = args.out
@@ -69,95 +115,144 @@ def run_services(args: argparse.Namespace, config: RunConfig) -> RunSummary:
     config_file = write_service_config(config, out / "run-config.json")
     port = free_loopback_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    router = open_session(ServiceConfig(map_id=config.map_id, zenoh=ZenohSettings(
-        mode="router", listen=[endpoint], multicast_scouting=False)))
     cluster = Cluster(config.map_id, endpoint, out / "logs", config_file=config_file)
-    client = OpenFusionClient.from_config(ServiceConfig(map_id=config.map_id, zenoh=ZenohSettings(
-        mode="client", connect=[endpoint], multicast_scouting=False)), timeout_s=30.0)
-    rerun = open_rerun(args.rerun)
-    subscribers: list = []  # rerun viewer feeds, closed before the services stop
-    started = time.monotonic()
-    try:
-        if rerun is not None:
-            from openfusion.bus import Subscriber
-            from openfusion.bus.instance_join import InstanceBuffer
-
-            # Instance images come on their own key just before their frame: shown when there.
-            instances = InstanceBuffer()
-            subscribers.append(Subscriber(client.session, SENSOR_INSTANCE.key(client.keys), SENSOR_INSTANCE.message,
-                                          instances.add, queue_size=8))
-            subscribers.append(Subscriber(client.session, SENSOR_RGBD.key(client.keys), SENSOR_RGBD.message,
-                                          lambda msg: rerun.log_frame(msg.to_frame(instances.take(msg))),
-                                          latest_only=True))
-        for name in ("geometry", "semantic", "query"):
-            cluster.start(name)
-        _say(args, f"starting services on {endpoint} (logs in {cluster.log_dir})")
-        wait_for_services(client, cluster, {"geometry", "semantic", "query"}, SERVICE_START_TIMEOUT_S)
-        cluster.start("bridge")
-        stats = _follow_progress(args, client, cluster)
-        _say(args, "saving the map")
-        client.control("save", str((out / "map").resolve()))
-        replies = []
-        for text in args.queries:
-            reply = client.query_text(text, top_k=args.top_k, with_points=True, max_points=QUERY_MAX_POINTS)
-            replies.append((text, reply.embedding_space, reply.regions))
-        mesh = client.mesh()
-        write_query_outputs(out, replies, (mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys),
-                            say=None if args.quiet else (lambda t: _say(args, t)))
-        if rerun is not None:
-            rerun.log_mesh(surface_mesh(mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys))
-            for text, _space, hits in replies:
-                rerun.log_query(text, hits)
-        summary = RunSummary.from_health(
-            stats, source=config.bridge.source, encoder=config.semantic.encoder, noise=config.semantic.noise,
-            semantic_every=config.semantic.every_k, wall_s=time.monotonic() - started)
-    finally:
-        for sub in subscribers:
-            sub.close()
-        if rerun is not None:
-            rerun.close()
-        cluster.stop()
-        client.close()
+    # From here on the first SIGINT/SIGTERM stops playback and keeps the map, a second one kills
+    # every service at once; the handlers stay until the services are stopped.
+    with StopSignals(on_abort=cluster.kill, aborted="every service was killed, no map was saved") as signals:
+        router = open_session(ServiceConfig(map_id=config.map_id, zenoh=ZenohSettings(
+            mode="router", listen=[endpoint], multicast_scouting=False)))
+        client = None
+        rerun = None
+        subscribers: list = []  # rerun viewer feeds, closed before the services stop
         try:
-            router.close()
-        except zenoh.ZError as exc:
-            logger.debug("router close: %s", exc)
+            client = OpenFusionClient.from_config(ServiceConfig(map_id=config.map_id, zenoh=ZenohSettings(
+                mode="client", connect=[endpoint], multicast_scouting=False)), timeout_s=30.0)
+            rerun = open_rerun(args.rerun)
+            summary = _run_with_services(args, config, cluster, client, rerun, subscribers, signals)
+        finally:
+            for sub in subscribers:
+                sub.close()
+            if rerun is not None:
+                rerun.close()
+            cluster.stop()
+            if client is not None:
+                client.close()
+            try:
+                router.close()
+            except zenoh.ZError as exc:
+                logger.debug("router close: %s", exc)
     (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
     return summary
 
 
-def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster) -> dict[str, Any]:
+def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Cluster, client: Any, rerun: Any,
+                       subscribers: list, signals: StopSignals) -> RunSummary:
+    out: Path = args.out
+    started = time.monotonic()
+    if rerun is not None:
+        from openfusion.bus import Subscriber
+        from openfusion.bus.instance_join import InstanceBuffer
+
+        # Instance images come on their own key just before their frame: shown when there.
+        instances = InstanceBuffer()
+        subscribers.append(Subscriber(client.session, SENSOR_INSTANCE.key(client.keys), SENSOR_INSTANCE.message,
+                                      instances.add, queue_size=8))
+        subscribers.append(Subscriber(client.session, SENSOR_RGBD.key(client.keys), SENSOR_RGBD.message,
+                                      lambda msg: rerun.log_frame(msg.to_frame(instances.take(msg))),
+                                      latest_only=True))
+    for name in ("geometry", "semantic", "query"):
+        cluster.start(name)
+    _say(args, f"starting services on {cluster.endpoint} (logs in {cluster.log_dir})")
+    wait_for_services(client, cluster, {"geometry", "semantic", "query"}, SERVICE_START_TIMEOUT_S,
+                      should_stop=lambda: signals.requested is not None)
+    if signals.requested:
+        raise signals.interrupted("stopped before playback started; nothing to save")
+    cluster.start("bridge")
+    stats = _follow_progress(args, client, cluster, signals)
+
+    def summary_now() -> RunSummary:
+        return RunSummary.from_health(
+            stats, source=config.bridge.source, encoder=config.semantic.encoder, noise=config.semantic.noise,
+            semantic_every=config.semantic.every_k, wall_s=time.monotonic() - started,
+            frames_requested=config.bridge.max_frames, interrupted=signals.requested is not None)
+
+    map_dir = out / "map"
+    if signals.requested:
+        summary = summary_now()
+        if summary.frames_integrated == 0:
+            (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
+            raise signals.interrupted("no frame was integrated yet; nothing saved")
+    _say(args, "saving the map")
+    client.control("save", str(map_dir.resolve()))
+    replies = []
+    for text in args.queries:
+        if signals.requested:
+            break
+        reply = client.query_text(text, top_k=args.top_k, with_points=True, max_points=QUERY_MAX_POINTS)
+        replies.append((text, reply.embedding_space, reply.regions))
+    if signals.requested:  # the map is saved; the example queries and the mesh are skipped
+        summary = summary_now()
+        (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
+        raise signals.interrupted(f"saved the map of {summary.frames_integrated} integrated frames to {map_dir}")
+    mesh = client.mesh()
+    write_query_outputs(out, replies, (mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys),
+                        say=None if args.quiet else (lambda t: _say(args, t)))
+    if rerun is not None:
+        rerun.log_mesh(surface_mesh(mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys))
+        for text, _space, hits in replies:
+            rerun.log_query(text, hits)
+    return summary_now()
+
+
+def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
+                     signals: StopSignals | None = None) -> dict[str, Any]:
+    """Show progress until geometry has taken every frame the bridge published and geometry and
+    semantic have settled (no counter changed for :data:`SETTLE_S`); the last stats of each service.
+
+    After a stop signal (``signals.requested``) the bridge is stopped (no more frames) and the same
+    wait lets geometry and semantic finish the frames they already have; the bridge's last stats
+    are kept."""
     from tqdm import tqdm
 
     bar = tqdm(total=args.frames, desc="frames integrated", unit="frame", disable=args.quiet)
-    stable_since: float | None = None
-    last_key: tuple[float, ...] = ()
-    stats: dict[str, Any] = {}
-    deadline = time.monotonic() + args.timeout_s
-    while True:
-        cluster.check_alive()
-        stats = collect_health(client.session, client.keys, timeout_s=1.0) or stats
-        integrated = _counter(stats, "geometry", GeometryCounter.FRAMES_INTEGRATED)
-        bar.n = int(integrated)
-        bar.set_postfix(semantic=int(_counter(stats, "semantic", SemanticCounter.SEMANTIC_FRAMES)),
-                        regions=int(_counter(stats, "semantic", SemanticCounter.REGIONS)))
-        bar.refresh()
-        done = _counter(stats, "bridge", BridgeCounter.PLAYBACK_DONE) >= 1
-        published = _counter(stats, "bridge", BridgeCounter.FRAMES_PUBLISHED)
-        key = (integrated, _counter(stats, "semantic", SemanticCounter.SEMANTIC_FRAMES),
-               _counter(stats, "geometry", GeometryCounter.UPDATES_APPLIED))
-        if done and integrated >= published:
-            if key == last_key and stable_since is not None and time.monotonic() - stable_since > 2.0:
-                break
-            if key != last_key:
-                stable_since = time.monotonic()
-        last_key = key
-        if time.monotonic() > deadline:
-            bar.close()
-            raise RunError(f"the run did not finish within {args.timeout_s:.0f} s "
-                           f"(integrated {integrated:.0f} of {published:.0f} published frames)")
-        time.sleep(0.5)
-    bar.close()
+    try:
+        stable_since: float | None = None
+        last_key: tuple[float, ...] = ()
+        stats: dict[str, Any] = {}
+        playback_stopped = False
+        deadline = time.monotonic() + args.timeout_s
+        while True:
+            if signals is not None and signals.requested and not playback_stopped:
+                if not args.quiet:
+                    bar.write(f"{signals.requested}: stopping playback; finishing the frames in flight, then saving the "
+                              "map (press Ctrl-C again to abort)", file=sys.stderr)
+                cluster.stop("bridge")
+                playback_stopped = True
+                stable_since = None
+            cluster.check_alive()
+            stats = {**stats, **collect_health(client.session, client.keys, timeout_s=1.0)}
+            integrated = _counter(stats, "geometry", GeometryCounter.FRAMES_INTEGRATED)
+            refused = _counter(stats, "geometry", GeometryCounter.CAPACITY_REFUSED)
+            bar.n = int(integrated)
+            bar.set_postfix(semantic=int(_counter(stats, "semantic", SemanticCounter.SEMANTIC_FRAMES)),
+                            regions=int(_counter(stats, "semantic", SemanticCounter.REGIONS)))
+            bar.refresh()
+            done = playback_stopped or _counter(stats, "bridge", BridgeCounter.PLAYBACK_DONE) >= 1
+            published = _counter(stats, "bridge", BridgeCounter.FRAMES_PUBLISHED)
+            key = (integrated, refused, _counter(stats, "semantic", SemanticCounter.SEMANTIC_FRAMES),
+                   _counter(stats, "geometry", GeometryCounter.UPDATES_APPLIED))
+            if done and integrated + refused >= published:
+                if key == last_key and stable_since is not None and time.monotonic() - stable_since > SETTLE_S:
+                    break
+                if key != last_key or stable_since is None:
+                    stable_since = time.monotonic()
+            last_key = key
+            if time.monotonic() > deadline:
+                raise RunError(f"the run did not finish within {args.timeout_s:.0f} s "
+                               f"(integrated {integrated:.0f} of {published:.0f} published frames)")
+            time.sleep(0.5)
+    finally:  # the bar ends its line whatever ends the wait (an error, a second Ctrl-C)
+        bar.close()
     return stats
 
 
@@ -185,7 +280,9 @@ class RunCommand:
     def add_arguments(parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--out", type=Path, default=Path("out"), help="output folder (default ./out)")
         parser.add_argument("--map", dest="map_id", default="demo", help="map id (default demo)")
-        parser.add_argument("--frames", type=int, default=120, help="frames to play (default 120)")
+        parser.add_argument("--frames", type=int, default=BUILTIN_LAP_FRAMES,
+                            help=f"frames to play (default {BUILTIN_LAP_FRAMES}); one lap of the built-in room is "
+                            f"{BUILTIN_LAP_FRAMES} frames, more frames walk it again; a shorter source plays what it has")
         parser.add_argument("--query", dest="queries", action="append", default=None,
                             help="example query (repeatable; default a few furniture queries)")
         parser.add_argument("--top-k", type=int, default=3, help="regions per query (default 3)")
@@ -224,9 +321,8 @@ class RunCommand:
         # The source's form (scheme, path, options): the bridge would refuse it only after the other
         # services had started.
         check_source_spec(config.bridge.source)
-        if config.bridge.source == "synthetic":
-            # The built-in scene: one lap of the room in the frames played, so the map covers it.
-            config.bridge.source = f"synthetic:lap={args.frames}"
+        # The built-in room plays --frames frames (laps of BUILTIN_LAP_FRAMES); other sources stop there.
+        config.bridge.source = builtin_scene_spec(config.bridge.source, args.frames)
         config.bridge.max_frames = args.frames
         return config
 
@@ -243,6 +339,9 @@ class RunCommand:
             summary = run_in_process(args, config)
         else:
             summary = run_services(args, config)
+        note = shortfall_note(summary)
+        if note:  # said even with --quiet: the run did less than asked
+            print(note, file=sys.stderr, flush=True)
         print(json.dumps(summary.model_dump(), indent=2))
         _say(args, f"outputs in {args.out.resolve()}")
         return 0

@@ -1,12 +1,19 @@
 """``openfusion run --in-process``: the same pipeline and outputs as the service run, in one
-process and without a bus (for notebooks and debugging)."""
+process and without a bus (for notebooks and debugging).
+
+The first SIGINT (Ctrl-C) or SIGTERM ends the loop before the next frame; the map of the frames
+integrated so far is saved, ``run.json`` says ``interrupted: true`` and the command exits with
+code 130 (:class:`~openfusion.errors.Interrupted`). A second signal aborts at once."""
 
 from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
+from openfusion.app.launcher import StopSignals
 from openfusion.app.outputs import open_rerun, write_query_outputs
 from openfusion.app.run_config import RunConfig
 from openfusion.app.summary import RunSummary
@@ -19,15 +26,43 @@ from openfusion.services.semantic.service import region_encoder_from_section
 from openfusion.sources import open_source
 
 
+class _UntilStopped:
+    """``source`` until the run is asked to stop: no further frame is read once ``signals.requested``
+    is set. ``taken``: frames handed to the loop; ``stats``: the source's."""
+
+    def __init__(self, source: Any, signals: StopSignals) -> None:
+        self.source = source
+        self.signals = signals
+        self.taken = 0
+
+    @property
+    def stats(self) -> Any:
+        return self.source.stats
+
+    def __iter__(self) -> Iterator[Frame]:
+        frames = iter(self.source)
+        while not self.signals.requested:
+            frame = next(frames, None)
+            if frame is None:
+                return
+            self.taken += 1
+            yield frame
+
+
 def run_in_process(args: argparse.Namespace, config: RunConfig) -> RunSummary:
     """``openfusion run --in-process``: the same outputs as the service run, in this process, from
     the same config sections the services read."""
+    with StopSignals() as signals:
+        return _run_in_process(args, config, signals)
+
+
+def _run_in_process(args: argparse.Namespace, config: RunConfig, signals: StopSignals) -> RunSummary:
     from tqdm import tqdm
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    source = open_source(config.bridge.source, max_frames=config.bridge.max_frames)
+    source = _UntilStopped(open_source(config.bridge.source, max_frames=config.bridge.max_frames), signals)
     encoder = region_encoder_from_section(config.semantic)
     rerun = open_rerun(getattr(args, "rerun", None))
     log_frame = rerun.frame_hook() if rerun is not None else None
@@ -49,13 +84,31 @@ def run_in_process(args: argparse.Namespace, config: RunConfig) -> RunSummary:
         )
     finally:
         bar.close()
+
+    def summary_now() -> RunSummary:
+        return RunSummary.from_pipeline(
+            result.stats, regions=len(result.dictionary), source=config.bridge.source,
+            encoder=config.semantic.encoder, noise=config.semantic.noise, semantic_every=config.semantic.every_k,
+            wall_s=time.monotonic() - started, frames_requested=config.bridge.max_frames, frames_played=source.taken,
+            interrupted=signals.requested is not None)
+
+    if signals.requested:
+        if rerun is not None:
+            rerun.close()
+        summary = summary_now()
+        if summary.frames_integrated:
+            save_map(out / "map", result.volume, result.dictionary, meta={"map_id": config.map_id})
+        (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
+        if not summary.frames_integrated:
+            raise signals.interrupted("no frame was integrated yet; nothing saved")
+        raise signals.interrupted(f"saved the map of {summary.frames_integrated} integrated frames to {out / 'map'}")
     save_map(out / "map", result.volume, result.dictionary, meta={"map_id": config.map_id})
     text = text_encoder_from_section(config.query)
     replies = []
     for query in args.queries:
         vec = text.encode([query])[0]
         hits = query_regions(result.dictionary, result.volume, vec, args.top_k, with_points=True, max_points=50_000,
-                             embedding_space=text.embedding_space)
+                             embedding_space=text.embedding_space, min_points=config.query.min_region_points)
         replies.append((query, text.embedding_space, hits))
     write_query_outputs(out, replies, result.volume.extract_mesh(), say=None if args.quiet else print)
     if rerun is not None:
@@ -63,8 +116,6 @@ def run_in_process(args: argparse.Namespace, config: RunConfig) -> RunSummary:
         for query, _space, hits in replies:
             rerun.log_query(query, hits)
         rerun.close()
-    summary = RunSummary.from_pipeline(
-        result.stats, regions=len(result.dictionary), source=config.bridge.source, encoder=config.semantic.encoder,
-        noise=config.semantic.noise, semantic_every=config.semantic.every_k, wall_s=time.monotonic() - started)
+    summary = summary_now()
     (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
     return summary

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib
 
+from openfusion.app.launcher import follow_launcher
 from openfusion.errors import UsageError
 from openfusion.services.common import ServiceDefinition
 
@@ -32,4 +33,5 @@ class ServiceCommand:
 
     @staticmethod
     def run(args: argparse.Namespace) -> int:
+        follow_launcher()  # started by `openfusion run`: end with it, however it ends
         return definition(args.service_name).run(args)

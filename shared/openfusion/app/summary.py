@@ -22,7 +22,13 @@ def _round(value: float | None) -> float | None:
 
 
 class RunSummary(BaseModel):
-    """The fields of ``run.json`` (README, "Two commands")."""
+    """The fields of ``run.json`` (README, "Two commands").
+
+    ``frames_requested``: ``--frames``; ``frames_played``: frames the source gave and the run sent
+    into the map (the bridge's published frames, or the frames the in-process loop took), fewer
+    than requested when the source is shorter or the run was interrupted; ``interrupted``: the run
+    was stopped by SIGINT/SIGTERM, and the map of the ``frames_integrated`` frames was saved.
+    """
 
     mode: Literal["services", "in-process"]
     source: str
@@ -40,12 +46,18 @@ class RunSummary(BaseModel):
     sem_rec_fps: float | None
     wall_s: float
     map_dir: str = "map"
+    frames_requested: int | None = None
+    frames_played: int | None = None
+    interrupted: bool = False
 
     @classmethod
     def from_health(
-        cls, stats: dict[str, HealthStats], *, source: str, encoder: str, noise: str, semantic_every: int, wall_s: float
+        cls, stats: dict[str, HealthStats], *, source: str, encoder: str, noise: str, semantic_every: int, wall_s: float,
+        frames_requested: int | None = None, interrupted: bool = False,
     ) -> RunSummary:
-        """From the last health stats of the run's services."""
+        """From the last health stats of the run's services. After an interrupt the bridge was
+        stopped and its last stats can lag by a second of frames; playback loses no frame, so every
+        frame geometry took (integrated or refused) was published, and that count is used when larger."""
 
         def c(service: str, name: str) -> float:
             s = stats.get(service)
@@ -60,11 +72,18 @@ class RunSummary(BaseModel):
         bridge = stats.get("bridge")
         skipped = {k.removeprefix(SKIPPED_PREFIX): int(v) for k, v in (bridge.counters.items() if bridge else [])
                    if k.startswith(SKIPPED_PREFIX)}
+        published = int(c("bridge", BridgeCounter.FRAMES_PUBLISHED))
+        read = int(c("bridge", BridgeCounter.FRAMES_READ))
+        if interrupted:
+            taken = int(c("geometry", GeometryCounter.FRAMES_INTEGRATED) + c("geometry", GeometryCounter.CAPACITY_REFUSED))
+            read += max(0, taken - published)
+            published = max(published, taken)
         return cls(
             mode="services", source=source, encoder=encoder, noise=noise, semantic_every=semantic_every,
-            frames_read=int(c("bridge", BridgeCounter.FRAMES_READ)),
+            frames_read=read,
             frames_skipped=skipped,
-            frames_published=int(c("bridge", BridgeCounter.FRAMES_PUBLISHED)),
+            frames_published=published,
+            frames_requested=frames_requested, frames_played=published, interrupted=interrupted,
             frames_integrated=int(c("geometry", GeometryCounter.FRAMES_INTEGRATED)),
             semantic_frames=int(c("semantic", SemanticCounter.SEMANTIC_FRAMES)),
             semantic_failed=int(c("semantic", SemanticCounter.FRAMES_FAILED)),
@@ -75,13 +94,16 @@ class RunSummary(BaseModel):
     @classmethod
     def from_pipeline(
         cls, stats: PipelineStats, *, regions: int, source: str, encoder: str, noise: str, semantic_every: int,
-        wall_s: float,
+        wall_s: float, frames_requested: int | None = None, frames_played: int | None = None, interrupted: bool = False,
     ) -> RunSummary:
-        """From the in-process pipeline's stats."""
+        """From the in-process pipeline's stats (``frames_played``: the frames the loop took from
+        the source; default: those integrated)."""
         return cls(
             mode="in-process", source=source, encoder=encoder, noise=noise, semantic_every=semantic_every,
             frames_read=stats.frames_read, frames_skipped=dict(stats.frames_skipped),
             frames_published=stats.frames_integrated, frames_integrated=stats.frames_integrated,
             semantic_frames=stats.semantic_frames, semantic_failed=stats.semantic_failed, regions=regions,
             rec_fps=_round(stats.rec_fps), sem_rec_fps=_round(stats.sem_rec_fps), wall_s=round(wall_s, 1),
+            frames_requested=frames_requested,
+            frames_played=stats.frames_integrated if frames_played is None else frames_played, interrupted=interrupted,
         )

@@ -16,6 +16,7 @@ module                 what
 ``redwood``            Redwood / Open3D captures (``trajectory.log``)
 ``folder``             any folder described by ``openfusion_source.json``
 ``synthetic``          the embedded furnished-room world (ray-cast RGB-D + ground truth)
+``synthetic_spec``     the ``synthetic:key=value`` options, parsed without building the world
 ``sync``               image/pose time pairing, T265 axes, downsampling (live sources)
 ``live``               Azure Kinect + Intel T265 (optional extra ``live``)
 ``cdr``, ``ros2``      ROS 2 messages over Zenoh, decoded without ROS

@@ -91,9 +91,20 @@ _SCHEMES: dict[str, Callable[[str, dict[str, Any]], FrameSource]] = {
 
 SCHEMES: tuple[str, ...] = tuple(_SCHEMES)
 
+def _synthetic_options(rest: str) -> dict[str, Any]:
+    from openfusion.sources.synthetic_spec import synthetic_options  # light: not the world
+
+    try:
+        return synthetic_options(parse_key_values(rest, scheme="synthetic"))
+    except SourceError:
+        raise
+    except ValueError as exc:
+        raise SourceError(f"cannot open source 'synthetic:{rest}': {exc}") from None
+
+
 #: What :func:`check_source_spec` checks per scheme (the cheap part of opening: no reader imported).
 _CHECKS: dict[str, Callable[[str], object]] = {
-    "synthetic": lambda rest: parse_key_values(rest, scheme="synthetic"),
+    "synthetic": _synthetic_options,
     **{scheme: (lambda rest, scheme=scheme: _existing_path(scheme, rest))
        for scheme in ("scannet", "replica", "tum", "redwood", "folder")},
     "replay": _recording,
@@ -149,9 +160,10 @@ def _split_spec(spec: str) -> tuple[str, str, str]:
 
 def check_source_spec(spec: str) -> str:
     """Refuse a spec :func:`open_source` would refuse for its form, without opening the source:
-    an unknown scheme, a missing path or recording, malformed ``key=value`` options, an unknown live
-    device set. Nothing is imported or read, so a command can check a source before it starts
+    an unknown scheme, a missing path or recording, malformed ``key=value`` options, an unknown
+    synthetic option or a value of the wrong type, an unknown live device set. Nothing is imported or read, so a command can check a source before it starts
     anything (``openfusion run``); the reader still checks the folder's contents when it opens.
+    A synthetic spec's option keys and values are checked as the source checks them.
     Returns the stripped spec; raises :class:`SourceError`."""
     spec, scheme, rest = _split_spec(spec)
     _CHECKS[scheme](rest)

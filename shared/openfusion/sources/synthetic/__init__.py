@@ -31,7 +31,7 @@ Modules (each owns one part; this package re-exports the public names)
     ``furniture``  mesh primitives, ``Part``/``WorldObject``, palette and ``CATEGORIES``, object builders
     ``layout``     the room and where the furniture goes (the seeded draws that make a room)
     ``textures``   the procedural texture atlas
-    ``camera``     ``default_intrinsics``, per-pixel rays, the camera path
+    ``camera``     ``default_intrinsics``, per-pixel rays, the camera path (a closed lap of ``LAP_FRAMES``)
     ``render``     the ray-cast scene, shading tables, ``RenderedView``
     ``surface``    ``GroundTruthSurface`` and the visible-surface sampling
     ``depth``      depth units/range (``DEPTH_*``, ``GRAZING_COS``) and ``apply_depth_noise``
@@ -41,8 +41,8 @@ Modules (each owns one part; this package re-exports the public names)
 
 from __future__ import annotations
 
+from openfusion.sources.synthetic.camera import LAP_FRAMES, default_intrinsics
 from openfusion.sources.synthetic.camera import _pixel_rays as _pixel_rays
-from openfusion.sources.synthetic.camera import default_intrinsics
 from openfusion.sources.synthetic.depth import (
     DEPTH_MAX_M,
     DEPTH_MIN_M,
@@ -62,6 +62,7 @@ __all__ = [
     "DEPTH_MIN_M",
     "DEPTH_SCALE",
     "GRAZING_COS",
+    "LAP_FRAMES",
     "GroundTruthSurface",
     "Part",
     "RenderedView",

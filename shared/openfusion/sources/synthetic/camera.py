@@ -3,7 +3,8 @@
 ``default_intrinsics`` is a ScanNet/Kinect-like depth camera; ``_pixel_rays`` gives the
 camera-frame ray directions of every pixel (cached per intrinsics) for the ray caster;
 ``camera_path`` is the smooth elliptic trajectory (camera-to-world poses, OpenCV axes) that
-``SyntheticSource`` renders along.
+``SyntheticSource`` renders along: a closed lap of :data:`LAP_FRAMES` frames unless told otherwise,
+walked again and again for longer paths (pose ``i`` is pose ``i mod lap``).
 """
 
 from __future__ import annotations
@@ -14,6 +15,9 @@ import numpy as np
 
 from openfusion.frame import CameraIntrinsics
 from openfusion.poses import look_at
+
+#: Frames of one lap of the room when no lap is given (about 0.8 m/s at 30 fps).
+LAP_FRAMES = 360
 
 _RAY_CACHE: dict[CameraIntrinsics, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
@@ -48,18 +52,21 @@ def camera_path(
     middle at about 1.45 m, always looking across the room at the furniture.
 
     Position and look-at target are sums of sinusoids in the frame index, so both the
-    path and the orientation are smooth; ``frames_per_lap`` (default max(num_frames, 360),
-    about 0.8 m/s at 30 fps)
-    is the number of frames of one lap.
+    path and the orientation are smooth; ``frames_per_lap`` (default :data:`LAP_FRAMES`) is the
+    number of frames of one lap. A path longer than a lap walks the same lap again: pose ``i``
+    equals pose ``i mod frames_per_lap`` exactly.
     """
     W, D, _ = room_size_m
-    lap = frames_per_lap if frames_per_lap is not None else max(num_frames, 360)
+    lap = frames_per_lap if frames_per_lap is not None else LAP_FRAMES
     if lap < 2:
         raise ValueError(f"frames_per_lap must be >= 2, got {lap}")
     phase0 = (seed % 97) / 97.0 * 2 * math.pi
     ax, ay = max(W / 2 - 1.2, 0.4), max(D / 2 - 1.2, 0.4)
     poses = np.empty((num_frames, 4, 4))
     for i in range(num_frames):
+        if i >= lap:  # the next lap: the very same poses
+            poses[i] = poses[i % lap]
+            continue
         th = phase0 + 2 * math.pi * i / lap
         pos = np.array([W / 2 + ax * math.cos(th), D / 2 + ay * math.sin(th), 1.45 + 0.08 * math.sin(3 * th)])
         sweep = th + math.pi + 0.5 * math.sin(2 * th)

@@ -2,8 +2,11 @@
 
 Frame i is rendered at pose i of the world's camera path, with Kinect-like depth noise drawn
 from a stream seeded by (world seed, 1000 + i), so frames are a pure function of the seed, the
-index and the options. ``open_synthetic`` parses the ``synthetic:key=value,...`` spec options
-(``_SPEC_KEYS``).
+index and the options. The path is a closed lap (``lap=N`` frames, default
+:data:`~openfusion.sources.synthetic.camera.LAP_FRAMES`); a source with more frames than a lap walks
+the lap again with the same poses, while frame ids and stamps keep increasing. ``open_synthetic``
+parses the ``synthetic:key=value,...`` spec options
+(:mod:`openfusion.sources.synthetic_spec`).
 """
 
 from __future__ import annotations
@@ -12,9 +15,10 @@ import numpy as np
 
 from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.sources.base import IndexedFrameSource
-from openfusion.sources.synthetic.camera import default_intrinsics
+from openfusion.sources.synthetic.camera import LAP_FRAMES, default_intrinsics
 from openfusion.sources.synthetic.depth import DEPTH_MAX_M, DEPTH_MIN_M, DEPTH_SCALE, apply_depth_noise
 from openfusion.sources.synthetic.world import SyntheticWorld
+from openfusion.sources.synthetic_spec import SPEC_KEYS, synthetic_options
 
 
 class SyntheticSource(IndexedFrameSource):
@@ -22,7 +26,9 @@ class SyntheticSource(IndexedFrameSource):
 
     Frame i: ``frame_id = i``, ``stamp_ns = round(i * 1e9 / fps)``, depth uint16 mm, exact
     instance image and the categories of the instances it shows. Frames are a pure function
-    of (world seed, i, options): iterating twice gives identical frames.
+    of (world seed, i, options): iterating twice gives identical frames. ``frames_per_lap``
+    (default :data:`~openfusion.sources.synthetic.camera.LAP_FRAMES`): frames of one lap of the
+    room; frame ``i`` is taken at the pose of frame ``i mod frames_per_lap`` (``self.lap``).
     """
 
     def __init__(
@@ -53,13 +59,15 @@ class SyntheticSource(IndexedFrameSource):
         self.intrinsics = intrinsics if intrinsics is not None else default_intrinsics(width_px, height_px)
         self.fps = float(fps)
         self.depth_noise = depth_noise
-        self.poses = world.camera_path(self.num_frames, frames_per_lap=frames_per_lap)
+        self.lap = int(frames_per_lap) if frames_per_lap is not None else LAP_FRAMES
+        # One lap's poses (or fewer): later laps take the same poses.
+        self.poses = world.camera_path(min(self.num_frames, self.lap), frames_per_lap=self.lap)
 
     def _num_items(self) -> int:
         return self.num_frames
 
     def _load(self, index: int) -> Frame:
-        T = self.poses[index]
+        T = self.poses[index % self.lap]
         view = self.world.render(T, self.intrinsics)
         if self.depth_noise:
             rng = np.random.default_rng([self.world.seed, 1000 + index])
@@ -83,35 +91,15 @@ class SyntheticSource(IndexedFrameSource):
         )
 
 
-_SPEC_KEYS = {
-    "seed": ("seed", int),
-    "frames": ("num_frames", int),
-    "width": ("width_px", int),
-    "height": ("height_px", int),
-    "fps": ("fps", float),
-    "lap": ("frames_per_lap", int),
-    "noise": ("depth_noise", None),
-}
-
-
 def open_synthetic(spec_options: dict[str, str] | None = None, **kwargs) -> SyntheticSource:
     """A ``SyntheticSource`` from ``synthetic:seed=N,frames=N,width=W,height=H,fps=F,noise=0|1,lap=N``
-    options (strings) plus keyword arguments of ``SyntheticSource`` (and ``seed``)."""
+    options (strings, :data:`~openfusion.sources.synthetic_spec.SPEC_KEYS`) plus keyword arguments
+    of ``SyntheticSource`` (and ``seed``)."""
     merged = dict(kwargs)
-    for key, text in (spec_options or {}).items():
-        if key not in _SPEC_KEYS:
-            raise ValueError(f"unknown synthetic option {key!r}; known: {', '.join(sorted(_SPEC_KEYS))}")
-        name, conv = _SPEC_KEYS[key]
+    for name, value in synthetic_options(spec_options or {}).items():
         if name in merged:
+            key = next(k for k, (n, _conv) in SPEC_KEYS.items() if n == name)
             raise ValueError(f"synthetic option {key!r} is given both in the spec and as the keyword {name!r}")
-        if conv is None:
-            if text.lower() not in ("0", "1", "true", "false"):
-                raise ValueError(f"synthetic option noise must be 0/1/true/false, got {text!r}")
-            merged[name] = text.lower() in ("1", "true")
-            continue
-        try:
-            merged[name] = conv(text)
-        except ValueError:
-            raise ValueError(f"synthetic option {key}={text!r} is not a valid {conv.__name__}") from None
+        merged[name] = value
     seed = int(merged.pop("seed", 0))
     return SyntheticSource(SyntheticWorld(seed), **merged)

@@ -74,9 +74,9 @@ class SyntheticWorld:
         middle at about 1.45 m, always looking across the room at the furniture.
 
         Position and look-at target are sums of sinusoids in the frame index, so both the
-        path and the orientation are smooth; ``frames_per_lap`` (default max(num_frames, 360),
-        about 0.8 m/s at 30 fps)
-        is the number of frames of one lap.
+        path and the orientation are smooth; ``frames_per_lap`` (default
+        :data:`~openfusion.sources.synthetic.camera.LAP_FRAMES` = 360, about 0.8 m/s at 30 fps) is
+        the number of frames of one lap; a longer path walks the same lap again.
         """
         return camera_path(self.room_size_m, self.seed, num_frames, frames_per_lap=frames_per_lap)
 

@@ -1,0 +1,89 @@
+"""The pieces of ``openfusion run`` that need no process: the source spec that plays --frames frames
+of the built-in room, the note of a run that played fewer frames than asked for, and the reason a
+dead service gives in its log (what the launcher prints instead of an empty tail)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+from openfusion.app.launcher import ServiceProcess, _reason_and_tail
+from openfusion.app.run import BUILTIN_LAP_FRAMES, builtin_scene_spec, shortfall_note
+from openfusion.app.summary import RunSummary
+
+TRACEBACK_LOG = """\
+INFO openfusion.bus.runner: geometry: ready on openfusion/demo
+WARNING openfusion.services.geometry.service: geometry: frame 3 refused: out of blocks
+Traceback (most recent call last):
+  File "/x/cli.py", line 150, in main
+    return int(loaded[args.command].run(args) or 0)
+  File "/x/service.py", line 12, in on_frame
+    raise RuntimeError("disk on fire")
+RuntimeError: disk on fire
+
+"""
+
+
+def test_the_reason_is_the_exception_line_or_the_one_line_error() -> None:
+    reason, tail = _reason_and_tail(TRACEBACK_LOG)
+    assert reason == "RuntimeError: disk on fire"
+    assert tail[-1] == "RuntimeError: disk on fire" and tail[0].startswith("INFO") and len(tail) == 8
+    assert len(_reason_and_tail(TRACEBACK_LOG, lines=3)[1]) == 3
+    one_line = "INFO starting\nopenfusion service: error: cannot open source 'folder:/x': no openfusion_source.json\n"
+    assert _reason_and_tail(one_line)[0].endswith("no openfusion_source.json")
+    logged = "INFO a\nERROR openfusion.bus: cannot join the network\nINFO b\n"
+    assert _reason_and_tail(logged)[0] == "ERROR openfusion.bus: cannot join the network"
+    assert _reason_and_tail("INFO a\nINFO b\n") == ("", ["INFO a", "INFO b"])  # nothing says why
+    assert _reason_and_tail("\n\n") == ("", [])
+
+
+def _dead(tmp_path: Path, log: str, returncode: int) -> ServiceProcess:
+    path = tmp_path / "svc.log"
+    path.write_text(log)
+    return ServiceProcess("geometry", SimpleNamespace(returncode=returncode, poll=lambda: returncode), path)
+
+
+def test_a_dead_service_is_reported_with_its_reason_and_last_lines(tmp_path: Path) -> None:
+    """One line that says why (what the command prints as its error), the log's last lines above it."""
+    crashed = _dead(tmp_path, TRACEBACK_LOG, 1).death()
+    assert str(crashed) == f"the geometry service exited with code 1: RuntimeError: disk on fire (log: {tmp_path}/svc.log)"
+    assert crashed.details.splitlines()[0] == f"last lines of {tmp_path}/svc.log:"
+    assert crashed.details.splitlines()[-1] == "  RuntimeError: disk on fire"
+    refused = _dead(tmp_path, "openfusion service: error: cannot open source 'folder:/x'\n", 2).death()
+    assert str(refused).startswith("the geometry service exited with code 2: cannot open source 'folder:/x' (log: ")
+    assert refused.details == ""  # the one line is already the message
+    killed = _dead(tmp_path, "INFO geometry: ready\n", -9).death()
+    assert str(killed) == f"the geometry service was killed by SIGKILL (log: {tmp_path}/svc.log)"
+    assert killed.details.endswith("  INFO geometry: ready")
+    quiet = _dead(tmp_path, "", 3).death()
+    assert str(quiet) == f"the geometry service exited with code 3 (log: {tmp_path}/svc.log)" and quiet.details == ""
+
+
+@pytest.mark.parametrize(("spec", "expected"), [
+    ("synthetic", f"synthetic:frames=500,lap={BUILTIN_LAP_FRAMES}"),
+    ("synthetic:seed=2,width=160", f"synthetic:seed=2,width=160,frames=500,lap={BUILTIN_LAP_FRAMES}"),
+    ("synthetic:frames=40,lap=8", "synthetic:frames=40,lap=8"),  # the user's own choices stay
+    ("scannet:/data/scene", "scannet:/data/scene"),
+])
+def test_the_built_in_room_plays_the_frames_asked_for(spec: str, expected: str) -> None:
+    assert builtin_scene_spec(spec, 500) == expected
+
+
+def _summary(**fields: object) -> RunSummary:
+    base = dict(mode="services", source="s", encoder="gt", noise="off", semantic_every=1, frames_read=300,
+                frames_skipped={}, frames_published=300, frames_integrated=300, semantic_frames=300, regions=9,
+                rec_fps=None, sem_rec_fps=None, wall_s=1.0, frames_requested=2000, frames_played=300)
+    return RunSummary.model_validate({**base, **fields})
+
+
+def test_a_shorter_source_is_said_and_an_old_run_json_still_loads(tmp_path: Path) -> None:
+    assert shortfall_note(_summary()) == "played 300 of 2000 frames: the source has 300"
+    assert shortfall_note(_summary(frames_skipped={"bad_pose": 4})) == (
+        "played 300 of 2000 frames: the source has 300 usable frames (4 skipped: bad_pose 4)")
+    assert shortfall_note(_summary(frames_played=2000)) is None
+    assert shortfall_note(_summary(interrupted=True)) is None
+    old = _summary().model_dump(exclude={"frames_requested", "frames_played", "interrupted"})
+    loaded = RunSummary.model_validate(old)
+    assert loaded.frames_requested is None and not loaded.interrupted and shortfall_note(loaded) is None
