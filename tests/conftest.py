@@ -13,12 +13,18 @@ never for a fixed time: helpers in :mod:`openfusion.testing.bus`.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
 
+if TYPE_CHECKING:
+    import zenoh
+
 from openfusion.mapping import VolumeParams
-from openfusion.testing.bus import unique_map_id
+from openfusion.testing.bus import open_pair, unique_map_id
+from openfusion.wire.keys import KeySpace
 
 TESTS = Path(__file__).resolve().parent
 LAYERS = ("unit", "bus", "process")
@@ -47,6 +53,22 @@ def minilm_onnx_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
     cache = tmp_path_factory.mktemp("openfusion-cache")
     cached_onnx_model(cache_dir=cache)
     return cache
+
+
+@pytest.fixture(scope="module")
+def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session, int]]:
+    """Two Zenoh sessions of one test module, connected on a free loopback port (multicast off),
+    and that port (tests/bus, tests/process)."""
+    a, b, port = open_pair(unique_map_id("bus"))
+    yield a, b, port
+    a.close()
+    b.close()
+
+
+@pytest.fixture
+def keys() -> KeySpace:
+    """The key space of a map no other test uses."""
+    return KeySpace("openfusion", unique_map_id("bus"))
 
 
 @pytest.fixture

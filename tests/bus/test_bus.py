@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Iterator
 
 import pytest
 import zenoh
@@ -25,8 +24,6 @@ from openfusion.bus import (
 )
 from openfusion.testing.bus import (
     loopback_config,
-    open_pair,
-    unique_map_id,
     wait_for_queryable,
     wait_for_subscriber,
     wait_until,
@@ -34,7 +31,6 @@ from openfusion.testing.bus import (
 from openfusion.testing.demo_service import PingReply, PingRequest
 from openfusion.wire.codec import decode, encode
 from openfusion.wire.endpoints import CONTROL, GEOMETRY_RENDER, Endpoint
-from openfusion.wire.keys import KeySpace
 from openfusion.wire.schemas import (
     ControlReply,
     ControlRequest,
@@ -45,19 +41,6 @@ from openfusion.wire.schemas import (
 )
 
 pytestmark = pytest.mark.timeout(120)
-
-
-@pytest.fixture(scope="module")
-def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session, int]]:
-    a, b, port = open_pair(unique_map_id("bus"))
-    yield a, b, port
-    a.close()
-    b.close()
-
-
-@pytest.fixture
-def keys() -> KeySpace:
-    return KeySpace("openfusion", unique_map_id("bus"))
 
 
 def _query(i: int) -> TextQuery:

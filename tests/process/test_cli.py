@@ -21,6 +21,7 @@ from openfusion.testing.bus import (
     endpoint,
     free_port,
     loopback_args,
+    processes_mentioning,
     subprocess_env,
     unique_map_id,
     wait_until,
@@ -75,19 +76,6 @@ def test_user_errors_are_one_line_without_traceback() -> None:
     _assert_one_line_error(_run("health", "--set", "zenoh.mode=bogus"), 2, "zenoh.mode = 'bogus' (from --set zenoh.mode)")
 
 
-def _processes_mentioning(text: str) -> list[str]:
-    """Command lines of the processes on this machine that contain ``text``."""
-    found = []
-    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
-        try:
-            args = cmdline.read_bytes().split(b"\0")
-        except OSError:
-            continue
-        if any(text.encode() in a for a in args):
-            found.append(b" ".join(args).decode(errors="replace"))
-    return found
-
-
 def test_bad_values_are_refused_before_anything_starts(tmp_path: Path) -> None:
     """The real command refuses a bad source, a bad --top-k and a bad service source with one line
     and exit code 2 before it starts anything: no output folder, no service process of the map.
@@ -108,7 +96,7 @@ def test_bad_values_are_refused_before_anything_starts(tmp_path: Path) -> None:
     _assert_one_line_error(proc, 2, "unknown source scheme 'nosuch' in 'nosuch:/x'")
     assert proc.stderr.startswith("openfusion service: error: "), proc.stderr
     assert not out.exists(), sorted(p.name for p in out.iterdir())
-    assert _processes_mentioning(map_id) == []
+    assert processes_mentioning(map_id) == []
 
 
 def test_health_lists_a_live_service_with_its_stats() -> None:

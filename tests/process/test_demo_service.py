@@ -4,10 +4,8 @@ and it exits 0 on SIGINT/SIGTERM after undeclaring everything."""
 from __future__ import annotations
 
 import signal
-from collections.abc import Iterator
 
 import pytest
-import zenoh
 
 from openfusion.bus import (
     QueryError,
@@ -17,27 +15,12 @@ from openfusion.bus import (
 from openfusion.testing.bus import (
     ServiceProcess,
     loopback_args,
-    open_pair,
-    unique_map_id,
     wait_until,
 )
 from openfusion.testing.demo_service import PingReply, PingRequest
 from openfusion.wire.keys import KeySpace
 
 pytestmark = pytest.mark.timeout(120)
-
-
-@pytest.fixture(scope="module")
-def sessions() -> Iterator[tuple[zenoh.Session, zenoh.Session, int]]:
-    a, b, port = open_pair(unique_map_id("bus"))
-    yield a, b, port
-    a.close()
-    b.close()
-
-
-@pytest.fixture
-def keys() -> KeySpace:
-    return KeySpace("openfusion", unique_map_id("bus"))
 
 
 def _demo(keys: KeySpace, port: int) -> ServiceProcess:

@@ -19,7 +19,7 @@ import pytest
 from openfusion.bus import collect_health, open_session
 from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.mapping import load_map
-from openfusion.testing.bus import scaled, subprocess_env, unique_map_id, wait_until
+from openfusion.testing.bus import processes_mentioning, scaled, subprocess_env, unique_map_id, wait_until
 from openfusion.wire.counters import GeometryCounter
 from openfusion.wire.keys import KeySpace
 
@@ -33,19 +33,6 @@ SMALL = "width=160,height=120"
 def _run(*args: str, timeout_s: float = 240) -> subprocess.CompletedProcess[str]:
     return subprocess.run([*OPENFUSION, "run", *args], capture_output=True, text=True, timeout=scaled(timeout_s), cwd=ROOT,
                           env=subprocess_env(HF_HUB_OFFLINE="1"))
-
-
-def _processes_mentioning(text: str) -> list[str]:
-    """Command lines of the processes on this machine that contain ``text``."""
-    found = []
-    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
-        try:
-            args = cmdline.read_bytes().split(b"\0")
-        except OSError:
-            continue
-        if any(text.encode() in a for a in args):
-            found.append(b" ".join(args).decode(errors="replace"))
-    return found
 
 
 def test_frames_beyond_a_lap_are_all_played(tmp_path: Path) -> None:
@@ -95,7 +82,7 @@ class _Run:
         """Frames geometry has integrated (0 until the run's services are up: they are started with
         ``--connect`` to the run's router, the endpoint used here)."""
         if self.session is None:
-            found = [re.search(r"--connect (tcp/127\.0\.0\.1:\d+)", c) for c in _processes_mentioning(self.map_id)]
+            found = [re.search(r"--connect (tcp/127\.0\.0\.1:\d+)", c) for c in processes_mentioning(self.map_id)]
             endpoint = next((f.group(1) for f in found if f is not None), None)
             if endpoint is None:
                 return 0.0
@@ -154,7 +141,7 @@ def test_ctrl_c_saves_the_map_of_what_was_integrated(run, tmp_path: Path) -> Non
     assert summary["frames_integrated"] == saved >= 4 and summary["frames_played"] >= saved
     assert not (r.out / "queries.json").exists()  # the example queries were skipped
     assert r.proc.stdout.read() == ""
-    assert _processes_mentioning(r.map_id) == []
+    assert processes_mentioning(r.map_id) == []
     answer = subprocess.run([*OPENFUSION, "query", "--map-dir", str(r.out / "map"), "chair"], capture_output=True,
                             text=True, timeout=scaled(120), cwd=ROOT, env=subprocess_env(HF_HUB_OFFLINE="1"))
     assert answer.returncode == 0, answer.stderr[-3000:]
@@ -172,7 +159,7 @@ def test_a_second_ctrl_c_aborts_at_once(run) -> None:
     assert r.proc.wait(scaled(30)) == 130, r.stderr()[-3000:]
     last = r.stderr().strip().splitlines()[-1]
     assert last.startswith("openfusion run: interrupted: aborted by a second SIGINT"), last
-    assert _processes_mentioning(r.map_id) == []
+    assert processes_mentioning(r.map_id) == []
 
 
 def test_ctrl_c_in_process_stops_at_the_next_frame_and_saves_the_map(tmp_path: Path) -> None:
@@ -219,4 +206,4 @@ def test_a_service_that_dies_shows_why(tmp_path: Path) -> None:
     assert last.startswith("openfusion run: error: the bridge service exited with code 2: "), last
     assert "openfusion_source.json" in last and "bridge.log" in last
     assert "Traceback" not in proc.stderr
-    assert _processes_mentioning(map_id) == []
+    assert processes_mentioning(map_id) == []

@@ -6,8 +6,9 @@ See docs/ARCHITECTURE.md ("Map core") for the contract; the update rule is writt
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from openfusion.lazy import lazy_exports
 
 if TYPE_CHECKING:
     from openfusion.mapping.dictionary import RegionDictionary
@@ -22,8 +23,10 @@ if TYPE_CHECKING:
         FORMAT_VERSION,
         LoadedMap,
         MapSummary,
+        load_latest_map,
         load_map,
         load_map_summary,
+        previous_map_path,
         save_map,
     )
     from openfusion.mapping.mapper import SemanticMapper, StepStats
@@ -70,6 +73,8 @@ _EXPORTS: dict[str, str] = {
     "FORMAT_VERSION": "openfusion.mapping.mapfile",
     "LoadedMap": "openfusion.mapping.mapfile",
     "load_map": "openfusion.mapping.mapfile",
+    "load_latest_map": "openfusion.mapping.mapfile",
+    "previous_map_path": "openfusion.mapping.mapfile",
     "save_map": "openfusion.mapping.mapfile",
     "MapSummary": "openfusion.mapping.mapfile",
     "load_map_summary": "openfusion.mapping.mapfile",
@@ -134,10 +139,12 @@ __all__ = [
     "VolumeStats",
     "classify_regions",
     "fuse_semantics",
+    "load_latest_map",
     "load_map",
     "load_map_summary",
     "match_regions",
     "plan_update",
+    "previous_map_path",
     "query_region_table",
     "query_regions",
     "region_conf_maps",
@@ -147,14 +154,4 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_EXPORTS))
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

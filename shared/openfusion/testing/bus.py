@@ -104,6 +104,20 @@ def wait_until(predicate: Callable[[], Any], *, timeout_s: float = 60.0, interva
         time.sleep(interval_s)
 
 
+def processes_mentioning(text: str) -> list[str]:
+    """Command lines of the processes on this machine that contain ``text``
+    (Linux ``/proc``): what a test checks to prove no process of a run outlived it."""
+    found = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            args = cmdline.read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if any(text.encode() in a for a in args):
+            found.append(b" ".join(args).decode(errors="replace"))
+    return found
+
+
 def subprocess_env(**extra: str) -> dict[str, str]:
     """The environment for a child Python: no OPENFUSION_* leaking in from the caller."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("OPENFUSION_")}
