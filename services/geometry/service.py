@@ -12,12 +12,22 @@
 | ``…/geometry/regions`` | queryable | RegionSummaryRequest → RegionSummaryReply (per-region bbox + surface point count) |
 | ``…/geometry/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot (what the last checkpoint + deltas hold) |
 | ``…/control/{save,load,reset}`` | queryable (admin) | ControlRequest → ControlReply |
-| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``capacity_refused``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC) |
+| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC) |
 
 Checkpoints go to ``{map_dir}/{map_id}`` every ``checkpoint_period_s`` (when something changed)
-and on ``control/save``; on start the service loads that checkpoint when it exists, so a restart
-loses nothing that was saved. Every bad message is counted and dropped before it reaches the
-volume; a bad request is answered with ``reply_err`` naming the limit or field.
+and on ``control/save``; :func:`~openfusion.mapping.save_map` writes them atomically and keeps
+the one before as ``map.ofz.prev.npz``. On start the service loads the newest checkpoint, or the
+previous one when the newest is corrupt or missing (:func:`~openfusion.mapping.load_latest_map`,
+one warning line; both unreadable: the service does not start rather than map over them), so a
+restart loses nothing that was saved. Each checkpoint's meta records ``frames_integrated`` and
+``last_frame_id`` (the id of the last frame integrated into it); after a load or save the service
+exposes it as :attr:`GeometryService.checkpoint_last_frame_id` and the health counter
+``checkpoint_last_frame_id`` (-1: none). A checkpoint that fails with an ``OSError`` (disk full,
+read-only folder) is logged in one line naming the path and reason, counted as
+``checkpoint_failures`` and, on ``control/save``, answered with ``reply_err`` code
+``checkpoint_failed``; the map stays in memory, integration goes on, and the periodic loop tries
+again one ``checkpoint_period_s`` later. Every bad message is counted and dropped before it
+reaches the volume; a bad request is answered with ``reply_err`` naming the limit or field.
 
 Region summaries (``geometry/regions``, what the query service ranks with): computed from the
 same surface points as ``geometry/points`` and cached per ``map_version`` (a counter bumped by
@@ -31,6 +41,7 @@ covered: a covered key that is not listed has no surface points).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
@@ -45,13 +56,15 @@ from openfusion.bus import Publisher, RequestError, ServiceRunner, Subscriber
 from openfusion.config import ServiceConfig
 from openfusion.mapping import (
     CapacityError,
+    MapFormatError,
     RegionDictionary,
     SemanticVolume,
     VolumeParams,
+    load_latest_map,
     load_map,
     save_map,
 )
-from openfusion.mapping.mapfile import resolve_map_path
+from openfusion.mapping.mapfile import previous_map_path, resolve_map_path
 from openfusion.mapping.queries import RegionTable
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
@@ -91,6 +104,16 @@ from openfusion.wire.schemas import (
 logger = logging.getLogger(__name__)
 
 NO_EMBEDDING_SPACE = "none"
+NO_FRAME_ID = -1  # the checkpoint_last_frame_id counter when no checkpoint records one
+
+
+class CheckpointFailed(RequestError):
+    """A checkpoint could not be written (``OSError``: disk full, read-only folder); already
+    logged and counted. The in-memory map is unchanged."""
+
+    def __init__(self, path: Path, reason: str) -> None:
+        super().__init__("checkpoint_failed", f"checkpoint to {path} failed: {reason}; the map is kept in memory")
+        self.path = path
 
 
 class GeometrySection(VolumeParams):
@@ -175,6 +198,10 @@ class GeometryService:
         self.replica = DictionaryReplica()
         self.frames_integrated = 0
         self.updates_applied = 0
+        self.last_frame_id: int | None = None  # the last frame integrated into the volume
+        # The last frame id recorded in the newest checkpoint this service loaded or saved.
+        self.checkpoint_last_frame_id: int | None = None
+        self.checkpoint_failures = 0
         # Bumped by every change of the map (frames, updates, merges, load, reset): region
         # summaries are cached per version. Keys below _key_horizon are ones this map has seen.
         self.map_version = 0
@@ -189,27 +216,28 @@ class GeometryService:
         self._runner: ServiceRunner | None = None
         self._frames_sub: Subscriber[RgbdFrame] | None = None
         self._progress_pub: Publisher | None = None
-        if (
-            self.section.load_on_start
-            and self.checkpoint_dir is not None
-            and resolve_map_path(self.checkpoint_dir).exists()
-        ):
-            self._load(self.checkpoint_dir)
+        if self.section.load_on_start and self.checkpoint_dir is not None and _has_checkpoint(self.checkpoint_dir):
+            self._load(self.checkpoint_dir, fallback=True)
 
     # ------------------------------------------------------------------ state changes
-    def _load(self, path: Path) -> None:
-        loaded = load_map(path, device=self.section.device)
+    def _load(self, path: Path, *, fallback: bool = False) -> None:
+        """Load a map file; ``fallback``: a checkpoint of ours, the ``.prev`` one when the newest is bad."""
+        loaded = (load_latest_map if fallback else load_map)(path, device=self.section.device)
+        last = loaded.meta.get("last_frame_id")
         with self._lock:
             self.volume = loaded.volume
             has_semantics = loaded.dictionary.embedding_space != NO_EMBEDDING_SPACE
             self.replica.reset(loaded.dictionary if has_semantics else None)
+            self.last_frame_id = self.checkpoint_last_frame_id = int(last) if last is not None else None
             self._map_changed(reset_keys=True)
             self._dirty = False
+        self._set_checkpoint_frame()
         logger.info(
-            "geometry: loaded map %s (%d blocks, %d regions)",
-            path,
+            "geometry: loaded map %s (%d blocks, %d regions, last frame %s)",
+            loaded.path or path,
             self.volume.num_blocks,
             len(loaded.dictionary) if loaded.dictionary is not None else 0,
+            "none" if self.checkpoint_last_frame_id is None else self.checkpoint_last_frame_id,
         )
 
     def save(self, path: Path | None = None) -> Path:
@@ -225,18 +253,41 @@ class GeometryService:
             # surface read-out saved); else save_map reads the surface out once.
             cached = self._summary
             regions = cached.table if cached is not None and cached.map_version == self.map_version else None
-            written = save_map(
-                target,
-                self.volume,
-                dictionary,
-                meta={"map_id": self.config.map_id, "frames_integrated": self.frames_integrated},
-                regions=regions,
-            )
+            last = self.last_frame_id
+            try:
+                written = save_map(
+                    target,
+                    self.volume,
+                    dictionary,
+                    meta={
+                        "map_id": self.config.map_id,
+                        "frames_integrated": self.frames_integrated,
+                        "last_frame_id": last,
+                    },
+                    regions=regions,
+                )
+            except OSError as exc:
+                # Disk full, read-only folder...: save_map left the files as they were and no
+                # temporary file; the map stays in memory and the next period tries again.
+                self._last_checkpoint = time.monotonic()
+                self.checkpoint_failures += 1
+                self._count(GeometryCounter.CHECKPOINT_FAILURES)
+                failed = resolve_map_path(target)
+                reason = exc.strerror or str(exc)
+                logger.error("geometry: checkpoint to %s failed: %s; the map is kept in memory", failed, reason)
+                raise CheckpointFailed(failed, reason) from exc
             self._dirty = False
+            self.checkpoint_last_frame_id = last
         self._last_checkpoint = time.monotonic()
         self._count(GeometryCounter.CHECKPOINTS)
-        logger.info("geometry: saved map to %s", written)
+        self._set_checkpoint_frame()
+        logger.info("geometry: saved map to %s (last frame %s)", written, "none" if last is None else last)
         return written
+
+    def _set_checkpoint_frame(self) -> None:
+        if self._runner is not None:
+            last = self.checkpoint_last_frame_id
+            self._runner.stats.set(GeometryCounter.CHECKPOINT_LAST_FRAME_ID, NO_FRAME_ID if last is None else last)
 
     def _map_changed(self, *, reset_keys: bool = False) -> None:
         """Call with ``self._lock`` held after any change of the volume."""
@@ -256,6 +307,7 @@ class GeometryService:
             with self._lock:
                 self.volume.integrate(frame)
                 self.frames_integrated += 1
+                self.last_frame_id = frame.frame_id
                 self._map_changed()
                 self._dirty = True
         except CapacityError as exc:
@@ -395,15 +447,21 @@ class GeometryService:
             path = self.save(Path(req.path) if req.path else None)
             return ControlReply(ok=True, message=f"saved to {path}")
         if action == "load":
+            # A named file is read strictly; our own checkpoint falls back to its .prev file.
             path = Path(req.path) if req.path else self.checkpoint_dir
-            if path is None or not resolve_map_path(path).exists():
+            own = not req.path
+            if path is None or not (_has_checkpoint(path) if own else resolve_map_path(path).exists()):
                 raise RequestError("not_found", f"no map at {path}")
-            self._load(path)
+            try:
+                self._load(path, fallback=own)
+            except MapFormatError as exc:
+                raise RequestError("bad_map", str(exc)) from exc
             return ControlReply(ok=True, message=f"loaded {path}")
         with self._lock:
             self.volume = SemanticVolume(self.section.volume_params())
             self.replica.reset(None)
             self.frames_integrated = 0
+            self.last_frame_id = None
             self._map_changed(reset_keys=True)
             self._dirty = True
         return ControlReply(ok=True, message="map reset")
@@ -424,6 +482,8 @@ class GeometryService:
             runner.queryable(endpoint, lambda req, action=action: self.handle_control(req, action=action))
         runner.stats.set(GeometryCounter.FRAMES_INTEGRATED, self.frames_integrated)
         runner.stats.set(GeometryCounter.NUM_BLOCKS, self.volume.num_blocks)
+        runner.stats.set(GeometryCounter.CHECKPOINT_FAILURES, self.checkpoint_failures)
+        self._set_checkpoint_frame()
 
     def loop(self, runner: ServiceRunner) -> None:
         period = self.section.checkpoint_period_s
@@ -436,16 +496,18 @@ class GeometryService:
             ):
                 try:
                     self.save()
-                except (OSError, RequestError) as exc:
-                    logger.error("geometry: periodic checkpoint failed: %s", exc)
+                except CheckpointFailed:  # logged and counted by save(); mapping goes on
                     runner.stats.add_error()
 
     def close(self) -> None:
         if self._dirty and self.checkpoint_dir is not None:
-            try:
+            with contextlib.suppress(CheckpointFailed):  # logged by save()
                 self.save()
-            except (OSError, RequestError) as exc:
-                logger.error("geometry: final checkpoint failed: %s", exc)
+
+
+def _has_checkpoint(path: Path) -> bool:
+    """A checkpoint (the newest or the one before it) is at ``path``."""
+    return resolve_map_path(path).exists() or previous_map_path(path).exists()
 
 
 DEFINITION = ServiceDefinition(

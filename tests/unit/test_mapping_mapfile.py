@@ -106,8 +106,8 @@ def test_save_load_round_trip_gives_identical_answers(mapper: SemanticMapper, tm
 
 
 def test_save_is_atomic_and_leaves_no_temp_files(mapper: SemanticMapper, tmp_path: Path) -> None:
-    """A second save replaces the file in one step; a save that fails (meta not JSON) leaves the
-    previous map intact and no temporary file behind."""
+    """A second save replaces the file in one step (the replaced one kept as ``.prev``); a save
+    that fails (meta not JSON) leaves the previous map intact and no temporary file behind."""
     path = tmp_path / "m.npz"
     save_map(path, mapper.volume, mapper.dictionary, {"v": 1})
     with pytest.raises(ValueError, match="JSON"):
@@ -115,7 +115,8 @@ def test_save_is_atomic_and_leaves_no_temp_files(mapper: SemanticMapper, tmp_pat
     assert load_map(path).meta["v"] == 1
     save_map(path, mapper.volume, mapper.dictionary, {"v": 2})
     assert load_map(path).meta["v"] == 2
-    assert sorted(os.listdir(tmp_path)) == ["m.npz"]
+    assert sorted(os.listdir(tmp_path)) == ["m.npz", "m.prev.npz"]
+    assert load_map(tmp_path / "m.prev.npz").meta["v"] == 1
 
 
 def test_truncated_file_is_refused(mapper: SemanticMapper, tmp_path: Path) -> None:

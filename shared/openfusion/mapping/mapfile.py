@@ -24,15 +24,36 @@ optional members: files saved before them (no ``summary_*``) still load with :fu
 and :func:`load_map_summary` returns None for them, so a query falls back to reading the whole
 map; builds that predate them ignore the extra members.
 
-Writing goes to a temporary file in the target folder, is fsynced and then renamed over the
-target (``os.replace``), so a crash leaves the old map or the new one, never half of one. Loading
-checks every array against the CRC-32 in the metadata and builds fresh objects; any problem
+Writing (:func:`save_map`) keeps the last two checkpoints, the newest (``map.ofz.npz``) and the
+one before it (``map.ofz.prev.npz``, :func:`previous_map_path`), in this order:
+
+1. the new map is written to a temporary file in the target folder (``.map.ofz.npz.*.tmp``) and
+   fsynced: a crash here leaves the newest and the previous file untouched (the temporary file
+   is never read; a later save removes it once it is :data:`STALE_TEMP_S` old);
+2. the newest file is renamed to the ``.prev`` name (replacing the older one) and the folder
+   fsynced, so this rename reaches the disk before the next one;
+3. the temporary file is renamed to the target name (``os.replace``) and the folder fsynced.
+
+At every instant one complete file exists: the target until step 2, the ``.prev`` between 2 and
+3, both after 3. Renaming the old file instead of keeping it under a hard link works on every
+file system; the price is the moment between 2 and 3 when only the ``.prev`` exists, which
+:func:`load_latest_map` covers (a failed step 3 also renames it back). Keeping the older file
+means a checkpoint that is corrupted later (a bad sector, a copy cut short) still leaves one to
+load: :func:`load_latest_map` tries the newest file and falls back to the ``.prev`` with one log
+line. ``keep_previous=False`` skips step 2 (one file, replaced in place).
+
+No whole-file checksum: the header cannot hold the checksum of the file it is part of (a sidecar
+file would be one more file to keep in step with every rename), and it would add nothing: every
+array is checked against its CRC-32 in the header, the zip members carry their own CRC-32 (also
+checked by ``np.load``) and the zip directory sits at the end of the file, so a torn or
+truncated file fails to open and flipped bytes fail a CRC; what is left unchecked (zip local
+headers) holds no map data. Loading checks every array and builds fresh objects; any problem
 raises one :class:`MapFormatError` and nothing is returned.
 """
 
 from __future__ import annotations
 
-import contextlib
+import glob
 import json
 import logging
 import os
@@ -60,6 +81,10 @@ logger = logging.getLogger(__name__)
 FORMAT_NAME = "openfusion-z-map"
 FORMAT_VERSION = 1
 MAP_FILE_NAME = "map.ofz.npz"
+PREVIOUS_TAG = ".prev"  # map.ofz.npz -> map.ofz.prev.npz
+#: A temporary file this old (seconds since its last write) was left by a killed writer: the next
+#: save of the same map removes it. A younger one may belong to a save still writing.
+STALE_TEMP_S = 300.0
 
 _VOLUME_ARRAYS = ("block_coords", "tsdf", "weight", "color", "key", "conf")
 _DICT_ARRAYS = ("keys", "mean_embeddings", "counts")
@@ -71,6 +96,7 @@ class LoadedMap:
     volume: SemanticVolume
     dictionary: RegionDictionary
     meta: dict[str, Any] = field(default_factory=dict)
+    path: Path | None = None  # the file it was read from (the ``.prev`` one after a fallback)
 
 
 @dataclass
@@ -89,6 +115,12 @@ def resolve_map_path(path: str | os.PathLike[str]) -> Path:
     return p if p.suffix == ".npz" else p / MAP_FILE_NAME
 
 
+def previous_map_path(path: str | os.PathLike[str]) -> Path:
+    """Where :func:`save_map` keeps the map it replaced: ``map.ofz.npz`` -> ``map.ofz.prev.npz``."""
+    target = resolve_map_path(path)
+    return target.with_name(target.name[: -len(".npz")] + PREVIOUS_TAG + ".npz")
+
+
 def _crc(arr: np.ndarray) -> int:
     return zlib.crc32(np.ascontiguousarray(arr).view(np.uint8).reshape(-1)) & 0xFFFFFFFF
 
@@ -100,12 +132,15 @@ def save_map(
     meta: dict[str, Any] | None = None,
     *,
     regions: RegionTable | None = None,
+    keep_previous: bool = True,
 ) -> Path:
     """Write the map atomically; returns the file written. ``meta`` must be JSON-serialisable.
 
     ``regions``: the region summaries of ``volume`` as it is now, when the caller has them;
     by default they are computed here (one surface read-out, about 1.3 s for a furnished room at
-    2 cm on two CPU cores)."""
+    2 cm on two CPU cores). ``keep_previous``: a file already at the target is kept as its
+    ``.prev`` sibling (module docstring: the order of the renames). An ``OSError`` (disk full,
+    read-only folder) propagates with the files as they were and no temporary file left."""
     user_meta = dict(meta or {})
     try:
         json.dumps(user_meta)
@@ -147,18 +182,22 @@ def save_map(
         "meta_json": np.array(json.dumps(header)),
         **arrays,
     }
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    _remove_stale_temps(target)
+    fd, tmp_name = tempfile.mkstemp(prefix=_temp_prefix(target), suffix=".tmp", dir=target.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
             np.savez(fh, **payload)
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp_name, target)
+        _install(Path(tmp_name), target, keep_previous=keep_previous)
     except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+        try:
             os.unlink(tmp_name)
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            logger.warning("could not remove the temporary map file %s: %s", tmp_name, exc)
         raise
-    _fsync_dir(target.parent)
     logger.info(
         "saved map %s: %d blocks, %d regions (%.1f MB)",
         target,
@@ -167,6 +206,40 @@ def save_map(
         target.stat().st_size / 1e6,
     )
     return target
+
+
+def _temp_prefix(target: Path) -> str:
+    return f".{target.name}."
+
+
+def _install(tmp: Path, target: Path, *, keep_previous: bool) -> None:
+    """Steps 2 and 3 of the module docstring: the newest file becomes ``.prev``, ``tmp`` the newest."""
+    previous = previous_map_path(target) if keep_previous and target.is_file() else None
+    if previous is not None:
+        os.replace(target, previous)
+        _fsync_dir(target.parent)
+    try:
+        os.replace(tmp, target)
+    except BaseException:
+        if previous is not None:  # put the newest file back where strict readers look for it
+            try:
+                os.replace(previous, target)
+            except OSError as exc:
+                logger.warning("could not rename %s back to %s: %s", previous, target, exc)
+        raise
+    _fsync_dir(target.parent)
+
+
+def _remove_stale_temps(target: Path) -> None:
+    """Remove temporary files of ``target`` left by a writer that was killed mid-save."""
+    now = time.time()
+    for leftover in target.parent.glob(f"{glob.escape(_temp_prefix(target))}*.tmp"):
+        try:
+            if now - leftover.stat().st_mtime >= STALE_TEMP_S:
+                leftover.unlink()
+                logger.info("removed %s, left by an interrupted save", leftover)
+        except OSError as exc:  # gone meanwhile, or not ours to remove: not this save's problem
+            logger.debug("leftover %s not removed: %s", leftover, exc)
 
 
 def _fsync_dir(folder: Path) -> None:
@@ -190,6 +263,55 @@ def load_map(path: str | os.PathLike[str], *, device: str | None = None) -> Load
     """
     target = resolve_map_path(path)
     return _guarded(target, lambda npz: _load_archive(target, npz, device))
+
+
+def load_latest_map(path: str | os.PathLike[str], *, device: str | None = None) -> LoadedMap:
+    """The newest checkpoint at ``path``, or the one before it when the newest is corrupt or missing.
+
+    Tries :func:`load_map` on the file; on a :class:`MapFormatError` logs one warning
+    (``checkpoint X is corrupt (reason); loading the previous one Y``) and loads the ``.prev``
+    file that :func:`save_map` kept (``LoadedMap.path`` says which one was read). Raises
+    :class:`MapFormatError` naming both files and both reasons when neither loads. For
+    checkpoints a service writes and reads back itself; a map a user names is read strictly with
+    :func:`load_map`.
+    """
+    newest = resolve_map_path(path)
+    previous = previous_map_path(newest)
+    try:
+        return load_map(newest, device=device)
+    except MapFormatError as exc:
+        first = _reason(newest, exc)
+        state = "corrupt" if newest.exists() else "missing"
+        if not previous.is_file():
+            if state == "missing":
+                raise
+            raise MapFormatError(f"{newest}: {first}; there is no previous checkpoint {previous.name}") from exc
+    try:
+        loaded = load_map(previous, device=device)
+    except MapFormatError as exc:
+        raise MapFormatError(
+            f"no loadable checkpoint: {newest} is {state} ({first}) and the previous one {previous} "
+            f"is corrupt ({_reason(previous, exc)})"
+        ) from exc
+    aside = ""
+    if state == "corrupt":
+        # Set the corrupt file aside (kept for a post-mortem), so the next save does not demote it
+        # to .prev over the good checkpoint just loaded: after that save there are two good ones.
+        kept = newest.with_name(newest.name.removesuffix(".npz") + ".corrupt.npz")
+        try:
+            os.replace(newest, kept)
+            aside = f" (the corrupt file is kept as {kept.name})"
+        except OSError as exc:
+            aside = f" (could not move the corrupt file aside: {exc})"
+    logger.warning("checkpoint %s is %s (%s); loading the previous one %s%s", newest, state, first, previous, aside)
+    return loaded
+
+
+def _reason(target: Path, exc: MapFormatError) -> str:
+    """The message of ``exc`` without the leading ``{target}: `` every message here starts with."""
+    text = str(exc)
+    prefix = f"{target}: "
+    return text[len(prefix) :] if text.startswith(prefix) else text
 
 
 def load_map_summary(path: str | os.PathLike[str]) -> MapSummary | None:
@@ -339,4 +461,4 @@ def _load_archive(target: Path, npz: np.lib.npyio.NpzFile, device: str | None) -
             "%s: %d voxel keys have no dictionary entry (e.g. %s)", target, len(unknown), unknown[:5]
         )
     logger.info("loaded map %s: %d blocks, %d regions", target, volume.num_blocks, len(dictionary))
-    return LoadedMap(volume, dictionary, _meta(header))
+    return LoadedMap(volume, dictionary, _meta(header), target)
