@@ -5,15 +5,17 @@
 | ``…/sensor/rgbd`` | publishes | :class:`~openfusion.wire.schemas.RgbdFrame` (without the instance image) |
 | ``…/sensor/instance`` | publishes, for frames that have one, just before the frame | :class:`~openfusion.wire.schemas.InstanceFrame` |
 | ``…/geometry/progress`` | subscribes (flow control, playback only) | :class:`~openfusion.wire.schemas.GeometryProgress` |
-| ``…/health/bridge`` | liveliness + stats | counters ``frames_read``, ``frames_published``, ``instances_published``, ``skipped_<reason>``, ``playback_done``, ``flow_wait_s``, ``flow_timeouts`` |
+| ``…/health/bridge`` | liveliness + stats | counters ``frames_read``, ``frames_published``, ``instances_published``, ``skipped_<reason>``, ``frames_throttled``, ``playback_done``, ``flow_wait_s``, ``flow_timeouts`` |
 
 Ground-truth instance images (synthetic scene, ScanNet, Replica) go on their own key: only the
 semantic service's gt encoder reads them, and on ``sensor/rgbd`` they were 45 % of every
 640x480 frame that geometry had to receive and decode at camera rate.
 
 Rates: ``rate_hz = 0`` publishes as fast as the source produces; ``rate_hz > 0`` paces at that
-rate; unset (None) follows the frames' own timestamps (recorded rate). ``loop`` replays the
-source forever. Before the first frame the bridge waits up to ``wait_for_subscribers_s`` for a
+rate; unset (None) follows the frames' own timestamps (recorded rate). A live source is never
+waited for: it publishes every frame as it comes, and ``rate_hz > 0`` caps its rate by dropping
+the frames that come sooner than their turn (counted in ``frames_throttled``; ``max_frames`` then
+counts published frames). ``loop`` replays the source forever (``max_frames`` is per pass). Before the first frame the bridge waits up to ``wait_for_subscribers_s`` for a
 subscriber (so a geometry service started at the same time does not miss the start).
 
 Playback versus live: for a dataset, recording or the synthetic scene the bridge must get every
@@ -59,10 +61,13 @@ class BridgeSection(ConfigSection):
         "redwood:PATH, folder:PATH, replay:FILE, live:kinect-t265"
     )
     rate_hz: float | None = Field(
-        None, ge=0, description="publish rate; 0 = as fast as geometry takes frames; none = the frames' timestamps"
+        None, ge=0, description="publish rate; 0 = as fast as geometry takes frames; none = the frames' timestamps; "
+        "a live source is never waited for: every frame as it comes, and a rate drops the frames above it"
     )
     loop: bool = Field(False, description="replay the source forever")
-    max_frames: int | None = Field(None, ge=0, description="stop after this many frames")
+    max_frames: int | None = Field(
+        None, ge=0, description="stop after this many frames (with --loop: each pass; a live source: published frames)"
+    )
     progress: bool = Field(False, description="show a progress bar")
     wait_for_subscribers_s: float = Field(
         10.0, ge=0, description="before the first frame, wait this long for a subscriber (geometry starting)"
@@ -85,13 +90,30 @@ class BridgeConfig(ServiceConfig):
 
 
 class Pacer:
-    """Sleeps so frames go out at ``rate_hz`` (0 = no pacing) or at their own timestamps (None)."""
+    """Playback: sleeps so frames go out at ``rate_hz`` (0 = no pacing) or at their own timestamps
+    (None), :meth:`due_s`. Live: never sleeps; :meth:`take_live` drops the frames above ``rate_hz``."""
 
     def __init__(self, rate_hz: float | None) -> None:
         self.rate_hz = rate_hz
         self._t0_wall: float | None = None
         self._t0_stamp_ns: int | None = None
         self._count = 0
+        self._next_live_s: float | None = None
+
+    def take_live(self, now_s: float | None = None) -> bool:
+        """A live frame that came at ``now_s`` (default: now): True when it goes out, False when it
+        comes before its turn at ``rate_hz`` (dropped). Turns are ``1/rate_hz`` apart, so a sensor
+        faster than the rate gives exactly the rate on average; after a pause the turns restart."""
+        if not self.rate_hz:
+            return True
+        now = time.monotonic() if now_s is None else now_s
+        period = 1.0 / self.rate_hz
+        if self._next_live_s is None or now >= self._next_live_s + period:  # first frame, or after a pause
+            self._next_live_s = now
+        if now < self._next_live_s:
+            return False
+        self._next_live_s += period
+        return True
 
     def due_s(self, stamp_ns: int) -> float:
         """Seconds to wait before publishing a frame with ``stamp_ns`` (0 when late)."""
@@ -115,8 +137,14 @@ class BridgeService:
         self.config = config
         self.section = config.bridge
         self.source = source if source is not None else open_source(self.section.source)
+        #: A live source's frame budget (per pass) counts published frames, as a rate drops some; a
+        #: playback's is the source's own.
+        self.max_published: int | None = None
         if self.section.max_frames is not None:
-            self.source.max_frames = self.section.max_frames
+            if self.source.live:
+                self.max_published = self.section.max_frames
+            else:
+                self.source.max_frames = self.section.max_frames
         self._pub: Publisher | None = None
         self._instance_pub: Publisher | None = None
         blocking = self.section.block_when_congested
@@ -198,19 +226,28 @@ class BridgeService:
         passes = 0
         while not runner.stopping:
             pacer = Pacer(self.section.rate_hz)
+            published = 0
             for frame in self.source:
                 if runner.stopping:
                     break
                 runner.stats.incr(BridgeCounter.FRAMES_READ)
-                wait_s = pacer.due_s(frame.stamp_ns)
-                if wait_s > 0 and runner.wait(wait_s):
-                    break
+                if self.source.live:  # never wait for a live source: drop the frames above the rate
+                    if not pacer.take_live():
+                        runner.stats.incr(BridgeCounter.FRAMES_THROTTLED)
+                        continue
+                else:
+                    wait_s = pacer.due_s(frame.stamp_ns)
+                    if wait_s > 0 and runner.wait(wait_s):
+                        break
                 if not self._wait_for_geometry(runner):
                     break
                 self._publish(runner, frame)
+                published += 1
                 self._sync_source_stats(runner)
                 if progress is not None:
                     progress.update(1)
+                if self.max_published is not None and published >= self.max_published:
+                    break
             self._sync_source_stats(runner)
             passes += 1
             if not self.section.loop:

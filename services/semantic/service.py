@@ -28,7 +28,7 @@ import time
 from typing import Any
 
 import numpy as np
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationInfo, field_validator
 
 from openfusion.bus import Publisher, QueryError, ServiceRunner, Subscriber
 from openfusion.bus.instance_join import InstanceBuffer
@@ -66,7 +66,7 @@ class SemanticSection(MatchParams):
 
     encoder: str = Field("gt", description=f"region encoder: {', '.join(REGION_ENCODER_NAMES)}")
     model_path: str | None = Field(None, description="model file or folder of the onnx / clip-regions encoder")
-    device: str = Field("auto", description="encoder device: auto, cpu or cuda")
+    device: str = Field("auto", description="device of the onnx / clip-regions encoder: auto, cpu or cuda")
     noise: str = Field("off", description=f"gt encoder noise profile: {', '.join(NOISE_PROFILES)}")
     seed: int = Field(0, description="seed of the gt encoder's noise")
     every_k: int = Field(
@@ -93,9 +93,12 @@ class SemanticSection(MatchParams):
 
     @field_validator("noise")
     @classmethod
-    def _noise(cls, value: str) -> str:
+    def _noise(cls, value: str, info: ValidationInfo) -> str:
         if value not in NOISE_PROFILES:
             raise ValueError(f"unknown noise profile {value!r}; known: {', '.join(NOISE_PROFILES)}")
+        encoder = info.data.get("encoder", "gt")
+        if value != "off" and encoder != "gt":
+            raise ValueError(f"noise applies to the gt encoder only, not to {encoder!r} (leave it off)")
         return value
 
 

@@ -38,7 +38,8 @@ class ServicesNotAlive(OpenFusionError):
 
 
 class RouterCommand:
-    """``openfusion router``: a Zenoh router from Python until SIGINT/SIGTERM."""
+    """``openfusion router``: a Zenoh router from Python until SIGINT/SIGTERM. It routes every map,
+    always in router mode: ``--mode`` (other than router), ``--map`` and ``--prefix`` are refused."""
 
     DEFAULT_LISTEN = "tcp/[::]:7447"
 
@@ -48,6 +49,11 @@ class RouterCommand:
 
     @staticmethod
     def run(args: argparse.Namespace) -> int:
+        if args.mode not in (None, "router"):
+            raise UsageError(f"--mode {args.mode}: openfusion router always runs in router mode")
+        given = [flag for attr, flag in (("map_id", "--map"), ("prefix", "--prefix")) if getattr(args, attr) is not None]
+        if given:
+            raise UsageError(f"{' and '.join(given)}: a router routes every map; give them to the services and clients")
         args.mode = "router"
         config = config_from_args(args)
         if not config.zenoh.listen:

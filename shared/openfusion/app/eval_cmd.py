@@ -42,10 +42,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--text-encoder",
         default=None,
-        help="text encoder for the gt encoder's embeddings and the class queries (minilm (default) or hash)",
+        help="with --encoder gt: text encoder for its embeddings and the class queries (minilm (default) or hash); "
+        "another encoder brings its own",
     )
     parser.add_argument(
-        "--noise", default="off", choices=NOISE_CHOICES, help="gt encoder noise profile (default off)"
+        "--noise", default="off", choices=NOISE_CHOICES, help="with --encoder gt: its noise profile (default off)"
     )
     parser.add_argument("--frames", type=int, default=None, help="frames per scene (default 24, --full 150)")
     parser.add_argument("--width", type=int, default=None, help="synthetic image width (default 640)")
@@ -67,8 +68,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--background-classes",
-        default=",".join(DEFAULT_BACKGROUND_CLASSES),
-        help=f"comma-separated classes --exclude-background drops (default {','.join(DEFAULT_BACKGROUND_CLASSES)})",
+        default=None,
+        help=f"with --exclude-background: the comma-separated classes it drops "
+        f"(default {','.join(DEFAULT_BACKGROUND_CLASSES)})",
     )
     parser.add_argument(
         "--unlabelled",
@@ -83,17 +85,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--check-targets", action="store_true", help="exit 1 when a quality or geometry target is missed"
     )
-    parser.add_argument("--out", default="eval-out", help="output folder for results.json and results.md")
+    parser.add_argument("--out", default="eval-out", help="output folder for results.json and results.md (default eval-out)")
 
 
 def config_from_args(args: argparse.Namespace) -> EvalConfig:
     """The run's :class:`EvalConfig` from parsed options (ValueError on bad values)."""
     base = FULL if args.full else QUICK
+    if args.encoder != "gt" and (args.noise != "off" or args.text_encoder is not None):
+        given = [f for f, v in (("--noise", args.noise != "off"), ("--text-encoder", args.text_encoder)) if v]
+        raise UsageError(f"{' and '.join(given)} {'apply' if len(given) > 1 else 'applies'} to --encoder gt only, "
+                         f"not {args.encoder!r} (it brings its own text encoder)")
+    if args.background_classes is not None and not args.exclude_background:
+        raise UsageError("--background-classes names the classes --exclude-background drops; give both or neither")
+    background = DEFAULT_BACKGROUND_CLASSES if args.background_classes is None else args.background_classes.split(",")
+    for opt in ("width", "height"):
+        if getattr(args, opt) is not None and getattr(args, opt) < 1:
+            raise UsageError(f"--{opt} must be >= 1, got {getattr(args, opt)}")
     overrides = {
         "encoder": args.encoder,
         "noise": args.noise,
         "exclude_background": bool(args.exclude_background),
-        "background_classes": tuple(c.strip() for c in args.background_classes.split(",") if c.strip()),
+        "background_classes": tuple(c.strip() for c in background if c.strip()),
         "unlabelled": args.unlabelled,
         "baselines": not args.no_baselines,
     }

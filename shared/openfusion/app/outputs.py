@@ -4,6 +4,8 @@ and the optional rerun recording. Shared by the multi-process and the in-process
 from __future__ import annotations
 
 import json
+import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +54,14 @@ def write_query_outputs(
                 "red": colors[:, 0], "green": colors[:, 1], "blue": colors[:, 2],
                 "key": keys.astype("int32")}, faces=triangles)
     return records
+
+
+def say_progress(quiet: bool) -> Callable[[str], None] | None:
+    """Where a run's progress lines go: stderr (stdout carries only the run summary, so it can be
+    piped), or nowhere with ``--quiet``."""
+    if quiet:
+        return None
+    return lambda text: print(text, file=sys.stderr, flush=True)
 
 
 def open_rerun(sink: str | None) -> Any:

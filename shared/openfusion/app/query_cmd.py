@@ -13,6 +13,9 @@ MiniLM through onnxruntime (no torch import once the model is exported, see
 :mod:`openfusion.encoders.text_minilm_onnx`): well under 2 s cold. ``--out`` (points) and maps
 saved before summaries were stored (a log line says so) read the whole map. Regions with fewer than
 ``--min-region-points`` surface points are not answers (the query service's ``min_region_points``).
+``--text-encoder`` and ``--min-region-points`` apply to a saved map only (a running map's query
+service has its own); the options that find a running map (``--map``, ``--connect``, ``--timeout``,
+``--config``, ``--set``, ...) are refused with ``--map-dir``.
 ``OPENFUSION_QUERY_LEGACY=1`` answers as before all this (whole map, sentence-transformers), for
 benchmarks and cross-checks.
 """
@@ -29,12 +32,14 @@ from typing import Any
 
 import numpy as np
 
-from openfusion.config import add_config_arguments, config_from_args, setup_logging
+from openfusion.config import add_config_arguments, config_from_args, load_config, setup_logging
 
 logger = logging.getLogger(__name__)
 
 #: ``1``: ``query --map-dir`` reads the whole map and uses sentence-transformers (the old path).
 LEGACY_PATH_ENV = "OPENFUSION_QUERY_LEGACY"
+#: ``openfusion query --timeout`` when not given: seconds to wait for a running map's services.
+DEFAULT_TIMEOUT_S = 10.0
 
 
 def _load_saved_map(map_dir: Path) -> Any:
@@ -132,38 +137,74 @@ def _write_points(path: Path, regions: list[Any]) -> int:
     return len(pts)
 
 
+#: Options of ``openfusion query`` that find a running map: (attribute, flag); refused with --map-dir.
+_BUS_OPTIONS = (("config", "--config"), ("map_id", "--map"), ("prefix", "--prefix"),
+                ("zenoh_config", "--zenoh-config"), ("mode", "--mode"), ("connect", "--connect"),
+                ("listen", "--listen"), ("multicast", "--multicast/--no-multicast"), ("overrides", "--set"),
+                ("timeout", "--timeout"))
+#: Options of ``openfusion query`` that apply to a saved map only: (attribute, flag).
+_SAVED_MAP_OPTIONS = (("text_encoder", "--text-encoder"), ("min_region_points", "--min-region-points"))
+
+
+def _check_query_options(args: argparse.Namespace) -> None:
+    """Refuse values and combinations the query could not honour, before anything is read or joined."""
+    from openfusion.errors import UsageError
+
+    if not args.text.strip():
+        raise UsageError("the query text is empty")
+    if args.top_k < 1:
+        raise UsageError(f"--top-k must be >= 1, got {args.top_k}")
+    if args.map_dir is not None:
+        given = [flag for attr, flag in _BUS_OPTIONS if getattr(args, attr, None) not in (None, [])]
+        if given:
+            raise UsageError(f"{', '.join(given)} {'find' if len(given) > 1 else 'finds'} a running map; --map-dir "
+                             "reads a saved one (use one or the other)")
+    else:
+        given = [flag for attr, flag in _SAVED_MAP_OPTIONS if getattr(args, attr, None) is not None]
+        if given:
+            raise UsageError(f"{', '.join(given)} {'apply' if len(given) > 1 else 'applies'} to a saved map "
+                             "(--map-dir); a running map's query service has its own (set it on that service)")
+        if args.timeout is not None and args.timeout <= 0:
+            raise UsageError(f"--timeout must be positive, got {args.timeout:g}")
+    if args.out is not None and not args.out.parent.is_dir():
+        raise UsageError(f"--out: folder {args.out.parent} does not exist")
+
+
 class QueryCommand:
     @staticmethod
     def add_arguments(parser: argparse.ArgumentParser) -> None:
         from openfusion.mapping.params import default_min_region_points
 
         parser.add_argument("text", help="what to look for, e.g. 'something to sit on'")
-        parser.add_argument("--map-dir", type=Path, help="query a saved map folder instead of running services")
+        parser.add_argument("--map-dir", type=Path, help="query a saved map folder instead of running services "
+                            "(then no option that finds a running map: --map, --connect, --timeout, --config, ...)")
         parser.add_argument("--top-k", type=int, default=5, help="regions to return (default 5)")
         parser.add_argument("--json", action="store_true", help="print JSON")
         parser.add_argument("--out", type=Path, help="write the points of the returned regions to this PLY")
-        parser.add_argument("--text-encoder", help="text encoder (default: minilm, the gt encoder's space)")
+        parser.add_argument("--text-encoder", help="with --map-dir: text encoder (default: minilm, the gt encoder's "
+                            "space); a running map's query service uses its own")
         parser.add_argument("--min-region-points", type=int, metavar="N",
                             help="with --map-dir: regions with fewer surface points are not answers "
                                  f"(default: the query service's min_region_points, {default_min_region_points()})")
-        parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the services")
+        parser.add_argument("--timeout", type=float, default=None,
+                            help=f"seconds to wait for the services (default {DEFAULT_TIMEOUT_S:g})")
         add_config_arguments(parser)
 
     @staticmethod
     def run(args: argparse.Namespace) -> int:
-        from openfusion.errors import UsageError
-
-        if args.top_k < 1:
-            raise UsageError(f"--top-k must be >= 1, got {args.top_k}")
+        _check_query_options(args)
         with_points = args.out is not None
         if args.map_dir is not None:
+            if args.log_level:  # validated as the config would (no bus options here)
+                setup_logging(load_config(cli={"log_level": args.log_level}, environ={}).log_level)
             space, regions = _answer_saved_map(args, with_points)
         else:
             from openfusion.client import OpenFusionClient
 
             config = config_from_args(args)
             setup_logging(config.log_level if args.log_level else "WARNING")
-            with OpenFusionClient.from_config(config, timeout_s=args.timeout) as client:
+            timeout_s = DEFAULT_TIMEOUT_S if args.timeout is None else args.timeout
+            with OpenFusionClient.from_config(config, timeout_s=timeout_s) as client:
                 reply = client.query_text(args.text, top_k=args.top_k, with_points=with_points)
             space, regions = reply.embedding_space, reply.regions
         _print_regions(args.text, space, regions, as_json=args.json)
@@ -190,6 +231,8 @@ class SegmentCommand:
         classes = [c.strip() for c in args.classes.split(",") if c.strip()]
         if not classes:
             raise UsageError("--classes needs at least one class name")
+        if not args.out.parent.is_dir():
+            raise UsageError(f"--out: folder {args.out.parent} does not exist")
         loaded = _load_saved_map(args.map_dir)
         encoder = _text_encoder_for(loaded.dictionary.embedding_space, args.text_encoder)
         points, labels = segment_points(loaded.volume, loaded.dictionary, encoder.encode(classes))

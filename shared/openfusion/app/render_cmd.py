@@ -49,7 +49,7 @@ class RenderCommand:
 
     @staticmethod
     def run(args: argparse.Namespace) -> int:
-        from openfusion.viz.camera import check_image_size
+        from openfusion.viz.camera import check_image_size, check_view_angles
         from openfusion.viz.export import export_mesh
         from openfusion.viz.picture import ViewOptions, open_map, picture_of_map
         from openfusion.viz.render import MAX_SUPERSAMPLE, save_png
@@ -65,6 +65,7 @@ class RenderCommand:
         if args.export_mesh is not None:
             check_export_target(args.export_mesh, "--export-mesh")
         check_image_size(args.width, args.height)
+        check_view_angles(azimuth_deg=args.azimuth_deg, elevation_deg=args.elevation_deg, fov_deg=args.fov_deg)
         loaded = open_map(args.map_dir)
         text_encoder = make_text_encoder_for(args, loaded.dictionary)
         view = ViewOptions(

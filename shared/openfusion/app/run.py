@@ -42,7 +42,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from openfusion.app.launcher import Cluster, RunError, StopSignals, wait_for_services
-from openfusion.app.outputs import open_rerun, surface_mesh, write_query_outputs
+from openfusion.app.outputs import open_rerun, say_progress, surface_mesh, write_query_outputs
 from openfusion.app.run_config import RUN_FLAGS, SECTION_MODELS, RunConfig, write_service_config
 from openfusion.app.summary import RunSummary
 from openfusion.bus import collect_health, free_loopback_port, open_session
@@ -196,7 +196,7 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
         raise signals.interrupted(f"saved the map of {summary.frames_integrated} integrated frames to {map_dir}")
     mesh = client.mesh()
     write_query_outputs(out, replies, (mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys),
-                        say=None if args.quiet else (lambda t: _say(args, t)))
+                        say=say_progress(args.quiet))
     if rerun is not None:
         rerun.log_mesh(surface_mesh(mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys))
         for text, _space, hits in replies:
@@ -268,9 +268,19 @@ def _check_queries(queries: Sequence[str], top_k: int) -> None:
             raise UsageError(f"{flag} {err['input']!r}: {err['msg'][:1].lower()}{err['msg'][1:]}") from None
 
 
+def _check_text_encoder(config: RunConfig) -> None:
+    """Refuse a query text encoder that cannot read the map the gt encoder makes (its regions are
+    embedded with MiniLM): the example queries would be refused only after the scene was mapped."""
+    text = config.query.text_encoder.strip().lower()
+    if config.semantic.encoder == "gt" and text not in ("minilm", "gt"):
+        raise UsageError(f"--text-encoder {config.query.text_encoder!r} cannot query the regions of the gt "
+                         "encoder: they are in the MiniLM space (use --text-encoder minilm)")
+
+
 def _say(args: argparse.Namespace, text: str) -> None:
-    if not args.quiet:
-        print(text, file=sys.stderr, flush=True)
+    say = say_progress(args.quiet)
+    if say is not None:
+        say(text)
 
 
 class RunCommand:
@@ -286,12 +296,15 @@ class RunCommand:
         parser.add_argument("--query", dest="queries", action="append", default=None,
                             help="example query (repeatable; default a few furniture queries)")
         parser.add_argument("--top-k", type=int, default=3, help="regions per query (default 3)")
-        parser.add_argument("--timeout-s", type=float, default=900.0, help="give up after this many seconds")
-        parser.add_argument("--in-process", action="store_true", help="run the pipeline in this process (no bus)")
+        parser.add_argument("--timeout-s", type=float, default=900.0,
+                            help="give up when mapping the frames takes longer than this many seconds (default 900)")
+        parser.add_argument("--in-process", action="store_true",
+                            help="run the pipeline in this process (no bus; no --rate-hz: frames go as fast as they are mapped)")
         parser.add_argument("--rerun", metavar="SINK", default=None,
                             help="log frames, trajectory, mesh and query results to rerun: save:FILE.rrd | spawn | "
                             "serve (needs the viz extra)")
-        parser.add_argument("--quiet", action="store_true", help="no progress output")
+        parser.add_argument("--quiet", action="store_true",
+                            help="no progress output (stderr); the run summary still goes to stdout")
         parser.add_argument("--config", metavar="FILE", help="TOML/JSON/YAML file with [bridge], [geometry], "
                             "[semantic], [query] sections (or $OPENFUSION_CONFIG)")
         parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
@@ -316,8 +329,12 @@ class RunCommand:
             parse_sink(args.rerun)
             if not rerun_available():
                 raise MissingDependencyError("rerun-sdk", "--rerun")
+        if args.in_process and args.bridge__rate_hz is not None:
+            raise UsageError("--rate-hz paces the bridge service; --in-process has none (it maps every frame "
+                             "as soon as the last one is done)")
         config = config_from_args(args, RunConfig, sections=list(RUN_FLAGS))
         config.map_id = args.map_id
+        _check_text_encoder(config)
         # The source's form (scheme, path, options): the bridge would refuse it only after the other
         # services had started.
         check_source_spec(config.bridge.source)

@@ -3,7 +3,11 @@ process and without a bus (for notebooks and debugging).
 
 The first SIGINT (Ctrl-C) or SIGTERM ends the loop before the next frame; the map of the frames
 integrated so far is saved, ``run.json`` says ``interrupted: true`` and the command exits with
-code 130 (:class:`~openfusion.errors.Interrupted`). A second signal aborts at once."""
+code 130 (:class:`~openfusion.errors.Interrupted`). A second signal aborts at once.
+
+``--timeout-s``: mapping that is not done by then ends with the same error as the service run's
+(:class:`~openfusion.app.launcher.RunError`, exit code 1). Progress lines go to stderr, as in the
+service run: stdout carries only the run summary."""
 
 from __future__ import annotations
 
@@ -13,8 +17,8 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from openfusion.app.launcher import StopSignals
-from openfusion.app.outputs import open_rerun, write_query_outputs
+from openfusion.app.launcher import RunError, StopSignals
+from openfusion.app.outputs import open_rerun, say_progress, write_query_outputs
 from openfusion.app.run_config import RunConfig
 from openfusion.app.summary import RunSummary
 from openfusion.frame import Frame
@@ -28,11 +32,13 @@ from openfusion.sources import open_source
 
 class _UntilStopped:
     """``source`` until the run is asked to stop: no further frame is read once ``signals.requested``
-    is set. ``taken``: frames handed to the loop; ``stats``: the source's."""
+    is set; past ``timeout_s`` (from the first frame asked for) :class:`RunError`. ``taken``: frames
+    handed to the loop; ``stats``: the source's."""
 
-    def __init__(self, source: Any, signals: StopSignals) -> None:
+    def __init__(self, source: Any, signals: StopSignals, timeout_s: float | None = None) -> None:
         self.source = source
         self.signals = signals
+        self.timeout_s = timeout_s
         self.taken = 0
 
     @property
@@ -41,7 +47,11 @@ class _UntilStopped:
 
     def __iter__(self) -> Iterator[Frame]:
         frames = iter(self.source)
+        deadline = None if self.timeout_s is None else time.monotonic() + self.timeout_s
         while not self.signals.requested:
+            if deadline is not None and time.monotonic() > deadline:
+                raise RunError(f"the run did not finish within {self.timeout_s:g} s "
+                               f"(integrated {self.taken} frames)")
             frame = next(frames, None)
             if frame is None:
                 return
@@ -62,7 +72,8 @@ def _run_in_process(args: argparse.Namespace, config: RunConfig, signals: StopSi
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
-    source = _UntilStopped(open_source(config.bridge.source, max_frames=config.bridge.max_frames), signals)
+    source = _UntilStopped(open_source(config.bridge.source, max_frames=config.bridge.max_frames), signals,
+                           timeout_s=getattr(args, "timeout_s", None))
     encoder = region_encoder_from_section(config.semantic)
     rerun = open_rerun(getattr(args, "rerun", None))
     log_frame = rerun.frame_hook() if rerun is not None else None
@@ -110,7 +121,7 @@ def _run_in_process(args: argparse.Namespace, config: RunConfig, signals: StopSi
         hits = query_regions(result.dictionary, result.volume, vec, args.top_k, with_points=True, max_points=50_000,
                              embedding_space=text.embedding_space, min_points=config.query.min_region_points)
         replies.append((query, text.embedding_space, hits))
-    write_query_outputs(out, replies, result.volume.extract_mesh(), say=None if args.quiet else print)
+    write_query_outputs(out, replies, result.volume.extract_mesh(), say=say_progress(args.quiet))
     if rerun is not None:
         rerun.log_map(result.volume, result.dictionary)
         for query, _space, hits in replies:

@@ -55,6 +55,17 @@ def check_image_size(width_px: int, height_px: int) -> None:
             )
 
 
+def check_view_angles(*, azimuth_deg: float, elevation_deg: float, fov_deg: float) -> None:
+    """VizError unless the overview camera can take these angles: a finite azimuth, an elevation
+    in [-89, 89] and a horizontal field of view in [5, 150] degrees."""
+    if not (math.isfinite(elevation_deg) and -89.0 <= elevation_deg <= 89.0):
+        raise VizError(f"elevation must be between -89 and 89 degrees, got {elevation_deg}")
+    if not math.isfinite(azimuth_deg):
+        raise VizError(f"azimuth must be finite, got {azimuth_deg}")
+    if not (math.isfinite(fov_deg) and 5.0 <= fov_deg <= 150.0):
+        raise VizError(f"field of view must be between 5 and 150 degrees, got {fov_deg}")
+
+
 def pinhole(width_px: int, height_px: int, *, fov_deg: float) -> CameraIntrinsics:
     """Square-pixel intrinsics with a horizontal field of view of ``fov_deg``, principal point at the
     image centre (pixel centres at integer coordinates)."""
@@ -125,10 +136,7 @@ def overview_camera(
     """
     if up not in UP_AXES:
         raise VizError(f"unknown up axis {up!r}; use one of {', '.join(UP_AXES)}")
-    if not (math.isfinite(elevation_deg) and -89.0 <= elevation_deg <= 89.0):
-        raise VizError(f"elevation must be between -89 and 89 degrees, got {elevation_deg}")
-    if not math.isfinite(azimuth_deg):
-        raise VizError(f"azimuth must be finite, got {azimuth_deg}")
+    check_view_angles(azimuth_deg=azimuth_deg, elevation_deg=elevation_deg, fov_deg=fov_deg)
     if not (math.isfinite(margin) and margin >= 1.0):
         raise VizError(f"margin must be >= 1, got {margin}")
     intr = pinhole(width_px, height_px, fov_deg=fov_deg)

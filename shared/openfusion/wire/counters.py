@@ -29,6 +29,7 @@ class BridgeCounter(StrEnum):
     FLOW_WAIT_S = "flow_wait_s"  # time spent waiting for geometry's acknowledgements
     FLOW_TIMEOUTS = "flow_timeouts"
     SKIPPED_UNENCODABLE = "skipped_unencodable"
+    FRAMES_THROTTLED = "frames_throttled"  # live frames dropped to keep to rate_hz
 
     @staticmethod
     def skipped(reason: str) -> str:
@@ -50,6 +51,8 @@ class GeometryCounter(StrEnum):
     CAPACITY_REFUSED = "capacity_refused"
     NUM_BLOCKS = "num_blocks"
     CHECKPOINTS = "checkpoints"
+    CHECKPOINT_FAILURES = "checkpoint_failures"  # checkpoints that failed (OSError: disk full, read-only)
+    CHECKPOINT_LAST_FRAME_ID = "checkpoint_last_frame_id"  # last frame in the newest checkpoint (-1: none)
     DICTIONARY_RESYNCS = "dictionary_resyncs"
 
 
