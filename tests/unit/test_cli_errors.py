@@ -156,3 +156,20 @@ def test_a_bad_argument_is_one_line_exit_2_and_starts_nothing(
     assert expected in lines[0], lines[0]
     assert "Traceback" not in captured.err
     assert sorted(p.name for p in tmp_path.iterdir()) == [], "the command wrote files for a bad argument"
+
+
+@pytest.mark.parametrize("where", ["file", "under_a_file"])
+def test_run_refuses_an_output_folder_it_could_not_write(where: str, tmp_path, monkeypatch, capsys) -> None:
+    """``--out`` naming a file, or a folder below a file: one line naming it, exit 2, before any
+    session or process starts (the map of a long run would otherwise be lost at the end). A folder
+    without write permission is refused the same way (not exercised here: tests run as root, for
+    whom every folder is writable)."""
+    monkeypatch.setattr(zenoh, "open", lambda *_a, **_k: pytest.fail("a Zenoh session was opened"))
+    monkeypatch.setattr(subprocess, "Popen", lambda *_a, **_k: pytest.fail("a process was started"))
+    blocker = tmp_path / "a-file"
+    blocker.write_text("x")
+    out = blocker if where == "file" else blocker / "out"
+    assert cli.main(["run", "--out", str(out), "--quiet"]) == 2
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"openfusion run: error: --out {out}: "), lines
+    assert ("is not a folder" if where == "file" else f"{blocker} is a file") in lines[0]

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -256,6 +257,21 @@ def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
     return stats
 
 
+def _check_out_dir(out: Path) -> None:
+    """Refuse an output folder the run could not write (a file in the way, no write permission),
+    before the scene is mapped: the map would otherwise be lost at the end."""
+    if out.exists():
+        if not out.is_dir():
+            raise UsageError(f"--out {out}: exists and is not a folder")
+        existing = out
+    else:
+        existing = next(p for p in out.absolute().parents if p.exists())
+        if not existing.is_dir():
+            raise UsageError(f"--out {out}: cannot make a folder there, {existing} is a file")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise UsageError(f"--out {out}: {existing} is not writable")
+
+
 def _check_queries(queries: Sequence[str], top_k: int) -> None:
     """Refuse example queries the query service would refuse (empty text, ``--top-k`` out of range)
     with the limits of its request message, before the scene is mapped."""
@@ -317,6 +333,7 @@ class RunCommand:
     def config_from_args(args: argparse.Namespace) -> RunConfig:
         """The validated run config (bad values are refused here, before any process starts)."""
         validate_map_id(args.map_id)
+        _check_out_dir(args.out)
         if args.frames <= 0:
             raise UsageError(f"--frames must be positive, got {args.frames}")
         if args.timeout_s <= 0:
