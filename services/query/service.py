@@ -1,4 +1,4 @@
-"""Query service: text / image / 3D-point queries → ranked regions, for remote clients.
+"""Query service: text (one or several) / image / 3D-point queries → ranked regions, for remote clients.
 
 | key | direction | message |
 |---|---|---|
@@ -7,9 +7,10 @@
 | ``…/geometry/regions`` | queries (cached region summaries, see below) | RegionSummaryRequest → RegionSummaryReply |
 | ``…/geometry/points`` | queries (points of the top regions, ``with_points`` only; point queries) | PointsRequest → PointsReply |
 | ``…/query/text`` | queryable | TextQuery → QueryReply |
+| ``…/query/text_batch`` | queryable (several texts, one round trip, one encoder call) | TextQueryBatch → QueryBatchReply |
 | ``…/query/image`` | queryable | ImageQuery → QueryReply (encoders with an image tower only) |
 | ``…/query/point`` | queryable | PointQuery → QueryReply |
-| ``…/health/query`` | liveliness + stats | counters ``queries``, ``regions``, ``dictionary_resyncs``, ``summary_fetches``, ``summary_failures`` |
+| ``…/health/query`` | liveliness + stats | counters ``queries`` (one per text), ``regions``, ``dictionary_resyncs``, ``summary_fetches``, ``summary_failures`` |
 
 It answers from the latest dictionary it has and never blocks mapping. Regions the cached
 summary knows to have fewer than ``min_region_points`` (default 50) surface points (stray
@@ -38,7 +39,10 @@ the points geometry returns (the current map).
 The text encoder runs with ``torch_threads`` intra-op threads (default 1: a one-sentence
 MiniLM forward gains little from a second thread and loses a lot when the other services keep
 the cores busy). One query text takes the MiniLM encoder's single-text path (tokenize +
-forward, see ``openfusion.encoders.text_minilm``).
+forward, see ``openfusion.encoders.text_minilm``); a batch (``query/text_batch``) embeds all its
+texts in one encoder call and, with ``with_points``, asks geometry once for the points of every
+text's regions. Each text of a batch is held to ``max_text_chars``; the whole reply to the
+message-size limit (``reply_too_large``).
 """
 
 from __future__ import annotations
@@ -67,6 +71,7 @@ from openfusion.wire.endpoints import (
     QUERY_IMAGE,
     QUERY_POINT,
     QUERY_TEXT,
+    QUERY_TEXT_BATCH,
     SEMANTIC_DICTIONARY,
 )
 from openfusion.wire.schemas import (
@@ -75,11 +80,13 @@ from openfusion.wire.schemas import (
     PointQuery,
     PointsReply,
     PointsRequest,
+    QueryBatchReply,
     QueryReply,
     RegionHit,
     RegionSummaryReply,
     RegionSummaryRequest,
     TextQuery,
+    TextQueryBatch,
 )
 
 logger = logging.getLogger(__name__)
@@ -341,33 +348,57 @@ class QueryService:
     def _rank(
         self, vector: np.ndarray, *, top_k: int, with_points: bool, max_points: int, space: str, query: str
     ) -> QueryReply:
-        ranked = self.replica.top_k(vector, candidates_for(top_k))
-        summaries = self._summaries_for([k for k, _ in ranked])
-        ranked = drop_empty_regions(ranked, summaries, min_points=self.section.min_region_points)[:top_k]
-        keys = [k for k, _ in ranked]
+        return self._rank_many(
+            vector[None, :], top_k=top_k, with_points=with_points, max_points=max_points, space=space, queries=[query]
+        )[0]
+
+    def _rank_many(
+        self,
+        vectors: np.ndarray,
+        *,
+        top_k: int,
+        with_points: bool,
+        max_points: int,
+        space: str,
+        queries: list[str],
+    ) -> list[QueryReply]:
+        """One reply per row of ``vectors``: the summaries checked once for every ranked key, and
+        with ``with_points`` ONE points request to geometry for the regions of all of them."""
+        candidates = [self.replica.top_k(v, candidates_for(top_k)) for v in vectors]
+        summaries = self._summaries_for(sorted({k for ranked in candidates for k, _ in ranked}))
+        rankings = [
+            drop_empty_regions(ranked, summaries, min_points=self.section.min_region_points)[:top_k]
+            for ranked in candidates
+        ]
+        keys = sorted({k for ranked in rankings for k, _ in ranked})
         points = None
         if with_points:  # the points themselves: only geometry has them (box and count from them too)
             points = self._points_of(keys, self.section.max_points_reply)
-        hits = region_hits(
-            ranked,
-            self.replica.labels_for(keys),
-            points,
-            with_points=with_points,
-            max_points=max_points,
-            summaries=summaries,
-        )
-        return QueryReply(embedding_space=space, query=query, regions=hits)
+        labels = self.replica.labels_for(keys)
+        return [
+            QueryReply(
+                embedding_space=space,
+                query=query,
+                regions=region_hits(
+                    ranked, labels, points, with_points=with_points, max_points=max_points, summaries=summaries
+                ),
+            )
+            for query, ranked in zip(queries, rankings, strict=True)
+        ]
 
     def encode_text(self, text: str) -> np.ndarray:
         return self.text_encoder.encode([text])[0]
 
-    def handle_text(self, req: TextQuery) -> QueryReply:
-        started = time.monotonic()
-        if len(req.text) > self.section.max_text_chars:
+    def _check_text(self, text: str, which: str = "") -> None:
+        if len(text) > self.section.max_text_chars:
             raise RequestError(
                 "too_large",
-                f"text of {len(req.text)} characters exceeds max_text_chars={self.section.max_text_chars}",
+                f"text {which}of {len(text)} characters exceeds max_text_chars={self.section.max_text_chars}",
             )
+
+    def handle_text(self, req: TextQuery) -> QueryReply:
+        started = time.monotonic()
+        self._check_text(req.text)
         self._check_limits(req.top_k, req.max_points)
         space = self._check_space(req.embedding_space)
         self._check_text_space(space)
@@ -382,6 +413,27 @@ class QueryService:
         )
         self._note(started)
         return reply
+
+    def handle_text_batch(self, req: TextQueryBatch) -> QueryBatchReply:
+        """Several texts: every text checked first, embedded in ONE encoder call, each ranked as
+        :meth:`handle_text` ranks one (the same replies, in the order of ``texts``)."""
+        started = time.monotonic()
+        for i, text in enumerate(req.texts):
+            self._check_text(text, f"{i + 1} (of {len(req.texts)}) ")
+        self._check_limits(req.top_k, req.max_points)
+        space = self._check_space(req.embedding_space)
+        self._check_text_space(space)
+        vectors = np.asarray(self.text_encoder.encode(list(req.texts)), np.float32).reshape(len(req.texts), -1)
+        replies = self._rank_many(
+            vectors,
+            top_k=req.top_k,
+            with_points=req.with_points,
+            max_points=req.max_points,
+            space=space,
+            queries=list(req.texts),
+        )
+        self._note(started, len(req.texts))
+        return QueryBatchReply(replies=replies)
 
     def handle_image(self, req: ImageQuery) -> QueryReply:
         started = time.monotonic()
@@ -435,9 +487,9 @@ class QueryService:
             regions=hits,
         )
 
-    def _note(self, started: float) -> None:
+    def _note(self, started: float, queries: int = 1) -> None:
         if self._runner is not None:
-            self._runner.stats.incr(QueryCounter.QUERIES)
+            self._runner.stats.incr(QueryCounter.QUERIES, queries)
 
     # ------------------------------------------------------------------------ wiring
     def setup(self, runner: ServiceRunner) -> None:
@@ -446,6 +498,7 @@ class QueryService:
         runner.subscriber(DICTIONARY_DELTA, self.on_delta, queue_size=256)
         self.resync()
         runner.queryable(QUERY_TEXT, self.handle_text)
+        runner.queryable(QUERY_TEXT_BATCH, self.handle_text_batch)
         runner.queryable(QUERY_IMAGE, self.handle_image)
         runner.queryable(QUERY_POINT, self.handle_point)
         runner.stats.set(QueryCounter.REGIONS, len(self.replica))

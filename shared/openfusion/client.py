@@ -5,6 +5,8 @@
         reply = client.query_text("something to sit on", top_k=3, with_points=True)
         for region in reply.regions:
             print(region.key, region.score, region.label, region.bbox_min, region.bbox_max)
+        for reply in client.query_texts(["chair", "table", "lamp"]):  # one round trip
+            print(reply.query, [region.key for region in reply.regions])
 
 Every call is a Zenoh ``get`` with a timeout; a refusal or a service that does not answer
 raises :class:`openfusion.bus.QueryError` with the service's reason. Keys, message types and
@@ -19,7 +21,7 @@ from typing import TypeVar
 import numpy as np
 import zenoh
 
-from openfusion.bus import call, live_services, open_session
+from openfusion.bus import QueryError, call, live_services, open_session
 from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.errors import UsageError
 from openfusion.wire.endpoints import (
@@ -30,6 +32,7 @@ from openfusion.wire.endpoints import (
     QUERY_IMAGE,
     QUERY_POINT,
     QUERY_TEXT,
+    QUERY_TEXT_BATCH,
     SEMANTIC_DICTIONARY,
     Endpoint,
 )
@@ -50,7 +53,9 @@ from openfusion.wire.schemas import (
     RegionSummaryReply,
     RegionSummaryRequest,
     TextQuery,
+    TextQueryBatch,
 )
+from openfusion.wire.schemas.query import MAX_BATCH_TEXTS
 
 Q = TypeVar("Q", bound=Message)
 R = TypeVar("R", bound=Message)
@@ -107,6 +112,31 @@ class OpenFusionClient:
         request = TextQuery(text=text, top_k=top_k, with_points=with_points, max_points=max_points,
                             embedding_space=embedding_space)
         return self._call(QUERY_TEXT, request)
+
+    def query_texts(
+        self,
+        texts: Sequence[str],
+        *,
+        top_k: int = 5,
+        with_points: bool = False,
+        max_points: int = 20_000,
+        embedding_space: str | None = None,
+    ) -> list[QueryReply]:
+        """One reply per text, in order, as :meth:`query_text` would give each: ONE round trip
+        (``query/text_batch``, the texts embedded in one encoder call) per
+        :data:`~openfusion.wire.schemas.query.MAX_BATCH_TEXTS` (64) texts. No texts, no call."""
+        texts = list(texts)
+        replies: list[QueryReply] = []
+        for start in range(0, len(texts), MAX_BATCH_TEXTS):
+            chunk = texts[start : start + MAX_BATCH_TEXTS]
+            request = TextQueryBatch(texts=chunk, top_k=top_k, with_points=with_points, max_points=max_points,
+                                     embedding_space=embedding_space)
+            reply = self._call(QUERY_TEXT_BATCH, request)
+            if len(reply.replies) != len(chunk):
+                raise QueryError(QUERY_TEXT_BATCH.key(self.keys), "bad_reply:count",
+                                 f"{len(chunk)} texts asked, {len(reply.replies)} replies came back")
+            replies.extend(reply.replies)
+        return replies
 
     def query_image(
         self, image_rgb: np.ndarray, *, top_k: int = 5, with_points: bool = False, max_points: int = 20_000

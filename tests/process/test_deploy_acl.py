@@ -122,7 +122,7 @@ def test_control_queries_need_the_admin_identity(router: Router) -> None:
 
 def test_query_client_may_only_ask_queries(router: Router) -> None:
     """Bad input: the query client asking geometry points, the dictionary, subscribing to frames.
-    Its text query is answered."""
+    Its text query (one text, and a batch on query/text_batch) is answered."""
     with (
         client("geometry", router) as geometry,
         client("gpu-semantic", router) as semantic,
@@ -131,6 +131,7 @@ def test_query_client_may_only_ask_queries(router: Router) -> None:
         client("query-client", router) as asker,
     ):
         _q1, text_queries = serve(query_service, key("query", "text"), b"regions")
+        _q4, _batches = serve(query_service, key("query", "text_batch"), b"batch")
         _q2, point_queries = serve(geometry, key("geometry", "points"), b"points")
         _q3, dict_queries = serve(semantic, key("semantic", "dictionary"), b"dictionary")
         _s1, asker_frames = subscribe(asker, key("sensor", "rgbd"))
@@ -139,6 +140,7 @@ def test_query_client_may_only_ask_queries(router: Router) -> None:
         assert until_answered(query_service, key("geometry", "points")) == [b"points"]
         assert until_answered(query_service, key("semantic", "dictionary")) == [b"dictionary"]
         assert until_answered(asker, key("query", "text")) == [b"regions"]
+        assert until_answered(asker, key("query", "text_batch")) == [b"batch"]
         points_before, dict_before = len(point_queries.items), len(dict_queries.items)
 
         assert ask(asker, key("geometry", "points"), timeout_s=1.0) == []

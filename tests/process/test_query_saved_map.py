@@ -115,3 +115,78 @@ def test_a_text_query_of_a_saved_map_imports_no_torch_and_no_volume(maps, minilm
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert report == {"rc": 0, "heavy": []}, proc.stderr
+
+
+def _stdout_alone(proc: subprocess.CompletedProcess[str]) -> str:
+    """stdout of a successful query that wrote nothing to stderr."""
+    assert proc.stderr == "", proc.stderr
+    return proc.stdout
+
+
+def test_a_query_prints_its_answer_and_nothing_else(maps, minilm_onnx_cache) -> None:
+    """Scriptable output (onnxruntime text path): nothing on stderr; several texts print one block
+    per text in order, each what the text alone prints (so stdout is their concatenation); --json
+    prints one object for one text and a list of the per-text objects for several."""
+    texts = ["chair", "table", "something to sit on"]
+    alone = [_stdout_alone(_query(maps["new"], minilm_onnx_cache, t, "--top-k", "3")) for t in texts]
+    assert alone[0].splitlines()[0] == "'chair' in minilm-l6-v2:" and len(alone[0].splitlines()) == 4
+    together = _stdout_alone(_query(maps["new"], minilm_onnx_cache, *texts, "--top-k", "3"))
+    assert together == "".join(alone)
+    objects = [json.loads(_stdout_alone(_query(maps["new"], minilm_onnx_cache, t, "--top-k", "3", "--json")))
+               for t in texts]
+    assert [o["query"] for o in objects] == texts and all(isinstance(o, dict) for o in objects)
+    listed = _stdout_alone(_query(maps["new"], minilm_onnx_cache, *texts, "--top-k", "3", "--json"))
+    assert listed.count("\n") == 1 and json.loads(listed) == objects
+    assert objects[0]["regions"][0]["key"] == maps["chair"]
+
+
+def test_several_texts_of_a_saved_map_are_embedded_in_one_encoder_call(maps, minilm_onnx_cache, monkeypatch,
+                                                                         capsys) -> None:
+    """The command (in this process) hands all its texts to one encode() call."""
+    from openfusion.app import cli, query_cmd
+
+    calls: list[list[str]] = []
+    real = query_cmd._text_encoder_for
+
+    def counting(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        encoder = real(*args, **kwargs)
+        encode = encoder.encode
+        encoder.encode = lambda texts: calls.append(list(texts)) or encode(texts)
+        return encoder
+
+    monkeypatch.setattr(query_cmd, "_text_encoder_for", counting)
+    monkeypatch.setenv("OPENFUSION_CACHE", str(minilm_onnx_cache))
+    assert cli.main(["query", "--map-dir", str(maps["new"]), "chair", "lamp", "table", "--json"]) == 0
+    assert calls == [["chair", "lamp", "table"]]
+    assert [o["query"] for o in json.loads(capsys.readouterr().out)] == ["chair", "lamp", "table"]
+
+
+def test_the_sentence_transformers_path_is_quiet_too_and_verbose_shows_the_libraries(maps, minilm_onnx_cache) -> None:
+    """OPENFUSION_QUERY_LEGACY=1 loads the text model through sentence-transformers/transformers
+    (which print a "Loading weights" progress bar): still nothing on stderr and the same answer;
+    --verbose brings the INFO lines and the libraries' own output back, stdout unchanged."""
+    lean = _stdout_alone(_query(maps["new"], minilm_onnx_cache, "chair", "lamp", "--json", "--top-k", "2"))
+
+    def legacy(*args: str) -> subprocess.CompletedProcess[str]:
+        proc = subprocess.run(
+            [*OPENFUSION, "query", "--map-dir", str(maps["new"]), "chair", "lamp", "--json", "--top-k", "2", *args],
+            capture_output=True, text=True, timeout=180, cwd=ROOT,
+            env=subprocess_env(HF_HUB_OFFLINE="1", OPENFUSION_CACHE=str(minilm_onnx_cache),
+                               OPENFUSION_QUERY_LEGACY="1"),
+        )
+        assert proc.returncode == 0, proc.stderr
+        return proc
+
+    def same_answer(stdout: str) -> None:  # the same regions; scores from another runtime agree to 1e-4
+        got, want = json.loads(stdout), json.loads(lean)
+        assert [o["query"] for o in got] == [o["query"] for o in want] == ["chair", "lamp"]
+        for g, w in zip(got, want, strict=True):
+            assert [(r["key"], r["num_points"]) for r in g["regions"]] == [(r["key"], r["num_points"]) for r in w["regions"]]
+            assert [r["score"] for r in g["regions"]] == pytest.approx([r["score"] for r in w["regions"]], abs=2e-4)
+
+    same_answer(_stdout_alone(legacy()))
+    verbose = legacy("--verbose")
+    same_answer(verbose.stdout)
+    assert " INFO openfusion." in verbose.stderr and "Loading weights" in verbose.stderr
+    lean_verbose = _query(maps["new"], minilm_onnx_cache, "chair", "--verbose")
+    assert "read map summary" in lean_verbose.stderr and lean_verbose.stdout.startswith("'chair' in minilm-l6-v2:")

@@ -80,6 +80,8 @@ BAD_ARGUMENTS = [
     (["query", "--map-dir", "{tmp}/nomap", "chair"], "no map at {tmp}/nomap"),
     (["query", "--top-k", "0", "chair"], "--top-k must be >= 1, got 0"),
     (["query", "--map-dir", "{tmp}/nomap", ""], "the query text is empty"),
+    (["query", "--map-dir", "{tmp}/nomap", "chair", " ", "lamp"], "query text 2 of 3 is empty"),
+    (["query", "chair", "x" * 4097], "a query text of 4097 characters is longer than a query may carry (4096)"),
     (["query", "--map-dir", "{tmp}/nomap", "--map", "lab", "--connect", "tcp/127.0.0.1:7447", "chair"],
      "--map, --connect find a running map; --map-dir reads a saved one"),
     (["query", "--map-dir", "{tmp}/nomap", "--timeout", "5", "chair"], "--timeout finds a running map"),

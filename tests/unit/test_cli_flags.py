@@ -135,6 +135,10 @@ def test_valid_combinations_next_to_the_refused_ones_still_pass(tmp_path) -> Non
                                   "--out", str(tmp_path / "q.ply"), "chair"]))
     _check_query_options(_parsed(["query", "--map", "lab", "--connect", "tcp/127.0.0.1:7447", "--timeout", "5",
                                   "chair"]))
+    several = _parsed(["query", "--map-dir", str(tmp_path), "--verbose", "--json", "chair", "table", "lamp"])
+    _check_query_options(several)
+    assert several.text == ["chair", "table", "lamp"] and several.verbose
+    _check_query_options(_parsed(["query", "--connect", "tcp/127.0.0.1:7447", "chair", "x" * 4096]))
     args = _parsed(["render", "--map-dir", str(tmp_path), "--out", str(tmp_path / "x.png"), "--query", "chair",
                     "--top-k", "2", "--text-encoder", "minilm"])
     check_colour_arguments(args)

@@ -120,11 +120,17 @@ EXAMPLES: dict[str, m.Message] = {
         merged_into=np.array([2, -1], np.int32),
     ),
     "query.text": m.TextQuery(text="a red chair", top_k=3, with_points=True, embedding_space="minilm-l6-v2"),
+    "query.text_batch": m.TextQueryBatch(texts=["a red chair", "table"], top_k=3, with_points=True,
+                                         embedding_space="minilm-l6-v2"),
     "query.image": m.ImageQuery(image=np.zeros((4, 5, 3), np.uint8), top_k=2),
     "query.point": m.PointQuery(point_world=np.array([1.0, 2.0, 3.0]), radius_m=0.2),
     "query.reply": m.QueryReply(
         embedding_space="minilm-l6-v2", query="chair", regions=[_hit(True), _hit(False)]
     ),
+    "query.batch_reply": m.QueryBatchReply(replies=[
+        m.QueryReply(embedding_space="minilm-l6-v2", query="chair", regions=[_hit(True), _hit(False)]),
+        m.QueryReply(embedding_space="minilm-l6-v2", query="lamp", regions=[]),
+    ]),
     "control.request": m.ControlRequest(action="save", path="/tmp/map"),
     "control.reply": m.ControlReply(ok=False, message="no such file"),
     "health.stats": m.HealthStats(
@@ -237,6 +243,14 @@ def _replace(msg: m.Message, **changes: Any) -> dict[str, Any]:
         ("semantic.dictionary_delta", {"prev_version": 10}, "greater than prev_version"),
         ("query.text", {"text": ""}, "at least 1 character"),
         ("query.text", {"top_k": 0}, "greater than 0"),
+        ("query.text_batch", {"texts": []}, "at least 1 item"),
+        ("query.text_batch", {"texts": ["chair"] * 65}, "at most 64 items"),
+        ("query.text_batch", {"texts": ["chair", ""]}, r"texts\.1\n.*at least 1 character"),
+        ("query.text_batch", {"texts": ["x" * 4097]}, r"texts\.0\n.*at most 4096 characters"),
+        ("query.text_batch", {"texts": "chair"}, "valid list"),
+        ("query.text_batch", {"top_k": 0}, "greater than 0"),
+        ("query.batch_reply", {"replies": [{"embedding_space": "s", "query": "q", "regions": 3}]},
+         r"replies\.0\.regions"),
         ("query.image", {"image": np.zeros((0, 5, 3), np.uint8)}, "must not be empty"),
         ("query.point", {"point_world": np.array([1.0, np.nan, 0.0])}, "finite"),
         ("control.request", {"action": "drop"}, "'save', 'load' or 'reset'"),

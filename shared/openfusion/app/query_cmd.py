@@ -2,7 +2,23 @@
 
     openfusion query "TEXT" [--map ID] [--connect EP] [--top-k K] [--json] [--out FILE.ply]
     openfusion query "TEXT" --map-dir DIR [...]            # a saved map, no services needed
+    openfusion query "chair" "table" "lamp" [...]          # several texts at once
     openfusion segment --map-dir DIR --classes "wall,floor,chair" --out seg.ply
+
+Output (stdout carries the answer and nothing else; a successful query writes nothing to stderr
+but the one line naming the PLY of ``--out``; ``--verbose`` adds INFO log lines and the libraries'
+own output, see :mod:`openfusion.app.quiet`): one block per text, in the order given, each as one
+text alone prints it::
+
+    'chair' in minilm-l6-v2:
+      key      7  score 1.000  chair                818 points  bbox [2.68, 3.066, 0.024] .. [3.24, 3.56, 0.886]
+
+(``  no regions`` when nothing answers). ``--json``: one text prints one object
+``{"query", "embedding_space", "regions": [{"key", "score", "label", "num_points", "bbox_min",
+"bbox_max"}, ...]}`` on one line; several texts print a JSON list of those objects, in order.
+Several texts are embedded in one encoder call: against running services in one round trip
+(``query/text_batch``, :meth:`~openfusion.client.OpenFusionClient.query_texts`), with
+``--map-dir`` by the one encoder. ``--out`` writes the points of every returned region once.
 
 ``segment`` writes a binary little-endian PLY of the map's surface points with float ``x y z``
 and int ``label`` (index into the class list, -1 where the point has no region).
@@ -32,6 +48,7 @@ from typing import Any
 
 import numpy as np
 
+from openfusion.app.quiet import quiet_libraries, quiet_onnxruntime
 from openfusion.config import add_config_arguments, config_from_args, load_config, setup_logging
 
 logger = logging.getLogger(__name__)
@@ -73,8 +90,9 @@ def _load_saved_summary(map_dir: Path) -> Any:
     return summary
 
 
-def _answer_saved_map(args: argparse.Namespace, with_points: bool) -> tuple[str, list[Any]]:
-    """(embedding space, ranked regions) of a saved map: from its summaries when they suffice."""
+def _answer_saved_map(args: argparse.Namespace, with_points: bool) -> tuple[str, list[list[Any]]]:
+    """(embedding space, ranked regions of each text) of a saved map: from its summaries when they
+    suffice; every text embedded in one encoder call."""
     from openfusion.errors import UsageError
     from openfusion.mapping.params import default_min_region_points
     from openfusion.mapping.queries import query_region_table, query_regions
@@ -86,14 +104,14 @@ def _answer_saved_map(args: argparse.Namespace, with_points: bool) -> tuple[str,
     summary = None if (with_points or legacy) else _load_saved_summary(args.map_dir)
     if summary is not None:
         space = summary.dictionary.embedding_space
-        encoder = _text_encoder_for(space, args.text_encoder)
-        return space, query_region_table(summary.dictionary, summary.regions, encoder.encode([args.text])[0],
-                                         args.top_k, min_points=least)
+        vectors = _text_encoder_for(space, args.text_encoder).encode(list(args.text))
+        return space, [query_region_table(summary.dictionary, summary.regions, v, args.top_k, min_points=least)
+                       for v in vectors]
     loaded = _load_saved_map(args.map_dir)
     space = loaded.dictionary.embedding_space
-    encoder = _text_encoder_for(space, args.text_encoder, lean=not legacy)
-    return space, query_regions(loaded.dictionary, loaded.volume, encoder.encode([args.text])[0], args.top_k,
-                                with_points=with_points, max_points=200_000, min_points=least)
+    vectors = _text_encoder_for(space, args.text_encoder, lean=not legacy).encode(list(args.text))
+    return space, [query_regions(loaded.dictionary, loaded.volume, v, args.top_k, with_points=with_points,
+                                 max_points=200_000, min_points=least) for v in vectors]
 
 
 def _text_encoder_for(space: str, name: str | None, *, lean: bool = True) -> Any:
@@ -104,31 +122,42 @@ def _text_encoder_for(space: str, name: str | None, *, lean: bool = True) -> Any
 
     name = name or "minilm"
     minilm = name.strip().lower() in ("minilm", "gt")
+    if (lean and minilm) or name.strip().lower() == "onnx":
+        quiet_onnxruntime()  # inside a quiet command only
     encoder = make_text_encoder(name, **({"backend": "onnxruntime"} if lean and minilm else {}))
     if encoder.embedding_space != space:
         raise UsageError(f"the map is in embedding space {space!r} but --text-encoder gives {encoder.embedding_space!r}")
     return encoder
 
 
-def _print_regions(text: str, space: str, regions: list[Any], *, as_json: bool) -> None:
+def _answer_record(text: str, space: str, regions: list[Any]) -> dict[str, Any]:
     from openfusion.app.outputs import region_record
 
-    rows = [region_record(r) for r in regions]
+    return {"query": text, "embedding_space": space, "regions": [region_record(r) for r in regions]}
+
+
+def _print_answers(answers: list[tuple[str, str, list[Any]]], *, as_json: bool) -> None:
+    """(text, embedding space, regions) of each text: one block per text, in order (one text: as
+    it always printed); ``as_json``: one object, or a list of them for several texts."""
+    records = [_answer_record(text, space, regions) for text, space, regions in answers]
     if as_json:
-        print(json.dumps({"query": text, "embedding_space": space, "regions": rows}))
+        print(json.dumps(records[0] if len(records) == 1 else records))
         return
-    print(f"{text!r} in {space}:")
-    if not rows:
-        print("  no regions")
-    for r in rows:
-        print(f"  key {r['key']:>6}  score {r['score']:.3f}  {r['label'] or '-':<16} {r['num_points']:>7} points  "
-              f"bbox {r['bbox_min']} .. {r['bbox_max']}")
+    for record in records:
+        print(f"{record['query']!r} in {record['embedding_space']}:")
+        if not record["regions"]:
+            print("  no regions")
+        for r in record["regions"]:
+            print(f"  key {r['key']:>6}  score {r['score']:.3f}  {r['label'] or '-':<16} {r['num_points']:>7} points  "
+                  f"bbox {r['bbox_min']} .. {r['bbox_max']}")
 
 
 def _write_points(path: Path, regions: list[Any]) -> int:
+    """The points of ``regions`` (each key once, the first seen) as a PLY with x y z and key."""
     from openfusion.io.ply import write_ply_vertices
 
-    chunks = [(r.points, r.key) for r in regions if r.points is not None and len(r.points)]
+    unique = list({int(r.key): r for r in reversed(regions)}.values())[::-1]
+    chunks = [(r.points, r.key) for r in unique if r.points is not None and len(r.points)]
     if not chunks:
         return 0
     pts = np.concatenate([c[0] for c in chunks]).astype(np.float32)
@@ -150,8 +179,11 @@ def _check_query_options(args: argparse.Namespace) -> None:
     """Refuse values and combinations the query could not honour, before anything is read or joined."""
     from openfusion.errors import UsageError
 
-    if not args.text.strip():
+    empty = [i for i, text in enumerate(args.text) if not text.strip()]
+    if empty and len(args.text) == 1:
         raise UsageError("the query text is empty")
+    if empty:
+        raise UsageError(f"query text {empty[0] + 1} of {len(args.text)} is empty")
     if args.top_k < 1:
         raise UsageError(f"--top-k must be >= 1, got {args.top_k}")
     if args.map_dir is not None:
@@ -166,8 +198,29 @@ def _check_query_options(args: argparse.Namespace) -> None:
                              "(--map-dir); a running map's query service has its own (set it on that service)")
         if args.timeout is not None and args.timeout <= 0:
             raise UsageError(f"--timeout must be positive, got {args.timeout:g}")
+        from openfusion.wire.schemas.query import MAX_TEXT_CHARS
+
+        longest = max(args.text, key=len)
+        if len(longest) > MAX_TEXT_CHARS:
+            raise UsageError(f"a query text of {len(longest)} characters is longer than a query may carry "
+                             f"({MAX_TEXT_CHARS})")
     if args.out is not None and not args.out.parent.is_dir():
         raise UsageError(f"--out: folder {args.out.parent} does not exist")
+
+
+_OUTPUT_HELP = """\
+output (stdout, nothing else; a successful query writes nothing to stderr but the
+one line naming the PLY of --out; --verbose adds log lines and the libraries' output):
+  one block per TEXT, in order, each as a query of that text alone prints it:
+    'chair' in minilm-l6-v2:
+      key      7  score 1.000  chair       818 points  bbox [2.68, 3.07, 0.02] .. [3.24, 3.56, 0.89]
+    'lamp' in minilm-l6-v2:
+      no regions
+  --json, one TEXT: one object on one line
+    {"query": TEXT, "embedding_space": SPACE, "regions": [{"key": INT, "score": FLOAT,
+     "label": STR|null, "num_points": INT, "bbox_min": [X, Y, Z], "bbox_max": [X, Y, Z]}, ...]}
+  --json, several TEXTs: a JSON list of those objects, in the order of the TEXTs
+"""
 
 
 class QueryCommand:
@@ -175,12 +228,22 @@ class QueryCommand:
     def add_arguments(parser: argparse.ArgumentParser) -> None:
         from openfusion.mapping.params import default_min_region_points
 
-        parser.add_argument("text", help="what to look for, e.g. 'something to sit on'")
+        parser.formatter_class = argparse.RawDescriptionHelpFormatter
+        parser.epilog = _OUTPUT_HELP
+        parser.add_argument("text", nargs="+", metavar="TEXT",
+                            help="what to look for, e.g. 'something to sit on'; several texts (given together) "
+                                 "are answered at once, in one round trip")
         parser.add_argument("--map-dir", type=Path, help="query a saved map folder instead of running services "
                             "(then no option that finds a running map: --map, --connect, --timeout, --config, ...)")
         parser.add_argument("--top-k", type=int, default=5, help="regions to return (default 5)")
-        parser.add_argument("--json", action="store_true", help="print JSON")
-        parser.add_argument("--out", type=Path, help="write the points of the returned regions to this PLY")
+        parser.add_argument("--json", action="store_true",
+                            help="print JSON: one object for one TEXT, a list of them for several (see below)")
+        parser.add_argument("--out", type=Path, help="write the points of the returned regions (of every text, each "
+                            "region once) to this PLY")
+        parser.add_argument("--verbose", action="store_true",
+                            help="show log lines from INFO up (unless --log-level says otherwise) and the "
+                                 "libraries' own output (model loading progress, warnings); without it stdout is "
+                                 "the answer alone and a successful query writes nothing to stderr")
         parser.add_argument("--text-encoder", help="with --map-dir: text encoder (default: minilm, the gt encoder's "
                             "space); a running map's query service uses its own")
         parser.add_argument("--min-region-points", type=int, metavar="N",
@@ -193,25 +256,37 @@ class QueryCommand:
     @staticmethod
     def run(args: argparse.Namespace) -> int:
         _check_query_options(args)
-        with_points = args.out is not None
-        if args.map_dir is not None:
-            if args.log_level:  # validated as the config would (no bus options here)
-                setup_logging(load_config(cli={"log_level": args.log_level}, environ={}).log_level)
-            space, regions = _answer_saved_map(args, with_points)
-        else:
-            from openfusion.client import OpenFusionClient
-
-            config = config_from_args(args)
-            setup_logging(config.log_level if args.log_level else "WARNING")
-            timeout_s = DEFAULT_TIMEOUT_S if args.timeout is None else args.timeout
-            with OpenFusionClient.from_config(config, timeout_s=timeout_s) as client:
-                reply = client.query_text(args.text, top_k=args.top_k, with_points=with_points)
-            space, regions = reply.embedding_space, reply.regions
-        _print_regions(args.text, space, regions, as_json=args.json)
+        with quiet_libraries(not args.verbose):
+            answers = _answer(args)
+        _print_answers(answers, as_json=args.json)
         if args.out is not None:
-            n = _write_points(args.out, regions)
+            n = _write_points(args.out, [r for _text, _space, regions in answers for r in regions])
             print(f"wrote {n} points to {args.out}", file=sys.stderr)
         return 0
+
+
+def _answer(args: argparse.Namespace) -> list[tuple[str, str, list[Any]]]:
+    """(text, embedding space, ranked regions) of each text, in order, from a saved map or running
+    services."""
+    texts = list(args.text)
+    with_points = args.out is not None
+    verbose_level = "INFO" if args.verbose else "WARNING"
+    if args.map_dir is not None:
+        if args.log_level or args.verbose:  # validated as the config would (no bus options here)
+            setup_logging(load_config(cli={"log_level": args.log_level or verbose_level}, environ={}).log_level)
+        space, answers = _answer_saved_map(args, with_points)
+        return [(text, space, regions) for text, regions in zip(texts, answers, strict=True)]
+    from openfusion.client import OpenFusionClient
+
+    config = config_from_args(args)
+    setup_logging(config.log_level if args.log_level else verbose_level)
+    timeout_s = DEFAULT_TIMEOUT_S if args.timeout is None else args.timeout
+    with OpenFusionClient.from_config(config, timeout_s=timeout_s) as client:
+        if len(texts) == 1:  # the one-text endpoint, as always (query services without batches answer it)
+            replies = [client.query_text(texts[0], top_k=args.top_k, with_points=with_points)]
+        else:  # one round trip (up to 64 texts)
+            replies = client.query_texts(texts, top_k=args.top_k, with_points=with_points)
+    return [(text, reply.embedding_space, reply.regions) for text, reply in zip(texts, replies, strict=True)]
 
 
 class SegmentCommand:

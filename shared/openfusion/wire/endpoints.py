@@ -31,6 +31,7 @@ from openfusion.wire.schemas import (
     PointQuery,
     PointsReply,
     PointsRequest,
+    QueryBatchReply,
     QueryReply,
     RegionSummaryReply,
     RegionSummaryRequest,
@@ -39,6 +40,7 @@ from openfusion.wire.schemas import (
     RgbdFrame,
     SemanticUpdate,
     TextQuery,
+    TextQueryBatch,
 )
 
 M = TypeVar("M", bound=Message)
@@ -100,6 +102,8 @@ GEOMETRY_REGIONS = Endpoint(("geometry", "regions"), RegionSummaryRequest, Regio
 GEOMETRY_DICTIONARY = Endpoint(("geometry", "dictionary"), DictionaryRequest, DictionarySnapshot, owner="geometry")
 SEMANTIC_DICTIONARY = Endpoint(("semantic", "dictionary"), DictionaryRequest, DictionarySnapshot, owner="semantic")
 QUERY_TEXT = Endpoint(("query", "text"), TextQuery, QueryReply, owner="query")
+#: Several texts in one round trip (embedded in one encoder call): one QueryReply per text, in order.
+QUERY_TEXT_BATCH = Endpoint(("query", "text_batch"), TextQueryBatch, QueryBatchReply, owner="query")
 QUERY_IMAGE = Endpoint(("query", "image"), ImageQuery, QueryReply, owner="query")
 QUERY_POINT = Endpoint(("query", "point"), PointQuery, QueryReply, owner="query")
 #: Admin actions (access-controlled in production): save, load, reset.
@@ -110,5 +114,5 @@ CONTROL: dict[str, Endpoint[ControlRequest, ControlReply]] = {
 TOPICS: tuple[Topic, ...] = (SENSOR_RGBD, SENSOR_INSTANCE, GEOMETRY_PROGRESS, SEMANTIC_UPDATE, DICTIONARY_DELTA)
 ENDPOINTS: tuple[Endpoint, ...] = (
     GEOMETRY_RENDER, GEOMETRY_POINTS, GEOMETRY_MESH, GEOMETRY_REGIONS, GEOMETRY_DICTIONARY,
-    SEMANTIC_DICTIONARY, QUERY_TEXT, QUERY_IMAGE, QUERY_POINT, *CONTROL.values(),
+    SEMANTIC_DICTIONARY, QUERY_TEXT, QUERY_TEXT_BATCH, QUERY_IMAGE, QUERY_POINT, *CONTROL.values(),
 )

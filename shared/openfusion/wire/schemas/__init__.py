@@ -40,7 +40,16 @@ from openfusion.wire.schemas.geometry import (
     RenderReply,
     RenderRequest,
 )
-from openfusion.wire.schemas.query import ImageQuery, PointQuery, QueryReply, RegionHit, TextQuery
+from openfusion.wire.schemas.query import (
+    MAX_BATCH_TEXTS,
+    ImageQuery,
+    PointQuery,
+    QueryBatchReply,
+    QueryReply,
+    RegionHit,
+    TextQuery,
+    TextQueryBatch,
+)
 from openfusion.wire.schemas.semantic import (
     DictionaryDelta,
     DictionaryRequest,
@@ -50,6 +59,7 @@ from openfusion.wire.schemas.semantic import (
 from openfusion.wire.schemas.sensor import InstanceFrame, RgbdFrame
 
 __all__ = [
+    "MAX_BATCH_TEXTS",
     "Colors3u8",
     "ControlReply",
     "ControlRequest",
@@ -75,6 +85,7 @@ __all__ = [
     "PointsReply",
     "PointsRequest",
     "Pose4x4",
+    "QueryBatchReply",
     "QueryReply",
     "Record",
     "RegionHit",
@@ -85,6 +96,7 @@ __all__ = [
     "RgbdFrame",
     "SemanticUpdate",
     "TextQuery",
+    "TextQueryBatch",
     "Vec3f32",
     "Vec3f64",
 ]

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -14,6 +14,11 @@ from openfusion.wire.schemas.base import (
     Vec3f32,
     Vec3f64,
 )
+
+#: Longest text of a :class:`TextQuery` or of one text of a :class:`TextQueryBatch`.
+MAX_TEXT_CHARS = 4096
+#: Most texts one :class:`TextQueryBatch` may carry.
+MAX_BATCH_TEXTS = 64
 
 
 class _QueryOptions(Message):
@@ -29,7 +34,20 @@ class TextQuery(_QueryOptions):
     schema_name: ClassVar[str] = "query.text"
     schema_version: ClassVar[int] = 1
 
-    text: str = Field(min_length=1, max_length=4096)
+    text: str = Field(min_length=1, max_length=MAX_TEXT_CHARS)
+
+
+class TextQueryBatch(_QueryOptions):
+    """Rank the map's regions against each of ``texts`` in one round trip (1 to
+    :data:`MAX_BATCH_TEXTS` texts, each 1 to :data:`MAX_TEXT_CHARS` characters); the options apply
+    to every text. Answered with a :class:`QueryBatchReply`: one :class:`QueryReply` per text, in order."""
+
+    schema_name: ClassVar[str] = "query.text_batch"
+    schema_version: ClassVar[int] = 1
+
+    texts: list[Annotated[str, Field(min_length=1, max_length=MAX_TEXT_CHARS)]] = Field(
+        min_length=1, max_length=MAX_BATCH_TEXTS
+    )
 
 
 class ImageQuery(_QueryOptions):
@@ -87,3 +105,13 @@ class QueryReply(Message):
     embedding_space: str
     query: str
     regions: list[RegionHit] = Field(default_factory=list)
+
+
+class QueryBatchReply(Message):
+    """The answer to a :class:`TextQueryBatch`: one :class:`QueryReply` per text, in the order of
+    the request's ``texts``."""
+
+    schema_name: ClassVar[str] = "query.batch_reply"
+    schema_version: ClassVar[int] = 1
+
+    replies: list[QueryReply] = Field(max_length=MAX_BATCH_TEXTS)
