@@ -21,6 +21,7 @@ from openfusion.encoders import make_text_encoder
 from openfusion.mapping import RegionDictionary
 from openfusion.services.query.service import QueryConfig, QueryService, RegionSummaries
 from openfusion.testing.bus import ServiceThread, free_port, loopback_config, unique_map_id, wait_for_services
+from openfusion.testing.encoders import CountingTextEncoder
 from openfusion.wire.counters import QueryCounter
 from openfusion.wire.endpoints import QUERY_TEXT_BATCH
 from openfusion.wire.schemas import (
@@ -39,18 +40,6 @@ NAMES = ("chair", "table", "lamp", "sofa", "plant", "bookshelf", "office chair")
 POINTS = (400, 300, 2, 250, 120, 90, 380)
 
 
-class CountingEncoder:
-    """The hash encoder, recording the texts of every ``encode`` call."""
-
-    embedding_space = TEXT.embedding_space
-    dim = TEXT.dim
-
-    def __init__(self) -> None:
-        self.calls: list[list[str]] = []
-
-    def encode(self, texts: list[str]) -> np.ndarray:
-        self.calls.append(list(texts))
-        return TEXT.encode(texts)
 
 
 def _summaries() -> RegionSummaries:
@@ -63,7 +52,7 @@ def _summaries() -> RegionSummaries:
 
 def _service(config: QueryConfig | None = None, *, with_map: bool = True) -> QueryService:
     config = config or QueryConfig(map_id="unit")
-    service = QueryService(config, text_encoder=CountingEncoder())
+    service = QueryService(config, text_encoder=CountingTextEncoder())
     if with_map:
         dictionary = RegionDictionary(TEXT.embedding_space, TEXT.dim)
         for name in NAMES:

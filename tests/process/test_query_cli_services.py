@@ -28,6 +28,7 @@ from openfusion.testing.bus import (
     subprocess_env,
     unique_map_id,
 )
+from openfusion.testing.encoders import CountingTextEncoder
 from openfusion.wire.counters import QueryCounter
 from openfusion.wire.schemas import RegionSummaryReply, TextQuery
 
@@ -40,16 +41,6 @@ NAMES = ("chair", "table", "lamp", "sofa", "plant")
 pytestmark = pytest.mark.timeout(180)
 
 
-class CountingEncoder:
-    embedding_space = TEXT.embedding_space
-    dim = TEXT.dim
-
-    def __init__(self) -> None:
-        self.calls: list[list[str]] = []
-
-    def encode(self, texts: list[str]) -> np.ndarray:
-        self.calls.append(list(texts))
-        return TEXT.encode(texts)
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +50,7 @@ def service() -> Iterator[tuple[ServiceThread, int]]:
     base = loopback_config(unique_map_id("cli"), listen=[port]).model_dump()
     config = QueryConfig.model_validate({**base, "query": {"text_encoder": "hash", "summary_max_age_s": 3600,
                                                             "summary_refresh_s": 3600}})
-    app = QueryService(config, text_encoder=CountingEncoder())
+    app = QueryService(config, text_encoder=CountingTextEncoder())
     dictionary = RegionDictionary(TEXT.embedding_space, TEXT.dim)
     for name in NAMES:
         dictionary.add(TEXT.encode([name])[0], label=name)

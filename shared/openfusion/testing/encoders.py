@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from openfusion.encoders import EncoderError, RegionObservation, make_region_encoder
+from openfusion.encoders import EncoderError, RegionObservation, make_region_encoder, make_text_encoder
 from openfusion.frame import Frame
 
 
@@ -34,3 +34,18 @@ class FlakyEncoder:
             return RegionObservation(np.zeros((0, h, w), np.float32), np.zeros((0, self.dim), np.float32),
                                      self.embedding_space, [])
         return obs
+
+
+class CountingTextEncoder:
+    """The hash text encoder, recording the texts of every ``encode`` call (``calls``): what a
+    test checks to prove several texts went to the encoder in one call."""
+
+    def __init__(self) -> None:
+        self.inner = make_text_encoder("hash")
+        self.embedding_space = self.inner.embedding_space
+        self.dim = self.inner.dim
+        self.calls: list[list[str]] = []
+
+    def encode(self, texts: list[str]) -> np.ndarray:
+        self.calls.append(list(texts))
+        return self.inner.encode(texts)
