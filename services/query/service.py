@@ -386,9 +386,6 @@ class QueryService:
             for query, ranked in zip(queries, rankings, strict=True)
         ]
 
-    def encode_text(self, text: str) -> np.ndarray:
-        return self.text_encoder.encode([text])[0]
-
     def _check_text(self, text: str, which: str = "") -> None:
         if len(text) > self.section.max_text_chars:
             raise RequestError(
@@ -396,42 +393,35 @@ class QueryService:
                 f"text {which}of {len(text)} characters exceeds max_text_chars={self.section.max_text_chars}",
             )
 
-    def handle_text(self, req: TextQuery) -> QueryReply:
-        started = time.monotonic()
-        self._check_text(req.text)
+    def _answer_texts(self, texts: list[str], req: TextQuery | TextQueryBatch, *, numbered: bool) -> list[QueryReply]:
+        """Every text checked first (``numbered``: errors say which of a batch), all embedded in ONE
+        encoder call, each ranked: what a text query and a batch of them both do."""
+        for i, text in enumerate(texts):
+            self._check_text(text, f"{i + 1} (of {len(texts)}) " if numbered else "")
         self._check_limits(req.top_k, req.max_points)
         space = self._check_space(req.embedding_space)
         self._check_text_space(space)
-        vector = self.encode_text(req.text)
-        reply = self._rank(
-            vector,
-            top_k=req.top_k,
-            with_points=req.with_points,
-            max_points=req.max_points,
-            space=space,
-            query=req.text,
-        )
-        self._note(started)
-        return reply
-
-    def handle_text_batch(self, req: TextQueryBatch) -> QueryBatchReply:
-        """Several texts: every text checked first, embedded in ONE encoder call, each ranked as
-        :meth:`handle_text` ranks one (the same replies, in the order of ``texts``)."""
-        started = time.monotonic()
-        for i, text in enumerate(req.texts):
-            self._check_text(text, f"{i + 1} (of {len(req.texts)}) ")
-        self._check_limits(req.top_k, req.max_points)
-        space = self._check_space(req.embedding_space)
-        self._check_text_space(space)
-        vectors = np.asarray(self.text_encoder.encode(list(req.texts)), np.float32).reshape(len(req.texts), -1)
-        replies = self._rank_many(
+        vectors = np.asarray(self.text_encoder.encode(list(texts)), np.float32).reshape(len(texts), -1)
+        return self._rank_many(
             vectors,
             top_k=req.top_k,
             with_points=req.with_points,
             max_points=req.max_points,
             space=space,
-            queries=list(req.texts),
+            queries=list(texts),
         )
+
+    def handle_text(self, req: TextQuery) -> QueryReply:
+        started = time.monotonic()
+        reply = self._answer_texts([req.text], req, numbered=False)[0]
+        self._note(started)
+        return reply
+
+    def handle_text_batch(self, req: TextQueryBatch) -> QueryBatchReply:
+        """Several texts: embedded in one encoder call, each ranked as :meth:`handle_text` ranks one
+        (the same replies, in the order of ``texts``)."""
+        started = time.monotonic()
+        replies = self._answer_texts(list(req.texts), req, numbered=True)
         self._note(started, len(req.texts))
         return QueryBatchReply(replies=replies)
 
