@@ -240,25 +240,32 @@ class SemanticService:
             msg = self._frames.recv(timeout_s=0.2)
             if msg is None:
                 continue
-            if not self.switch.accept(msg.frame_id, time.monotonic()):
-                runner.stats.incr(SemanticCounter.SKIPPED_SWITCH)
-                continue
-            instance = None
-            if self._instances is not None and msg.instance is None:
-                instance = self._instances.take(msg, timeout_s=self.section.instance_wait_s)
-                runner.stats.set(SemanticCounter.INSTANCES_EVICTED, self._instances.evicted)
-                if instance is None:
-                    self._skip_without_instance(runner, msg)
-                    continue
             try:
-                self.process(runner, msg, instance)
-            except QueryError as exc:  # geometry did not answer (or refused) the render request
-                logger.warning("semantic: frame %d skipped: %s", msg.frame_id, exc)
-                runner.stats.incr(SemanticCounter.SKIPPED_NO_RENDER)
-            except Exception:  # the encoder, a step or the bus failed on this frame: logged, counted, next frame
-                logger.exception("semantic: frame %d failed and was skipped", msg.frame_id)
-                runner.stats.incr(SemanticCounter.FRAMES_FAILED)
-                runner.stats.add_error()
+                self._handle(runner, msg)
+            finally:  # whatever became of it, the frame is done with: tests and tools wait on this
+                runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
+
+    def _handle(self, runner: ServiceRunner, msg: RgbdFrame) -> None:
+        """Fuse one frame or count why it was skipped; never raises for one frame's failure."""
+        if not self.switch.accept(msg.frame_id, time.monotonic()):
+            runner.stats.incr(SemanticCounter.SKIPPED_SWITCH)
+            return
+        instance = None
+        if self._instances is not None and msg.instance is None:
+            instance = self._instances.take(msg, timeout_s=self.section.instance_wait_s)
+            runner.stats.set(SemanticCounter.INSTANCES_EVICTED, self._instances.evicted)
+            if instance is None:
+                self._skip_without_instance(runner, msg)
+                return
+        try:
+            self.process(runner, msg, instance)
+        except QueryError as exc:  # geometry did not answer (or refused) the render request
+            logger.warning("semantic: frame %d skipped: %s", msg.frame_id, exc)
+            runner.stats.incr(SemanticCounter.SKIPPED_NO_RENDER)
+        except Exception:  # the encoder, a step or the bus failed on this frame: logged, counted, next frame
+            logger.exception("semantic: frame %d failed and was skipped", msg.frame_id)
+            runner.stats.incr(SemanticCounter.FRAMES_FAILED)
+            runner.stats.add_error()
 
     def _skip_without_instance(self, runner: ServiceRunner, msg: RgbdFrame) -> None:
         runner.stats.incr(SemanticCounter.SKIPPED_NO_INSTANCE)

@@ -3,9 +3,12 @@ geometry, semantic and query as processes connected to a router session of the t
 client, and a bridge started per playback.
 
 Waiting is on events, never on time: :meth:`Env.play` returns once geometry integrated every
-frame of the playback and, when the semantic service runs, once it fused the playback's last
-frame and geometry applied every update it sent (``updates_applied == semantic_frames``): the
-map has settled, so what a test reads next is what a checkpoint would hold.
+frame of the playback and, when the semantic service runs, once it fused frames of this playback,
+was done with its last frame (``last_frame_handled``: fused, or skipped for a reason it counted,
+e.g. a render that timed out on a busy machine) and geometry applied every update it sent
+(``updates_applied >= semantic_frames``): the map has settled, so what a test reads next is what
+a checkpoint would hold. (Waiting for the last frame to be *fused* hung when that one frame was
+skipped: the semantic service never sees it again.)
 """
 
 from __future__ import annotations
@@ -90,7 +93,7 @@ class Env:
             sem, geo = health.get("semantic"), health.get("geometry")
             return (sem is not None and geo is not None
                     and sem.counter(SemanticCounter.SEMANTIC_FRAMES) > fused
-                    and sem.counter(SemanticCounter.LAST_FRAME_ID) == frames - 1
+                    and sem.counter(SemanticCounter.LAST_FRAME_HANDLED) == frames - 1
                     and geo.counter(GeometryCounter.UPDATES_APPLIED) >= sem.counter(SemanticCounter.SEMANTIC_FRAMES))
 
         wait_until(settled, timeout_s=START_TIMEOUT_S, interval_s=0.2)

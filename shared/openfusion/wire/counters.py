@@ -63,7 +63,8 @@ class SemanticCounter(StrEnum):
     DICTIONARY_VERSION = "dictionary_version"
     MATCHED = "matched"
     NEW_REGIONS = "new_regions"
-    LAST_FRAME_ID = "last_frame_id"
+    LAST_FRAME_ID = "last_frame_id"  # last frame fused
+    LAST_FRAME_HANDLED = "last_frame_handled"  # last frame taken off the subscription and done with (fused or skipped)
     SKIPPED_SWITCH = "skipped_switch"  # frames the semantic switch left out (every_k, max_hz)
     SKIPPED_NO_INSTANCE = "skipped_no_instance"  # gt encoder: the instance image did not come
     SKIPPED_NO_RENDER = "skipped_no_render"  # geometry did not answer the render request
