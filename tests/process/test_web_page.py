@@ -45,11 +45,9 @@ ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml"
 _SCRIPT = Path(sys.executable).parent / "openfusion"
 OPENFUSION = [str(_SCRIPT)] if _SCRIPT.exists() else [sys.executable, "-m", "openfusion.app.cli"]
 CHROMIUM = "/usr/bin/chromium"
-#: Headless and quiet: no network of its own, no GPU; WebGL through SwiftShader (software), which
-#: Chromium no longer falls back to by itself.
+#: Headless and quiet: no GPU, no network of its own (WebGL is drawn in software by SwiftShader).
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--no-first-run", "--use-angle=swiftshader",
-                 "--enable-unsafe-swiftshader"]
+                 "--disable-component-update", "--disable-sync", "--no-first-run"]
 TEXT = make_text_encoder("hash")
 SCRIPT_QUERY = "<script>alert(1)</script>"
 

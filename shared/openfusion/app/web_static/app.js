@@ -138,8 +138,6 @@ class MapView {
     group.add(new THREE.Box3Helper(box, 0xffd21f));
     this.highlight = group;
     this.scene.add(group);
-    this.controls.target.copy(box.getCenter(new THREE.Vector3()));
-    this.controls.update();
     this.render();
   }
 
@@ -147,7 +145,7 @@ class MapView {
     if (!this.mapPoints) return;
     const colors = this.mapPoints.geometry.getAttribute("color");
     for (let i = 0; i < this.keys.length; i++) {
-      const dim = key === null ? 1.0 : (this.keys[i] === key ? 1.0 : 0.35);
+      const dim = key === null ? 1.0 : (this.keys[i] === key ? 1.0 : 0.45);
       colors.array[3 * i] = this.baseColors[3 * i] * dim;
       colors.array[3 * i + 1] = this.baseColors[3 * i + 1] * dim;
       colors.array[3 * i + 2] = this.baseColors[3 * i + 2] * dim;
