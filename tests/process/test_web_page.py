@@ -16,11 +16,13 @@ is made this way, with ``OPENFUSION_WEB_FRAMES=40``)."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
 import subprocess
 import sys
+import urllib.request
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -226,3 +228,34 @@ def test_a_query_typed_into_the_page_lists_and_highlights_the_chair_and_a_script
             assert dialogs == [] and errors == []
         finally:
             browser.close()
+
+
+@pytest.mark.slow
+def test_run_with_web_serves_the_page_beside_its_services_until_ctrl_c(tmp_path: Path) -> None:
+    """``openfusion run --web``: the URL on stderr when the services start; after the run the page
+    still answers a query from the map just made (its own services); SIGINT stops page and
+    services, exit 0, the run summary on stdout."""
+    with subprocess.Popen(
+        [*OPENFUSION, "run", "--frames", "12", "--web", "--quiet", "--out", str(tmp_path / "out")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=subprocess_env(),
+    ) as proc:
+        assert proc.stdout is not None and proc.stderr is not None
+        try:
+            url = None
+            for line in proc.stderr:
+                if line.startswith("query page: http://127.0.0.1:"):
+                    url = line.split()[2]
+                if "the run is done" in line:
+                    break
+            assert url is not None, proc.poll()
+            with urllib.request.urlopen(f"{url}api/query?text=chair&top_k=2", timeout=60) as response:
+                reply = json.load(response)
+            assert reply["regions"][0]["label"] == "chair" and reply["regions"][0]["points"]
+            proc.send_signal(signal.SIGINT)
+            out, err = proc.communicate(timeout=120)
+            assert proc.returncode == 0, err
+            assert json.loads(out)["frames_integrated"] == 12
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()

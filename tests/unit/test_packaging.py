@@ -33,15 +33,14 @@ def test_no_top_level_shared_or_services_module_is_importable_as_such() -> None:
     assert Path(openfusion.services.__file__).parent == ROOT / "services"
 
 
-def test_every_file_of_the_query_page_is_package_data() -> None:
-    """``openfusion web`` serves web_static/ from the installed package: every file there must match
-    a package-data pattern of ``openfusion.app`` (a new subfolder needs its own pattern)."""
-    import fnmatch
 
-    patterns = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["openfusion.app"]
+def test_every_file_of_the_query_page_is_package_data() -> None:
+    """``openfusion web`` serves web_static/ from the installed package: every folder there holding
+    files is a package (``__init__.py``, listed) with package-data ``*`` (a new subfolder must be added)."""
+    setuptools = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
     app = ROOT / "shared" / "openfusion" / "app"
-    files = [p.relative_to(app).as_posix() for p in (app / "web_static").rglob("*") if p.is_file()]
-    assert "web_static/index.html" in files and "web_static/vendor/three/three.module.min.js" in files
-    unmatched = [f for f in files if not any(fnmatch.fnmatchcase(f, p) and "/" not in f[len(p.rsplit("/", 1)[0]) + 1:]
-                                             for p in patterns)]
-    assert not unmatched, f"add package-data patterns in pyproject.toml for: {unmatched}"
+    folders = {p.parent for p in (app / "web_static").rglob("*") if p.is_file() and p.suffix not in (".py", ".pyc")}
+    names = {".".join(("openfusion", "app", *f.relative_to(app).parts)) for f in folders}
+    assert {"openfusion.app.web_static", "openfusion.app.web_static.vendor.three"} <= names
+    missing = sorted(n for n in names if n not in setuptools["packages"] or setuptools["package-data"].get(n) != ["*"])
+    assert not missing, f"list these in [tool.setuptools] packages and package-data (['*']): {missing}"

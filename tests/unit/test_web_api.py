@@ -115,6 +115,7 @@ def test_the_page_and_its_files_are_served_with_their_types_and_a_strict_policy(
         ("/api/control/save", 404, "no endpoint '/api/control/save'"),
         ("/api/../../pyproject.toml", 404, "no endpoint"),
         ("/../web_server.py", 404, "no such page or file"),
+        ("/__init__.py", 404, "no such page or file"),
         ("/vendor/three/../../web_server.py", 404, "no such page or file"),
         ("/index.html?x=<script>", 400, "the page's files take no parameters"),
     ],
