@@ -185,8 +185,9 @@ def test_a_query_typed_into_the_page_lists_and_highlights_the_chair_and_a_script
             page = browser.new_page(viewport={"width": 1280, "height": 720})
             dialogs: list[str] = []
             page.on("dialog", lambda dialog: (dialogs.append(dialog.message), dialog.dismiss()))
-            errors: list[str] = []
+            errors: list[str] = []  # script errors, and console errors (a blocked file or CSP violation)
             page.on("pageerror", lambda exc: errors.append(str(exc)))
+            page.on("console", lambda msg: errors.append(msg.text) if msg.type == "error" else None)
             page.goto(web_page)
             page.wait_for_selector("body[data-ready=true]", timeout=60_000)
             viewer = page.locator("#viewer")

@@ -106,6 +106,7 @@ def test_the_page_and_its_files_are_served_with_their_types_and_a_strict_policy(
         ("/api/query?text=%20%20", 400, "the query text is empty"),
         (f"/api/query?text={'x' * (MAX_TEXT_CHARS + 1)}", 400, f"longer than a query may carry ({MAX_TEXT_CHARS})"),
         ("/api/query?text=chair&text=lamp", 400, "give text once, got it 2 times"),
+        ("/api/query?text=%FF%FE", 400, "cannot read the query string"),
         ("/api/query?text=chair&top_k=0", 400, f"top_k must be from 1 to {MAX_TOP_K}, got 0"),
         (f"/api/query?text=chair&top_k={MAX_TOP_K + 1}", 400, f"top_k must be from 1 to {MAX_TOP_K}"),
         ("/api/query?text=chair&top_k=abc", 400, "top_k must be a whole number from 1 to 20, got 'abc'"),
@@ -136,6 +137,13 @@ def test_only_reading_methods_only_this_host_and_no_bodies(served) -> None:  # n
     assert status == 400 and "unexpected Host header" in data["error"]
     status, data = _json(server, "/api/query?text=chair", body=b"x" * 10)
     assert status == 400 and "a GET request carries no body" in data["error"]
+    conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=20)
+    conn.putrequest("GET", "/api/query?text=chair")
+    conn.putheader("Content-Length", "lots")
+    conn.endheaders()
+    response = conn.getresponse()
+    assert response.status == 400 and "a GET request carries no body" in json.loads(response.read())["error"]
+    conn.close()
     assert backend.calls == []
     status, data = _json(server, "/api/query?text=chair", host=f"localhost:{server.port}")
     assert status == 200 and backend.calls == [("query", "chair", 5)]

@@ -309,8 +309,9 @@ class _Handler(BaseHTTPRequestHandler):
         allowed = self.server.allowed_hosts
         if allowed is not None and (self.headers.get("Host") or "").lower() not in allowed:
             raise WebError(HTTPStatus.BAD_REQUEST, "unexpected Host header (the page answers only at its own address)")
-        if int(self.headers.get("Content-Length") or 0) > 0 or self.headers.get("Transfer-Encoding"):
-            self.close_connection = True
+        length = self.headers.get("Content-Length") or "0"
+        if length.strip() != "0" or self.headers.get("Transfer-Encoding"):
+            self.close_connection = True  # the body is not read: this connection ends with the answer
             raise WebError(HTTPStatus.BAD_REQUEST, "a GET request carries no body")
 
     def _api(self, path: str, query_string: str) -> dict[str, Any]:
