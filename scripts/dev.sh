@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One entry point for a fresh machine. Each sub-command sets up what it needs first:
-# system library libusb-1.0-0 (open3d-cpu), a virtual environment in .venv, the package
+# system library libusb-1.0-0 (open3d-cpu), chromium for the browser test (setup, test), a virtual environment in .venv, the package
 # with torch pinned to the CPU build (override with OPENFUSION_TORCH_SPEC, e.g. "torch" for CUDA).
 #
 #   scripts/dev.sh run  [openfusion run options]   # the embedded default: all services, synthetic scene
@@ -33,6 +33,25 @@ ensure_libusb() {
     DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq libusb-1.0-0 >/dev/null
 }
 
+# The browser test of the query page (tests/process/test_web_page.py) drives Debian's chromium
+# through Playwright (Playwright's own browser download is not used). Without it that test fails
+# in CI (CI=true) naming what is missing, and is skipped elsewhere.
+ensure_chromium() {
+    if [ -x /usr/bin/chromium ]; then
+        return
+    fi
+    log "installing chromium (for the browser test of the query page)"
+    local sudo=""
+    if [ "$(id -u)" != "0" ]; then
+        if command -v sudo >/dev/null 2>&1; then sudo="sudo"; else
+            log "WARNING: chromium is missing and this user cannot install it; run: apt-get install -y chromium"
+            return
+        fi
+    fi
+    { $sudo apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq chromium >/dev/null; } ||
+        log "WARNING: could not install chromium with apt; the browser test will say so"
+}
+
 ensure_venv() {
     local stamp="$venv/.openfusion-stamp"
     local want
@@ -57,10 +76,10 @@ ensure_venv() {
 cmd="${1:-help}"
 [ $# -gt 0 ] && shift
 case "$cmd" in
-    setup) ensure_libusb; ensure_venv ;;
+    setup) ensure_libusb; ensure_chromium; ensure_venv ;;
     run) ensure_libusb; ensure_venv; exec "$venv/bin/openfusion" run "$@" ;;
     test)
-        ensure_libusb; ensure_venv
+        ensure_libusb; ensure_chromium; ensure_venv
         cd "$root"
         export HF_HUB_OFFLINE=1 TRANSFORMERS_OFFLINE=1
         exec "$venv/bin/python" -m pytest "$@" ;;

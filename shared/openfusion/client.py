@@ -21,7 +21,7 @@ from typing import TypeVar
 import numpy as np
 import zenoh
 
-from openfusion.bus import QueryError, call, live_services, open_session
+from openfusion.bus import QueryError, call, collect_health, live_services, open_session
 from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.errors import UsageError
 from openfusion.wire.endpoints import (
@@ -43,6 +43,7 @@ from openfusion.wire.schemas import (
     ControlRequest,
     DictionaryRequest,
     DictionarySnapshot,
+    HealthStats,
     ImageQuery,
     MeshReply,
     MeshRequest,
@@ -174,6 +175,10 @@ class OpenFusionClient:
 
     def live_services(self, *, timeout_s: float = 2.0) -> list[str]:
         return live_services(self.session, self.keys, timeout_s=timeout_s)
+
+    def health(self, *, timeout_s: float = 2.0) -> dict[str, HealthStats]:
+        """The latest stats of every service of the map that answers in ``timeout_s``, by name."""
+        return collect_health(self.session, self.keys, timeout_s=timeout_s)
 
     def _call(self, endpoint: Endpoint[Q, R], request: Q, *, min_timeout_s: float = 0.0) -> R:
         return call(self.session, self.keys, endpoint, request, timeout_s=max(self.timeout_s, min_timeout_s))

@@ -31,3 +31,16 @@ def test_no_top_level_shared_or_services_module_is_importable_as_such() -> None:
 
     assert Path(openfusion.__file__).parent == ROOT / "shared" / "openfusion"
     assert Path(openfusion.services.__file__).parent == ROOT / "services"
+
+
+
+def test_every_file_of_the_query_page_is_package_data() -> None:
+    """``openfusion web`` serves web_static/ from the installed package: every folder there holding
+    files is a package (``__init__.py``, listed) with package-data ``*`` (a new subfolder must be added)."""
+    setuptools = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    app = ROOT / "shared" / "openfusion" / "app"
+    folders = {p.parent for p in (app / "web_static").rglob("*") if p.is_file() and p.suffix not in (".py", ".pyc")}
+    names = {".".join(("openfusion", "app", *f.relative_to(app).parts)) for f in folders}
+    assert {"openfusion.app.web_static", "openfusion.app.web_static.vendor.three"} <= names
+    missing = sorted(n for n in names if n not in setuptools["packages"] or setuptools["package-data"].get(n) != ["*"])
+    assert not missing, f"list these in [tool.setuptools] packages and package-data (['*']): {missing}"

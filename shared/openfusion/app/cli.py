@@ -68,6 +68,7 @@ SUBCOMMANDS: list[Subcommand] = [
     Subcommand("service", "openfusion.app.service_cmd:ServiceCommand", "run one service (bridge, geometry, semantic, query)"),
     Subcommand("run", "openfusion.app.run:RunCommand", "run everything on this machine: services, synthetic scene, queries"),
     Subcommand("query", "openfusion.app.query_cmd:QueryCommand", "ask a running map (or --map-dir) in plain text"),
+    Subcommand("web", "openfusion.app.web_cmd:WebCommand", "serve a query page of a running map in the browser"),
     Subcommand("segment", "openfusion.app.query_cmd:SegmentCommand", "label a saved map's surface points by class names"),
     Subcommand("eval", "openfusion.app.eval_cmd:EvalCommand", "evaluate mapping quality, geometry and speed"),
     Subcommand("render", "openfusion.app.render_cmd:RenderCommand", "headless PNG render of a saved map"),

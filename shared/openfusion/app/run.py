@@ -8,6 +8,9 @@ published frame and semantics has caught up, saves the map to ``OUT/map``, runs 
 writes the mesh and query results, writes ``OUT/run.json`` and stops the services (SIGTERM).
 
 ``--in-process`` runs the same pipeline in this process (no bus), for notebooks and debugging.
+``--web [PORT]`` also serves the query page (:mod:`openfusion.app.web_cmd`) on 127.0.0.1 from the
+moment the services start, prints its URL on stderr, and after the run keeps the services and the
+page until Ctrl-C.
 
 Frames: ``--frames N`` plays N frames. The built-in room (``--source synthetic[:...]``) plays N
 frames whatever N is: its camera walks a closed lap of :data:`BUILTIN_LAP_FRAMES` frames and walks it
@@ -123,14 +126,21 @@ def run_services(args: argparse.Namespace, config: RunConfig) -> RunSummary:
         router = open_session(ServiceConfig(map_id=config.map_id, zenoh=ZenohSettings(
             mode="router", listen=[endpoint], multicast_scouting=False)))
         client = None
+        page = None  # the query page of --web
         rerun = None
         subscribers: list = []  # rerun viewer feeds, closed before the services stop
         try:
             client = OpenFusionClient.from_config(ServiceConfig(map_id=config.map_id, zenoh=ZenohSettings(
                 mode="client", connect=[endpoint], multicast_scouting=False)), timeout_s=30.0)
+            if getattr(args, "web", None) is not None:
+                page = _start_page(args, client)
             rerun = open_rerun(args.rerun)
             summary = _run_with_services(args, config, cluster, client, rerun, subscribers, signals)
+            if page is not None:
+                _serve_page_until_stopped(args, page, summary, signals)
         finally:
+            if page is not None:
+                page.close()
             for sub in subscribers:
                 sub.close()
             if rerun is not None:
@@ -203,6 +213,25 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
         for text, _space, hits in replies:
             rerun.log_query(text, hits)
     return summary_now()
+
+
+def _start_page(args: argparse.Namespace, client: Any) -> Any:
+    """``--web``: the query page beside the services (127.0.0.1); its URL on stderr, even with --quiet."""
+    from openfusion.app.web_cmd import start_query_page
+
+    page = start_query_page(client, port=args.web)
+    print(f"query page: {page.url}", file=sys.stderr, flush=True)
+    return page
+
+
+def _serve_page_until_stopped(args: argparse.Namespace, page: Any, summary: RunSummary,
+                              signals: StopSignals) -> None:
+    """``--web``: after the run, its outputs written, the services and the page stay until Ctrl-C."""
+    (args.out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
+    print(f"the run is done (outputs in {args.out}); the query page stays at {page.url} until Ctrl-C",
+          file=sys.stderr, flush=True)
+    while signals.requested is None:
+        time.sleep(0.2)
 
 
 def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
@@ -319,6 +348,9 @@ class RunCommand:
         parser.add_argument("--rerun", metavar="SINK", default=None,
                             help="log frames, trajectory, mesh and query results to rerun: save:FILE.rrd | spawn | "
                             "serve (needs the viz extra)")
+        parser.add_argument("--web", nargs="?", type=int, const=0, default=None, metavar="PORT",
+                            help="also serve the query page (openfusion web) on 127.0.0.1:PORT (no PORT: a free "
+                            "one), printing its URL; after the run it stays, with the services, until Ctrl-C")
         parser.add_argument("--quiet", action="store_true",
                             help="no progress output (stderr); the run summary still goes to stdout")
         parser.add_argument("--config", metavar="FILE", help="TOML/JSON/YAML file with [bridge], [geometry], "
@@ -346,6 +378,12 @@ class RunCommand:
             parse_sink(args.rerun)
             if not rerun_available():
                 raise MissingDependencyError("rerun-sdk", "--rerun")
+        if args.web is not None:
+            from openfusion.app.web_server import DEFAULT_MAX_POINTS, check_page_options
+
+            if args.in_process:
+                raise UsageError("--web serves the page of the running services; --in-process runs none")
+            check_page_options(port=args.web, max_points=DEFAULT_MAX_POINTS, port_flag="--web PORT")
         if args.in_process and args.bridge__rate_hz is not None:
             raise UsageError("--rate-hz paces the bridge service; --in-process has none (it maps every frame "
                              "as soon as the last one is done)")
