@@ -362,7 +362,7 @@ def compressed_to_array(msg: CompressedImageMsg) -> np.ndarray:
     if "compresseddepth" in fmt:
         if not fmt.startswith("16uc1") and not fmt.startswith("mono16"):
             raise CdrError(f"compressedDepth format {msg.format!r}: only 16UC1 PNG depth is read")
-        start = raw.find(_PNG_MAGIC, 0, COMPRESSED_DEPTH_HEADER_BYTES + 1)
+        start = raw.find(_PNG_MAGIC, 0, COMPRESSED_DEPTH_HEADER_BYTES + len(_PNG_MAGIC))
         if start < 0:
             raise CdrError(f"compressedDepth image ({len(raw)} bytes) holds no PNG after its config header")
         raw = raw[start:]

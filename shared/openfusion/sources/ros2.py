@@ -180,6 +180,7 @@ class Ros2FrameAssembler:
         self._depth: dict[int, tuple[np.ndarray, float]] = {}
         self._instance: dict[int, np.ndarray] = {}
         self._categories: dict[int, str] = {}
+        self._early_poses: list[tuple[int, np.ndarray]] = []
         self._wants_instance = bool(config.topics.instance)
         self.skipped: dict[str, int] = {}
         self._sync_seen: dict[str, int] = {}
@@ -262,6 +263,9 @@ class Ros2FrameAssembler:
             if old is not None:  # keep the poses already received
                 for stamp, T in zip(old.poses.stamps, old.poses.poses, strict=True):
                     self._sync.poses.add(stamp, T)
+            for stamp, T in self._early_poses:
+                self._sync.poses.add(stamp, T)
+            self._early_poses = []
         return []
 
     def _image(self, kind: str, payload: bytes | memoryview, typename: str) -> list[Frame | Skip]:
@@ -331,9 +335,13 @@ class Ros2FrameAssembler:
     def _pose(self, stamp_ns: int, t_xyz: np.ndarray, q_xyzw: np.ndarray) -> list[Frame | Skip]:
         if not (np.isfinite(t_xyz).all() and np.isfinite(q_xyzw).all()) or np.linalg.norm(q_xyzw) < 1e-6:
             return [self._skip("invalid_pose", f"pose at {stamp_ns} ns is not finite / has a zero quaternion")]
-        if self._sync is None:
-            return []  # no camera yet; poses start counting once CameraInfo arrived
-        return list(self._sync.add_pose(stamp_ns, pose_from_tum(t_xyz, q_xyzw)))
+        T = pose_from_tum(t_xyz, q_xyzw)
+        if self._sync is None:  # no camera yet: kept (the last 2 s) for the synchroniser CameraInfo starts
+            self._early_poses.append((stamp_ns, T))
+            horizon = stamp_ns - self.config.sync.pose_history_ns
+            self._early_poses = [(t, P) for t, P in self._early_poses if t >= horizon]
+            return []
+        return list(self._sync.add_pose(stamp_ns, T))
 
     def flush(self) -> list[Frame | Skip]:
         """Resolve waiting images at the end of the stream."""
