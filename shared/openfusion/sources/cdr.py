@@ -70,6 +70,44 @@ def message_class(typename: str, *, distro: str = DEFAULT_DISTRO) -> Any:
         raise CdrError(f"unknown ROS 2 message type {typename!r} in the {distro} type store") from None
 
 
+_NUMPY_OF = {"bool": np.bool_, "byte": np.uint8, "char": np.uint8, "int8": np.int8, "uint8": np.uint8,
+             "int16": np.int16, "uint16": np.uint16, "int32": np.int32, "uint32": np.uint32, "int64": np.int64,
+             "uint64": np.uint64, "float32": np.float32, "float64": np.float64}
+
+
+def _default_value(node: Any, distro: str) -> Any:
+    from rosbags.interfaces import Nodetype
+
+    kind, arg = node
+    if kind == Nodetype.BASE:
+        name = arg[0]
+        return "" if name == "string" else False if name == "bool" else 0.0 if name.startswith("float") else 0
+    if kind == Nodetype.NAME:
+        return default_message(arg, distro=distro)
+    sub, length = arg
+    n = length if kind == Nodetype.ARRAY else 0
+    if sub[0] == Nodetype.BASE and sub[1][0] in _NUMPY_OF:  # array / sequence of a primitive: numpy
+        return np.zeros(n, dtype=_NUMPY_OF[sub[1][0]])
+    return [_default_value(sub, distro) for _ in range(n)]
+
+
+def default_message(typename: str, *, distro: str = DEFAULT_DISTRO, **fields: Any) -> Any:
+    """A message of ``typename`` with every field at its zero value except ``fields``: builds the
+    messages whose field lists differ between distributions (``Marker`` gained texture and mesh
+    fields after Humble) from one call."""
+    name = full_type_name(typename)
+    store = typestore(distro)
+    try:
+        _consts, defs = store.fielddefs[name]
+    except KeyError:
+        raise CdrError(f"unknown ROS 2 message type {typename!r} in the {distro} type store") from None
+    unknown = set(fields) - {f for f, _ in defs}
+    if unknown:
+        raise ValueError(f"{name} has no field(s) {', '.join(sorted(unknown))}")
+    values = {f: fields[f] if f in fields else _default_value(node, distro) for f, node in defs}
+    return store.types[name](**values)
+
+
 def deserialize(payload: bytes | memoryview, typename: str, *, distro: str = DEFAULT_DISTRO) -> Any:
     """A CDR payload (encapsulation header included) as a ``rosbags`` message object; CdrError for
     anything that is not a whole, valid message of ``typename``."""

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import queue
 import threading
 import time
@@ -49,6 +50,7 @@ from openfusion.sources.base import FrameSource, Skip
 from openfusion.sources.cdr import (
     CdrError,
     compressed_to_array,
+    dds_type_name,
     decode_camera_info,
     decode_compressed_image,
     decode_image,
@@ -57,8 +59,9 @@ from openfusion.sources.cdr import (
     decode_tf_message,
     full_type_name,
     image_to_array,
+    type_hash,
 )
-from openfusion.sources.ros_layout import LAYOUTS, parse_attachment, topic_key, type_from_key
+from openfusion.sources.ros_layout import LAYOUTS, make_attachment, parse_attachment, topic_key, type_from_key
 from openfusion.sources.sync import FrameSynchronizer, SyncConfig
 
 logger = logging.getLogger(__name__)
@@ -455,3 +458,80 @@ class Ros2Source(FrameSource):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class Ros2Publisher:
+    """Publishes CDR payloads on ROS 2 topics over Zenoh, in the ``bridge`` or ``rmw_zenoh`` layout
+    (``openfusion.sources.ros_layout``), so ROS 2 tools (RViz, Foxglove, ``ros2 topic echo``) get them.
+
+    ``bridge``: a plain put on ``[namespace/]topic``; zenoh-bridge-ros2dds on the ROS side turns it
+    into a DDS publication once a ROS node subscribes (the bridge routes Zenoh -> DDS for the topics
+    ROS subscribers ask for, with the type the subscriber declares).
+    ``rmw_zenoh``: a put on ``<domain>/<topic>/<dds type>/<RIHS01 hash>`` of the ``distro``'s type
+    definition, with the attachment (sequence number, source timestamp, this publisher's GID), and
+    liveliness tokens for the node (``openfusion``) and each publisher in rmw_zenoh's graph format
+    (``@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<NN|MP>/%/<namespace>/<node>[/<topic>/<type>/
+    <hash>/<qos>]``), so ``ros2 topic list`` on the robot shows the topics.
+    """
+
+    NODE_NAME = "openfusion"
+
+    def __init__(self, session: Any, *, layout: str = "bridge", namespace: str = "", domain_id: int = 0,
+                 distro: str = "jazzy", keyed_attachment: bool = False) -> None:
+        if layout not in LAYOUTS:
+            raise ValueError(f"unknown key layout {layout!r}; known: {', '.join(LAYOUTS)}")
+        self.session = session
+        self.layout = layout
+        self.namespace = namespace.strip("/")
+        self.domain_id = int(domain_id)
+        self.distro = distro
+        self.keyed_attachment = keyed_attachment
+        self._publishers: dict[tuple[str, str], Any] = {}
+        self._tokens: list[Any] = []
+        self._seq: dict[str, int] = {}
+        self._gids: dict[str, bytes] = {}
+        self._zid = str(session.info.zid())
+        if layout == "rmw_zenoh":
+            ns = "%" + self.namespace.replace("/", "%") if self.namespace else "%"
+            self._tokens.append(session.liveliness().declare_token(
+                f"@ros2_lv/{self.domain_id}/{self._zid}/0/0/NN/%/{ns}/{self.NODE_NAME}"))
+
+    def key(self, topic: str, typename: str) -> str:
+        return topic_key(topic, layout=self.layout, namespace=self.namespace, domain_id=self.domain_id,
+                         typename=typename, distro=self.distro)
+
+    def _publisher(self, topic: str, typename: str) -> Any:
+        pub = self._publishers.get((topic, typename))
+        if pub is None:
+            key = self.key(topic, typename)
+            pub = self.session.declare_publisher(key)
+            self._publishers[(topic, typename)] = pub
+            if self.layout == "rmw_zenoh":
+                self._gids[key] = os.urandom(16)
+                ns = "%" + self.namespace.replace("/", "%") if self.namespace else "%"
+                fq = "/" + "/".join(p for p in (self.namespace, topic.strip("/")) if p)
+                entity = len(self._publishers) + 10
+                self._tokens.append(self.session.liveliness().declare_token(
+                    f"@ros2_lv/{self.domain_id}/{self._zid}/0/{entity}/MP/%/{ns}/{self.NODE_NAME}/"
+                    f"{fq.replace('/', '%')}/{dds_type_name(typename)}/{type_hash(typename, distro=self.distro)}/"
+                    "::,1:,:,:,,"))
+            logger.info("publishing ROS 2 topic %s (%s) on %s", topic, typename, key)
+        return pub
+
+    def publish(self, topic: str, typename: str, payload: bytes) -> None:
+        """Put one CDR ``payload`` of ``typename`` on ``topic``."""
+        pub = self._publisher(topic, typename)
+        if self.layout != "rmw_zenoh":
+            pub.put(payload)
+            return
+        key = self.key(topic, typename)
+        seq = self._seq.get(key, 0) + 1
+        self._seq[key] = seq
+        pub.put(payload, attachment=make_attachment(seq, time.time_ns(), self._gids[key], keyed=self.keyed_attachment))
+
+    def close(self) -> None:
+        for pub in self._publishers.values():
+            pub.undeclare()
+        for token in self._tokens:
+            token.undeclare()
+        self._publishers, self._tokens = {}, []
