@@ -274,3 +274,25 @@ def test_answers_as_ros_messages_deserialise_with_rosbags(distro: str) -> None:
     only_points = ts.deserialize_cdr(answer_cloud(hits, frame_id="map", stamp_ns=1, distro=distro),
                                      "sensor_msgs/msg/PointCloud2")
     assert only_points.width == 2  # the hit without points adds none
+
+
+def test_ros2_spec_selects_the_layout_and_topics() -> None:
+    """``ros2:layout=rmw_zenoh,...`` builds the live source's config; bad input: an unknown option, a
+    layout that does not exist, a camera frame that is neither rep103 nor optical."""
+    from openfusion.sources.registry import check_source_spec
+    from openfusion.sources.ros2 import ros2_config_from_spec
+
+    config, kwargs = ros2_config_from_spec({"layout": "rmw_zenoh", "domain_id": "4", "color": "/cam/image/compressed",
+                                            "tf": "/tf", "camera_frame": "optical", "connect": "tcp/10.0.0.2:7447"})
+    t = config.topics
+    assert (t.layout, t.domain_id, t.odometry, t.tf) == ("rmw_zenoh", 4, None, "/tf")
+    assert t.subscription_key("color") == "4/cam/image/compressed/*/*"
+    assert t.type_for("color") == "sensor_msgs/msg/CompressedImage"
+    np.testing.assert_array_equal(config.T_body_cam, np.eye(4))
+    assert "zenoh_config" in kwargs
+    with pytest.raises(SourceError, match="unknown ros2 option"):
+        check_source_spec("ros2:domain=3")
+    with pytest.raises(ValueError, match="unknown key layout"):
+        ros2_config_from_spec({"layout": "dds"})
+    with pytest.raises(ValueError, match="camera_frame"):
+        ros2_config_from_spec({"camera_frame": "base"})

@@ -6,6 +6,7 @@ Specs::
     scannet:PATH   replica:PATH   tum:PATH   redwood:PATH   folder:PATH   replay:FILE
     live:kinect-t265   (Azure Kinect + T265; optional extra 'live')
     rosbag:PATH[,color=/topic,depth=/topic,...]   (rosbag2 folder, .mcap or .db3; see sources.rosbag)
+    ros2[:layout=bridge|rmw_zenoh,connect=EP,namespace=NS,domain_id=N,color=/topic,...]   (live ROS 2 over Zenoh)
 
 ``options`` are keyword arguments of the reader class (e.g. ``stride=2``, ``max_frames=100``,
 ``intrinsics=...``); readers are imported only when their scheme is used.
@@ -74,6 +75,23 @@ def _rosbag(rest: str, options: dict[str, Any]) -> FrameSource:
     return RosbagSource(path, **{**spec_options, **options})
 
 
+def _ros2_options(rest: str) -> dict[str, str]:
+    from openfusion.sources.ros2 import SPEC_KEYS
+
+    options = parse_key_values(rest, scheme="ros2")
+    unknown = sorted(set(options) - set(SPEC_KEYS))
+    if unknown:
+        raise SourceError(f"unknown ros2 option(s) {', '.join(unknown)}; known: {', '.join(SPEC_KEYS)}")
+    return options
+
+
+def _ros2(rest: str, options: dict[str, Any]) -> FrameSource:
+    from openfusion.sources.ros2 import Ros2Source, ros2_config_from_spec
+
+    config, kwargs = ros2_config_from_spec(_ros2_options(rest))
+    return Ros2Source(config, **{**kwargs, **options})
+
+
 def _rosbag_check(rest: str) -> None:
     from openfusion.sources.rosbag import parse_rosbag_spec  # light: rosbags is imported on open
 
@@ -102,6 +120,7 @@ _SCHEMES: dict[str, Callable[[str, dict[str, Any]], FrameSource]] = {
     "replay": _replay,
     "live": _live,
     "rosbag": _rosbag,
+    "ros2": _ros2,
 }
 
 SCHEMES: tuple[str, ...] = tuple(_SCHEMES)
@@ -125,6 +144,7 @@ _CHECKS: dict[str, Callable[[str], object]] = {
     "replay": _recording,
     "live": _live_devices,
     "rosbag": _rosbag_check,
+    "ros2": _ros2_options,
 }
 
 

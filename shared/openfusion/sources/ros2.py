@@ -535,3 +535,40 @@ class Ros2Publisher:
         for token in self._tokens:
             token.undeclare()
         self._publishers, self._tokens = {}, []
+
+
+#: options of the ``ros2:key=value,...`` source spec
+SPEC_KEYS: tuple[str, ...] = ("layout", "connect", "namespace", "domain_id", "color", "depth", "camera_info",
+                              "odometry", "tf", "world_frame", "body_frame", "camera_frame", "idle_timeout_s")
+
+
+def ros2_config_from_spec(options: dict[str, str]) -> tuple[Ros2Config, dict[str, Any]]:
+    """(config, Ros2Source keyword arguments) of ``ros2:`` spec options (strings); ValueError naming
+    a bad one. ``connect=tcp/IP:PORT`` joins that Zenoh endpoint (the bridge's, or ``rmw_zenohd``'s
+    ``tcp/ROBOT:7447``) in client mode; without it the session is a peer with multicast scouting."""
+    unknown = sorted(set(options) - set(SPEC_KEYS))
+    if unknown:
+        raise ValueError(f"unknown ros2 option(s) {', '.join(unknown)}; known: {', '.join(SPEC_KEYS)}")
+    topic_args: dict[str, Any] = {k: options[k] for k in ("color", "depth", "camera_info", "namespace") if k in options}
+    if "odometry" in options or "tf" in options:
+        topic_args["odometry"] = options.get("odometry")
+        topic_args["tf"] = options.get("tf")
+    topic_args["layout"] = options.get("layout", "bridge")
+    topic_args["domain_id"] = int(options.get("domain_id", "0"))
+    camera = options.get("camera_frame", "rep103")
+    if camera not in ("rep103", "optical"):
+        raise ValueError(f"camera_frame must be rep103 or optical, got {camera!r}")
+    config = Ros2Config(topics=Ros2Topics(**topic_args), world_frame=options.get("world_frame", "odom"),
+                        body_frame=options.get("body_frame", "base_link"),
+                        T_body_cam=np.eye(4) if camera == "optical" else T_BODY_OPTICAL.copy())
+    kwargs: dict[str, Any] = {}
+    if "idle_timeout_s" in options:
+        kwargs["idle_timeout_s"] = float(options["idle_timeout_s"])
+    if "connect" in options:
+        import zenoh
+
+        zconf = zenoh.Config()
+        zconf.insert_json5("mode", '"client"')
+        zconf.insert_json5("connect/endpoints", json.dumps([options["connect"]]))
+        kwargs["zenoh_config"] = zconf
+    return config, kwargs
