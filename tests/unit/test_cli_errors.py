@@ -78,6 +78,7 @@ BAD_ARGUMENTS = [
     (["run", "--encoder", "clip-regions", "--noise", "heavy"], "noise applies to the gt encoder only, not to 'clip-regions'"),
     (["run", "--text-encoder", "hash"], "--text-encoder 'hash' cannot query the regions of the gt encoder"),
     (["run", "--source", "rosbag:{tmp}/nobag"], "rosbag source: {tmp}/nobag does not exist"),
+    (["run", "--source", "ros2:domain=3"], "unknown ros2 option(s) domain; known: layout"),
     (["ros-publish", "--every", "0", "chair"], "--every must be positive, got 0"),
     (["ros-publish", "--layout", "dds", "chair"], "invalid choice: 'dds'"),
     (["query", "--map-dir", "{tmp}/nomap", "chair"], "no map at {tmp}/nomap"),
