@@ -58,7 +58,8 @@ class BridgeSection(ConfigSection):
 
     source: str = Field(
         "synthetic", description="frame source spec: synthetic[:seed=N,...], scannet:PATH, replica:PATH, tum:PATH, "
-        "redwood:PATH, folder:PATH, replay:FILE, live:kinect-t265"
+        "redwood:PATH, folder:PATH, replay:FILE, live:kinect-t265, rosbag:PATH[,color=/topic,...] (rosbag2 folder, .mcap, .db3), "
+        "ros2[:layout=bridge|rmw_zenoh,connect=EP,domain_id=N,...] (live ROS 2 topics over Zenoh)"
     )
     rate_hz: float | None = Field(
         None, ge=0, description="publish rate; 0 = as fast as geometry takes frames; none = the frames' timestamps; "

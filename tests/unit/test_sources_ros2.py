@@ -1,4 +1,4 @@
-"""ROS 2 CDR decoding (golden bytes, alignment, endianness, hostile payloads) and frame assembly
+"""ROS 2 CDR through the rosbags adapter (golden bytes computed by hand, alignment, endianness, hostile payloads) and frame assembly
 from bridged topics, plus one loopback Zenoh test."""
 
 from __future__ import annotations
@@ -119,9 +119,9 @@ def test_hostile_and_truncated_payloads_raise_cdr_error() -> None:
             image_to_array(decode_image(good[:cut]))
     huge = bytearray(good)
     huge[-4 * 6 * 2 - 4 : -4 * 6 * 2] = struct.pack("<I", 0xFFFFFFFF)
-    with pytest.raises(CdrError, match="ends inside data"):
+    with pytest.raises(CdrError, match="sequence length"):
         decode_image(bytes(huge))
-    with pytest.raises(CdrError, match="encapsulation"):
+    with pytest.raises(CdrError, match="(?i)encapsulation"):
         decode_image(b"\x00\x07\x00\x00" + good[4:])
     odo = encode_odometry(OdometryMsg(Header(1, "odom"), "base", np.zeros(3), np.array([0, 0, 0, 1.0])))
     with pytest.raises(CdrError):
@@ -130,7 +130,7 @@ def test_hostile_and_truncated_payloads_raise_cdr_error() -> None:
         image_to_array(ImageMsg(Header(0, ""), 2, 2, "yuv422", False, 4, b"\x00" * 8))
     with pytest.raises(CdrError, match="step\\*height"):
         image_to_array(ImageMsg(Header(0, ""), 2, 2, "16UC1", False, 4, b"\x00" * 7))
-    with pytest.raises(CdrError, match="claims"):
+    with pytest.raises(CdrError, match="TFMessage"):
         decode_tf_message(b"\x00\x01\x00\x00" + struct.pack("<I", 10**6))
 
 

@@ -70,6 +70,7 @@ SUBCOMMANDS: list[Subcommand] = [
     Subcommand("query", "openfusion.app.query_cmd:QueryCommand", "ask a running map (or --map-dir) in plain text"),
     Subcommand("web", "openfusion.app.web_cmd:WebCommand", "serve a query page of a running map in the browser"),
     Subcommand("segment", "openfusion.app.query_cmd:SegmentCommand", "label a saved map's surface points by class names"),
+    Subcommand("ros-publish", "openfusion.app.ros_publish_cmd:RosPublishCommand", "publish a running map's answers as ROS 2 topics (RViz, Foxglove)"),
     Subcommand("eval", "openfusion.app.eval_cmd:EvalCommand", "evaluate mapping quality, geometry and speed"),
     Subcommand("render", "openfusion.app.render_cmd:RenderCommand", "headless PNG render of a saved map"),
     Subcommand("export", "openfusion.app.export_cmd:ExportCommand", "export a saved map as PLY/GLB, coloured"),

@@ -53,7 +53,7 @@ from openfusion.bus import collect_health, free_loopback_port, open_session
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings, add_section_options, config_from_args
 from openfusion.errors import UsageError
-from openfusion.sources.registry import check_source_spec, parse_key_values
+from openfusion.sources.registry import check_source_spec, describe_source, parse_key_values
 from openfusion.wire.counters import BridgeCounter, GeometryCounter, SemanticCounter
 from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
 from openfusion.wire.keys import validate_map_id
@@ -404,6 +404,9 @@ class RunCommand:
 
         config = RunCommand.config_from_args(args)
         args.queries = args.queries or list(DEFAULT_QUERIES)
+        described = describe_source(config.bridge.source)  # a rosbag: its topics and the ones used
+        if described:
+            _say(args, described)
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
         if args.in_process:
             from openfusion.app.run_in_process import run_in_process

@@ -19,7 +19,11 @@ module                 what
 ``synthetic_spec``     the ``synthetic:key=value`` options, parsed without building the world
 ``sync``               image/pose time pairing, T265 axes, downsampling (live sources)
 ``live``               Azure Kinect + Intel T265 (optional extra ``live``)
-``cdr``, ``ros2``      ROS 2 messages over Zenoh, decoded without ROS
+``cdr``                ROS 2 messages in CDR through ``rosbags`` (thin adapter, image pixels)
+``ros2``               live ROS 2 topics over Zenoh (bridge and rmw_zenoh layouts), publisher
+``ros_layout``         ROS 2 topic -> Zenoh key in both layouts, rmw_zenoh attachment
+``rosbag``             rosbag2 recordings (folder, .mcap, .db3) via ``rosbags``
+``rosbag_writer``      ``write_rosbag``: any source -> rosbag2
 ``record``             ``FrameRecorder`` / ``ReplaySource`` (length-prefixed RgbdFrame files)
 =====================  =====================================================================
 """

@@ -5,6 +5,8 @@ Specs::
     synthetic[:seed=N,frames=N,width=W,height=H,fps=F,noise=0|1,lap=N]
     scannet:PATH   replica:PATH   tum:PATH   redwood:PATH   folder:PATH   replay:FILE
     live:kinect-t265   (Azure Kinect + T265; optional extra 'live')
+    rosbag:PATH[,color=/topic,depth=/topic,...]   (rosbag2 folder, .mcap or .db3; see sources.rosbag)
+    ros2[:layout=bridge|rmw_zenoh,connect=EP,namespace=NS,domain_id=N,color=/topic,...]   (live ROS 2 over Zenoh)
 
 ``options`` are keyword arguments of the reader class (e.g. ``stride=2``, ``max_frames=100``,
 ``intrinsics=...``); readers are imported only when their scheme is used.
@@ -66,6 +68,36 @@ def _replay(rest: str, options: dict[str, Any]) -> FrameSource:
     return ReplaySource(path, **options)
 
 
+def _rosbag(rest: str, options: dict[str, Any]) -> FrameSource:
+    from openfusion.sources.rosbag import RosbagSource, parse_rosbag_spec
+
+    path, spec_options = parse_rosbag_spec(rest)
+    return RosbagSource(path, **{**spec_options, **options})
+
+
+def _ros2_options(rest: str) -> dict[str, str]:
+    from openfusion.sources.ros2 import SPEC_KEYS
+
+    options = parse_key_values(rest, scheme="ros2")
+    unknown = sorted(set(options) - set(SPEC_KEYS))
+    if unknown:
+        raise SourceError(f"unknown ros2 option(s) {', '.join(unknown)}; known: {', '.join(SPEC_KEYS)}")
+    return options
+
+
+def _ros2(rest: str, options: dict[str, Any]) -> FrameSource:
+    from openfusion.sources.ros2 import Ros2Source, ros2_config_from_spec
+
+    config, kwargs = ros2_config_from_spec(_ros2_options(rest))
+    return Ros2Source(config, **{**kwargs, **options})
+
+
+def _rosbag_check(rest: str) -> None:
+    from openfusion.sources.rosbag import parse_rosbag_spec  # light: rosbags is imported on open
+
+    parse_rosbag_spec(rest)
+
+
 def _live_devices(rest: str) -> None:
     if rest not in ("", "kinect-t265"):
         raise SourceError(f"unknown live device set {rest!r}; supported: live:kinect-t265")
@@ -87,6 +119,8 @@ _SCHEMES: dict[str, Callable[[str, dict[str, Any]], FrameSource]] = {
     "folder": _path_reader("folder", "FolderSource"),
     "replay": _replay,
     "live": _live,
+    "rosbag": _rosbag,
+    "ros2": _ros2,
 }
 
 SCHEMES: tuple[str, ...] = tuple(_SCHEMES)
@@ -109,6 +143,8 @@ _CHECKS: dict[str, Callable[[str], object]] = {
        for scheme in ("scannet", "replica", "tum", "redwood", "folder")},
     "replay": _recording,
     "live": _live_devices,
+    "rosbag": _rosbag_check,
+    "ros2": _ros2_options,
 }
 
 
@@ -127,7 +163,9 @@ def _guess_scheme(path: Path) -> str | None:
     if not path.exists():
         return None
     if path.is_file():
-        return "replay"
+        return "rosbag" if path.suffix in (".mcap", ".db3") else "replay"
+    if (path / "metadata.yaml").is_file() and any(path.glob("*.mcap")) | any(path.glob("*.db3")):
+        return "rosbag"
     if (path / "pose").is_dir() and (path / "depth").is_dir():
         return "scannet"
     if (path / "traj.txt").is_file() and (path / "results").is_dir():
@@ -156,6 +194,19 @@ def _split_spec(spec: str) -> tuple[str, str, str]:
             hint = f"; {spec!r} looks like a {guess} source: use '{guess}:{spec}'"
         raise SourceError(f"unknown source scheme {scheme!r} in {spec!r}; known: {', '.join(SCHEMES)}{hint}")
     return spec, scheme, rest
+
+
+def describe_source(spec: str) -> str | None:
+    """One line on what a source found, for sources that choose among inputs (a rosbag: the topics
+    it has and the ones it uses); None for the others. SourceError when the choice fails (a bag
+    without a colour, depth, camera info or pose topic), before anything is started."""
+    spec, scheme, rest = _split_spec(spec)
+    if scheme != "rosbag":
+        return None
+    from openfusion.sources.rosbag import inspect_bag, parse_rosbag_spec
+
+    path, options = parse_rosbag_spec(rest)
+    return inspect_bag(path, options).describe(path)
 
 
 def check_source_spec(spec: str) -> str:

@@ -1,24 +1,30 @@
 """ROS 2 topics over Zenoh as a frame source, without a ROS install.
 
-zenoh-bridge-ros2dds publishes each ROS 2 topic ``/ns/topic`` on the Zenoh key ``ns/topic``
-(prefixed by the bridge's ``--namespace`` if set) with the raw CDR payload (see
-``openfusion.sources.cdr``). ``Ros2Source`` subscribes to a color image, a registered depth
-image (e.g. ``aligned_depth_to_color``), the color ``CameraInfo`` and either ``Odometry`` or
-``TFMessage``, and assembles canonical frames.
+Two key layouts (``openfusion.sources.ros_layout``), chosen by ``Ros2Topics.layout``:
+``bridge`` (zenoh-bridge-ros2dds: topic ``/ns/topic`` on key ``ns/topic``) and ``rmw_zenoh``
+(ROS 2 nodes run with ``RMW_IMPLEMENTATION=rmw_zenoh_cpp``: ``<domain_id>/<topic>/<type>/<hash>``,
+the type read from each sample's key, sequence gaps counted from its attachment). Payloads are CDR,
+decoded through ``rosbags`` (``openfusion.sources.cdr``). ``Ros2Source`` subscribes to a color
+image, a registered depth image (e.g. ``aligned_depth_to_color``), the color ``CameraInfo`` and
+either ``Odometry`` or ``TFMessage``, and assembles canonical frames. ``Ros2FrameAssembler`` is the
+pure logic; the rosbag2 reader (``openfusion.sources.rosbag``) feeds the same assembler.
 
-What is converted
-    - color ``rgb8``/``bgr8``/``rgba8``/``bgra8`` -> RGB uint8; depth ``16UC1`` (millimetres,
-      ROS convention) -> uint16 with ``depth_scale = 1000``; ``32FC1`` (metres) -> float32
-      with ``depth_scale = 1.0``.
+What is converted (from ROS conventions into design.md section 3)
+    - color ``sensor_msgs/Image`` ``rgb8``/``bgr8``/``rgba8``/``bgra8`` or ``CompressedImage``
+      JPEG/PNG -> RGB uint8; depth ``16UC1`` (millimetres, ROS convention) or ``compressedDepth``
+      PNG 16-bit -> uint16 with ``depth_scale = 1000``; ``32FC1`` (metres) -> float32 with
+      ``depth_scale = 1.0``. Optional ground truth: an instance image ``32SC1`` (0 = none) and a
+      ``std_msgs/String`` topic with the JSON object ``{"id": "category", ...}``, passed on as the
+      frame's ``instance`` / ``instance_categories`` so the gt encoder can run.
     - intrinsics from the latest ``CameraInfo.k`` (row-major 3x3) of the color camera.
     - pose: ``Odometry`` gives the body (``child_frame_id``) in ``header.frame_id``; a
       ``TFMessage`` transform with the configured ``world_frame``/``body_frame`` gives the
       same. ``T_world_cam = T_world_body @ T_body_cam`` with ``T_body_cam`` from config; its
-      default is the REP-103 body -> optical rotation (body x forward, y left, z up; optical
-      z forward, x right, y down) at the body origin. Use identity when the tracked frame is
-      already the camera's ``*_optical_frame``.
-    - color and depth are paired by header stamp (within ``pair_tolerance_ns``), then given
-      a pose by ``openfusion.sources.sync.FrameSynchronizer`` (same clock: offset 0).
+      default is the REP-103 body -> optical rotation (body x forward, y left, z up; ROS optical
+      frame z forward, x right, y down = our OpenCV camera axes) at the body origin. Use identity
+      when the tracked frame is already the camera's ``*_optical_frame``.
+    - color and depth (and instance) are paired by header stamp (within ``pair_tolerance_ns``),
+      then given a pose by ``openfusion.sources.sync.FrameSynchronizer`` (same clock: offset 0).
 
 Decoding happens in the iterating thread: Zenoh callbacks only hand the payload to a bounded
 queue (a full queue drops the sample and counts it), so a slow consumer never blocks the bus.
@@ -26,7 +32,9 @@ queue (a full queue drops the sample and counts it), so a slow consumer never bl
 
 from __future__ import annotations
 
+import json
 import logging
+import os
 import queue
 import threading
 import time
@@ -41,12 +49,19 @@ from openfusion.poses import pose_from_tum
 from openfusion.sources.base import FrameSource, Skip
 from openfusion.sources.cdr import (
     CdrError,
+    compressed_to_array,
+    dds_type_name,
     decode_camera_info,
+    decode_compressed_image,
     decode_image,
     decode_odometry,
+    decode_string,
     decode_tf_message,
+    full_type_name,
     image_to_array,
+    type_hash,
 )
+from openfusion.sources.ros_layout import LAYOUTS, make_attachment, parse_attachment, topic_key, type_from_key
 from openfusion.sources.sync import FrameSynchronizer, SyncConfig
 
 logger = logging.getLogger(__name__)
@@ -57,9 +72,38 @@ T_BODY_OPTICAL = np.array(
 )
 
 
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
+ODOMETRY = "nav_msgs/msg/Odometry"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+STRING = "std_msgs/msg/String"
+#: the message type each kind of topic carries (images: Image or CompressedImage)
+KIND_TYPES: dict[str, tuple[str, ...]] = {
+    "color": (IMAGE, COMPRESSED_IMAGE),
+    "depth": (IMAGE, COMPRESSED_IMAGE),
+    "camera_info": (CAMERA_INFO,),
+    "odometry": (ODOMETRY,),
+    "tf": (TF_MESSAGE,),
+    "instance": (IMAGE,),
+    "instance_categories": (STRING,),
+}
+
+
+def guess_image_type(topic: str) -> str:
+    """``.../compressed`` and ``.../compressedDepth`` (image_transport's names) are CompressedImage."""
+    return COMPRESSED_IMAGE if topic.rstrip("/").rsplit("/", 1)[-1].lower().startswith("compressed") else IMAGE
+
+
 @dataclass(frozen=True)
 class Ros2Topics:
-    """Zenoh keys of the ROS 2 topics (topic names without the leading '/')."""
+    """ROS 2 topic names of the streams (leading '/' optional) and the Zenoh key layout.
+
+    ``layout``: ``bridge`` (zenoh-bridge-ros2dds; ``namespace`` = its ``--namespace``) or
+    ``rmw_zenoh`` (``domain_id`` = the robot's ``ROS_DOMAIN_ID``). ``color_type``/``depth_type``:
+    ``sensor_msgs/msg/Image`` or ``sensor_msgs/msg/CompressedImage`` (None: guessed from the
+    topic name; in the rmw_zenoh layout the key says). ``instance``/``instance_categories``:
+    optional ground-truth topics (module docstring)."""
 
     color: str = "camera/color/image_raw"
     depth: str = "camera/aligned_depth_to_color/image_raw"
@@ -67,11 +111,43 @@ class Ros2Topics:
     odometry: str | None = "odom"
     tf: str | None = None
     namespace: str = ""
+    instance: str | None = None
+    instance_categories: str | None = None
+    color_type: str | None = None
+    depth_type: str | None = None
+    layout: str = "bridge"
+    domain_id: int = 0
+
+    def __post_init__(self) -> None:
+        if self.layout not in LAYOUTS:
+            raise ValueError(f"unknown key layout {self.layout!r}; known: {', '.join(LAYOUTS)}")
+        for kind, given in (("color", self.color_type), ("depth", self.depth_type)):
+            if given is not None and full_type_name(given) not in KIND_TYPES[kind]:
+                raise ValueError(f"{kind}_type must be one of {', '.join(KIND_TYPES[kind])}, got {given!r}")
 
     def key(self, topic: str) -> str:
-        topic = topic.strip("/")
-        ns = self.namespace.strip("/")
-        return f"{ns}/{topic}" if ns else topic
+        """The zenoh-bridge-ros2dds key of a topic (the bridge layout)."""
+        return topic_key(topic, layout="bridge", namespace=self.namespace)
+
+    def streams(self) -> dict[str, str]:
+        """kind -> topic name of every configured stream."""
+        out = {"color": self.color, "depth": self.depth, "camera_info": self.camera_info}
+        for kind in ("odometry", "tf", "instance", "instance_categories"):
+            topic = getattr(self, kind)
+            if topic:
+                out[kind] = topic
+        return out
+
+    def type_for(self, kind: str) -> str:
+        """The message type expected on a kind's topic."""
+        if kind in ("color", "depth"):
+            given = self.color_type if kind == "color" else self.depth_type
+            return full_type_name(given) if given else guess_image_type(getattr(self, kind))
+        return KIND_TYPES[kind][0]
+
+    def subscription_key(self, kind: str) -> str:
+        topic = self.streams()[kind]
+        return topic_key(topic, layout=self.layout, namespace=self.namespace, domain_id=self.domain_id)
 
 
 @dataclass
@@ -95,7 +171,8 @@ class Ros2Config:
 
 
 class Ros2FrameAssembler:
-    """Turns decoded-topic payloads into frames (pure logic; ``Ros2Source`` feeds it)."""
+    """Turns CDR payloads of the streams into frames (pure logic; ``Ros2Source`` and the rosbag2
+    reader feed it). Every bad message is one ``Skip`` with a reason; the stream goes on."""
 
     def __init__(self, config: Ros2Config, *, source: str = "ros2") -> None:
         self.config = config
@@ -104,6 +181,10 @@ class Ros2FrameAssembler:
         self._sync: FrameSynchronizer | None = None
         self._color: dict[int, np.ndarray] = {}
         self._depth: dict[int, tuple[np.ndarray, float]] = {}
+        self._instance: dict[int, np.ndarray] = {}
+        self._categories: dict[int, str] = {}
+        self._early_poses: list[tuple[int, np.ndarray]] = []
+        self._wants_instance = bool(config.topics.instance)
         self.skipped: dict[str, int] = {}
         self._sync_seen: dict[str, int] = {}
 
@@ -111,10 +192,12 @@ class Ros2FrameAssembler:
         self.skipped[reason] = self.skipped.get(reason, 0) + 1
         return Skip(reason, detail)
 
-    def feed(self, kind: str, payload: bytes | memoryview) -> list[Frame | Skip]:
-        """``kind`` is one of color, depth, camera_info, odometry, tf. Returns the frames this
-        sample completed and a ``Skip`` for every image dropped on the way."""
-        out = self._feed(kind, payload)
+    def feed(self, kind: str, payload: bytes | memoryview, typename: str | None = None) -> list[Frame | Skip]:
+        """``kind`` is one of color, depth, camera_info, odometry, tf, instance,
+        instance_categories; ``typename`` the message type when the transport says (rmw_zenoh key,
+        bag metadata), else the configured one. Returns the frames this sample completed and a
+        ``Skip`` for every message or image dropped on the way."""
+        out = self._feed(kind, payload, typename)
         return out + self._sync_drops()
 
     def _sync_drops(self) -> list[Frame | Skip]:
@@ -128,29 +211,44 @@ class Ros2FrameAssembler:
             self._sync_seen[reason] = count
         return out
 
-    def _feed(self, kind: str, payload: bytes | memoryview) -> list[Frame | Skip]:
+    def _feed(self, kind: str, payload: bytes | memoryview, typename: str | None) -> list[Frame | Skip]:
+        if kind not in KIND_TYPES:
+            raise ValueError(f"unknown topic kind {kind!r}")
+        typename = full_type_name(typename) if typename else self.config.topics.type_for(kind)
+        if typename not in KIND_TYPES[kind]:
+            return [self._skip(f"wrong_type_{kind}", f"{kind} topic carries {typename}, expected "
+                               f"{' or '.join(KIND_TYPES[kind])}")]
         try:
             if kind == "camera_info":
                 return self._camera_info(payload)
-            if kind in ("color", "depth"):
-                return self._image(kind, payload)
+            if kind in ("color", "depth", "instance"):
+                return self._image(kind, payload, typename)
+            if kind == "instance_categories":
+                return self._instance_categories(payload)
             if kind == "odometry":
                 odo = decode_odometry(payload)
                 if self.config.world_frame and odo.header.frame_id.strip("/") != self.config.world_frame:
                     return [self._skip("pose_wrong_frame", f"odometry in {odo.header.frame_id!r}, expected {self.config.world_frame!r}")]
                 return self._pose(odo.header.stamp_ns, odo.position, odo.orientation_xyzw)
-            if kind == "tf":
-                out: list[Frame | Skip] = []
-                for tf in decode_tf_message(payload):
-                    if (tf.header.frame_id.strip("/"), tf.child_frame_id.strip("/")) == (
-                        self.config.world_frame,
-                        self.config.body_frame,
-                    ):
-                        out += self._pose(tf.header.stamp_ns, tf.translation, tf.rotation_xyzw)
-                return out
+            out: list[Frame | Skip] = []
+            for tf in decode_tf_message(payload):
+                if (tf.header.frame_id.strip("/"), tf.child_frame_id.strip("/")) == (
+                    self.config.world_frame,
+                    self.config.body_frame,
+                ):
+                    out += self._pose(tf.header.stamp_ns, tf.translation, tf.rotation_xyzw)
+            return out
         except CdrError as exc:
-            return [self._skip(f"bad_{kind}", f"cannot decode {kind} message: {exc}")]
-        raise ValueError(f"unknown topic kind {kind!r}")
+            return [self._skip(f"bad_{kind}", f"cannot read {kind} message ({typename}): {exc}")]
+
+    def _instance_categories(self, payload: bytes | memoryview) -> list[Frame | Skip]:
+        text = decode_string(payload)
+        try:
+            mapping = {int(k): str(v) for k, v in json.loads(text).items()}
+        except (ValueError, TypeError, AttributeError) as exc:
+            raise CdrError(f"instance categories are not a JSON object {{id: category}}: {exc}") from None
+        self._categories.update(mapping)
+        return []
 
     def _camera_info(self, payload: bytes | memoryview) -> list[Frame | Skip]:
         info = decode_camera_info(payload)
@@ -168,50 +266,70 @@ class Ros2FrameAssembler:
             if old is not None:  # keep the poses already received
                 for stamp, T in zip(old.poses.stamps, old.poses.poses, strict=True):
                     self._sync.poses.add(stamp, T)
+            for stamp, T in self._early_poses:
+                self._sync.poses.add(stamp, T)
+            self._early_poses = []
         return []
 
-    def _image(self, kind: str, payload: bytes | memoryview) -> list[Frame | Skip]:
-        msg = decode_image(payload)
-        arr = image_to_array(msg)
-        stamp = msg.header.stamp_ns
+    def _image(self, kind: str, payload: bytes | memoryview, typename: str) -> list[Frame | Skip]:
+        if typename == COMPRESSED_IMAGE:
+            cmsg = decode_compressed_image(payload)
+            arr, stamp, encoding = compressed_to_array(cmsg), cmsg.header.stamp_ns, cmsg.format
+        else:
+            msg = decode_image(payload)
+            arr, stamp, encoding = image_to_array(msg), msg.header.stamp_ns, msg.encoding
         if kind == "color":
             if arr.ndim != 3:
-                return [self._skip("bad_color", f"color topic has encoding {msg.encoding!r} (single channel)")]
+                return [self._skip("bad_color", f"color topic has encoding {encoding!r} (single channel)")]
             self._color[stamp] = arr
+        elif kind == "instance":
+            if arr.dtype != np.int32:
+                return [self._skip("bad_instance", f"instance topic has encoding {encoding!r}, expected 32SC1")]
+            self._instance[stamp] = arr
         else:
             if arr.dtype == np.uint16:
                 self._depth[stamp] = (arr, 1000.0)
             elif arr.dtype == np.float32:
                 self._depth[stamp] = (arr, 1.0)
             else:
-                return [self._skip("depth_dtype", f"depth topic has encoding {msg.encoding!r}, expected 16UC1 or 32FC1")]
+                return [self._skip("depth_dtype", f"depth topic has encoding {encoding!r}, expected 16UC1 or 32FC1")]
         return self._pair()
+
+    @staticmethod
+    def _nearest(store: dict, t: int, tol: int) -> int | None:
+        match = min(store, key=lambda s: abs(s - t), default=None)
+        return match if match is not None and abs(match - t) <= tol else None
 
     def _pair(self) -> list[Frame | Skip]:
         out: list[Frame | Skip] = []
         tol = self.config.pair_tolerance_ns
         for tc in sorted(self._color):
-            match = min(self._depth, key=lambda td: abs(td - tc), default=None)
-            if match is None or abs(match - tc) > tol:
+            match = self._nearest(self._depth, tc, tol)
+            inst_match = self._nearest(self._instance, tc, tol) if self._wants_instance else None
+            if match is None or (self._wants_instance and inst_match is None):
                 continue
             color = self._color.pop(tc)
             depth, scale = self._depth.pop(match)
+            instance = self._instance.pop(inst_match) if inst_match is not None else None
             if self._sync is None or self.intrinsics is None:
                 out.append(self._skip("no_camera_info", f"image at {tc} ns before any CameraInfo"))
                 continue
-            if color.shape[:2] != depth.shape or depth.shape != (self.intrinsics.height_px, self.intrinsics.width_px):
+            shape = (self.intrinsics.height_px, self.intrinsics.width_px)
+            if color.shape[:2] != depth.shape or depth.shape != shape or (instance is not None and instance.shape != shape):
+                inst = f", instance {instance.shape[1]}x{instance.shape[0]}" if instance is not None else ""
                 out.append(
                     self._skip(
                         "size_mismatch",
-                        f"color {color.shape[1]}x{color.shape[0]}, depth {depth.shape[1]}x{depth.shape[0]}, "
+                        f"color {color.shape[1]}x{color.shape[0]}, depth {depth.shape[1]}x{depth.shape[0]}{inst}, "
                         f"CameraInfo {self.intrinsics.width_px}x{self.intrinsics.height_px}: subscribe to a registered depth",
                     )
                 )
                 continue
-            out += self._sync.add_image(tc, color, depth, depth_scale=scale)
+            cats = dict(self._categories) if instance is not None else None
+            out += self._sync.add_image(tc, color, depth, depth_scale=scale, instance=instance, instance_categories=cats)
         # unmatched images older than 1 s are given up
-        newest = max([*self._color, *self._depth], default=0)
-        for store, kind in ((self._color, "color"), (self._depth, "depth")):
+        newest = max([*self._color, *self._depth, *self._instance], default=0)
+        for store, kind in ((self._color, "color"), (self._depth, "depth"), (self._instance, "instance")):
             for t in [t for t in store if t < newest - 1_000_000_000]:
                 del store[t]
                 out.append(self._skip(f"unpaired_{kind}", f"{kind} image at {t} ns found no partner within {tol} ns"))
@@ -220,9 +338,13 @@ class Ros2FrameAssembler:
     def _pose(self, stamp_ns: int, t_xyz: np.ndarray, q_xyzw: np.ndarray) -> list[Frame | Skip]:
         if not (np.isfinite(t_xyz).all() and np.isfinite(q_xyzw).all()) or np.linalg.norm(q_xyzw) < 1e-6:
             return [self._skip("invalid_pose", f"pose at {stamp_ns} ns is not finite / has a zero quaternion")]
-        if self._sync is None:
-            return []  # no camera yet; poses start counting once CameraInfo arrived
-        return list(self._sync.add_pose(stamp_ns, pose_from_tum(t_xyz, q_xyzw)))
+        T = pose_from_tum(t_xyz, q_xyzw)
+        if self._sync is None:  # no camera yet: kept (the last 2 s) for the synchroniser CameraInfo starts
+            self._early_poses.append((stamp_ns, T))
+            horizon = stamp_ns - self.config.sync.pose_history_ns
+            self._early_poses = [(t, P) for t, P in self._early_poses if t >= horizon]
+            return []
+        return list(self._sync.add_pose(stamp_ns, T))
 
     def flush(self) -> list[Frame | Skip]:
         """Resolve waiting images at the end of the stream."""
@@ -235,11 +357,14 @@ class Ros2FrameAssembler:
 
 
 class Ros2Source(FrameSource):
-    """Frames from ROS 2 topics bridged into Zenoh (see module docstring).
+    """Frames from ROS 2 topics over Zenoh, in either key layout (see module docstring).
 
     ``session``: an open ``zenoh.Session`` to subscribe with (shared with the caller), or None
     to open one from ``zenoh_config`` (a ``zenoh.Config``; default: peer mode). Iteration ends
     after ``idle_timeout_s`` without samples (None: runs until ``close()``).
+
+    Counters: ``dropped_samples`` (the bounded queue was full), ``lost_samples`` (rmw_zenoh layout:
+    gaps in a publisher's sequence numbers, read from the attachments), ``bad_attachments``.
     """
 
     live = True
@@ -254,49 +379,69 @@ class Ros2Source(FrameSource):
         queue_size: int = 256,
         max_frames: int | None = None,
     ) -> None:
-        super().__init__("ros2:" + ((config.topics.namespace if config else "") or "default"), max_frames=max_frames)
-        self.config = config or Ros2Config()
+        config = config or Ros2Config()
+        t = config.topics
+        where = f"domain {t.domain_id}" if t.layout == "rmw_zenoh" else (t.namespace or "default")
+        super().__init__(f"ros2[{t.layout}]:{where}", max_frames=max_frames)
+        self.config = config
         self.idle_timeout_s = idle_timeout_s
-        self._queue: queue.Queue[tuple[str, bytes]] = queue.Queue(maxsize=queue_size)
+        self._queue: queue.Queue[tuple[str, bytes, str | None]] = queue.Queue(maxsize=queue_size)
         self.dropped_samples = 0
+        self.lost_samples = 0
+        self.bad_attachments = 0
+        self._last_seq: dict[bytes, int] = {}
         self._closed = threading.Event()
         import zenoh  # the core dependency; imported here so decoding alone never needs it
 
         self._own_session = session is None
         self._session = session if session is not None else zenoh.open(zenoh_config or zenoh.Config())
-        t = self.config.topics
-        kinds = {"color": t.color, "depth": t.depth, "camera_info": t.camera_info}
-        if t.odometry:
-            kinds["odometry"] = t.odometry
-        if t.tf:
-            kinds["tf"] = t.tf
-        self.keys = {kind: t.key(topic) for kind, topic in kinds.items()}
+        self.keys = {kind: t.subscription_key(kind) for kind in t.streams()}
         self._subscribers = [
             self._session.declare_subscriber(key, self._callback(kind)) for kind, key in self.keys.items()
         ]
-        logger.info("ROS 2 source subscribed to %s", self.keys)
+        logger.info("ROS 2 source (%s layout) subscribed to %s", t.layout, self.keys)
 
     def _callback(self, kind: str):  # noqa: ANN202 - zenoh sample handler
+        rmw_zenoh = self.config.topics.layout == "rmw_zenoh"
+
         def on_sample(sample: Any) -> None:
+            typename = None
+            if rmw_zenoh:
+                typename = type_from_key(str(sample.key_expr))
+                self._count_sequence(sample.attachment)
             try:
-                self._queue.put_nowait((kind, sample.payload.to_bytes()))
+                self._queue.put_nowait((kind, sample.payload.to_bytes(), typename))
             except queue.Full:
                 self.dropped_samples += 1
 
         return on_sample
+
+    def _count_sequence(self, attachment: Any) -> None:
+        """rmw_zenoh: a gap in one publisher's sequence numbers counts the samples lost on the way."""
+        try:
+            att = parse_attachment(attachment.to_bytes() if attachment is not None else None)
+        except CdrError as exc:
+            if not self.bad_attachments:
+                logger.warning("ROS 2 source: a sample's rmw_zenoh attachment is unreadable (%s); counted", exc)
+            self.bad_attachments += 1
+            return
+        last = self._last_seq.get(att.source_gid)
+        if last is not None and att.sequence_number > last + 1:
+            self.lost_samples += att.sequence_number - last - 1
+        self._last_seq[att.source_gid] = att.sequence_number
 
     def _produce(self) -> Iterator[Frame | Skip]:
         assembler = Ros2FrameAssembler(self.config, source=self.name)
         last = time.monotonic()
         while not self._closed.is_set():
             try:
-                kind, payload = self._queue.get(timeout=0.05)
+                kind, payload, typename = self._queue.get(timeout=0.05)
             except queue.Empty:
                 if self.idle_timeout_s is not None and time.monotonic() - last > self.idle_timeout_s:
                     break
                 continue
             last = time.monotonic()
-            yield from assembler.feed(kind, payload)
+            yield from assembler.feed(kind, payload, typename)
         yield from assembler.flush()
 
     def close(self) -> None:
@@ -313,3 +458,117 @@ class Ros2Source(FrameSource):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class Ros2Publisher:
+    """Publishes CDR payloads on ROS 2 topics over Zenoh, in the ``bridge`` or ``rmw_zenoh`` layout
+    (``openfusion.sources.ros_layout``), so ROS 2 tools (RViz, Foxglove, ``ros2 topic echo``) get them.
+
+    ``bridge``: a plain put on ``[namespace/]topic``; zenoh-bridge-ros2dds on the ROS side turns it
+    into a DDS publication once a ROS node subscribes (the bridge routes Zenoh -> DDS for the topics
+    ROS subscribers ask for, with the type the subscriber declares).
+    ``rmw_zenoh``: a put on ``<domain>/<topic>/<dds type>/<RIHS01 hash>`` of the ``distro``'s type
+    definition, with the attachment (sequence number, source timestamp, this publisher's GID), and
+    liveliness tokens for the node (``openfusion``) and each publisher in rmw_zenoh's graph format
+    (``@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<NN|MP>/%/<namespace>/<node>[/<topic>/<type>/
+    <hash>/<qos>]``), so ``ros2 topic list`` on the robot shows the topics.
+    """
+
+    NODE_NAME = "openfusion"
+
+    def __init__(self, session: Any, *, layout: str = "bridge", namespace: str = "", domain_id: int = 0,
+                 distro: str = "jazzy", keyed_attachment: bool = False) -> None:
+        if layout not in LAYOUTS:
+            raise ValueError(f"unknown key layout {layout!r}; known: {', '.join(LAYOUTS)}")
+        self.session = session
+        self.layout = layout
+        self.namespace = namespace.strip("/")
+        self.domain_id = int(domain_id)
+        self.distro = distro
+        self.keyed_attachment = keyed_attachment
+        self._publishers: dict[tuple[str, str], Any] = {}
+        self._tokens: list[Any] = []
+        self._seq: dict[str, int] = {}
+        self._gids: dict[str, bytes] = {}
+        self._zid = str(session.info.zid())
+        if layout == "rmw_zenoh":
+            ns = "%" + self.namespace.replace("/", "%") if self.namespace else "%"
+            self._tokens.append(session.liveliness().declare_token(
+                f"@ros2_lv/{self.domain_id}/{self._zid}/0/0/NN/%/{ns}/{self.NODE_NAME}"))
+
+    def key(self, topic: str, typename: str) -> str:
+        return topic_key(topic, layout=self.layout, namespace=self.namespace, domain_id=self.domain_id,
+                         typename=typename, distro=self.distro)
+
+    def _publisher(self, topic: str, typename: str) -> Any:
+        pub = self._publishers.get((topic, typename))
+        if pub is None:
+            key = self.key(topic, typename)
+            pub = self.session.declare_publisher(key)
+            self._publishers[(topic, typename)] = pub
+            if self.layout == "rmw_zenoh":
+                self._gids[key] = os.urandom(16)
+                ns = "%" + self.namespace.replace("/", "%") if self.namespace else "%"
+                fq = "/" + "/".join(p for p in (self.namespace, topic.strip("/")) if p)
+                entity = len(self._publishers) + 10
+                self._tokens.append(self.session.liveliness().declare_token(
+                    f"@ros2_lv/{self.domain_id}/{self._zid}/0/{entity}/MP/%/{ns}/{self.NODE_NAME}/"
+                    f"{fq.replace('/', '%')}/{dds_type_name(typename)}/{type_hash(typename, distro=self.distro)}/"
+                    "::,1:,:,:,,"))
+            logger.info("publishing ROS 2 topic %s (%s) on %s", topic, typename, key)
+        return pub
+
+    def publish(self, topic: str, typename: str, payload: bytes) -> None:
+        """Put one CDR ``payload`` of ``typename`` on ``topic``."""
+        pub = self._publisher(topic, typename)
+        if self.layout != "rmw_zenoh":
+            pub.put(payload)
+            return
+        key = self.key(topic, typename)
+        seq = self._seq.get(key, 0) + 1
+        self._seq[key] = seq
+        pub.put(payload, attachment=make_attachment(seq, time.time_ns(), self._gids[key], keyed=self.keyed_attachment))
+
+    def close(self) -> None:
+        for pub in self._publishers.values():
+            pub.undeclare()
+        for token in self._tokens:
+            token.undeclare()
+        self._publishers, self._tokens = {}, []
+
+
+#: options of the ``ros2:key=value,...`` source spec
+SPEC_KEYS: tuple[str, ...] = ("layout", "connect", "namespace", "domain_id", "color", "depth", "camera_info",
+                              "odometry", "tf", "world_frame", "body_frame", "camera_frame", "idle_timeout_s")
+
+
+def ros2_config_from_spec(options: dict[str, str]) -> tuple[Ros2Config, dict[str, Any]]:
+    """(config, Ros2Source keyword arguments) of ``ros2:`` spec options (strings); ValueError naming
+    a bad one. ``connect=tcp/IP:PORT`` joins that Zenoh endpoint (the bridge's, or ``rmw_zenohd``'s
+    ``tcp/ROBOT:7447``) in client mode; without it the session is a peer with multicast scouting."""
+    unknown = sorted(set(options) - set(SPEC_KEYS))
+    if unknown:
+        raise ValueError(f"unknown ros2 option(s) {', '.join(unknown)}; known: {', '.join(SPEC_KEYS)}")
+    topic_args: dict[str, Any] = {k: options[k] for k in ("color", "depth", "camera_info", "namespace") if k in options}
+    if "odometry" in options or "tf" in options:
+        topic_args["odometry"] = options.get("odometry")
+        topic_args["tf"] = options.get("tf")
+    topic_args["layout"] = options.get("layout", "bridge")
+    topic_args["domain_id"] = int(options.get("domain_id", "0"))
+    camera = options.get("camera_frame", "rep103")
+    if camera not in ("rep103", "optical"):
+        raise ValueError(f"camera_frame must be rep103 or optical, got {camera!r}")
+    config = Ros2Config(topics=Ros2Topics(**topic_args), world_frame=options.get("world_frame", "odom"),
+                        body_frame=options.get("body_frame", "base_link"),
+                        T_body_cam=np.eye(4) if camera == "optical" else T_BODY_OPTICAL.copy())
+    kwargs: dict[str, Any] = {}
+    if "idle_timeout_s" in options:
+        kwargs["idle_timeout_s"] = float(options["idle_timeout_s"])
+    if "connect" in options:
+        import zenoh
+
+        zconf = zenoh.Config()
+        zconf.insert_json5("mode", '"client"')
+        zconf.insert_json5("connect/endpoints", json.dumps([options["connect"]]))
+        kwargs["zenoh_config"] = zconf
+    return config, kwargs

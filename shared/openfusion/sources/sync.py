@@ -243,6 +243,8 @@ class _PendingImage:
     color: np.ndarray
     depth: np.ndarray
     depth_scale: float
+    instance: np.ndarray | None = None
+    instance_categories: dict[int, str] | None = None
 
 
 class FrameSynchronizer:
@@ -300,8 +302,11 @@ class FrameSynchronizer:
         depth_scale: float,
         host_ns: int | None = None,
         frame_id: int | None = None,
+        instance: np.ndarray | None = None,
+        instance_categories: dict[int, str] | None = None,
     ) -> list[Frame]:
-        """A registered color+depth image at ``stamp_ns`` (image clock). Returns completed frames."""
+        """A registered color+depth image at ``stamp_ns`` (image clock), optionally with its
+        ground-truth instance image (HxW int32) and categories. Returns completed frames."""
         self.stats.images_in += 1
         if host_ns is not None:
             self._clock.add("image", stamp_ns, host_ns)
@@ -313,7 +318,7 @@ class FrameSynchronizer:
             return self._emit(force=False)
         fid = self._next_id if frame_id is None else int(frame_id)
         self._next_id = fid + 1
-        item = _PendingImage(stamp_ns, fid, color, depth, float(depth_scale))
+        item = _PendingImage(stamp_ns, fid, color, depth, float(depth_scale), instance, instance_categories)
         keys = [p.stamp_ns for p in self._pending]
         i = bisect.bisect_right(keys, stamp_ns)
         if i > 0 and keys[i - 1] == stamp_ns:
@@ -386,6 +391,9 @@ class FrameSynchronizer:
         color, depth, intr = img.color, img.depth, self.intrinsics
         if self.config.output_size is not None:
             color, depth, intr = downsample_rgbd(color, depth, intr, self.config.output_size)
+        instance = img.instance
+        if instance is not None and instance.shape != depth.shape:
+            instance = resize_nearest(instance, depth.shape[:2])
         self.stats.frames_out += 1
         return Frame(
             frame_id=img.frame_id,
@@ -395,5 +403,7 @@ class FrameSynchronizer:
             depth_scale=img.depth_scale,
             intrinsics=intr,
             T_world_cam=self.camera_pose(T_body),
+            instance=instance,
+            instance_categories=dict(img.instance_categories or {}),
             source=self.source,
         )
