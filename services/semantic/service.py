@@ -34,6 +34,7 @@ from openfusion.bus import Publisher, QueryError, ServiceRunner, Subscriber
 from openfusion.bus.instance_join import InstanceBuffer
 from openfusion.config import ServiceConfig
 from openfusion.encoders import NOISE_PROFILES, REGION_ENCODER_NAMES, make_region_encoder
+from openfusion.encoders.base import CLIP_DENSE_BACKENDS
 from openfusion.frame import resize_nearest
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
 from openfusion.mapping.params import MatchParams
@@ -65,8 +66,8 @@ class SemanticSection(MatchParams):
     there once) plus the encoder and the service's own."""
 
     encoder: str = Field("gt", description=f"region encoder: {', '.join(REGION_ENCODER_NAMES)}")
-    model_path: str | None = Field(None, description="model file or folder of the onnx / clip-regions encoder")
-    device: str = Field("auto", description="device of the onnx / clip-regions encoder: auto, cpu or cuda")
+    model_path: str | None = Field(None, description="model file or folder of the onnx / clip-regions / clip-dense encoder")
+    device: str = Field("auto", description="device of the onnx / clip-regions / clip-dense encoder: auto, cpu or cuda")
     noise: str = Field("off", description=f"gt encoder noise profile: {', '.join(NOISE_PROFILES)}")
     seed: int = Field(0, description="seed of the gt encoder's noise")
     every_k: int = Field(
@@ -80,15 +81,24 @@ class SemanticSection(MatchParams):
     recover_timeout_s: float = Field(
         10.0, ge=0, description="at start, try this long to recover the map's dictionary from geometry (0 = never)"
     )
-    simulate_latency_s: float = Field(
-        0.0, ge=0, le=60, description="fault injection: sleep this long after every encoder call (tests)"
+    encoder_delay_ms: float = Field(
+        0.0, ge=0, le=60_000, description="add this many ms to every encoder call, sleeping: models a remote GPU "
+        "encoder in tests and benches"
     )
+    encoder_backend: str = Field("torch", description="clip-dense backend: torch, onnx or onnx-int8")
 
     @field_validator("encoder")
     @classmethod
     def _encoder(cls, value: str) -> str:
         if value not in REGION_ENCODER_NAMES:
             raise ValueError(f"unknown region encoder {value!r}; known: {', '.join(REGION_ENCODER_NAMES)}")
+        return value
+
+    @field_validator("encoder_backend")
+    @classmethod
+    def _encoder_backend(cls, value: str) -> str:
+        if value not in CLIP_DENSE_BACKENDS:
+            raise ValueError(f"unknown clip-dense backend {value!r}; known: {', '.join(CLIP_DENSE_BACKENDS)}")
         return value
 
     @field_validator("noise")
@@ -131,7 +141,14 @@ def region_encoder_from_section(section: SemanticSection) -> Any:
         opts = {"device": section.device}
         if section.model_path:
             opts["model_path" if section.encoder == "onnx" else "model"] = section.model_path
-    return make_region_encoder(section.encoder, **opts)
+        if section.encoder == "clip-dense":
+            opts["backend"] = section.encoder_backend
+    encoder = make_region_encoder(section.encoder, **opts)
+    if section.encoder_delay_ms > 0:
+        from openfusion.encoders.delayed import DelayedRegionEncoder
+
+        encoder = DelayedRegionEncoder(encoder, section.encoder_delay_ms)
+    return encoder
 
 
 class SemanticService:
@@ -188,8 +205,6 @@ class SemanticService:
         started = time.monotonic()
         frame = msg.to_frame(instance)
         obs = self.encoder.encode(frame)
-        if self.section.simulate_latency_s > 0:
-            time.sleep(self.section.simulate_latency_s)
         h, w = obs.conf_maps.shape[1:] if obs.conf_maps.ndim == 3 else self.encoder.output_size(
             frame.intrinsics.height_px, frame.intrinsics.width_px)
         K_small = frame.intrinsics.scaled(w, h)

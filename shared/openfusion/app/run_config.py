@@ -26,7 +26,7 @@ from openfusion.services.semantic.service import SemanticSection
 #: The section fields ``openfusion run`` offers as flags (everything else: ``--set`` or ``--config``).
 RUN_FLAGS: dict[str, list[str]] = {
     "bridge": ["source", "rate_hz"],
-    "semantic": ["encoder", "noise", "every_k"],
+    "semantic": ["encoder", "noise", "every_k", "encoder_delay_ms"],
     "query": ["text_encoder"],
 }
 
