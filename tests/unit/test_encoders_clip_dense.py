@@ -18,7 +18,8 @@ from openfusion.encoders.clip_dense import (
     preprocess_dense,
 )
 from openfusion.encoders.delayed import DelayedRegionEncoder
-from openfusion.services.semantic.service import SemanticSection, region_encoder_from_section
+from openfusion.services.encoder.options import region_encoder_from_section
+from openfusion.services.semantic.service import SemanticSection
 from openfusion.testing.images import grid_boxes, make_box_frame
 from openfusion.testing.models import build_tiny_clip
 
