@@ -6,6 +6,11 @@ synthetic scene's ground truth (a pool must not change what the map says).
     HF_HUB_OFFLINE=1 .venv/bin/python bench/bench_pool.py            # 240 frames, 250 ms, N = 1 2 4
     HF_HUB_OFFLINE=1 .venv/bin/python bench/bench_pool.py --quick    # 120 frames
 
+A second table checks that the pool does not change the map: one worker and the largest pool at
+a camera rate one worker keeps up with (80 % of 1 / delay), so both fuse every frame, in frame
+order; their f-mIoU must agree within 0.02. (At the fast camera rate each pool size fuses a
+different subset of frames, latest-only, so the maps differ for that reason alone.)
+
 The semantic rate is the one in run.json (``semantic_rate_hz``: fused frames per second between
 the first and the last fused frame). The camera plays at ``--rate-hz`` (30): faster than four
 workers can take frames, so the pool, not the camera, bounds the rate.
@@ -42,6 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate-hz", type=float, default=30.0, help="camera rate (default 30)")
     ap.add_argument("--frames", type=int, default=None, help="frames per run (default 240, quick 120)")
     ap.add_argument("--size", default="width=320,height=240", help="synthetic frame size options")
+    ap.add_argument("--quality-frames", type=int, default=None, help="frames of the quality pair (default 40, quick 24)")
     args = ap.parse_args(argv)
     from openfusion.encoders import make_text_encoder
     from openfusion.eval.saved_map import synthetic_map_quality
@@ -69,6 +75,22 @@ def main(argv: list[str] | None = None) -> int:
         per = ", ".join(f"{k} {v}" for k, v in sorted(s["frames_encoded_per_worker"].items()))
         print(f"| {n} | {s['semantic_frames']} | {rate:.2f} | {rate / base:.2f} | {rate / (n * base):.2f} | {per} "
               f"| {s['encoder_frames_resent']} | {s['encoder_frames_lost']} | {q['f_mIoU']:.3f} | {q['mAcc']:.3f} |")
+    # the same frames fused by one worker and by the largest pool: the maps must agree
+    slow_hz = 0.8 * 1000.0 / args.delay_ms
+    qframes = args.quality_frames or (24 if args.quick else 40)
+    pair = []
+    for n in sorted({counts[0], counts[-1]}):
+        out = work / f"q{n}"
+        summary = run_once(out, n, frames=qframes, delay_ms=args.delay_ms, rate_hz=slow_hz, size=args.size)
+        loaded = load_map(out / "map")
+        pair.append((n, summary, synthetic_map_quality(loaded.volume, loaded.dictionary, seed=1, text_encoder=text)))
+    print(f"\n## Same frames, one worker vs {counts[-1]} ({qframes} frames at {slow_hz:.1f} Hz)\n")
+    print("| workers | semantic frames | f-mIoU | mAcc | surface points |")
+    print("|---:|---:|---:|---:|---:|")
+    for n, s, q in pair:
+        print(f"| {n} | {s['semantic_frames']} | {q['f_mIoU']:.3f} | {q['mAcc']:.3f} | {q['points']} |")
+    if len(pair) == 2:
+        print(f"\nf-mIoU difference: {abs(pair[0][2]['f_mIoU'] - pair[1][2]['f_mIoU']):.3f} (target <= 0.02)")
     return 0
 
 
