@@ -6,8 +6,16 @@ Model backends use tiny random-weight models built here (they measure the pipeli
 crops, batching, runtime overhead, not a real network's FLOPs); real CLIP ViT-B/32 is added when
 its weights are in the local Hugging Face cache.
 
+Real-size models (``--models``, random weights of the released sizes, built in memory): ms per
+640x480 frame of ``clip-regions`` (one tower pass per region crop) and ``clip-dense`` (one pass over
+the frame) at 10, 30 and 60 regions, per backend (torch-fp32, onnx-int8; cuda-fp16 on a GPU), with
+the ratio regions / dense measured in the same run. Both get the same masks (the frames' ground
+truth, so the region count is exact and proposals, ~7 ms, are left out of both). ``--json FILE``
+writes those rows with the keys encoder, backend, model, regions, ms_per_frame.
+
     HF_HUB_OFFLINE=1 .venv/bin/python bench/bench_encoders.py --quick
     HF_HUB_OFFLINE=1 .venv/bin/python bench/bench_encoders.py --device cuda --frames 100
+    HF_HUB_OFFLINE=1 .venv/bin/python bench/bench_encoders.py --skip-small --models vit-b-32,vit-b-16 --json enc.json
 """
 
 from __future__ import annotations
@@ -30,7 +38,12 @@ from openfusion.encoders.graph_segmentation import GraphSegmentationProposer
 from openfusion.encoders.masks import area_downsample_labels
 from openfusion.frame import Frame
 from openfusion.testing.images import grid_boxes, make_box_frame
-from openfusion.testing.models import build_tiny_clip, build_tiny_region_onnx, build_tiny_text_onnx
+from openfusion.testing.models import (
+    CLIP_PRESETS,
+    build_tiny_clip,
+    build_tiny_region_onnx,
+    build_tiny_text_onnx,
+)
 
 CATEGORIES = ["office chair", "table", "sofa", "bed", "bookshelf", "cabinet", "lamp", "monitor", "plant", "door"]
 
@@ -64,14 +77,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=None, help="timed frames per backend (default 40, quick 6)")
     ap.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
     ap.add_argument("--text", default=None, choices=["minilm", "hash"], help="text encoder of the gt backend")
+    ap.add_argument("--models", default=None,
+                    help=f"real-size random-weight CLIP towers to time, comma-separated from {', '.join(CLIP_PRESETS)} "
+                    "(default vit-b-32; quick: vit-b-32 at 30 regions only; 'none' skips)")
+    ap.add_argument("--regions", default=None, help="region counts for --models (default 10,30,60; quick 30)")
+    ap.add_argument("--backends", default=None, help="backends for --models: torch-fp32, onnx-int8, cuda-fp16 "
+                    "(default: torch-fp32,onnx-int8, plus cuda-fp16 on a GPU)")
+    ap.add_argument("--skip-small", action="store_true", help="only the real-size model table")
+    ap.add_argument("--json", type=Path, default=None, help="write the real-size rows to this JSON file")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     n = args.frames or (6 if args.quick else 40)
     warmup = 1 if args.quick else 3
     device = select_device(args.device)
     text_name = args.text or ("hash" if args.quick else "minilm")
-    frames = make_frames(n)
     work = Path(tempfile.mkdtemp(prefix="bench_encoders_"))
+    if args.skip_small:
+        return real_size_models(args, device, work)
+    frames = make_frames(n)
     rows: list[tuple[str, float, int, str]] = []
     notes: list[str] = []
 
@@ -156,6 +179,114 @@ def main(argv: list[str] | None = None) -> int:
         notes.append("quick run: MiniLM omitted from the text table (pass --text minilm to include it).")
     for note in notes:
         print(f"\nNote: {note}")
+    return real_size_models(args, device, work)
+
+
+class GroundTruthProposer:
+    """The frame's instance masks at the output grid: the same, exactly known regions for both encoders."""
+
+    name = "ground-truth masks"
+
+    def propose(self, frame: Frame, out_hw: tuple[int, int]) -> np.ndarray:
+        ids = np.unique(frame.instance)
+        return area_downsample_labels(frame.instance, ids[ids > 0], out_hw).astype(np.float32)
+
+
+def frames_with_regions(count: int, n_frames: int) -> list[Frame]:
+    """640x480 box frames with exactly ``count`` regions (a grid of boxes)."""
+    rows = int(np.floor(np.sqrt(count * 3 / 4))) or 1
+    cols = int(np.ceil(count / rows))
+    out = []
+    for i in range(n_frames):
+        boxes = grid_boxes(height_px=480, width_px=640, rows=rows, cols=cols, categories=CATEGORIES, gap_px=4,
+                           seed=i)[:count]  # fmt: skip
+        out.append(make_box_frame(boxes, height_px=480, width_px=640, frame_id=i))
+    return out
+
+
+def _regions_encoder(model: str, backend: str, device: str, work: Path):  # noqa: ANN202
+    """clip-regions with ``backend``: torch (fp32, or fp16 on CUDA), or its image tower exported to
+    ONNX and int8-quantised, run as an onnx crop embedder."""
+    from openfusion.encoders.clip_regions import load_clip
+    from openfusion.encoders.onnx_backend import make_onnx_region_encoder
+
+    if backend != "onnx-int8":
+        enc = make_region_encoder("clip-regions", model=model, device=device)
+        if backend == "cuda-fp16":
+            enc.embedder.clip.model.half()
+            embed = enc.embedder.embed_crops
+
+            def embed_half(crops: np.ndarray) -> np.ndarray:
+                return embed(crops.astype(np.float16))
+
+            enc.embedder.embed_crops = embed_half  # type: ignore[method-assign]
+        return enc
+    import torch
+    from onnxruntime.quantization import QuantType, quantize_dynamic
+
+    from openfusion.encoders.clip_export import _export, _features, set_onnx_metadata
+
+    clip = load_clip(model, device="cpu")
+    net = clip.model.float()
+
+    class ImageTower(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.net = net
+
+        def forward(self, crops: torch.Tensor) -> torch.Tensor:
+            return _features(self.net.get_image_features(pixel_values=crops))
+
+    s = clip.crop_spec.size
+    fp32, int8 = work / f"{model.replace('/', '-')}-crops.onnx", work / f"{model.replace('/', '-')}-crops-int8.onnx"
+    with torch.no_grad():
+        _export(ImageTower().eval(), (torch.zeros(2, 3, s, s),), fp32, ["crops"], ["embeddings"],
+                {"crops": {0: "batch"}, "embeddings": {0: "batch"}}, 17)
+    quantize_dynamic(str(fp32), str(int8), weight_type=QuantType.QInt8, op_types_to_quantize=["MatMul", "Gemm"])
+    set_onnx_metadata(int8, {"embedding_space": clip.embedding_space, "dim": clip.dim, "kind": "crop-embedder",
+                             "crop_size": s, "mean": list(clip.crop_spec.mean), "std": list(clip.crop_spec.std)})
+    return make_onnx_region_encoder(model_path=int8, device="cpu")
+
+
+def real_size_models(args: argparse.Namespace, device: str, work: Path) -> int:
+    """The clip-regions vs clip-dense table on real-size random-weight towers (module docstring)."""
+    import json
+
+    from openfusion.testing.models import register_random_clip
+
+    spec = args.models or "vit-b-32"
+    if spec == "none":
+        return 0
+    models = [m.strip() for m in spec.split(",") if m.strip()]
+    counts = [int(c) for c in (args.regions or ("30" if args.quick else "10,30,60")).split(",")]
+    backends = (args.backends or ("torch-fp32,onnx-int8" + (",cuda-fp16" if device == "cuda" else ""))).split(",")
+    n = args.frames or (2 if args.quick else 5)
+    rows: list[dict] = []
+    proposer = GroundTruthProposer()
+    print(f"\n## Real-size CLIP towers (random weights), 640x480 frames, ground-truth masks ({n} frames, "
+          f"{platform.machine()}, {len(__import__('os').sched_getaffinity(0))} cores)\n")
+    print("| model | backend | regions | clip-regions ms/frame | clip-dense ms/frame | regions / dense |")
+    print("|---|---|---:|---:|---:|---:|")
+    for preset in models:
+        for backend in backends:
+            dev = "cuda" if backend == "cuda-fp16" else "cpu"
+            name = register_random_clip(preset, device=dev)
+            dense_backend = "onnx-int8" if backend == "onnx-int8" else "torch"
+            dense = make_region_encoder("clip-dense", model=name, device=dev, backend=dense_backend, cache_dir=work)
+            regions = _regions_encoder(name, backend, dev, work)
+            dense.proposer = regions.proposer = proposer
+            for count in counts:
+                frames = frames_with_regions(count, n)
+                ms = {}
+                for label, enc in (("clip-regions", regions), ("clip-dense", dense)):
+                    secs, got = time_frames(lambda f, e=enc: e.encode(f).num_regions, frames, 1)
+                    ms[label] = 1e3 * secs / n
+                    rows.append({"encoder": label, "backend": backend, "model": preset, "regions": count,
+                                 "ms_per_frame": round(ms[label], 2)})
+                print(f"| {preset} | {backend} | {count} | {ms['clip-regions']:.0f} | {ms['clip-dense']:.0f} "
+                      f"| {ms['clip-regions'] / ms['clip-dense']:.1f} |", flush=True)
+    if args.json is not None:
+        args.json.write_text(json.dumps(rows, indent=1) + "\n", encoding="utf-8")
     return 0
 
 

@@ -43,6 +43,8 @@ class ServiceDefinition:
     help: str
     config_model: type[ServiceConfig]
     build: Callable[[Any], ServiceApp]
+    #: the name its health and liveliness use, when several instances share a map (encoder workers)
+    instance_name: Callable[[Any], str] | None = None
 
     @property
     def section_model(self) -> Any:
@@ -62,6 +64,7 @@ class ServiceDefinition:
         app = self.build(config)
         loop = getattr(app, "loop", None)
         try:
-            return run_service(config, self.name, app.setup, loop=loop)
+            name = self.instance_name(config) if self.instance_name is not None else self.name
+            return run_service(config, name, app.setup, loop=loop)
         finally:
             app.close()

@@ -28,17 +28,19 @@ import time
 from typing import Any
 
 import numpy as np
-from pydantic import Field, ValidationInfo, field_validator
+from pydantic import Field
 
 from openfusion.bus import Publisher, QueryError, ServiceRunner, Subscriber
 from openfusion.bus.instance_join import InstanceBuffer
 from openfusion.config import ServiceConfig
-from openfusion.encoders import NOISE_PROFILES, REGION_ENCODER_NAMES, make_region_encoder
-from openfusion.frame import resize_nearest
+from openfusion.encoders import RegionObservation
+from openfusion.frame import Frame, resize_nearest
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
 from openfusion.mapping.params import MatchParams
 from openfusion.services.common import ServiceDefinition
-from openfusion.wire.counters import SemanticCounter
+from openfusion.services.encoder.options import EncoderOptions, region_encoder_from_section
+from openfusion.services.semantic.pool import EncoderPool, PoolResult
+from openfusion.wire.counters import ENCODED_BY_PREFIX, PoolCounter, SemanticCounter
 from openfusion.wire.endpoints import (
     DICTIONARY_DELTA,
     GEOMETRY_DICTIONARY,
@@ -48,9 +50,11 @@ from openfusion.wire.endpoints import (
     SENSOR_INSTANCE,
     SENSOR_RGBD,
 )
+from openfusion.wire.keys import PoolKeys
 from openfusion.wire.schemas import (
     DictionaryRequest,
     DictionarySnapshot,
+    EncodeRequest,
     InstanceFrame,
     RenderRequest,
     RgbdFrame,
@@ -60,15 +64,18 @@ from openfusion.wire.schemas import (
 logger = logging.getLogger(__name__)
 
 
-class SemanticSection(MatchParams):
+class SemanticSection(MatchParams, EncoderOptions):
     """The semantic service's settings: every matching parameter (:class:`MatchParams`, declared
-    there once) plus the encoder and the service's own."""
+    there once), the local encoder (:class:`EncoderOptions`, shared with the encoder workers) and
+    the service's own."""
 
-    encoder: str = Field("gt", description=f"region encoder: {', '.join(REGION_ENCODER_NAMES)}")
-    model_path: str | None = Field(None, description="model file or folder of the onnx / clip-regions encoder")
-    device: str = Field("auto", description="device of the onnx / clip-regions encoder: auto, cpu or cuda")
-    noise: str = Field("off", description=f"gt encoder noise profile: {', '.join(NOISE_PROFILES)}")
-    seed: int = Field(0, description="seed of the gt encoder's noise")
+    encoder_pool: bool = Field(
+        False, description="send frames to the encoder pool's workers (openfusion service encoder) instead of "
+        "encoding them here"
+    )
+    local_encoder: bool = Field(True, description="with encoder_pool: encode here while no worker is alive")
+    pool_timeout_s: float = Field(30.0, gt=0, description="with encoder_pool: a worker that has not answered a frame "
+                                  "within this many seconds is taken for dead")
     every_k: int = Field(
         1, ge=0, description="semantics on every k-th frame id (0 = off)", json_schema_extra={"flag": "--semantic-every"}
     )
@@ -80,28 +87,6 @@ class SemanticSection(MatchParams):
     recover_timeout_s: float = Field(
         10.0, ge=0, description="at start, try this long to recover the map's dictionary from geometry (0 = never)"
     )
-    simulate_latency_s: float = Field(
-        0.0, ge=0, le=60, description="fault injection: sleep this long after every encoder call (tests)"
-    )
-
-    @field_validator("encoder")
-    @classmethod
-    def _encoder(cls, value: str) -> str:
-        if value not in REGION_ENCODER_NAMES:
-            raise ValueError(f"unknown region encoder {value!r}; known: {', '.join(REGION_ENCODER_NAMES)}")
-        return value
-
-    @field_validator("noise")
-    @classmethod
-    def _noise(cls, value: str, info: ValidationInfo) -> str:
-        if value not in NOISE_PROFILES:
-            raise ValueError(f"unknown noise profile {value!r}; known: {', '.join(NOISE_PROFILES)}")
-        encoder = info.data.get("encoder", "gt")
-        if value != "off" and encoder != "gt":
-            raise ValueError(f"noise applies to the gt encoder only, not to {encoder!r} (leave it off)")
-        return value
-
-
 class SemanticConfig(ServiceConfig):
     semantic: SemanticSection = Field(default_factory=SemanticSection)
 
@@ -123,17 +108,6 @@ class SemanticSwitch:
         return True
 
 
-def region_encoder_from_section(section: SemanticSection) -> Any:
-    """The region encoder a semantic section describes (the service and the in-process run)."""
-    if section.encoder == "gt":
-        opts: dict[str, Any] = {"noise": section.noise, "seed": section.seed}
-    else:
-        opts = {"device": section.device}
-        if section.model_path:
-            opts["model_path" if section.encoder == "onnx" else "model"] = section.model_path
-    return make_region_encoder(section.encoder, **opts)
-
-
 class SemanticService:
     """Encoder → render request → match → update; the dictionary lives here."""
 
@@ -150,6 +124,8 @@ class SemanticService:
         self._delta_pub: Publisher | None = None
         self._published_version = self.dictionary.version
         self._frames_without_instance = 0
+        self._pool: EncoderPool | None = None
+        self._last_applied = -1  # the newest frame whose result was applied (pool mode)
 
     def recover(self, runner: ServiceRunner) -> bool:
         """Take the dictionary geometry checkpointed (same space only). True when recovered."""
@@ -187,9 +163,10 @@ class SemanticService:
         the encoder reads them."""
         started = time.monotonic()
         frame = msg.to_frame(instance)
-        obs = self.encoder.encode(frame)
-        if self.section.simulate_latency_s > 0:
-            time.sleep(self.section.simulate_latency_s)
+        self.apply_observation(runner, frame, self.encoder.encode(frame), started)
+
+    def apply_observation(self, runner: ServiceRunner, frame: Frame, obs: RegionObservation, started: float) -> None:
+        """Render the map at the frame's pose, match, update the dictionary, send the update."""
         h, w = obs.conf_maps.shape[1:] if obs.conf_maps.ndim == 3 else self.encoder.output_size(
             frame.intrinsics.height_px, frame.intrinsics.width_px)
         K_small = frame.intrinsics.scaled(w, h)
@@ -218,6 +195,10 @@ class SemanticService:
         stats.set(SemanticCounter.REGIONS, len(self.dictionary))
         stats.set(SemanticCounter.DICTIONARY_VERSION, self.dictionary.version)
         stats.set(SemanticCounter.LAST_FRAME_ID, frame.frame_id)
+        now = time.monotonic()
+        if not stats.counters.get(SemanticCounter.FIRST_FUSED_AT_S):
+            stats.set(SemanticCounter.FIRST_FUSED_AT_S, now)
+        stats.set(SemanticCounter.LAST_FUSED_AT_S, now)
         stats.incr(SemanticCounter.BUSY_S, time.monotonic() - started)
         logger.debug("semantic: frame %d: %d regions, %d matched, %d new (dictionary v%d -> v%d)",
                      frame.frame_id, obs.conf_maps.shape[0], len(planned.matched), len(planned.new_keys),
@@ -231,11 +212,20 @@ class SemanticService:
         if self._instances is not None:
             runner.subscriber(SENSOR_INSTANCE, self._instances.add, queue_size=8)
         self._frames = runner.subscriber(SENSOR_RGBD, latest_only=True)
+        if self.section.encoder_pool:
+            assert runner.session is not None
+            self._pool = EncoderPool(runner.session, PoolKeys(runner.keys.prefix), map_id=runner.keys.map_id,
+                                     embedding_space=self.dictionary.embedding_space, stats=runner.stats,
+                                     timeout_s=self.section.pool_timeout_s)
+            runner.stats.set(PoolCounter.ENCODER_WORKERS, 0)
         runner.stats.set(SemanticCounter.SEMANTIC_FRAMES, 0)
         runner.stats.set(SemanticCounter.REGIONS, len(self.dictionary))
 
     def loop(self, runner: ServiceRunner) -> None:
         assert self._frames is not None
+        if self._pool is not None:
+            self._loop_pool(runner, self._pool)
+            return
         while not runner.stopping:
             msg = self._frames.recv(timeout_s=0.2)
             if msg is None:
@@ -267,6 +257,82 @@ class SemanticService:
             runner.stats.incr(SemanticCounter.FRAMES_FAILED)
             runner.stats.add_error()
 
+    def _loop_pool(self, runner: ServiceRunner, pool: EncoderPool) -> None:
+        """Frames go to the pool's workers, at most ``max_in_flight`` per worker, the newest frame
+        whenever one has room; results are applied in frame order (an older result than one
+        applied is dropped and counted); with no worker alive the local encoder (if configured)
+        takes the frames, else they are skipped and health says ``no_encoder``."""
+        assert self._frames is not None
+        stats = runner.stats
+        while not runner.stopping:
+            for result in pool.take_results():
+                self._apply_pool_result(runner, result)
+            pool.pump_resends(self._last_applied)
+            alive = pool.alive
+            stats.set(PoolCounter.NO_ENCODER, int(alive == 0 and not self.section.local_encoder))
+            if alive == 0 and self.section.local_encoder:
+                msg = self._frames.recv(timeout_s=0.2)
+                if msg is not None:
+                    try:
+                        stats.incr(PoolCounter.LOCAL_FRAMES)
+                        self._handle(runner, msg)
+                        self._last_applied = max(self._last_applied, msg.frame_id)
+                    finally:
+                        stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
+                continue
+            if not pool.has_capacity():
+                pool.wait(0.2)
+                continue
+            msg = self._frames.recv(timeout_s=0.05)
+            if msg is None:
+                if pool.in_flight():
+                    pool.wait(0.05)
+                continue
+            request = self._pool_request(runner, msg)
+            if request is None:
+                stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
+                continue
+            if not pool.submit(request):  # the worker with room died in between: try it again later
+                stats.incr(SemanticCounter.FRAMES_FAILED)
+                stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
+
+    def _pool_request(self, runner: ServiceRunner, msg: RgbdFrame) -> EncodeRequest | None:
+        """The encode request of a frame the switch accepts (joined with its instance image when the
+        workers need it), or None when the frame is skipped (counted)."""
+        if not self.switch.accept(msg.frame_id, time.monotonic()):
+            runner.stats.incr(SemanticCounter.SKIPPED_SWITCH)
+            return None
+        instance = None
+        if self._instances is not None and msg.instance is None:
+            instance = self._instances.take(msg, timeout_s=self.section.instance_wait_s)
+            if instance is None:
+                self._skip_without_instance(runner, msg)
+                return None
+        return EncodeRequest.of(msg, instance, map_id=runner.keys.map_id,
+                                embedding_space=self.dictionary.embedding_space)
+
+    def _apply_pool_result(self, runner: ServiceRunner, result: PoolResult) -> None:
+        frame_id = result.request.frame_id
+        try:
+            if frame_id <= self._last_applied:
+                runner.stats.incr(PoolCounter.RESULTS_STALE)
+                return
+            obs = RegionObservation(conf_maps=result.reply.conf_maps, embeddings=result.reply.embeddings,
+                                    embedding_space=result.reply.embedding_space)
+            obs.validate(dim=self.dictionary.dim)
+            self.apply_observation(runner, result.request.to_frame(), obs, time.monotonic())
+            self._last_applied = frame_id
+            runner.stats.incr(ENCODED_BY_PREFIX + result.worker_id)
+        except QueryError as exc:
+            logger.warning("semantic: frame %d skipped: %s", frame_id, exc)
+            runner.stats.incr(SemanticCounter.SKIPPED_NO_RENDER)
+        except Exception:  # a bad result or a failed step: logged, counted, next result
+            logger.exception("semantic: the pool's result for frame %d failed and was skipped", frame_id)
+            runner.stats.incr(SemanticCounter.FRAMES_FAILED)
+            runner.stats.add_error()
+        finally:
+            runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, frame_id)
+
     def _skip_without_instance(self, runner: ServiceRunner, msg: RgbdFrame) -> None:
         runner.stats.incr(SemanticCounter.SKIPPED_NO_INSTANCE)
         self._frames_without_instance += 1
@@ -278,7 +344,8 @@ class SemanticService:
                 self.section.encoder)
 
     def close(self) -> None:
-        return None
+        if self._pool is not None:
+            self._pool.close()
 
 
 DEFINITION = ServiceDefinition(

@@ -81,7 +81,7 @@ def test_ten_times_slower_encoder_keeps_memory_bounded_and_geometry_at_camera_ra
     it drops the others (counted) instead of queueing them, its memory stays well under what a
     queue of the frames would take, and geometry drops nothing. Memory is compared over a second
     batch, after a first one grew the allocator's arenas to their working size."""
-    env.restart("semantic", "--set", "semantic.simulate_latency_s=0.5")
+    env.restart("semantic", "--set", "semantic.encoder_delay_ms=500")
     pid = env.cluster.processes["semantic"].proc.pid
     big = "synthetic:seed=1,frames={n},width=640,height=480"
     env.play(20, source=big)  # warm-up: text model loaded, arenas grown at this frame size

@@ -385,6 +385,7 @@ def test_compose_commands_parse_with_cli(capsys: pytest.CaptureFixture[str]) -> 
         (ROOT / "docker-compose.gpu.yml", {}),
         (TWO_HOST / "robot.compose.yml", {}),
         (TWO_HOST / "gpu.compose.yml", {"ROBOT_HOST": "robot.local"}),
+        (ROOT / "deploy" / "pool" / "gpu-workers.compose.yml", {"ROUTER_HOST": "robot.local"}),
     ]
     for path, env in files:
         for name, service in load_compose(path, env=env).get("services", {}).items():

@@ -146,6 +146,16 @@ EXAMPLES: dict[str, m.Message] = {
         counters={"blocks": 5700.0},
     ),
     "error": m.ErrorReply(reason="bad", code="handler_error"),
+    "pool.worker_info_request": m.WorkerInfoRequest(),
+    "pool.worker_info": m.WorkerInfo(worker_id="gpu1-0", encoder="clip-dense", embedding_space="clip-vit-b-32", dim=512,
+                                     device="cuda", needs_instances=False, max_in_flight=2),
+    "pool.encode_request": m.EncodeRequest(
+        frame_id=1, stamp_ns=5, **K_FIELDS, T_world_cam=_pose(), depth_scale=1.0,
+        color=rng.integers(0, 255, (6, 8, 3), dtype=np.uint8), depth=_f32(6, 8), instance=_i32(6, 8),
+        instance_categories={3: "office chair"}, source="synthetic", map_id="lab", embedding_space="minilm-l6-v2",
+    ),
+    "pool.encode_reply": m.EncodeReply(frame_id=1, worker_id="gpu1-0", embedding_space="minilm-l6-v2",
+                                       conf_maps=_f32(3, 2, 2), embeddings=_f32(3, 4), encode_ms=12.5),
 }
 
 
@@ -255,6 +265,9 @@ def _replace(msg: m.Message, **changes: Any) -> dict[str, Any]:
         ("query.point", {"point_world": np.array([1.0, np.nan, 0.0])}, "finite"),
         ("control.request", {"action": "drop"}, "'save', 'load' or 'reset'"),
         ("health.stats", {"fps": -1.0}, "greater than or equal to 0"),
+        ("pool.encode_reply", {"embeddings": _f32(2, 4)}, "3 confidence maps but 2 embeddings"),
+        ("pool.encode_request", {"depth": _f32(6, 7)}, "color must be 6x7x3"),
+        ("pool.worker_info", {"max_in_flight": 0}, "greater than or equal to 1"),
     ],
 )
 def test_inconsistent_messages_are_refused(schema: str, changes: dict[str, Any], message: str) -> None:

@@ -98,6 +98,9 @@ class ServiceProcess:
     log_path: Path
     #: Stopped on purpose (``Cluster.stop(name)``): not a death :meth:`Cluster.check_alive` reports.
     stopped: bool = False
+    #: The run goes on without it (an encoder worker: the pool sends its frames elsewhere); its
+    #: death is logged once, not raised.
+    optional: bool = False
 
     def alive(self) -> bool:
         return self.proc.poll() is None
@@ -201,16 +204,19 @@ class Cluster:
             env = {k: v for k, v in env.items() if not k.startswith("OPENFUSION_") or k == "OPENFUSION_DEBUG"}
         return {**env, LAUNCHER_PID_ENV: str(os.getpid()), **(extra or {})}
 
-    def start(self, name: str, extra: Sequence[str] = (), env: dict[str, str] | None = None) -> ServiceProcess:
+    def start(self, name: str, extra: Sequence[str] = (), env: dict[str, str] | None = None, *,
+              service: str | None = None, optional: bool = False) -> ServiceProcess:
+        """Start ``openfusion service SERVICE`` (default: ``name``) as process ``name`` (its log is
+        ``name.log``; several encoder workers are one service under several names)."""
         self.log_dir.mkdir(parents=True, exist_ok=True)
         log_path = self.log_dir / f"{name}.log"
         log = open(log_path, "ab")  # noqa: SIM115 - closed when the process ends (child keeps its fd)
-        cmd = [sys.executable, "-m", "openfusion.app.cli", "service", name, *self.base_args(), *extra]
+        cmd = [sys.executable, "-m", "openfusion.app.cli", "service", service or name, *self.base_args(), *extra]
         # Its own session: a terminal's Ctrl-C goes to the launcher only (StopSignals decides).
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                 env=self._environment(env), start_new_session=True)
         log.close()
-        sp = ServiceProcess(name, proc, log_path)
+        sp = ServiceProcess(name, proc, log_path, optional=optional)
         self.processes[name] = sp
         return sp
 
@@ -219,6 +225,10 @@ class Cluster:
         is not reported."""
         for sp in self.processes.values():
             if not sp.stopped and not sp.alive():
+                if sp.optional:
+                    sp.stopped = True
+                    logger.warning("%s; the run goes on without it", sp.death())
+                    continue
                 raise sp.death()
 
     def kill(self) -> None:

@@ -116,6 +116,8 @@ def run_services(args: argparse.Namespace, config: RunConfig) -> RunSummary:
     config.geometry.map_dir = out / "checkpoints"
     config.geometry.checkpoint_period_s = 0.0
     config.geometry.load_on_start = False
+    if args.encoder_workers:
+        config.use_encoder_pool()
     config_file = write_service_config(config, out / "run-config.json")
     port = free_loopback_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -173,9 +175,12 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
                                       latest_only=True))
     for name in ("geometry", "semantic", "query"):
         cluster.start(name)
+    workers = [f"w{i + 1}" for i in range(args.encoder_workers)]
+    for worker_id in workers:  # the encoder pool: workers of this run's private router
+        cluster.start(f"encoder-{worker_id}", ["--worker-id", worker_id], service="encoder", optional=True)
     _say(args, f"starting services on {cluster.endpoint} (logs in {cluster.log_dir})")
-    wait_for_services(client, cluster, {"geometry", "semantic", "query"}, SERVICE_START_TIMEOUT_S,
-                      should_stop=lambda: signals.requested is not None)
+    wait_for_services(client, cluster, {"geometry", "semantic", "query", *(f"encoder-{w}" for w in workers)},
+                      SERVICE_START_TIMEOUT_S, should_stop=lambda: signals.requested is not None)
     if signals.requested:
         raise signals.interrupted("stopped before playback started; nothing to save")
     cluster.start("bridge")
@@ -185,7 +190,8 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
         return RunSummary.from_health(
             stats, source=config.bridge.source, encoder=config.semantic.encoder, noise=config.semantic.noise,
             semantic_every=config.semantic.every_k, wall_s=time.monotonic() - started,
-            frames_requested=config.bridge.max_frames, interrupted=signals.requested is not None)
+            frames_requested=config.bridge.max_frames, interrupted=signals.requested is not None,
+            encoder_workers=args.encoder_workers)
 
     map_dir = out / "map"
     if signals.requested:
@@ -328,6 +334,10 @@ def _say(args: argparse.Namespace, text: str) -> None:
         say(text)
 
 
+#: More encoder workers than this on one machine is a typo, not a plan.
+MAX_ENCODER_WORKERS = 16
+
+
 class RunCommand:
     """Registry entry for ``openfusion run``."""
 
@@ -351,6 +361,9 @@ class RunCommand:
         parser.add_argument("--web", nargs="?", type=int, const=0, default=None, metavar="PORT",
                             help="also serve the query page (openfusion web) on 127.0.0.1:PORT (no PORT: a free "
                             "one), printing its URL; after the run it stays, with the services, until Ctrl-C")
+        parser.add_argument("--encoder-workers", type=int, default=0, metavar="N",
+                            help="start N encoder workers (the encoder pool, `openfusion service encoder`) and let the "
+                            "semantic service send them its frames (default 0: it encodes them itself)")
         parser.add_argument("--quiet", action="store_true",
                             help="no progress output (stderr); the run summary still goes to stdout")
         parser.add_argument("--config", metavar="FILE", help="TOML/JSON/YAML file with [bridge], [geometry], "
@@ -368,6 +381,10 @@ class RunCommand:
         _check_out_dir(args.out)
         if args.frames <= 0:
             raise UsageError(f"--frames must be positive, got {args.frames}")
+        if not 0 <= args.encoder_workers <= MAX_ENCODER_WORKERS:
+            raise UsageError(f"--encoder-workers must be between 0 and {MAX_ENCODER_WORKERS}, got {args.encoder_workers}")
+        if args.in_process and args.encoder_workers:
+            raise UsageError("--encoder-workers starts encoder services; --in-process has none")
         if args.timeout_s <= 0:
             raise UsageError(f"--timeout-s must be positive, got {args.timeout_s:g}")
         _check_queries(args.queries or DEFAULT_QUERIES, args.top_k)

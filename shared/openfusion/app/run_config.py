@@ -19,6 +19,8 @@ from pydantic import Field
 
 from openfusion.config import ServiceConfig
 from openfusion.services.bridge.service import BridgeSection
+from openfusion.services.encoder.options import EncoderOptions
+from openfusion.services.encoder.service import EncoderSection
 from openfusion.services.geometry.service import GeometrySection
 from openfusion.services.query.service import QuerySection
 from openfusion.services.semantic.service import SemanticSection
@@ -26,7 +28,7 @@ from openfusion.services.semantic.service import SemanticSection
 #: The section fields ``openfusion run`` offers as flags (everything else: ``--set`` or ``--config``).
 RUN_FLAGS: dict[str, list[str]] = {
     "bridge": ["source", "rate_hz"],
-    "semantic": ["encoder", "noise", "every_k"],
+    "semantic": ["encoder", "noise", "every_k", "encoder_delay_ms"],
     "query": ["text_encoder"],
 }
 
@@ -38,6 +40,14 @@ class RunConfig(ServiceConfig):
     geometry: GeometrySection = Field(default_factory=GeometrySection)
     semantic: SemanticSection = Field(default_factory=SemanticSection)
     query: QuerySection = Field(default_factory=QuerySection)
+    #: the encoder workers' section (``--encoder-workers``): the semantic section's encoder options
+    encoder: EncoderSection = Field(default_factory=EncoderSection)
+
+    def use_encoder_pool(self) -> None:
+        """Send the semantic service's frames to encoder workers built like its own encoder."""
+        self.semantic.encoder_pool = True
+        self.semantic.local_encoder = False
+        self.encoder = EncoderSection(**self.semantic.model_dump(include=set(EncoderOptions.model_fields)))
 
 
 SECTION_MODELS = {name: RunConfig.model_fields[name].annotation for name in ("bridge", "geometry", "semantic", "query")}

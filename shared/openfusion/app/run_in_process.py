@@ -25,8 +25,8 @@ from openfusion.frame import Frame
 from openfusion.mapping import query_regions, save_map
 from openfusion.mapping.params import MatchParams
 from openfusion.mapping.pipeline import PipelineStats, map_scene
+from openfusion.services.encoder.options import region_encoder_from_section
 from openfusion.services.query.service import text_encoder_from_section
-from openfusion.services.semantic.service import region_encoder_from_section
 from openfusion.sources import open_source
 
 

@@ -1,4 +1,4 @@
-"""``openfusion service NAME``: run one service (bridge, geometry, semantic, query)."""
+"""``openfusion service NAME``: run one service (bridge, geometry, semantic, query, encoder)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from openfusion.app.launcher import follow_launcher
 from openfusion.errors import UsageError
 from openfusion.services.common import ServiceDefinition
 
-SERVICE_NAMES = ("bridge", "geometry", "semantic", "query")
+SERVICE_NAMES = ("bridge", "geometry", "semantic", "query", "encoder")
 
 
 def definition(name: str) -> ServiceDefinition:

@@ -10,15 +10,27 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from openfusion.mapping.pipeline import PipelineStats, reconstruction_rates
-from openfusion.wire.counters import SKIPPED_PREFIX, BridgeCounter, GeometryCounter, SemanticCounter
+from openfusion.wire.counters import (
+    ENCODED_BY_PREFIX,
+    SKIPPED_PREFIX,
+    BridgeCounter,
+    GeometryCounter,
+    PoolCounter,
+    SemanticCounter,
+)
 from openfusion.wire.schemas import HealthStats
 
 
 def _round(value: float | None) -> float | None:
     return round(value, 2) if value else None
+
+
+def _rate(frames: float, first_s: float, last_s: float) -> float | None:
+    """Frames per second between the first and the last of ``frames`` events (None for < 2)."""
+    return (frames - 1) / (last_s - first_s) if frames >= 2 and last_s > first_s else None
 
 
 class RunSummary(BaseModel):
@@ -49,11 +61,22 @@ class RunSummary(BaseModel):
     frames_requested: int | None = None
     frames_played: int | None = None
     interrupted: bool = False
+    #: encoder workers of the pool (``--encoder-workers``; 0: the semantic service encodes) and the
+    #: frames each one encoded that were applied to the map
+    encoder_workers: int = 0
+    frames_encoded_per_worker: dict[str, int] = Field(default_factory=dict)
+    #: frames sent again after their worker died, and frames lost (their workers died twice, or a
+    #: newer frame's result had been applied before they could go again)
+    encoder_frames_resent: int = 0
+    encoder_frames_lost: int = 0
+    #: semantic frames per second of mapping time (first to last fused frame): with encoder workers
+    #: the semantic service waits on them, so its busy time no longer bounds its rate
+    semantic_rate_hz: float | None = None
 
     @classmethod
     def from_health(
         cls, stats: dict[str, HealthStats], *, source: str, encoder: str, noise: str, semantic_every: int, wall_s: float,
-        frames_requested: int | None = None, interrupted: bool = False,
+        frames_requested: int | None = None, interrupted: bool = False, encoder_workers: int = 0,
     ) -> RunSummary:
         """From the last health stats of the run's services. After an interrupt the bridge was
         stopped and its last stats can lag by a second of frames; playback loses no frame, so every
@@ -89,6 +112,15 @@ class RunSummary(BaseModel):
             semantic_failed=int(c("semantic", SemanticCounter.FRAMES_FAILED)),
             regions=int(c("semantic", SemanticCounter.REGIONS)),
             rec_fps=_round(rec), sem_rec_fps=_round(sem), wall_s=round(wall_s, 1),
+            encoder_workers=encoder_workers,
+            encoder_frames_resent=int(c("semantic", PoolCounter.FRAMES_RESENT)),
+            encoder_frames_lost=int(c("semantic", PoolCounter.FRAMES_LOST)),
+            frames_encoded_per_worker={k.removeprefix(ENCODED_BY_PREFIX): int(v) for k, v in
+                                       (stats["semantic"].counters.items() if "semantic" in stats else [])
+                                       if k.startswith(ENCODED_BY_PREFIX)},
+            semantic_rate_hz=_round(_rate(c("semantic", SemanticCounter.SEMANTIC_FRAMES),
+                                          c("semantic", SemanticCounter.FIRST_FUSED_AT_S),
+                                          c("semantic", SemanticCounter.LAST_FUSED_AT_S))),
         )
 
     @classmethod

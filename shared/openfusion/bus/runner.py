@@ -16,7 +16,7 @@ import zenoh
 from openfusion.bus.health import HealthReporter
 from openfusion.bus.pubsub import Publisher, Subscriber
 from openfusion.bus.query import Queryable, call
-from openfusion.bus.session import open_session
+from openfusion.bus.session import BusError, open_session
 from openfusion.bus.stats import ServiceStats
 from openfusion.config import ServiceConfig
 from openfusion.wire.endpoints import Endpoint, Topic
@@ -100,6 +100,24 @@ class ServiceRunner:
         self._entities.append(qbl)
         return qbl
 
+    def queryable_at(self, key: str, request: type[Q], reply: type[R], handler: Callable[[Q], R],
+                     **options: Any) -> Queryable[Q]:
+        """A :class:`Queryable` on a key outside this map's endpoints (the encoder pool's
+        ``@pool`` keys, :class:`openfusion.wire.keys.PoolKeys`), closed with the service."""
+        qbl = Queryable(self._require_session(), key, request, handler, reply_model=reply, stats=self.stats, **options)
+        self._entities.append(qbl)
+        return qbl
+
+    def liveliness_token(self, key: str) -> Any:
+        """A liveliness token on ``key`` (presence outside the map's health keys), undeclared with
+        the service."""
+        try:
+            token = self._require_session().liveliness().declare_token(key)
+        except zenoh.ZError as exc:
+            raise BusError(f"cannot declare a liveliness token on {key}: {exc}") from None
+        self._entities.append(_Undeclarable(token))
+        return token
+
     def call(self, endpoint: Endpoint[Q, R], request: Q, *, timeout_s: float = 5.0) -> R:
         """Ask another service's ``endpoint`` of this map (:func:`openfusion.bus.query.call`)."""
         return call(self._require_session(), self.keys, endpoint, request, timeout_s=timeout_s)
@@ -153,6 +171,19 @@ class ServiceRunner:
             signal.signal(signum, previous)
         self._previous_handlers.clear()
         logger.info("%s: stopped", self.service)
+
+
+class _Undeclarable:
+    """A Zenoh entity with ``undeclare()`` in the runner's list of things to close."""
+
+    def __init__(self, entity: Any) -> None:
+        self.entity = entity
+
+    def close(self) -> None:
+        try:
+            self.entity.undeclare()
+        except zenoh.ZError as exc:
+            logger.debug("already undeclared: %s", exc)
 
 
 def run_service(

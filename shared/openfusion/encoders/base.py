@@ -23,6 +23,9 @@ logger = logging.getLogger(__name__)
 #: Default output size as a fraction of the input image (H/4 x W/4, as Open-Fusion's region encoder).
 DEFAULT_OUTPUT_SCALE = 0.25
 
+#: Backends of the ``clip-dense`` region encoder (:mod:`openfusion.encoders.clip_dense`).
+CLIP_DENSE_BACKENDS = ("torch", "onnx", "onnx-int8")
+
 #: Embeddings whose L2 norm is below this are treated as invalid (cannot be normalised).
 MIN_EMBEDDING_NORM = 1e-8
 

@@ -1,6 +1,6 @@
 """Build encoders by name: the one switch services and configs use.
 
-Region encoders: ``gt``, ``onnx``, ``clip-regions``. Text encoders: the same three names give the
+Region encoders: ``gt``, ``onnx``, ``clip-regions``, ``clip-dense``. Text encoders: the same three names give the
 text encoder that matches that region encoder's embedding space (``gt`` -> ``minilm``), plus
 ``minilm`` and ``hash`` (lexical baseline, no model). Backends import lazily, so importing
 :mod:`openfusion.encoders` does not pull in torch, transformers or onnxruntime.
@@ -12,8 +12,8 @@ from typing import Any
 
 from openfusion.encoders.base import EncoderConfigError, RegionEncoder, TextEncoder
 
-REGION_ENCODER_NAMES = ("gt", "onnx", "clip-regions")
-TEXT_ENCODER_NAMES = ("gt", "onnx", "clip-regions", "minilm", "hash")
+REGION_ENCODER_NAMES = ("gt", "onnx", "clip-regions", "clip-dense")
+TEXT_ENCODER_NAMES = ("gt", "onnx", "clip-regions", "clip-dense", "minilm", "hash")
 MINILM_BACKENDS = ("sentence-transformers", "onnxruntime")
 
 
@@ -30,7 +30,8 @@ def make_text_encoder(name: str, **options: Any) -> TextEncoder:
       falls back to sentence-transformers, logged, when it is unavailable).
     - ``hash``: hashed character trigrams, space ``hash-trigram-<dim>``; option ``dim``.
     - ``onnx``: an ONNX text model (docs/ENCODERS.md); options ``model_path``, ``device``.
-    - ``clip-regions`` (alias ``clip``): the CLIP text tower; options ``model``, ``device``, ``embedding_space``.
+    - ``clip-regions`` (aliases ``clip``, ``clip-dense``): the CLIP text tower; options ``model``, ``device``,
+      ``embedding_space``.
     """
     key = _normalise_name(name)
     if key in ("minilm", "gt"):
@@ -55,7 +56,7 @@ def make_text_encoder(name: str, **options: Any) -> TextEncoder:
         from openfusion.encoders.onnx_backend import OnnxTextEncoder
 
         return OnnxTextEncoder(**options)
-    if key in ("clip-regions", "clip"):
+    if key in ("clip-regions", "clip", "clip-dense"):
         from openfusion.encoders.clip_regions import ClipTextEncoder
 
         return ClipTextEncoder(**options)
@@ -70,6 +71,9 @@ def make_region_encoder(name: str, **options: Any) -> RegionEncoder:
       ``output_scale``, ``min_area_px``.
     - ``onnx``: an ONNX region model or crop embedder (docs/ENCODERS.md); options ``model_path``, ``device``, ...
     - ``clip-regions``: graph-segmentation proposals + CLIP crop embeddings; options ``model``, ``device``, ...
+    - ``clip-dense``: the same proposals + region means of dense CLIP patch features from one pass over
+      the frame (MaskCLIP); options as ``clip-regions`` plus ``backend`` (torch, onnx, onnx-int8),
+      ``input_long_side_px``, ``dense_mode``, ``cache_dir``.
     """
     key = _normalise_name(name)
     if key == "gt":
@@ -90,4 +94,8 @@ def make_region_encoder(name: str, **options: Any) -> RegionEncoder:
         from openfusion.encoders.clip_regions import ClipRegionEncoder
 
         return ClipRegionEncoder(**options)
+    if key == "clip-dense":
+        from openfusion.encoders.clip_dense import ClipDenseRegionEncoder
+
+        return ClipDenseRegionEncoder(**options)
     raise EncoderConfigError(f"unknown region encoder {name!r}; known: {', '.join(REGION_ENCODER_NAMES)}")

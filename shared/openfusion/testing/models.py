@@ -239,3 +239,47 @@ def build_tiny_text_onnx(
     )
     set_onnx_metadata(path, {"kind": "text-model", "embedding_space": embedding_space, "dim": dim, "pad_id": 0})
     return path
+
+
+#: Real CLIP image-tower sizes (transformers ``CLIPVisionConfig`` fields) for benches with random
+#: weights: the same compute as the released models, no download.
+CLIP_PRESETS: dict[str, dict[str, int]] = {
+    "vit-b-32": dict(hidden_size=768, intermediate_size=3072, num_hidden_layers=12, num_attention_heads=12,
+                     image_size=224, patch_size=32, projection_dim=512),
+    "vit-b-16": dict(hidden_size=768, intermediate_size=3072, num_hidden_layers=12, num_attention_heads=12,
+                     image_size=224, patch_size=16, projection_dim=512),
+    "vit-l-14-336": dict(hidden_size=1024, intermediate_size=4096, num_hidden_layers=24, num_attention_heads=16,
+                         image_size=336, patch_size=14, projection_dim=768),
+}
+
+
+def register_random_clip(preset: str, *, device: str = "cpu", seed: int = 0) -> str:
+    """Build a random-weight CLIP with a real-size image tower (``CLIP_PRESETS``; a tiny text tower)
+    in memory and register it with :func:`openfusion.encoders.clip_regions.load_clip` under the name
+    ``random/<preset>`` (space ``random-<preset>``), so ``make_region_encoder("clip-dense",
+    model="random/<preset>")`` uses it without writing gigabytes of weights. Returns that name."""
+    import torch
+    from transformers import CLIPConfig, CLIPModel
+
+    from openfusion.encoders import clip_regions
+    from openfusion.encoders.crops import CropSpec
+
+    spec = dict(CLIP_PRESETS[preset])
+    projection_dim = spec.pop("projection_dim")
+    name, space = f"random/{preset}", f"random-{preset}"
+    config = CLIPConfig(
+        text_config=dict(vocab_size=64, hidden_size=32, intermediate_size=37, num_hidden_layers=1,
+                         num_attention_heads=2, max_position_embeddings=16, bos_token_id=0, eos_token_id=1,
+                         pad_token_id=1),
+        vision_config=spec,
+        projection_dim=projection_dim,
+    )
+    torch.manual_seed(seed)
+    model = CLIPModel(config).eval().to(device)
+    loaded = clip_regions.LoadedClip(
+        model=model, tokenizer=None, embedding_space=space, dim=projection_dim,
+        crop_spec=CropSpec(size=spec["image_size"], mean=CLIP_MEAN, std=CLIP_STD), device=device, max_text_length=16,
+    )
+    with clip_regions._LOCK:
+        clip_regions._CACHE[(name, device, "")] = loaded
+    return name

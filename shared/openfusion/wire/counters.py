@@ -64,12 +64,38 @@ class SemanticCounter(StrEnum):
     MATCHED = "matched"
     NEW_REGIONS = "new_regions"
     LAST_FRAME_ID = "last_frame_id"  # last frame fused
+    FIRST_FUSED_AT_S = "first_fused_at_s"  # CLOCK_MONOTONIC of the first frame fused
+    LAST_FUSED_AT_S = "last_fused_at_s"  # ... and of the last one (semantic rate = frames / span)
     LAST_FRAME_HANDLED = "last_frame_handled"  # last frame taken off the subscription and done with (fused or skipped)
     SKIPPED_SWITCH = "skipped_switch"  # frames the semantic switch left out (every_k, max_hz)
     SKIPPED_NO_INSTANCE = "skipped_no_instance"  # gt encoder: the instance image did not come
     SKIPPED_NO_RENDER = "skipped_no_render"  # geometry did not answer the render request
     FRAMES_FAILED = "frames_failed"  # the encoder or a step raised on the frame (logged, skipped)
     INSTANCES_EVICTED = "instances_evicted"
+
+
+class EncoderCounter(StrEnum):
+    FRAMES_ENCODED = "frames_encoded"  # encode requests answered (an encoder worker of the pool)
+    REFUSED_SPACE = "refused_space"  # requests of a map in another embedding space
+    ENCODE_BUSY_S = "encode_busy_s"
+
+
+class PoolCounter(StrEnum):
+    """The semantic service's view of the encoder pool."""
+
+    ENCODER_WORKERS = "encoder_workers"  # workers alive in the map's space now
+    WORKERS_REFUSED = "workers_refused"  # workers seen in another embedding space (not used)
+    FRAMES_DISPATCHED = "frames_dispatched"
+    FRAMES_RESENT = "frames_resent"  # sent again after their worker died
+    FRAMES_LOST = "frames_lost"  # their worker died twice, or they were too old to send again
+    RESULTS_STALE = "results_stale"  # came back after a newer frame's result was applied
+    NO_ENCODER = "no_encoder"  # 1 while no worker is alive and there is no local encoder
+    LOCAL_FRAMES = "local_frames"  # encoded by the local encoder (no worker alive)
+
+
+#: The semantic service's counter ``encoded_by:<worker id>``: results of that encoder worker
+#: applied to the map (one counter per worker; run.json's ``frames_encoded_per_worker``).
+ENCODED_BY_PREFIX = "encoded_by:"
 
 
 class QueryCounter(StrEnum):

@@ -174,3 +174,43 @@ def health_all_maps(prefix: str = DEFAULT_PREFIX) -> str:
     """Health / liveliness of every service of every map under ``prefix``."""
     validate_prefix(prefix)
     return f"{prefix}/{ANY}/health/{ANY}"
+
+
+#: The verbatim chunk under which the encoder pool lives, outside every map (one pool may serve
+#: several maps). Zenoh never matches a verbatim (``@``) chunk with ``*`` or ``**``, so a map's
+#: ``openfusion/**`` subscription does not see pool traffic and the pool's keys stay apart.
+POOL_CHUNK = "@pool"
+
+
+@dataclass(frozen=True)
+class PoolKeys:
+    """Keys of the encoder pool of ``prefix``: ``{prefix}/@pool/encoder/{worker_id}`` (the worker's
+    liveliness token), ``…/{worker_id}/info`` (WorkerInfo) and ``…/{worker_id}/encode``
+    (EncodeRequest -> EncodeReply)."""
+
+    prefix: str = DEFAULT_PREFIX
+
+    def __post_init__(self) -> None:
+        validate_prefix(self.prefix)
+
+    def worker(self, worker_id: str) -> str:
+        return f"{self.prefix}/{POOL_CHUNK}/encoder/{validate_segment(worker_id, what='worker id')}"
+
+    def info(self, worker_id: str) -> str:
+        return f"{self.worker(worker_id)}/info"
+
+    def encode(self, worker_id: str) -> str:
+        return f"{self.worker(worker_id)}/encode"
+
+    @property
+    def workers(self) -> str:
+        """Every worker's liveliness token: ``{prefix}/@pool/encoder/*``."""
+        return f"{self.prefix}/{POOL_CHUNK}/encoder/{ANY}"
+
+    def worker_id_of(self, key: str) -> str:
+        """The worker id of a key matched by :attr:`workers`; InvalidKeyError otherwise."""
+        head = f"{self.prefix}/{POOL_CHUNK}/encoder/"
+        rest = str(key)[len(head):] if str(key).startswith(head) else ""
+        if segment_error(rest) is not None:
+            raise InvalidKeyError(f"{key!r} is not an encoder worker key (expected {head}<worker id>)")
+        return rest

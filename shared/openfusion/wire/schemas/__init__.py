@@ -40,6 +40,7 @@ from openfusion.wire.schemas.geometry import (
     RenderReply,
     RenderRequest,
 )
+from openfusion.wire.schemas.pool import EncodeReply, EncodeRequest, WorkerInfo, WorkerInfoRequest
 from openfusion.wire.schemas.query import (
     MAX_BATCH_TEXTS,
     ImageQuery,
@@ -59,6 +60,8 @@ from openfusion.wire.schemas.semantic import (
 from openfusion.wire.schemas.sensor import InstanceFrame, RgbdFrame
 
 __all__ = [
+    "WorkerInfo",
+    "WorkerInfoRequest",
     "MAX_BATCH_TEXTS",
     "Colors3u8",
     "ControlReply",
@@ -67,6 +70,8 @@ __all__ = [
     "DictionaryDelta",
     "DictionaryRequest",
     "DictionarySnapshot",
+    "EncodeReply",
+    "EncodeRequest",
     "ErrorReply",
     "FloatMap",
     "GeometryProgress",

@@ -1,0 +1,1 @@
+"""encoder: a stateless region-encoder worker of the encoder pool."""

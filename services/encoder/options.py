@@ -1,0 +1,77 @@
+"""The region encoder's settings, declared once: the semantic service's local encoder and every
+encoder worker of the pool take the same options (``SemanticSection`` and ``EncoderSection``
+extend :class:`EncoderOptions`)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import Field, ValidationInfo, field_validator
+
+from openfusion.config import ConfigSection
+from openfusion.encoders import NOISE_PROFILES, REGION_ENCODER_NAMES, make_region_encoder
+from openfusion.encoders.base import CLIP_DENSE_BACKENDS
+
+
+class EncoderOptions(ConfigSection):
+    """Which region encoder, on which device, with which options."""
+
+    encoder: str = Field("gt", description=f"region encoder: {', '.join(REGION_ENCODER_NAMES)}")
+    model_path: str | None = Field(
+        None, description="model file or folder of the onnx / clip-regions / clip-dense encoder"
+    )
+    device: str = Field(
+        "auto", description="device of the onnx / clip-regions / clip-dense encoder: auto, cpu or cuda"
+    )
+    noise: str = Field("off", description=f"gt encoder noise profile: {', '.join(NOISE_PROFILES)}")
+    seed: int = Field(0, description="seed of the gt encoder's noise")
+    encoder_delay_ms: float = Field(
+        0.0,
+        ge=0,
+        le=60_000,
+        description="add this many ms to every encoder call, sleeping: models a remote GPU "
+        "encoder in tests and benches",
+    )
+    encoder_backend: str = Field("torch", description="clip-dense backend: torch, onnx or onnx-int8")
+
+    @field_validator("encoder")
+    @classmethod
+    def _encoder(cls, value: str) -> str:
+        if value not in REGION_ENCODER_NAMES:
+            raise ValueError(f"unknown region encoder {value!r}; known: {', '.join(REGION_ENCODER_NAMES)}")
+        return value
+
+    @field_validator("encoder_backend")
+    @classmethod
+    def _encoder_backend(cls, value: str) -> str:
+        if value not in CLIP_DENSE_BACKENDS:
+            raise ValueError(f"unknown clip-dense backend {value!r}; known: {', '.join(CLIP_DENSE_BACKENDS)}")
+        return value
+
+    @field_validator("noise")
+    @classmethod
+    def _noise(cls, value: str, info: ValidationInfo) -> str:
+        if value not in NOISE_PROFILES:
+            raise ValueError(f"unknown noise profile {value!r}; known: {', '.join(NOISE_PROFILES)}")
+        encoder = info.data.get("encoder", "gt")
+        if value != "off" and encoder != "gt":
+            raise ValueError(f"noise applies to the gt encoder only, not to {encoder!r} (leave it off)")
+        return value
+
+
+def region_encoder_from_section(section: EncoderOptions) -> Any:
+    """The region encoder a section describes (semantic service, encoder worker, in-process run)."""
+    if section.encoder == "gt":
+        opts: dict[str, Any] = {"noise": section.noise, "seed": section.seed}
+    else:
+        opts = {"device": section.device}
+        if section.model_path:
+            opts["model_path" if section.encoder == "onnx" else "model"] = section.model_path
+        if section.encoder == "clip-dense":
+            opts["backend"] = section.encoder_backend
+    encoder = make_region_encoder(section.encoder, **opts)
+    if section.encoder_delay_ms > 0:
+        from openfusion.encoders.delayed import DelayedRegionEncoder
+
+        encoder = DelayedRegionEncoder(encoder, section.encoder_delay_ms)
+    return encoder

@@ -1,0 +1,47 @@
+"""A fixed per-frame cost added to any region encoder, for tests and benches.
+
+``DelayedRegionEncoder(inner, delay_ms)`` encodes with ``inner`` and then sleeps ``delay_ms``: it
+models an encoder on a remote GPU (the semantic service waits, the local CPU stays free), not CPU
+load. ``openfusion run --encoder-delay-ms MS`` and ``semantic.encoder_delay_ms`` use it; the pool
+benches use it to give every worker the same known cost.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+from openfusion.encoders.base import RegionEncoder, RegionObservation
+from openfusion.frame import Frame
+
+
+class DelayedRegionEncoder(RegionEncoder):
+    """``inner``'s observations, each one ``delay_ms`` later (sleeping)."""
+
+    def __init__(self, inner: RegionEncoder, delay_ms: float) -> None:
+        if delay_ms < 0:
+            raise ValueError(f"delay_ms must be >= 0, got {delay_ms}")
+        self.inner = inner
+        self.delay_s = float(delay_ms) / 1000.0
+        self.name = getattr(inner, "name", type(inner).__name__)
+        self.embedding_space = inner.embedding_space
+        self.dim = inner.dim
+        self.output_scale = inner.output_scale
+
+    @property
+    def needs_instances(self) -> bool:
+        return bool(getattr(self.inner, "needs_instances", False))
+
+    def output_size(self, height_px: int, width_px: int) -> tuple[int, int]:
+        return self.inner.output_size(height_px, width_px)
+
+    def encode(self, frame: Frame) -> RegionObservation:
+        obs = self.inner.encode(frame)
+        if self.delay_s > 0:
+            time.sleep(self.delay_s)
+        return obs
+
+    def __getattr__(self, name: str) -> Any:  # everything else (stats, encode_image, ...) is the inner encoder's
+        if name == "inner":
+            raise AttributeError(name)
+        return getattr(self.inner, name)

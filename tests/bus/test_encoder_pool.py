@@ -1,0 +1,144 @@
+"""The encoder pool on a real bus, in this process: encoder workers (the real worker service
+objects, gt encoder in the hash space) serving the semantic services of two maps, each with its
+own geometry service; frames published by the test as the bridge would.
+
+Shown: with no worker alive and no local encoder the semantic service fuses nothing and its
+health says ``no_encoder``; a worker started late is used without a restart; one worker serves
+two maps; frames spread over two workers and results are applied in frame order; a worker of
+another embedding space is refused (health counts it; a request sent to it directly gets
+``wrong_space`` naming both spaces). Bad input tried: a request for another space."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import ExitStack
+
+import pytest
+
+from openfusion.bus import Publisher, QueryError, get, open_session
+from openfusion.services.encoder.service import EncoderConfig, EncoderWorker
+from openfusion.services.geometry.service import GeometryConfig, GeometryService
+from openfusion.services.semantic.service import SemanticConfig, SemanticService
+from openfusion.sources import open_source
+from openfusion.testing.bus import (
+    ServiceThread,
+    free_port,
+    loopback_config,
+    unique_map_id,
+    wait_for_services,
+    wait_until,
+)
+from openfusion.testing.encoders import FlakyEncoder
+from openfusion.wire.counters import ENCODED_BY_PREFIX, GeometryCounter, PoolCounter, SemanticCounter
+from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
+from openfusion.wire.keys import PoolKeys
+from openfusion.wire.schemas import EncodeReply, EncodeRequest, InstanceFrame, RgbdFrame
+
+FRAMES = list(open_source("synthetic:frames=8,width=160,height=120"))
+
+
+def _config(model, map_id: str, section: str, values: dict, **ports):  # noqa: ANN001, ANN003, ANN202
+    return model.model_validate({**loopback_config(map_id, **ports).model_dump(), section: values})
+
+
+def _encoder() -> FlakyEncoder:
+    return FlakyEncoder(empty_on=(), fail_on=())
+
+
+class Map:
+    """Geometry + a semantic service in pool mode (no local encoder) for one map id."""
+
+    def __init__(self, stack: ExitStack, port: int, *, listen: bool) -> None:
+        self.map_id = unique_map_id("pool")
+        ports = {"listen": [port]} if listen else {"connect": [port]}
+        geo = _config(GeometryConfig, self.map_id, "geometry", {"initial_block_count": 1024}, **ports)
+        sem = _config(SemanticConfig, self.map_id, "semantic", {"recover_timeout_s": 0, "instance_wait_s": 10,
+                                                               "encoder_pool": True, "local_encoder": False},
+                      connect=[port])
+        self.geometry = stack.enter_context(ServiceThread(GeometryService(geo), geo, "geometry"))
+        self.semantic = stack.enter_context(ServiceThread(SemanticService(sem, encoder=_encoder()), sem, "semantic"))
+        self.keys = geo.keys
+
+    def publishers(self, session) -> tuple[Publisher, Publisher]:  # noqa: ANN001
+        return (Publisher(session, SENSOR_RGBD.key(self.keys), message=RgbdFrame),
+                Publisher(session, SENSOR_INSTANCE.key(self.keys), message=InstanceFrame))
+
+    def fused(self) -> float:
+        return self.semantic.counter(SemanticCounter.SEMANTIC_FRAMES)
+
+
+def _worker(stack: ExitStack, port: int, worker_id: str, encoder: FlakyEncoder) -> ServiceThread:
+    cfg = _config(EncoderConfig, unique_map_id("workers"), "encoder", {"worker_id": worker_id}, connect=[port])
+    return stack.enter_context(ServiceThread(EncoderWorker(cfg, encoder=encoder), cfg, f"encoder-{worker_id}"))
+
+
+@pytest.fixture
+def rig() -> Iterator[tuple[ExitStack, int, Map, Map, object]]:
+    port = free_port()
+    with ExitStack() as stack:
+        a = Map(stack, port, listen=True)
+        b = Map(stack, port, listen=False)
+        session = open_session(loopback_config(a.map_id, connect=[port]))
+        stack.callback(session.close)
+        wait_for_services(session, a.map_id, ["geometry", "semantic"])
+        wait_for_services(session, b.map_id, ["geometry", "semantic"])
+        yield stack, port, a, b, session
+
+
+def _play(m: Map, session, frames) -> None:  # noqa: ANN001
+    """Publish frames one at a time, each once the previous one was taken (so none is replaced)."""
+    rgbd, instances = m.publishers(session)
+    for frame in frames:
+        handled = m.semantic.counter(SemanticCounter.LAST_FRAME_HANDLED)
+        instances.put(InstanceFrame.from_frame(frame))
+        rgbd.put(RgbdFrame.from_frame(frame, with_instance=False))
+        wait_until(lambda f=frame, h=handled: m.semantic.counter(SemanticCounter.LAST_FRAME_HANDLED) == f.frame_id
+                   or (f.frame_id == 0 and h == 0 and m.fused() > 0), timeout_s=120)
+
+
+def test_late_worker_serves_two_maps_and_a_worker_of_another_space_is_refused(rig) -> None:  # noqa: ANN001
+    stack, port, a, b, session = rig
+    # no worker yet: nothing is encoded, health says so
+    wait_until(lambda: a.semantic.counter(PoolCounter.NO_ENCODER) == 1, timeout_s=60)
+    assert a.fused() == 0
+    # a worker started now is used by both maps, without restarting anything
+    _worker(stack, port, "w1", _encoder())
+    wait_until(lambda: a.semantic.counter(PoolCounter.ENCODER_WORKERS) == 1
+               and b.semantic.counter(PoolCounter.ENCODER_WORKERS) == 1, timeout_s=60)
+    _play(a, session, FRAMES[:4])
+    _play(b, session, FRAMES[:3])
+    wait_until(lambda: a.fused() == 4 and b.fused() == 3, timeout_s=120)
+    assert a.semantic.counter(ENCODED_BY_PREFIX + "w1") == 4
+    assert a.semantic.counter(PoolCounter.NO_ENCODER) == 0
+    wait_until(lambda: a.geometry.counter(GeometryCounter.UPDATES_APPLIED) == 4, timeout_s=120)
+    assert len(a.semantic.app.dictionary) > 3 and len(b.semantic.app.dictionary) > 3
+    # a worker of another space: refused by both maps, never used
+    other = _worker(stack, port, "w-other", FlakyEncoder(empty_on=(), fail_on=(), text_options={"dim": 64}))
+    wait_until(lambda: a.semantic.counter(PoolCounter.WORKERS_REFUSED) == 1
+               and b.semantic.counter(PoolCounter.WORKERS_REFUSED) == 1, timeout_s=60)
+    assert a.semantic.counter(PoolCounter.ENCODER_WORKERS) == 1
+    request = EncodeRequest.of(RgbdFrame.from_frame(FRAMES[0]), None, map_id=a.map_id,
+                               embedding_space=a.semantic.app.dictionary.embedding_space)
+    with pytest.raises(QueryError) as refused:
+        get(session, PoolKeys().encode("w-other"), request, EncodeReply, timeout_s=30)
+    assert refused.value.code == "wrong_space"
+    assert "hash-trigram-64" in refused.value.reason and a.semantic.app.dictionary.embedding_space in refused.value.reason
+    assert other.counter("refused_space") == 1
+
+
+def test_frames_spread_over_workers_and_results_apply_in_frame_order(rig) -> None:  # noqa: ANN001
+    stack, port, a, _b, session = rig
+    w1 = _worker(stack, port, "w1", _encoder())
+    w2 = _worker(stack, port, "w2", _encoder())
+    wait_until(lambda: a.semantic.counter(PoolCounter.ENCODER_WORKERS) == 2, timeout_s=60)
+    rgbd, instances = a.publishers(session)
+    for frame in FRAMES:  # as fast as the bus takes them: the newest frame goes whenever a worker has room
+        instances.put(InstanceFrame.from_frame(frame))
+        rgbd.put(RgbdFrame.from_frame(frame, with_instance=False))
+    wait_until(lambda: a.semantic.counter(SemanticCounter.LAST_FRAME_HANDLED) == FRAMES[-1].frame_id
+               and a.semantic.app._pool.in_flight() == 0, timeout_s=120)
+    fused = a.fused()
+    stale = a.semantic.counter(PoolCounter.RESULTS_STALE)
+    assert fused >= 1 and a.semantic.counter(SemanticCounter.LAST_FRAME_ID) == FRAMES[-1].frame_id
+    assert fused + stale == a.semantic.counter(PoolCounter.FRAMES_DISPATCHED)
+    assert w1.counter("frames_encoded") + w2.counter("frames_encoded") == a.semantic.counter(PoolCounter.FRAMES_DISPATCHED)
