@@ -126,6 +126,7 @@ class SemanticService:
         self._frames_without_instance = 0
         self._pool: EncoderPool | None = None
         self._last_applied = -1  # the newest frame whose result was applied (pool mode)
+        self._last_dispatched = -1  # the newest frame taken for the pool
 
     def recover(self, runner: ServiceRunner) -> bool:
         """Take the dictionary geometry checkpointed (same space only). True when recovered."""
@@ -219,6 +220,7 @@ class SemanticService:
                                      timeout_s=self.section.pool_timeout_s)
             runner.stats.set(PoolCounter.ENCODER_WORKERS, 0)
         runner.stats.set(SemanticCounter.SEMANTIC_FRAMES, 0)
+        runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, -1)  # no frame yet
         runner.stats.set(SemanticCounter.REGIONS, len(self.dictionary))
 
     def loop(self, runner: ServiceRunner) -> None:
@@ -288,6 +290,11 @@ class SemanticService:
                 if pool.in_flight():
                     pool.wait(0.05)
                 continue
+            if msg.frame_id < self._last_dispatched:  # frame ids started again: a new playback
+                logger.info("semantic: frame ids restarted (%d after %d): a new playback", msg.frame_id,
+                            self._last_dispatched)
+                self._last_applied = -1
+            self._last_dispatched = msg.frame_id
             request = self._pool_request(runner, msg)
             if request is None:
                 stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
@@ -313,10 +320,10 @@ class SemanticService:
 
     def _apply_pool_result(self, runner: ServiceRunner, result: PoolResult) -> None:
         frame_id = result.request.frame_id
+        if frame_id <= self._last_applied:  # a newer frame's result is in the map already
+            runner.stats.incr(PoolCounter.RESULTS_STALE)
+            return
         try:
-            if frame_id <= self._last_applied:
-                runner.stats.incr(PoolCounter.RESULTS_STALE)
-                return
             obs = RegionObservation(conf_maps=result.reply.conf_maps, embeddings=result.reply.embeddings,
                                     embedding_space=result.reply.embedding_space)
             obs.validate(dim=self.dictionary.dim)
