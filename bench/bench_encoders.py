@@ -267,7 +267,10 @@ def real_size_models(args: argparse.Namespace, device: str, work: Path) -> int:
           f"{platform.machine()}, {len(__import__('os').sched_getaffinity(0))} cores)\n")
     print("| model | backend | regions | clip-regions ms/frame | clip-dense ms/frame | regions / dense |")
     print("|---|---|---:|---:|---:|---:|")
+    agreement: list[str] = []
     for preset in models:
+        probe = frames_with_regions(30, 1)[0]
+        probe_emb: dict[str, np.ndarray] = {}
         for backend in backends:
             dev = "cuda" if backend == "cuda-fp16" else "cpu"
             name = register_random_clip(preset, device=dev)
@@ -275,6 +278,7 @@ def real_size_models(args: argparse.Namespace, device: str, work: Path) -> int:
             dense = make_region_encoder("clip-dense", model=name, device=dev, backend=dense_backend, cache_dir=work)
             regions = _regions_encoder(name, backend, dev, work)
             dense.proposer = regions.proposer = proposer
+            probe_emb[backend] = dense.encode(probe).embeddings
             for count in counts:
                 frames = frames_with_regions(count, n)
                 ms = {}
@@ -285,6 +289,12 @@ def real_size_models(args: argparse.Namespace, device: str, work: Path) -> int:
                                  "ms_per_frame": round(ms[label], 2)})
                 print(f"| {preset} | {backend} | {count} | {ms['clip-regions']:.0f} | {ms['clip-dense']:.0f} "
                       f"| {ms['clip-regions'] / ms['clip-dense']:.1f} |", flush=True)
+        if "torch-fp32" in probe_emb and "onnx-int8" in probe_emb:
+            cos = np.sum(probe_emb["torch-fp32"] * probe_emb["onnx-int8"], axis=1)
+            agreement.append(f"{preset}: clip-dense region embeddings, onnx-int8 vs torch-fp32 on 30 regions: "
+                             f"cosine min {cos.min():.4f}, mean {cos.mean():.4f}")
+    for line in agreement:
+        print(f"\n{line}")
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=1) + "\n", encoding="utf-8")
     return 0
