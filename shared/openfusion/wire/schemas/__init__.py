@@ -43,10 +43,12 @@ from openfusion.wire.schemas.geometry import (
 from openfusion.wire.schemas.query import (
     MAX_BATCH_TEXTS,
     ImageQuery,
+    NearbyRegion,
     PointQuery,
     QueryBatchReply,
     QueryReply,
     RegionHit,
+    RelationQueryInfo,
     TextQuery,
     TextQueryBatch,
 )
@@ -86,7 +88,9 @@ __all__ = [
     "PointsRequest",
     "Pose4x4",
     "QueryBatchReply",
+    "NearbyRegion",
     "QueryReply",
+    "RelationQueryInfo",
     "Record",
     "RegionHit",
     "RegionSummaryReply",
