@@ -10,6 +10,7 @@ import numpy as np
 
 from openfusion.mapping.params import default_min_region_points
 from openfusion.mapping.relations import Nearby, RegionBoxes
+from openfusion.wire.schemas.query import NearbyRegion
 
 if TYPE_CHECKING:  # the volume (Open3D) is imported only by callers that have one
     from openfusion.mapping.answers import TextAnswer
@@ -42,8 +43,8 @@ class RegionResult:
     relevancy: float | None = None  # in [0, 1] (openfusion.mapping.relevancy); None when not computed
     match: bool | None = None  # relevancy >= the space's calibrated threshold
     centroid: np.ndarray | None = None  # (3,) float32 metres, mean of the surface points
-    nearby: list[Nearby] = field(default_factory=list)  # up to 3 related regions, nearest first
-    relation: Nearby | None = None  # relation queries: the anchor this region stands in the relation to
+    nearby: list[NearbyRegion] = field(default_factory=list)  # up to 3 related regions, nearest first
+    relation: NearbyRegion | None = None  # relation queries: the anchor this region stands in the relation to
 
 
 @dataclass
@@ -291,17 +292,20 @@ def answer_texts(
     """Each of ``texts`` answered from a map's dictionary and :class:`RegionTable` (a saved map's
     summaries, or the table of the volume's surface), as the query service answers it
     (:func:`openfusion.mapping.answers.answer_text`: relevancy, match, centroid, nearby regions,
-    "X next to Y" queries): every text (and the parts of relation queries) embedded in ONE call of
-    ``encoder``. ``calibration``: the map's (its file records one); default: the library's for
+    "X next to Y" queries): every text (and the parts of relation queries, and the negative
+    phrases of relevancy) embedded in ONE call of ``encoder``. ``calibration``: the map's (its file records one); default: the library's for
     the dictionary's space. Returns (results, the answer with its relation query) per text."""
     from openfusion.mapping.answers import answer_text, texts_to_embed
     from openfusion.mapping.relevancy import RelevancyScorer, calibration_for
 
     dictionary.check_space(getattr(encoder, "embedding_space", None))
     least = default_min_region_points() if min_points is None else max(1, int(min_points))
-    scorer = RelevancyScorer(encoder, calibration or calibration_for(dictionary.embedding_space))
+    calibration = calibration or calibration_for(dictionary.embedding_space)
     wanted = texts_to_embed(texts)
-    vectors = dict(zip(wanted, np.asarray(encoder.encode(wanted), np.float32), strict=True))
+    negatives = list(calibration.negatives)
+    embedded = np.asarray(encoder.encode(wanted + negatives), np.float32)  # one call: texts, parts, negatives
+    vectors = dict(zip(wanted, embedded[: len(wanted)], strict=True))
+    scorer = RelevancyScorer.of_vectors(calibration, embedded[len(wanted):])
 
     def rank(vector: np.ndarray, n: int) -> list[tuple[int, float]]:
         return [(r.key, r.score) for r in query_region_table(dictionary, table, vector, n, min_points=least)]
@@ -321,6 +325,12 @@ def answer_texts(
             results.append(RegionResult(
                 region.key, region.score, dictionary.label(region.key), table.bbox_min[i].copy(),
                 table.bbox_max[i].copy(), int(table.num_points[i]), relevancy=region.relevancy, match=region.match,
-                centroid=table.centroid[i].copy(), nearby=region.nearby, relation=region.relation))
+                centroid=table.centroid[i].copy(), nearby=[_labelled(n, dictionary) for n in region.nearby],
+                relation=_labelled(region.relation, dictionary) if region.relation is not None else None))
         out.append((results, answer))
     return out
+
+
+def _labelled(nearby: Nearby, dictionary: RegionDictionary) -> NearbyRegion:
+    label = dictionary.label(nearby.key) if nearby.key in dictionary else None
+    return NearbyRegion(key=nearby.key, label=label or None, relation=nearby.relation, distance_m=nearby.distance_m)

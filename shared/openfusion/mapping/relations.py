@@ -7,8 +7,9 @@ break on key). The relation of region A to region B (:func:`relation_of`), tried
   :data:`FOOTPRINT_SHARE` of A's footprint (its box seen from above) lies over B's footprint
   (a monitor on the desk, a chair on the floor);
 - ``under``: B is on or above A, or A sits in B's footprint (at least :data:`FOOTPRINT_SHARE`)
-  with its top at least :data:`SUPPORT_GAP_M` below B's top and its bottom not below B's bottom
-  (a chair pushed under a table, whose box reaches the floor);
+  with its top at least :data:`SUPPORT_GAP_M` below B's top and its bottom not below B's bottom,
+  B's footprint at most :data:`MAX_COVER_RATIO` times A's (a chair pushed under a table, whose
+  box reaches the floor; not a window "under" a box that spans the room's walls);
 - ``above``: A's bottom is more than :data:`SUPPORT_GAP_M` over B's top and their footprints
   overlap (a lamp above the table);
 - ``next to``: none of those, the boxes share some height, and the horizontal gap between the
@@ -42,6 +43,10 @@ from openfusion.wire.schemas.query import RELATIONS  # the relations, in the ord
 SUPPORT_GAP_M = 0.10
 #: Share of A's footprint that must lie over B's for ``on`` / ``under``.
 FOOTPRINT_SHARE = 0.5
+#: ``under`` by footprint (a chair pushed under a table) only below a region whose footprint is at
+#: most this many times A's: a box that spans a room (a wall region made of several walls, the
+#: ceiling) covers everything without anything being under it.
+MAX_COVER_RATIO = 16.0
 #: Largest horizontal gap between footprints for ``next to`` (metres).
 NEXT_TO_M = 0.5
 #: ``nearby``: regions within this box-to-box distance (metres).
@@ -143,7 +148,8 @@ def _above(a: _Box, b: _Box) -> bool:
 
 def _tucked_under(a: _Box, b: _Box) -> bool:
     return (
-        _foot_overlap(a, b) >= FOOTPRINT_SHARE * a.foot_area
+        b.foot_area <= MAX_COVER_RATIO * a.foot_area
+        and _foot_overlap(a, b) >= FOOTPRINT_SHARE * a.foot_area
         and a.top <= b.top - SUPPORT_GAP_M
         and a.bottom >= b.bottom - SUPPORT_GAP_M
     )

@@ -156,6 +156,16 @@ class RelevancyScorer:
         self.calibration = calibration or calibration_for(encoder.embedding_space)
         self._negatives = np.asarray(encoder.encode(list(self.calibration.negatives)), np.float32)
 
+    @classmethod
+    def of_vectors(cls, calibration: SpaceCalibration, negative_vectors: np.ndarray) -> RelevancyScorer:
+        """A scorer from negatives the caller embedded (with its query texts, in one encoder call)."""
+        scorer = object.__new__(cls)
+        scorer.calibration = calibration
+        scorer._negatives = np.asarray(negative_vectors, np.float32)
+        if len(scorer._negatives) != len(calibration.negatives):
+            raise ValueError(f"{len(calibration.negatives)} negative phrases but {len(scorer._negatives)} vectors")
+        return scorer
+
     def relevancy(self, query_vectors: np.ndarray, region_embeddings: np.ndarray) -> np.ndarray:
         """(q, r) relevancy (:func:`relevancy`) with this space's negatives and temperature."""
         return relevancy(query_vectors, region_embeddings, self._negatives, temperature=self.calibration.temperature)
