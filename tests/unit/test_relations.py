@@ -44,6 +44,8 @@ def test_relations_of_boxes() -> None:
     assert _rel(TABLE, FLOOR) == "on" and _rel(NEAR_CHAIR, FLOOR) == "on"
     assert _rel(LAMP, TABLE) == "above" and _rel(TABLE, LAMP) == "under"
     assert _rel(CRATE, TABLE) == "under"  # tucked under: in its footprint, below its top
+    bed, pillow = ((4.0, 1.3, 0.0), (6.0, 2.8, 1.0)), ((5.5, 1.4, 0.5), (5.8, 2.0, 0.64))  # headboard at 1 m
+    assert _rel(pillow, bed) == "on" and _rel(bed, pillow) == "under"
     walls = ((0.0, 0.0, 0.0), (6.0, 5.0, 2.8))  # a region spanning the room's walls covers all, holds nothing
     assert _rel(((0.0, 1.0, 0.9), (0.1, 2.0, 2.0)), walls) != "under"
     assert _rel(NEAR_CHAIR, TABLE) == "next to" and _rel(TABLE, NEAR_CHAIR) == "next to"

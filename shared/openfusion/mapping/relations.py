@@ -3,13 +3,15 @@
 Pure functions on axis-aligned boxes (world, metres) and the map's up axis; deterministic (ties
 break on key). The relation of region A to region B (:func:`relation_of`), tried in this order:
 
-- ``on``: A's bottom lies within :data:`SUPPORT_GAP_M` of B's top, and at least
-  :data:`FOOTPRINT_SHARE` of A's footprint (its box seen from above) lies over B's footprint
-  (a monitor on the desk, a chair on the floor);
+- ``on``: at least :data:`FOOTPRINT_SHARE` of A's footprint (its box seen from above) lies over
+  B's footprint, and A's bottom lies within :data:`SUPPORT_GAP_M` of B's top (a monitor on the
+  desk, a chair on the floor), or A lies inside B's box raised more than :data:`SUPPORT_GAP_M`
+  off B's bottom (a pillow on a bed whose headboard is higher than the pillow);
 - ``under``: B is on or above A, or A sits in B's footprint (at least :data:`FOOTPRINT_SHARE`)
-  with its top at least :data:`SUPPORT_GAP_M` below B's top and its bottom not below B's bottom,
-  B's footprint at most :data:`MAX_COVER_RATIO` times A's (a chair pushed under a table, whose
-  box reaches the floor; not a window "under" a box that spans the room's walls);
+  on the same level as B's bottom (within :data:`SUPPORT_GAP_M`) with its top at least
+  :data:`SUPPORT_GAP_M` below B's top (a chair pushed under a table, whose box reaches the floor);
+  the "inside" rules need B's footprint at most :data:`MAX_COVER_RATIO` times A's (a window is
+  not "under" a region whose box spans the room's walls);
 - ``above``: A's bottom is more than :data:`SUPPORT_GAP_M` over B's top and their footprints
   overlap (a lamp above the table);
 - ``next to``: none of those, the boxes share some height, and the horizontal gap between the
@@ -46,7 +48,7 @@ FOOTPRINT_SHARE = 0.5
 #: ``under`` by footprint (a chair pushed under a table) only below a region whose footprint is at
 #: most this many times A's: a box that spans a room (a wall region made of several walls, the
 #: ceiling) covers everything without anything being under it.
-MAX_COVER_RATIO = 16.0
+MAX_COVER_RATIO = 32.0
 #: Largest horizontal gap between footprints for ``next to`` (metres).
 NEXT_TO_M = 0.5
 #: ``nearby``: regions within this box-to-box distance (metres).
@@ -139,7 +141,18 @@ def box_distance(a_lo: np.ndarray, a_hi: np.ndarray, b_lo: np.ndarray, b_hi: np.
 
 
 def _on(a: _Box, b: _Box) -> bool:
-    return abs(a.bottom - b.top) <= SUPPORT_GAP_M and _foot_overlap(a, b) >= FOOTPRINT_SHARE * a.foot_area
+    if _foot_overlap(a, b) < FOOTPRINT_SHARE * a.foot_area:
+        return False
+    if abs(a.bottom - b.top) <= SUPPORT_GAP_M:  # on B's top
+        return True
+    # inside B's box, raised off B's bottom: on a surface of B below its highest point (a pillow
+    # on a bed with a headboard, a book on a shelf)
+    return _covers(b, a) and b.bottom + SUPPORT_GAP_M < a.bottom and a.top <= b.top + SUPPORT_GAP_M
+
+
+def _covers(b: _Box, a: _Box) -> bool:
+    """B is not a box that spans a room (:data:`MAX_COVER_RATIO`)."""
+    return b.foot_area <= MAX_COVER_RATIO * a.foot_area
 
 
 def _above(a: _Box, b: _Box) -> bool:
@@ -148,10 +161,10 @@ def _above(a: _Box, b: _Box) -> bool:
 
 def _tucked_under(a: _Box, b: _Box) -> bool:
     return (
-        b.foot_area <= MAX_COVER_RATIO * a.foot_area
+        _covers(b, a)
         and _foot_overlap(a, b) >= FOOTPRINT_SHARE * a.foot_area
         and a.top <= b.top - SUPPORT_GAP_M
-        and a.bottom >= b.bottom - SUPPORT_GAP_M
+        and abs(a.bottom - b.bottom) <= SUPPORT_GAP_M
     )
 
 
