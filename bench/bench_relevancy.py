@@ -84,6 +84,8 @@ def search(encoder, temperature: float) -> None:  # noqa: ANN001
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--encoders", default="minilm,hash")
+    parser.add_argument("--quick", action="store_true", help="(bench/run_all.py) the same run: it takes seconds")
+    parser.add_argument("--full", action="store_true", help="(bench/run_all.py) the same run")
     parser.add_argument("--search", action="store_true", help="try larger negative sets (calibration list only)")
     parser.add_argument("--failures", action="store_true", help="list the held-out queries answered wrongly")
     args = parser.parse_args()

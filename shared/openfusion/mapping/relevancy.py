@@ -141,7 +141,7 @@ def relevancy(
     if temperature <= 0:
         raise ValueError(f"temperature must be positive, got {temperature}")
     Q, R, N = _unit_rows(query_vectors), _unit_rows(region_embeddings), _unit_rows(negative_vectors)
-    if R.shape[0] == 0 or (R.shape[0] == 1 and not np.any(region_embeddings)):
+    if R.shape[0] == 0 or np.asarray(region_embeddings).size == 0:
         return np.zeros((Q.shape[0], 0), np.float64)
     if len(N) == 0:
         raise ValueError("at least one negative phrase is needed")
