@@ -60,6 +60,7 @@ from openfusion.bus import QueryError, RequestError, ServiceRunner
 from openfusion.config import ServiceConfig
 from openfusion.encoders import TEXT_ENCODER_NAMES, make_text_encoder
 from openfusion.mapping.answers import (
+    MAX_ANCHORS,
     RELATION_CANDIDATES,
     RankedRegion,
     TextAnswer,
@@ -68,7 +69,7 @@ from openfusion.mapping.answers import (
 )
 from openfusion.mapping.params import QueryParams
 from openfusion.mapping.queries import candidates_for, region_centroids, region_summaries, subsample_points
-from openfusion.mapping.relations import Nearby, RegionBoxes
+from openfusion.mapping.relations import Nearby, RegionBoxes, parse_relation_query
 from openfusion.mapping.relevancy import RelevancyScorer
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
@@ -414,8 +415,13 @@ class QueryService:
         checked once for every ranked key, and with ``with_points`` ONE points request to geometry
         for the regions of all of them. Relevancy, match, nearby regions and relations:
         :func:`~openfusion.mapping.answers.answer_text`, as every query path."""
-        wide = candidates_for(top_k + RELATION_CANDIDATES)
-        candidates = {text: self.replica.top_k(v, wide) for text, v in vectors.items()}
+        # the X of "X next to Y" looks at more candidates; every other text as many as always
+        targets = {rq.target for rq in map(parse_relation_query, queries) if rq is not None}
+        candidates = {
+            text: self.replica.top_k(v, candidates_for(top_k + RELATION_CANDIDATES if text in targets
+                                                       else max(top_k, MAX_ANCHORS)))
+            for text, v in vectors.items()
+        }
         summaries = self._summaries_for(sorted({k for ranked in candidates.values() for k, _ in ranked}))
         least = self.section.min_region_points
         usable = {text: drop_empty_regions(ranked, summaries, min_points=least) for text, ranked in candidates.items()}
