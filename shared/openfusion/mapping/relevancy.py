@@ -30,7 +30,7 @@ relevancy 0.5), and says so in :attr:`SpaceCalibration.calibrated`.
 
 Negatives: LERF's "object", "things", "stuff", "texture". Larger sets (generic words such as
 "something", "an item"; broad out-of-room categories such as "animal", "vehicle", "food",
-"landscape") and a greedy search over 46 candidate phrases did not raise recall at precision 0.95
+"landscape") and a greedy search over 42 candidate phrases did not raise recall at precision 0.95
 on the calibration list for MiniLM, so the LERF set stays (measured by ``bench/bench_relevancy.py
 --search``).
 """
