@@ -67,6 +67,15 @@ class DictionaryReplica:
             keys, scores = self.dictionary.top_k(vector, k)
         return [(int(a), float(b)) for a, b in zip(keys, scores, strict=True)]
 
+    def embeddings_for(self, keys: list[int]) -> np.ndarray:
+        """(len(keys), dim) unit embeddings of ``keys`` (zero rows for keys it does not hold)."""
+        with self._lock:
+            d = self.dictionary
+            if d is None:
+                return np.zeros((len(keys), 0), np.float32)
+            return np.stack([d.embedding(int(k)) if int(k) in d else np.zeros(d.dim, np.float32) for k in keys]
+                            ) if keys else np.zeros((0, d.dim), np.float32)
+
     def labels_for(self, keys: list[int]) -> dict[int, str]:
         """Label text of each of ``keys`` ("" when none or unknown)."""
         with self._lock:

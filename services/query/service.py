@@ -59,8 +59,18 @@ from pydantic import Field, field_validator
 from openfusion.bus import QueryError, RequestError, ServiceRunner
 from openfusion.config import ServiceConfig
 from openfusion.encoders import TEXT_ENCODER_NAMES, make_text_encoder
+from openfusion.mapping.answers import (
+    MAX_ANCHORS,
+    RELATION_CANDIDATES,
+    RankedRegion,
+    TextAnswer,
+    answer_text,
+    texts_to_embed,
+)
 from openfusion.mapping.params import QueryParams
-from openfusion.mapping.queries import candidates_for, region_summaries, subsample_points
+from openfusion.mapping.queries import candidates_for, region_centroids, region_summaries, subsample_points
+from openfusion.mapping.relations import Nearby, RegionBoxes, parse_relation_query
+from openfusion.mapping.relevancy import RelevancyScorer
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
 from openfusion.wire.counters import QueryCounter
@@ -77,6 +87,7 @@ from openfusion.wire.endpoints import (
 from openfusion.wire.schemas import (
     DictionaryDelta,
     ImageQuery,
+    NearbyRegion,
     PointQuery,
     PointsReply,
     PointsRequest,
@@ -85,6 +96,7 @@ from openfusion.wire.schemas import (
     RegionHit,
     RegionSummaryReply,
     RegionSummaryRequest,
+    RelationQueryInfo,
     TextQuery,
     TextQueryBatch,
 )
@@ -136,15 +148,33 @@ class RegionSummaries:
         self.key_horizon = reply.key_horizon
         self.fetched_at = fetched_at  # monotonic time the request was sent
         self._index = {int(k): i for i, k in enumerate(reply.keys.tolist())}
+        self._keys = np.asarray(reply.keys)
         self._bbox_min, self._bbox_max, self._num_points = reply.bbox_min, reply.bbox_max, reply.num_points
+        self._centroid = reply.centroid
 
     @classmethod
     def of_points(cls, keys: np.ndarray, points: np.ndarray) -> RegionSummaries:
         """The same table computed here from labelled points (e.g. a ``geometry/points`` reply)."""
         k, lo, hi, n = region_summaries(keys, points)
         reply = RegionSummaryReply(map_version=0, key_horizon=0, age_s=0.0, keys=k, bbox_min=lo, bbox_max=hi,
-                                   num_points=n)
+                                   num_points=n, centroid=region_centroids(k, keys, points))
         return cls(reply, fetched_at=time.monotonic())
+
+    def centroid(self, key: int) -> np.ndarray | None:
+        """Mean of ``key``'s surface points; the box centre when geometry did not send centroids;
+        None when the region has no points (or is unknown)."""
+        i = self._index.get(int(key))
+        if i is None or int(self._num_points[i]) == 0:
+            return None
+        if self._centroid is not None:
+            return np.asarray(self._centroid[i], np.float32)
+        return ((self._bbox_min[i] + self._bbox_max[i]) / 2).astype(np.float32)
+
+    def boxes(self, *, min_points: int = 1) -> RegionBoxes:
+        """The boxes of the regions with at least ``min_points`` surface points (relations)."""
+        keep = np.asarray(self._num_points) >= min_points
+        order = np.argsort(self._keys[keep], kind="stable")
+        return RegionBoxes(self._keys[keep][order], self._bbox_min[keep][order], self._bbox_max[keep][order])
 
     def __len__(self) -> int:
         return len(self._index)
@@ -173,7 +203,7 @@ def drop_empty_regions(
 
 
 def region_hits(
-    ranked: list[tuple[int, float]],
+    ranked: list[tuple[int, float]] | list[RankedRegion],
     labels: dict[int, str],
     points: PointsReply | None,
     *,
@@ -181,14 +211,20 @@ def region_hits(
     max_points: int,
     summaries: RegionSummaries | None = None,
 ) -> list[RegionHit]:
-    """Ranked (key, score) pairs → :class:`RegionHit` list. Box and count come from ``points``
-    (the points of those keys) when given, else from ``summaries`` (zeros when neither knows);
-    the box is the library's (:func:`~openfusion.mapping.queries.region_summaries`), as in-process."""
+    """Ranked (key, score) pairs, or :class:`~openfusion.mapping.answers.RankedRegion` answers
+    (with relevancy, match, nearby regions, relation), → :class:`RegionHit` list. Box, count and
+    centroid come from ``points`` (the points of those keys) when given, else from ``summaries``
+    (zeros and no centroid when neither knows); the box is the library's
+    (:func:`~openfusion.mapping.queries.region_summaries`), as in-process. ``labels``: of the
+    ranked keys and of their nearby regions."""
+    regions = [r if isinstance(r, RankedRegion) else RankedRegion(int(r[0]), float(r[1]), None, None)  # type: ignore[arg-type]
+               for r in ranked]
     hits = []
     if points is not None:  # boxes of the ranked regions only (a point query's reply holds the whole map)
-        ranked_pts = np.isin(points.keys, [k for k, _ in ranked])
+        ranked_pts = np.isin(points.keys, [r.key for r in regions])
         summaries = RegionSummaries.of_points(points.keys[ranked_pts], points.points[ranked_pts])
-    for key, score in ranked:
+    for region in regions:
+        key = region.key
         bbox_min, bbox_max, n = summaries.get(key) if summaries is not None else (_ZERO3, _ZERO3, 0)
         kept = None  # also when points were asked for but geometry did not answer
         if with_points and points is not None:
@@ -196,15 +232,25 @@ def region_hits(
         hits.append(
             RegionHit(
                 key=int(key),
-                score=float(score),
+                score=float(region.score),
                 label=labels.get(int(key)) or None,
                 bbox_min=np.asarray(bbox_min, np.float32),
                 bbox_max=np.asarray(bbox_max, np.float32),
                 num_points=n,
                 points=kept,
+                relevancy=region.relevancy,
+                match=region.match,
+                centroid=summaries.centroid(key) if summaries is not None else None,
+                nearby=[_nearby(nb, labels) for nb in region.nearby],
+                relation=_nearby(region.relation, labels) if region.relation is not None else None,
             )
         )
     return hits
+
+
+def _nearby(nearby: Nearby, labels: dict[int, str]) -> NearbyRegion:
+    return NearbyRegion(key=nearby.key, label=labels.get(nearby.key) or None, relation=nearby.relation,
+                        distance_m=nearby.distance_m)
 
 
 def text_encoder_from_section(section: QuerySection) -> Any:
@@ -224,6 +270,8 @@ class QueryService:
         self.config = config
         self.section = config.query
         self.text_encoder = text_encoder if text_encoder is not None else text_encoder_from_section(self.section)
+        # relevancy of the encoder's space (the map's, or the query is refused): negatives embedded once
+        self.scorer = RelevancyScorer(self.text_encoder)
         self.replica = DictionaryReplica()
         self._runner: ServiceRunner | None = None
         self._resync_lock = threading.Lock()
@@ -349,41 +397,65 @@ class QueryService:
         self, vector: np.ndarray, *, top_k: int, with_points: bool, max_points: int, space: str, query: str
     ) -> QueryReply:
         return self._rank_many(
-            vector[None, :], top_k=top_k, with_points=with_points, max_points=max_points, space=space, queries=[query]
+            {query: vector}, [query], top_k=top_k, with_points=with_points, max_points=max_points, space=space
         )[0]
 
     def _rank_many(
         self,
-        vectors: np.ndarray,
+        vectors: dict[str, np.ndarray],
+        queries: list[str],
         *,
         top_k: int,
         with_points: bool,
         max_points: int,
         space: str,
-        queries: list[str],
     ) -> list[QueryReply]:
-        """One reply per row of ``vectors``: the summaries checked once for every ranked key, and
-        with ``with_points`` ONE points request to geometry for the regions of all of them."""
-        candidates = [self.replica.top_k(v, candidates_for(top_k)) for v in vectors]
-        summaries = self._summaries_for(sorted({k for ranked in candidates for k, _ in ranked}))
-        rankings = [
-            drop_empty_regions(ranked, summaries, min_points=self.section.min_region_points)[:top_k]
-            for ranked in candidates
+        """One reply per query (``vectors`` holds the embedding of each, and of the X and Y of
+        relation queries, :func:`~openfusion.mapping.answers.texts_to_embed`): the summaries
+        checked once for every ranked key, and with ``with_points`` ONE points request to geometry
+        for the regions of all of them. Relevancy, match, nearby regions and relations:
+        :func:`~openfusion.mapping.answers.answer_text`, as every query path."""
+        # the X of "X next to Y" looks at more candidates; every other text as many as always
+        targets = {rq.target for rq in map(parse_relation_query, queries) if rq is not None}
+        candidates = {
+            text: self.replica.top_k(v, candidates_for(top_k + RELATION_CANDIDATES if text in targets
+                                                       else max(top_k, MAX_ANCHORS)))
+            for text, v in vectors.items()
+        }
+        summaries = self._summaries_for(sorted({k for ranked in candidates.values() for k, _ in ranked}))
+        least = self.section.min_region_points
+        usable = {text: drop_empty_regions(ranked, summaries, min_points=least) for text, ranked in candidates.items()}
+        by_vector = {id(vectors[text]): usable[text] for text in vectors}
+
+        def rank(vector: np.ndarray, n: int) -> list[tuple[int, float]]:
+            return by_vector[id(vector)][:n]
+
+        boxes = summaries.boxes(min_points=least) if summaries is not None else None
+        answers: list[TextAnswer] = [
+            answer_text(text, vectors, rank=rank, embeddings=self.replica.embeddings_for, scorer=self.scorer,
+                        boxes=boxes, top_k=top_k, up_axis=self.section.up_axis)
+            for text in queries
         ]
-        keys = sorted({k for ranked in rankings for k, _ in ranked})
+        keys = sorted({r.key for a in answers for r in a.regions})
         points = None
         if with_points:  # the points themselves: only geometry has them (box and count from them too)
             points = self._points_of(keys, self.section.max_points_reply)
-        labels = self.replica.labels_for(keys)
+        named = set(keys) | {n.key for a in answers for r in a.regions for n in r.nearby} | {
+            k for a in answers for k in a.anchors}
+        labels = self.replica.labels_for(sorted(named))
         return [
             QueryReply(
                 embedding_space=space,
                 query=query,
                 regions=region_hits(
-                    ranked, labels, points, with_points=with_points, max_points=max_points, summaries=summaries
+                    answer.regions, labels, points, with_points=with_points, max_points=max_points, summaries=summaries
                 ),
+                match_threshold=self.scorer.calibration.threshold,
+                relation=None if answer.relation is None else RelationQueryInfo(
+                    target=answer.relation.target, relation=answer.relation.relation, anchor=answer.relation.anchor,
+                    anchor_keys=answer.anchors),
             )
-            for query, ranked in zip(queries, rankings, strict=True)
+            for query, answer in zip(queries, answers, strict=True)
         ]
 
     def _check_text(self, text: str, which: str = "") -> None:
@@ -401,14 +473,15 @@ class QueryService:
         self._check_limits(req.top_k, req.max_points)
         space = self._check_space(req.embedding_space)
         self._check_text_space(space)
-        vectors = np.asarray(self.text_encoder.encode(list(texts)), np.float32).reshape(len(texts), -1)
+        wanted = texts_to_embed(texts)  # the texts, then the X and Y of "X next to Y" queries
+        vectors = np.asarray(self.text_encoder.encode(wanted), np.float32).reshape(len(wanted), -1)
         return self._rank_many(
-            vectors,
+            dict(zip(wanted, vectors, strict=True)),
+            list(texts),
             top_k=req.top_k,
             with_points=req.with_points,
             max_points=req.max_points,
             space=space,
-            queries=list(texts),
         )
 
     def handle_text(self, req: TextQuery) -> QueryReply:

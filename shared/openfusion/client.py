@@ -7,6 +7,20 @@
             print(region.key, region.score, region.label, region.bbox_min, region.bbox_max)
         for reply in client.query_texts(["chair", "table", "lamp"]):  # one round trip
             print(reply.query, [region.key for region in reply.regions])
+        reply = client.query_text("zebra")
+        if not reply.matched:  # no region's relevancy reaches the space's threshold
+            print("no match; closest:", reply.regions[0].label if reply.regions else None)
+        reply = client.query_text("the chair next to the table")  # "X on/under/above/next to Y"
+        for region in reply.regions:
+            print(region.key, region.relevancy, region.match, region.centroid,
+                  region.relation,  # the anchor it stands in the relation to (None: it does not)
+                  [(n.relation, n.label) for n in region.nearby])  # up to 3 related regions
+
+Each hit (:class:`~openfusion.wire.schemas.RegionHit`) carries ``score`` (cosine), ``relevancy``
+in [0, 1] and ``match`` (:mod:`openfusion.mapping.relevancy`), its box and centroid, up to three
+``nearby`` regions with the hit's relation to each, and for relation queries ``relation``;
+:attr:`QueryReply.matched` says whether any hit is a match, ``QueryReply.relation`` how a
+relation query was read (X, relation, Y and the Y regions used).
 
 Every call is a Zenoh ``get`` with a timeout; a refusal or a service that does not answer
 raises :class:`openfusion.bus.QueryError` with the service's reason. Keys, message types and

@@ -19,6 +19,7 @@ from openfusion.bus import QueryError, RequestError, open_session
 from openfusion.client import OpenFusionClient
 from openfusion.encoders import make_text_encoder
 from openfusion.mapping import RegionDictionary
+from openfusion.mapping.relevancy import DEFAULT_NEGATIVES
 from openfusion.services.query.service import QueryConfig, QueryService, RegionSummaries
 from openfusion.testing.bus import ServiceThread, free_port, loopback_config, unique_map_id, wait_for_services
 from openfusion.testing.encoders import CountingTextEncoder
@@ -53,6 +54,8 @@ def _summaries() -> RegionSummaries:
 def _service(config: QueryConfig | None = None, *, with_map: bool = True) -> QueryService:
     config = config or QueryConfig(map_id="unit")
     service = QueryService(config, text_encoder=CountingTextEncoder())
+    assert service.text_encoder.calls == [list(DEFAULT_NEGATIVES)]  # relevancy's negatives, once at start
+    service.text_encoder.calls.clear()
     if with_map:
         dictionary = RegionDictionary(TEXT.embedding_space, TEXT.dim)
         for name in NAMES:
@@ -72,13 +75,13 @@ def _same(a, b) -> None:  # noqa: ANN001 - two QueryReplies
 
 
 def test_a_batch_embeds_every_text_in_one_call_and_answers_each_as_one_text_would() -> None:
-    """Replies in the order of the texts (a repeated text answered twice), each equal to the
-    one-text answer; the lamp fragment (2 points) is no answer in either."""
+    """Replies in the order of the texts (a repeated text answered twice, embedded once), each
+    equal to the one-text answer; the lamp fragment (2 points) is no answer in either."""
     service = _service()
     texts = ["table", "chair", "something to sit on", "lamp", "chair"]
     batch = service.handle_text_batch(TextQueryBatch(texts=texts, top_k=3))
     assert isinstance(batch, QueryBatchReply)
-    assert service.text_encoder.calls == [texts]
+    assert service.text_encoder.calls == [texts[:4]]
     assert [r.query for r in batch.replies] == texts
     for text, reply in zip(texts, batch.replies, strict=True):
         _same(reply, service.handle_text(TextQuery(text=text, top_k=3)))
@@ -162,7 +165,8 @@ def test_the_client_asks_several_texts_in_one_round_trip_per_64() -> None:
             many = [NAMES[i % len(NAMES)] for i in range(70)]
             encoder.calls.clear()
             replies = client.query_texts(many, top_k=1)
-            assert [len(c) for c in encoder.calls] == [64, 6]
+            # one encoder call per request of 64, each text embedded once
+            assert encoder.calls == [list(dict.fromkeys(many[:64])), list(dict.fromkeys(many[64:]))]
             assert [r.query for r in replies] == many
             assert all(r.regions[0].label == n for n, r in zip(many, replies, strict=True) if n != "lamp")
             assert client.query_texts([]) == []

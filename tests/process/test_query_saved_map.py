@@ -14,6 +14,7 @@ import pytest
 
 from openfusion.encoders import make_text_encoder
 from openfusion.mapping import load_map, query_regions, save_map
+from openfusion.mapping.relevancy import DEFAULT_NEGATIVES
 from openfusion.testing.bus import subprocess_env
 from openfusion.testing.maps import (
     SyntheticMapSpec,
@@ -129,7 +130,8 @@ def test_a_query_prints_its_answer_and_nothing_else(maps, minilm_onnx_cache) -> 
     prints one object for one text and a list of the per-text objects for several."""
     texts = ["chair", "table", "something to sit on"]
     alone = [_stdout_alone(_query(maps["new"], minilm_onnx_cache, t, "--top-k", "3")) for t in texts]
-    assert alone[0].splitlines()[0] == "'chair' in minilm-l6-v2:" and len(alone[0].splitlines()) == 4
+    assert alone[0].splitlines()[0] == "'chair' in minilm-l6-v2:"
+    assert sum(line.startswith("  key ") for line in alone[0].splitlines()) == 3
     together = _stdout_alone(_query(maps["new"], minilm_onnx_cache, *texts, "--top-k", "3"))
     assert together == "".join(alone)
     objects = [json.loads(_stdout_alone(_query(maps["new"], minilm_onnx_cache, t, "--top-k", "3", "--json")))
@@ -157,7 +159,7 @@ def test_several_texts_of_a_saved_map_are_embedded_in_one_encoder_call(maps, min
     monkeypatch.setattr(query_cmd, "_text_encoder_for", counting)
     monkeypatch.setenv("OPENFUSION_CACHE", str(minilm_onnx_cache))
     assert cli.main(["query", "--map-dir", str(maps["new"]), "chair", "lamp", "table", "--json"]) == 0
-    assert calls == [["chair", "lamp", "table"]]
+    assert calls == [["chair", "lamp", "table", *DEFAULT_NEGATIVES]]  # relevancy's negative phrases too
     assert [o["query"] for o in json.loads(capsys.readouterr().out)] == ["chair", "lamp", "table"]
 
 
@@ -190,3 +192,18 @@ def test_the_sentence_transformers_path_is_quiet_too_and_verbose_shows_the_libra
     assert " INFO openfusion." in verbose.stderr and "Loading weights" in verbose.stderr
     lean_verbose = _query(maps["new"], minilm_onnx_cache, "chair", "--verbose")
     assert "read map summary" in lean_verbose.stderr and lean_verbose.stdout.startswith("'chair' in minilm-l6-v2:")
+
+
+def test_a_word_that_names_nothing_prints_no_match_and_exits_0(maps, minilm_onnx_cache) -> None:
+    """"zebra" in a room without one: the one "no match" line naming the closest region and its
+    relevancy, exit status 0; --json still lists the ranked regions, each with relevancy and
+    match false; "chair" next to it matches, with nearby regions and a centroid."""
+    out = _stdout_alone(_query(maps["new"], minilm_onnx_cache, "zebra", "chair", "--top-k", "3"))
+    first, *rest = out.splitlines()
+    assert first.startswith('no match for "zebra" (closest: ') and ", relevancy 0." in first
+    assert rest[0] == "'chair' in minilm-l6-v2:" and "relevancy 1.00 match" in rest[1] and "near: " in rest[2]
+    zebra, chair = json.loads(_stdout_alone(_query(maps["new"], minilm_onnx_cache, "zebra", "chair", "--json")))
+    assert zebra["regions"] and all(r["match"] is False and 0 <= r["relevancy"] < 0.81 for r in zebra["regions"])
+    assert chair["regions"][0]["match"] is True and len(chair["regions"][0]["centroid"]) == 3
+    assert chair["regions"][0]["nearby"] and {"key", "label", "relation", "distance_m"} == set(
+        chair["regions"][0]["nearby"][0])

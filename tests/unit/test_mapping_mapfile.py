@@ -258,3 +258,36 @@ def test_corrupt_summaries_are_refused_by_both_readers(mapper: SemanticMapper, t
     for read in (load_map_summary, load_map):
         with pytest.raises(MapFormatError, match=r"CRC.*summary_num_points|summary_num_points.*CRC"):
             read(path)
+
+
+class _CategoryEncoder:
+    """Text -> the analytic scene's category embedding of its last word (a stand-in text encoder)."""
+
+    embedding_space = "analytic-test"
+
+    def encode(self, texts: list[str]) -> np.ndarray:
+        return np.stack([category_embedding(t.split()[-1], DIM) for t in texts]).astype(np.float32)
+
+
+def test_a_map_records_its_relevancy_calibration_and_answers_where_things_are(
+    mapper: SemanticMapper, tmp_path: Path
+) -> None:
+    """The header records the calibration of the map's space (here an uncalibrated one: the 0.5
+    fallback), both readers return it; answered from the saved summaries, the chair is on the
+    floor and next to the table, and "the chair next to the table" names the table."""
+    from openfusion.mapping.queries import answer_texts
+    from openfusion.mapping.relevancy import calibration_for
+
+    path = save_map(tmp_path / "m.npz", mapper.volume, mapper.dictionary)
+    want = calibration_for("analytic-test").to_dict()
+    assert want["calibrated"] is False and want["threshold"] == 0.5
+    summary = load_map_summary(path)
+    assert summary.relevancy == want and load_map(path).relevancy == want
+    (chair, _), (related, answer) = answer_texts(
+        summary.dictionary, summary.regions, ["chair", "the chair next to the table"], _CategoryEncoder(), top_k=1,
+        calibration=calibration_for("analytic-test", summary.relevancy))
+    assert chair[0].label == "chair" and chair[0].match and chair[0].relevancy > 0.5
+    labels = {(n.label, n.relation) for n in chair[0].nearby}
+    assert ("floor", "on") in labels and ("table", "next to") in labels
+    assert related[0].label == "chair" and related[0].relation.label == "table" and answer.relation.anchor == "table"
+    np.testing.assert_allclose(chair[0].centroid, summary.regions.centroid[summary.regions.row(chair[0].key)])

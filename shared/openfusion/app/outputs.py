@@ -12,12 +12,68 @@ from typing import Any
 from openfusion.io.ply import write_ply_vertices
 
 
+def _nearby_record(nearby: Any) -> dict[str, Any]:
+    return {"key": int(nearby.key), "label": nearby.label, "relation": nearby.relation,
+            "distance_m": round(float(nearby.distance_m), 3)}
+
+
 def region_record(region: Any) -> dict[str, Any]:
-    """A ranked region (bus ``RegionHit`` or library ``RegionResult``) as a JSON-ready dict."""
-    return {"key": int(region.key), "score": round(float(region.score), 4), "label": region.label,
-            "num_points": int(region.num_points),
-            "bbox_min": [round(float(v), 3) for v in region.bbox_min],
-            "bbox_max": [round(float(v), 3) for v in region.bbox_max]}
+    """A ranked region (bus ``RegionHit`` or library ``RegionResult``) as a JSON-ready dict:
+    key, score (cosine), label, num_points, bbox_min/bbox_max, relevancy ([0, 1] or null), match
+    (bool or null), centroid ([x, y, z] or null), nearby (up to 3 ``{key, label, relation,
+    distance_m}``) and, for a hit of an "X next to Y" query that stands in the relation,
+    ``relation`` (the anchor, same form)."""
+    centroid = getattr(region, "centroid", None)
+    relevancy = getattr(region, "relevancy", None)
+    record = {"key": int(region.key), "score": round(float(region.score), 4), "label": region.label,
+              "num_points": int(region.num_points),
+              "bbox_min": [round(float(v), 3) for v in region.bbox_min],
+              "bbox_max": [round(float(v), 3) for v in region.bbox_max],
+              "relevancy": None if relevancy is None else round(float(relevancy), 4),
+              "match": getattr(region, "match", None),
+              "centroid": None if centroid is None else [round(float(v), 3) for v in centroid],
+              "nearby": [_nearby_record(n) for n in getattr(region, "nearby", None) or []]}
+    relation = getattr(region, "relation", None)
+    if relation is not None:
+        record["relation"] = _nearby_record(relation)
+    return record
+
+
+def region_name(region: Any) -> str:
+    """How a region is named in a sentence: its label, else ``region KEY``."""
+    return region.label or f"region {int(region.key)}"
+
+
+def no_match_line(text: str, regions: list[Any]) -> str | None:
+    """``no match for "X" (closest: Y, relevancy R)`` when no region of the answer is a match
+    (None when one is, or when relevancy was not computed); Y is the region of highest relevancy
+    ("nothing" when the map has no region to answer)."""
+    if any(getattr(r, "match", None) for r in regions):
+        return None
+    scored = [r for r in regions if getattr(r, "relevancy", None) is not None]
+    if regions and not scored:
+        return None
+    if not scored:
+        return f'no match for "{text}" (closest: nothing)'
+    best = max(scored, key=lambda r: (float(r.relevancy), float(r.score)))
+    return f'no match for "{text}" (closest: {region_name(best)}, relevancy {float(best.relevancy):.2f})'
+
+
+def where_line(region: Any) -> str:
+    """The relation of a relation query's hit and its nearby regions, e.g. ``next to table (key 4);
+    near: on floor (key 1), next to chair (key 7, 0.21 m)``; empty when there is none."""
+    def name(n: Any) -> str:
+        far = f", {float(n.distance_m):.2f} m" if float(n.distance_m) > 0 else ""
+        return f"{n.relation} {n.label or 'region'} (key {int(n.key)}{far})"
+
+    parts = []
+    relation = getattr(region, "relation", None)
+    if relation is not None:
+        parts.append(name(relation))
+    nearby = getattr(region, "nearby", None) or []
+    if nearby:
+        parts.append("near: " + ", ".join(name(n) for n in nearby))
+    return "; ".join(parts)
 
 
 def write_query_outputs(
@@ -41,9 +97,18 @@ def write_query_outputs(
             record["points_file"] = f"query_{i}.ply"
         records.append(record)
         if say is not None:
-            best = hits[0] if hits else None
-            say(f"query {text!r}: " + (f"region {best.key} ({best.label or '?'}) score {best.score:.3f}, "
-                                        f"{best.num_points} points" if best else "no region"))
+            best = next((h for h in hits if getattr(h, "match", None)), None)
+            none = no_match_line(text, hits)
+            if none is not None:
+                say(f"query {text!r}: {none}")
+            else:
+                best = best or (hits[0] if hits else None)
+                where = where_line(best) if best is not None else ""
+                say(f"query {text!r}: " + (f"region {best.key} ({best.label or '?'}) score {best.score:.3f}"
+                                            + (f", relevancy {best.relevancy:.2f}" if best.relevancy is not None
+                                               else "")
+                                            + f", {best.num_points} points" + (f"; {where}" if where else "")
+                                            if best else "no region"))
     (out / "queries.json").write_text(json.dumps(records, indent=2))
     if mesh is not None:
         vertices, triangles, colors, keys = (mesh if isinstance(mesh, tuple)

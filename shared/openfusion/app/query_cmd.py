@@ -11,12 +11,26 @@ own output, see :mod:`openfusion.app.quiet`): one block per text, in the order g
 text alone prints it::
 
     'chair' in minilm-l6-v2:
-      key      7  score 1.000  chair                818 points  bbox [2.68, 3.066, 0.024] .. [3.24, 3.56, 0.886]
+      key      7  score 1.000  chair     831 points  bbox [2.68, 3.069, 0.041] .. [3.242, 3.56, 0.886]  relevancy 1.00 match
+                  near: on floor (key 2), next to table (key 6, 0.04 m)
 
-(``  no regions`` when nothing answers). ``--json``: one text prints one object
-``{"query", "embedding_space", "regions": [{"key", "score", "label", "num_points", "bbox_min",
-"bbox_max"}, ...]}`` on one line; several texts print a JSON list of those objects, in order.
-Several texts are embedded in one encoder call: against running services in one round trip
+``score`` is the cosine, ``relevancy`` the LERF relevancy in [0, 1] and ``match`` says the
+relevancy reaches the embedding space's calibrated threshold (:mod:`openfusion.mapping.relevancy`);
+the second line names up to three nearby regions with the hit's relation to each (``on``,
+``under``, ``above``, ``next to``; :mod:`openfusion.mapping.relations`). A text none of whose
+regions is a match prints one line instead, and the command still exits 0::
+
+    no match for "zebra" (closest: plant, relevancy 0.52)
+
+A text of the form "X on/under/above/next to Y" ("the chair next to the table", "cup on the
+desk") ranks the X regions that stand in the relation to the best Y matches first; the header says
+how it was read (``('chair' next to 'table')``) and each such hit names its anchor first
+(``next to table (key 6, 0.04 m); near: ...``). (``  no regions`` when the map has no region to
+answer). ``--json``: one text prints one object ``{"query", "embedding_space", "regions": [{"key",
+"score", "label", "num_points", "bbox_min", "bbox_max", "relevancy", "match", "centroid", "nearby":
+[{"key", "label", "relation", "distance_m"}], "relation"?}, ...], "relation"?}`` on one line (the
+``relation`` members only for relation queries); several texts print a JSON list of those
+objects, in order. Several texts are embedded in one encoder call: against running services in one round trip
 (``query/text_batch``, :meth:`~openfusion.client.OpenFusionClient.query_texts`), with
 ``--map-dir`` by the one encoder. ``--out`` writes the points of every returned region once.
 
@@ -90,28 +104,44 @@ def _load_saved_summary(map_dir: Path) -> Any:
     return summary
 
 
-def _answer_saved_map(args: argparse.Namespace, with_points: bool) -> tuple[str, list[list[Any]]]:
-    """(embedding space, ranked regions of each text) of a saved map: from its summaries when they
-    suffice; every text embedded in one encoder call."""
+def _answer_saved_map(args: argparse.Namespace, with_points: bool) -> tuple[str, list[list[Any]], list[Any]]:
+    """(embedding space, ranked regions of each text, each text's relation query or None) of a
+    saved map: from its summaries when they suffice, else from the whole map's surface; every text
+    embedded in one encoder call; relevancy with the calibration the map was saved with."""
     from openfusion.errors import UsageError
     from openfusion.mapping.params import default_min_region_points
-    from openfusion.mapping.queries import query_region_table, query_regions
+    from openfusion.mapping.queries import RegionTable, answer_texts, query_regions, subsample_points
+    from openfusion.mapping.relevancy import calibration_for
 
     least = default_min_region_points() if args.min_region_points is None else args.min_region_points
     if least < 1:
         raise UsageError(f"--min-region-points must be >= 1, got {least}")
+    up_axis = args.up_axis or "+z"
     legacy = os.environ.get(LEGACY_PATH_ENV, "") == "1"
     summary = None if (with_points or legacy) else _load_saved_summary(args.map_dir)
     if summary is not None:
         space = summary.dictionary.embedding_space
-        vectors = _text_encoder_for(space, args.text_encoder).encode(list(args.text))
-        return space, [query_region_table(summary.dictionary, summary.regions, v, args.top_k, min_points=least)
-                       for v in vectors]
+        encoder = _text_encoder_for(space, args.text_encoder)
+        answers = answer_texts(summary.dictionary, summary.regions, list(args.text), encoder, top_k=args.top_k,
+                               min_points=least, up_axis=up_axis,
+                               calibration=calibration_for(space, summary.relevancy))
+        return space, [r for r, _ in answers], [a.relation for _, a in answers]
     loaded = _load_saved_map(args.map_dir)
     space = loaded.dictionary.embedding_space
-    vectors = _text_encoder_for(space, args.text_encoder, lean=not legacy).encode(list(args.text))
-    return space, [query_regions(loaded.dictionary, loaded.volume, v, args.top_k, with_points=with_points,
-                                 max_points=200_000, min_points=least) for v in vectors]
+    encoder = _text_encoder_for(space, args.text_encoder, lean=not legacy)
+    if legacy:  # as before relevancy and relations: ranked regions only
+        vectors = encoder.encode(list(args.text))
+        return space, [query_regions(loaded.dictionary, loaded.volume, v, args.top_k, with_points=with_points,
+                                     max_points=200_000, min_points=least) for v in vectors], [None] * len(vectors)
+    surface = loaded.volume.extract_points()
+    table = RegionTable.of_points(surface.keys, surface.points)
+    answers = answer_texts(loaded.dictionary, table, list(args.text), encoder, top_k=args.top_k, min_points=least,
+                           up_axis=up_axis, calibration=calibration_for(space, loaded.relevancy))
+    if with_points:
+        for results, _ in answers:
+            for res in results:
+                res.points = subsample_points(surface.points[surface.keys == res.key], 200_000, seed=res.key)
+    return space, [r for r, _ in answers], [a.relation for _, a in answers]
 
 
 def _text_encoder_for(space: str, name: str | None, *, lean: bool = True) -> Any:
@@ -130,26 +160,41 @@ def _text_encoder_for(space: str, name: str | None, *, lean: bool = True) -> Any
     return encoder
 
 
-def _answer_record(text: str, space: str, regions: list[Any]) -> dict[str, Any]:
+def _answer_record(text: str, space: str, regions: list[Any], relation: Any = None) -> dict[str, Any]:
     from openfusion.app.outputs import region_record
 
-    return {"query": text, "embedding_space": space, "regions": [region_record(r) for r in regions]}
+    record: dict[str, Any] = {"query": text, "embedding_space": space, "regions": [region_record(r) for r in regions]}
+    if relation is not None:
+        record["relation"] = {"target": relation.target, "relation": relation.relation, "anchor": relation.anchor}
+    return record
 
 
-def _print_answers(answers: list[tuple[str, str, list[Any]]], *, as_json: bool) -> None:
-    """(text, embedding space, regions) of each text: one block per text, in order (one text: as
-    it always printed); ``as_json``: one object, or a list of them for several texts."""
-    records = [_answer_record(text, space, regions) for text, space, regions in answers]
+def _print_answers(answers: list[tuple[str, str, list[Any], Any]], *, as_json: bool) -> None:
+    """(text, embedding space, regions, relation query or None) of each text: one block per text,
+    in order; ``as_json``: one object, or a list of them for several texts. A text none of whose
+    regions is a match prints ``no match for "X" (closest: Y, relevancy R)`` as its block."""
+    from openfusion.app.outputs import no_match_line, where_line
+
+    records = [_answer_record(text, space, regions, relation) for text, space, regions, relation in answers]
     if as_json:
         print(json.dumps(records[0] if len(records) == 1 else records))
         return
-    for record in records:
-        print(f"{record['query']!r} in {record['embedding_space']}:")
+    for (text, _space, regions, relation), record in zip(answers, records, strict=True):
+        none = no_match_line(text, regions) if regions else None
+        if none is not None:
+            print(none)
+            continue
+        how = f"  ({relation.target!r} {relation.relation} {relation.anchor!r})" if relation is not None else ""
+        print(f"{record['query']!r} in {record['embedding_space']}:{how}")
         if not record["regions"]:
             print("  no regions")
-        for r in record["regions"]:
+        for region, r in zip(regions, record["regions"], strict=True):
+            rel = "" if r["relevancy"] is None else f"  relevancy {r['relevancy']:.2f}{' match' if r['match'] else ''}"
             print(f"  key {r['key']:>6}  score {r['score']:.3f}  {r['label'] or '-':<16} {r['num_points']:>7} points  "
-                  f"bbox {r['bbox_min']} .. {r['bbox_max']}")
+                  f"bbox {r['bbox_min']} .. {r['bbox_max']}{rel}")
+            where = where_line(region)
+            if where:
+                print(f"{'':>14}{where}")
 
 
 def _write_points(path: Path, regions: list[Any]) -> int:
@@ -172,7 +217,8 @@ _BUS_OPTIONS = (("config", "--config"), ("map_id", "--map"), ("prefix", "--prefi
                 ("listen", "--listen"), ("multicast", "--multicast/--no-multicast"), ("overrides", "--set"),
                 ("timeout", "--timeout"))
 #: Options of ``openfusion query`` that apply to a saved map only: (attribute, flag).
-_SAVED_MAP_OPTIONS = (("text_encoder", "--text-encoder"), ("min_region_points", "--min-region-points"))
+_SAVED_MAP_OPTIONS = (("text_encoder", "--text-encoder"), ("min_region_points", "--min-region-points"),
+                      ("up_axis", "--up-axis"))
 
 
 def _check_query_options(args: argparse.Namespace) -> None:
@@ -213,12 +259,21 @@ output (stdout, nothing else; a successful query writes nothing to stderr but th
 one line naming the PLY of --out; --verbose adds log lines and the libraries' output):
   one block per TEXT, in order, each as a query of that text alone prints it:
     'chair' in minilm-l6-v2:
-      key      7  score 1.000  chair       818 points  bbox [2.68, 3.07, 0.02] .. [3.24, 3.56, 0.89]
-    'lamp' in minilm-l6-v2:
-      no regions
+      key      7  score 1.000  chair       831 points  bbox [..] .. [..]  relevancy 1.00 match
+                  near: on floor (key 2), next to table (key 6, 0.04 m)
+    no match for "zebra" (closest: plant, relevancy 0.52)
+  score: cosine; relevancy: [0, 1] against the phrases "object", "things", "stuff",
+  "texture"; match: relevancy reaches the embedding space's calibrated threshold. A TEXT
+  without any match prints the "no match" line (exit status 0).
+  "X on|under|above|next to Y" (also: on top of, underneath, beneath, below, over, beside,
+  near, by), e.g. "the chair next to the table": X regions in that relation to the best Y
+  matches come first, each naming its anchor.
   --json, one TEXT: one object on one line
     {"query": TEXT, "embedding_space": SPACE, "regions": [{"key": INT, "score": FLOAT,
-     "label": STR|null, "num_points": INT, "bbox_min": [X, Y, Z], "bbox_max": [X, Y, Z]}, ...]}
+     "label": STR|null, "num_points": INT, "bbox_min": [X, Y, Z], "bbox_max": [X, Y, Z],
+     "relevancy": FLOAT|null, "match": BOOL|null, "centroid": [X, Y, Z]|null,
+     "nearby": [{"key", "label", "relation", "distance_m"}, ...], "relation"?: {...}}, ...],
+     "relation"?: {"target", "relation", "anchor"}}
   --json, several TEXTs: a JSON list of those objects, in the order of the TEXTs
 """
 
@@ -249,6 +304,9 @@ class QueryCommand:
         parser.add_argument("--min-region-points", type=int, metavar="N",
                             help="with --map-dir: regions with fewer surface points are not answers "
                                  f"(default: the query service's min_region_points, {default_min_region_points()})")
+        parser.add_argument("--up-axis", choices=("+x", "-x", "+y", "-y", "+z", "-z"),
+                            help="with --map-dir: the map's up axis for relations (default +z, the synthetic "
+                                 "world's and ScanNet's; the query service's up_axis)")
         parser.add_argument("--timeout", type=float, default=None,
                             help=f"seconds to wait for the services (default {DEFAULT_TIMEOUT_S:g})")
         add_config_arguments(parser)
@@ -260,12 +318,12 @@ class QueryCommand:
             answers = _answer(args)
         _print_answers(answers, as_json=args.json)
         if args.out is not None:
-            n = _write_points(args.out, [r for _text, _space, regions in answers for r in regions])
+            n = _write_points(args.out, [r for _text, _space, regions, _rel in answers for r in regions])
             print(f"wrote {n} points to {args.out}", file=sys.stderr)
         return 0
 
 
-def _answer(args: argparse.Namespace) -> list[tuple[str, str, list[Any]]]:
+def _answer(args: argparse.Namespace) -> list[tuple[str, str, list[Any], Any]]:
     """(text, embedding space, ranked regions) of each text, in order, from a saved map or running
     services."""
     texts = list(args.text)
@@ -274,8 +332,9 @@ def _answer(args: argparse.Namespace) -> list[tuple[str, str, list[Any]]]:
     if args.map_dir is not None:
         if args.log_level or args.verbose:  # validated as the config would (no bus options here)
             setup_logging(load_config(cli={"log_level": args.log_level or verbose_level}, environ={}).log_level)
-        space, answers = _answer_saved_map(args, with_points)
-        return [(text, space, regions) for text, regions in zip(texts, answers, strict=True)]
+        space, answers, relations = _answer_saved_map(args, with_points)
+        return [(text, space, regions, relation)
+                for text, regions, relation in zip(texts, answers, relations, strict=True)]
     from openfusion.client import OpenFusionClient
 
     config = config_from_args(args)
@@ -286,7 +345,8 @@ def _answer(args: argparse.Namespace) -> list[tuple[str, str, list[Any]]]:
             replies = [client.query_text(texts[0], top_k=args.top_k, with_points=with_points)]
         else:  # one round trip (up to 64 texts)
             replies = client.query_texts(texts, top_k=args.top_k, with_points=with_points)
-    return [(text, reply.embedding_space, reply.regions) for text, reply in zip(texts, replies, strict=True)]
+    return [(text, reply.embedding_space, reply.regions, reply.relation)
+            for text, reply in zip(texts, replies, strict=True)]
 
 
 class SegmentCommand:

@@ -22,9 +22,10 @@ from openfusion.app.outputs import open_rerun, say_progress, write_query_outputs
 from openfusion.app.run_config import RunConfig
 from openfusion.app.summary import RunSummary
 from openfusion.frame import Frame
-from openfusion.mapping import query_regions, save_map
+from openfusion.mapping import save_map
 from openfusion.mapping.params import MatchParams
 from openfusion.mapping.pipeline import PipelineStats, map_scene
+from openfusion.mapping.queries import RegionTable, answer_texts, subsample_points
 from openfusion.services.encoder.options import region_encoder_from_section
 from openfusion.services.query.service import text_encoder_from_section
 from openfusion.sources import open_source
@@ -113,13 +114,17 @@ def _run_in_process(args: argparse.Namespace, config: RunConfig, signals: StopSi
         if not summary.frames_integrated:
             raise signals.interrupted("no frame was integrated yet; nothing saved")
         raise signals.interrupted(f"saved the map of {summary.frames_integrated} integrated frames to {out / 'map'}")
-    save_map(out / "map", result.volume, result.dictionary, meta={"map_id": config.map_id})
+    surface = result.volume.extract_points()
+    table = RegionTable.of_points(surface.keys, surface.points)
+    save_map(out / "map", result.volume, result.dictionary, meta={"map_id": config.map_id}, regions=table)
     text = text_encoder_from_section(config.query)
     replies = []
-    for query in args.queries:
-        vec = text.encode([query])[0]
-        hits = query_regions(result.dictionary, result.volume, vec, args.top_k, with_points=True, max_points=50_000,
-                             embedding_space=text.embedding_space, min_points=config.query.min_region_points)
+    # as the query service answers: relevancy, match, nearby regions, "X next to Y" (one encoder call)
+    answers = answer_texts(result.dictionary, table, list(args.queries), text, top_k=args.top_k,
+                           min_points=config.query.min_region_points, up_axis=config.query.up_axis)
+    for query, (hits, _answer) in zip(args.queries, answers, strict=True):
+        for hit in hits:
+            hit.points = subsample_points(surface.points[surface.keys == hit.key], 50_000, seed=hit.key)
         replies.append((query, text.embedding_space, hits))
     write_query_outputs(out, replies, result.volume.extract_mesh(), say=say_progress(args.quiet))
     if rerun is not None:

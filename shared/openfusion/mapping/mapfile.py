@@ -4,7 +4,10 @@ Format (``FORMAT_VERSION`` 1): an uncompressed ``.npz`` (zip of ``.npy`` arrays,
 
 - ``format`` (the string ``openfusion-z-map``), ``format_version`` (int),
 - ``meta_json``: JSON with the volume parameters, the dictionary's embedding space, dimension,
-  version, next key and labels, the caller's ``meta``, and shape/dtype/CRC-32 of every array,
+  version, next key and labels, the caller's ``meta``, the relevancy calibration of the space
+  (``relevancy``: temperature, threshold, negatives; :mod:`openfusion.mapping.relevancy`; absent
+  in files saved before it, which then use the library's table), and shape/dtype/CRC-32 of
+  every array,
 - ``volume_block_coords`` (N, 3) int32, ``volume_tsdf`` / ``volume_weight`` / ``volume_conf``
   (N, r, r, r) float32, ``volume_color`` (N, r, r, r, 3) float32, ``volume_key`` (N, r, r, r)
   int32 (-1 = none),
@@ -71,6 +74,7 @@ from openfusion.mapping.dictionary import RegionDictionary
 from openfusion.mapping.errors import MapFormatError
 from openfusion.mapping.params import VolumeParams
 from openfusion.mapping.queries import RegionTable
+from openfusion.mapping.relevancy import calibration_for
 from openfusion.wire.schemas import DictionarySnapshot
 
 if TYPE_CHECKING:  # Open3D: imported only where a volume is built (load_map), not for summaries
@@ -97,6 +101,7 @@ class LoadedMap:
     dictionary: RegionDictionary
     meta: dict[str, Any] = field(default_factory=dict)
     path: Path | None = None  # the file it was read from (the ``.prev`` one after a fallback)
+    relevancy: dict[str, Any] | None = None  # the relevancy calibration saved with the map (None: older file)
 
 
 @dataclass
@@ -107,6 +112,7 @@ class MapSummary:
     regions: RegionTable
     volume_params: VolumeParams
     meta: dict[str, Any] = field(default_factory=dict)
+    relevancy: dict[str, Any] | None = None  # the relevancy calibration saved with the map (None: older file)
 
 
 def resolve_map_path(path: str | os.PathLike[str]) -> Path:
@@ -171,6 +177,9 @@ def save_map(
             "labels": [label or None for label in snap.labels],  # JSON null = no label
         },
         "meta": user_meta,
+        # How relevancy and match are computed in the map's space (openfusion.mapping.relevancy),
+        # so the map answers with the calibration it was made with.
+        "relevancy": calibration_for(snap.embedding_space).to_dict(),
         "arrays": {
             name: {"shape": list(a.shape), "dtype": a.dtype.str, "crc32": _crc(a)}
             for name, a in arrays.items()
@@ -436,7 +445,7 @@ def _load_summary(target: Path, npz: np.lib.npyio.NpzFile) -> MapSummary | None:
     regions = _region_table(target, arrays)
     params = VolumeParams.from_dict(header["volume_params"])
     logger.info("read map summary %s: %d regions, %d with surface points", target, len(dictionary), len(regions))
-    return MapSummary(dictionary, regions, params, _meta(header))
+    return MapSummary(dictionary, regions, params, _meta(header), header.get("relevancy"))
 
 
 def _load_archive(target: Path, npz: np.lib.npyio.NpzFile, device: str | None) -> LoadedMap:
@@ -461,4 +470,4 @@ def _load_archive(target: Path, npz: np.lib.npyio.NpzFile, device: str | None) -
             "%s: %d voxel keys have no dictionary entry (e.g. %s)", target, len(unknown), unknown[:5]
         )
     logger.info("loaded map %s: %d blocks, %d regions", target, volume.num_blocks, len(dictionary))
-    return LoadedMap(volume, dictionary, _meta(header), target)
+    return LoadedMap(volume, dictionary, _meta(header), target, header.get("relevancy"))

@@ -160,6 +160,12 @@ class QueryParams(ConfigSection):
         description="regions with fewer surface points than this are not answers (stray fragments of a few "
         "voxels, regions whose voxels other regions took over); 1 = leave out only regions without points",
     )
+    up_axis: str = Field(
+        "+z",
+        pattern=r"^[+-][xyz]$",
+        description="the map's up axis in world coordinates (+z: the synthetic world, ScanNet); relations "
+        "(on, under, above, next to) are computed with it",
+    )
 
     @classmethod
     def from_section(cls, section: ConfigSection) -> QueryParams:

@@ -3,15 +3,19 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from openfusion.mapping.params import default_min_region_points
+from openfusion.mapping.relations import Nearby, RegionBoxes
+from openfusion.wire.schemas.query import NearbyRegion
 
 if TYPE_CHECKING:  # the volume (Open3D) is imported only by callers that have one
+    from openfusion.mapping.answers import TextAnswer
     from openfusion.mapping.dictionary import RegionDictionary
+    from openfusion.mapping.relevancy import SpaceCalibration
     from openfusion.mapping.volume import SemanticVolume
 
 logger = logging.getLogger(__name__)
@@ -36,6 +40,11 @@ class RegionResult:
     bbox_max: np.ndarray  # (3,) float32 metres, 99th percentile per axis
     num_points: int
     points: np.ndarray | None = None  # (p, 3) float32 when requested
+    relevancy: float | None = None  # in [0, 1] (openfusion.mapping.relevancy); None when not computed
+    match: bool | None = None  # relevancy >= the space's calibrated threshold
+    centroid: np.ndarray | None = None  # (3,) float32 metres, mean of the surface points
+    nearby: list[NearbyRegion] = field(default_factory=list)  # up to 3 related regions, nearest first
+    relation: NearbyRegion | None = None  # relation queries: the anchor this region stands in the relation to
 
 
 @dataclass
@@ -67,6 +76,11 @@ class RegionTable:
         """Row of ``key``, None when the region has no surface points."""
         i = int(np.searchsorted(self.keys, key))
         return i if i < len(self.keys) and int(self.keys[i]) == int(key) else None
+
+    def boxes(self, *, min_points: int = 1) -> RegionBoxes:
+        """The boxes of the regions with at least ``min_points`` surface points (relations)."""
+        keep = np.asarray(self.num_points) >= min_points
+        return RegionBoxes(self.keys[keep], self.bbox_min[keep], self.bbox_max[keep])
 
 
 def region_centroids(table_keys: np.ndarray, keys: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -262,3 +276,61 @@ def segment_points(
         known = (surface.keys >= 0) & (sorted_keys[pos] == surface.keys)
         labels[known] = best[order][pos[known]]
     return surface.points, labels
+
+
+def answer_texts(
+    dictionary: RegionDictionary,
+    table: RegionTable,
+    texts: list[str],
+    encoder: Any,
+    *,
+    top_k: int = 5,
+    min_points: int | None = None,
+    up_axis: str = "+z",
+    calibration: SpaceCalibration | None = None,
+) -> list[tuple[list[RegionResult], TextAnswer]]:
+    """Each of ``texts`` answered from a map's dictionary and :class:`RegionTable` (a saved map's
+    summaries, or the table of the volume's surface), as the query service answers it
+    (:func:`openfusion.mapping.answers.answer_text`: relevancy, match, centroid, nearby regions,
+    "X next to Y" queries): every text (and the parts of relation queries, and the negative
+    phrases of relevancy) embedded in ONE call of ``encoder``. ``calibration``: the map's (its file records one); default: the library's for
+    the dictionary's space. Returns (results, the answer with its relation query) per text."""
+    from openfusion.mapping.answers import answer_text, texts_to_embed
+    from openfusion.mapping.relevancy import RelevancyScorer, calibration_for
+
+    dictionary.check_space(getattr(encoder, "embedding_space", None))
+    least = default_min_region_points() if min_points is None else max(1, int(min_points))
+    calibration = calibration or calibration_for(dictionary.embedding_space)
+    wanted = texts_to_embed(texts)
+    negatives = list(calibration.negatives)
+    embedded = np.asarray(encoder.encode(wanted + negatives), np.float32)  # one call: texts, parts, negatives
+    vectors = dict(zip(wanted, embedded[: len(wanted)], strict=True))
+    scorer = RelevancyScorer.of_vectors(calibration, embedded[len(wanted):])
+
+    def rank(vector: np.ndarray, n: int) -> list[tuple[int, float]]:
+        return [(r.key, r.score) for r in query_region_table(dictionary, table, vector, n, min_points=least)]
+
+    def embeddings(keys: list[int]) -> np.ndarray:
+        return np.stack([dictionary.embedding(k) for k in keys])
+
+    boxes = table.boxes(min_points=least)
+    out = []
+    for text in texts:
+        answer = answer_text(text, vectors, rank=rank, embeddings=embeddings, scorer=scorer, boxes=boxes,
+                             top_k=top_k, up_axis=up_axis)
+        results = []
+        for region in answer.regions:
+            i = table.row(region.key)
+            assert i is not None  # rank() returns table rows only
+            results.append(RegionResult(
+                region.key, region.score, dictionary.label(region.key), table.bbox_min[i].copy(),
+                table.bbox_max[i].copy(), int(table.num_points[i]), relevancy=region.relevancy, match=region.match,
+                centroid=table.centroid[i].copy(), nearby=[_labelled(n, dictionary) for n in region.nearby],
+                relation=_labelled(region.relation, dictionary) if region.relation is not None else None))
+        out.append((results, answer))
+    return out
+
+
+def _labelled(nearby: Nearby, dictionary: RegionDictionary) -> NearbyRegion:
+    label = dictionary.label(nearby.key) if nearby.key in dictionary else None
+    return NearbyRegion(key=nearby.key, label=label or None, relation=nearby.relation, distance_m=nearby.distance_m)

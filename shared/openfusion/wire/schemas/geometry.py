@@ -126,7 +126,7 @@ class RegionSummaryReply(Message):
     computation of the summary and the reply."""
 
     schema_name: ClassVar[str] = "geometry.regions_reply"
-    schema_version: ClassVar[int] = 1
+    schema_version: ClassVar[int] = 2  # 2: optional centroid
 
     map_version: int = Field(ge=0)
     key_horizon: int = Field(ge=0)
@@ -135,10 +135,15 @@ class RegionSummaryReply(Message):
     bbox_min: Points3f
     bbox_max: Points3f
     num_points: ndarray("int64", shape=(None,))
+    #: Mean of each region's surface points (None from a geometry that does not send it: the
+    #: query service then reports the box centre).
+    centroid: Points3f | None = None
 
     @model_validator(mode="after")
     def _check(self) -> RegionSummaryReply:
         n = len(self.keys)
+        if self.centroid is not None and len(self.centroid) != n:
+            raise ValueError(f"keys ({n}) and centroid ({len(self.centroid)}) differ in length")
         if len(self.bbox_min) != n or len(self.bbox_max) != n or len(self.num_points) != n:
             raise ValueError(
                 f"keys ({n}), bbox_min ({len(self.bbox_min)}), bbox_max ({len(self.bbox_max)}) and num_points "

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, ClassVar
+from typing import Annotated, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -19,6 +19,9 @@ from openfusion.wire.schemas.base import (
 MAX_TEXT_CHARS = 4096
 #: Most texts one :class:`TextQueryBatch` may carry.
 MAX_BATCH_TEXTS = 64
+#: The spatial relations a hit names (:mod:`openfusion.mapping.relations` computes them).
+RELATIONS: tuple[str, ...] = ("on", "under", "above", "next to")
+Relation = Literal["on", "under", "above", "next to"]
 
 
 class _QueryOptions(Message):
@@ -84,8 +87,32 @@ class PointQuery(Message):
         return self
 
 
+class NearbyRegion(Record):
+    """A region related to a hit: the hit is ``relation`` it (``on`` the desk, ``next to`` the
+    table); ``distance_m`` between the two boxes (0 when they touch)."""
+
+    key: int
+    label: str | None = None
+    relation: Relation
+    distance_m: float = Field(ge=0)
+
+
+class RelationQueryInfo(Record):
+    """How a query of the form "X REL Y" was read: X (``target``), the relation, Y (``anchor``),
+    and the regions taken as Y (the best Y matches, or the closest one when none matches)."""
+
+    target: str
+    relation: Relation
+    anchor: str
+    anchor_keys: list[int] = Field(default_factory=list)
+
+
 class RegionHit(Record):
-    """One ranked region: key, similarity score, label, axis-aligned bbox (world, metres)."""
+    """One ranked region: key, similarity ``score`` (cosine), ``relevancy`` in [0, 1] against the
+    canonical negative phrases and ``match`` (relevancy at or above the embedding space's
+    calibrated threshold; see :mod:`openfusion.mapping.relevancy`), label, axis-aligned bbox and
+    centroid (world, metres), up to three ``nearby`` regions with the hit's relation to each, and
+    for a relation query the anchor region it stands in the relation to (``relation``)."""
 
     key: int
     score: float
@@ -94,17 +121,30 @@ class RegionHit(Record):
     bbox_max: Vec3f32
     num_points: int = Field(ge=0)
     points: Points3f | None = None
+    relevancy: float | None = Field(default=None, ge=0.0, le=1.0)
+    match: bool | None = None
+    centroid: Vec3f32 | None = None
+    nearby: list[NearbyRegion] = Field(default_factory=list, max_length=16)
+    relation: NearbyRegion | None = None
 
 
 class QueryReply(Message):
     """Regions ranked best first for the ``query`` (text, or a description of the image/point query)."""
 
     schema_name: ClassVar[str] = "query.reply"
-    schema_version: ClassVar[int] = 1
+    schema_version: ClassVar[int] = 2  # 2: relevancy, match, centroid, nearby, relation
 
     embedding_space: str
     query: str
     regions: list[RegionHit] = Field(default_factory=list)
+    #: The relevancy a hit needs to be a ``match`` in this space (None: not computed, e.g. point queries).
+    match_threshold: float | None = Field(default=None, ge=0.0, le=1.0)
+    relation: RelationQueryInfo | None = None
+
+    @property
+    def matched(self) -> bool:
+        """Whether any region is a match (False for "no match")."""
+        return any(bool(r.match) for r in self.regions)
 
 
 class QueryBatchReply(Message):
@@ -112,6 +152,6 @@ class QueryBatchReply(Message):
     the request's ``texts``."""
 
     schema_name: ClassVar[str] = "query.batch_reply"
-    schema_version: ClassVar[int] = 1
+    schema_version: ClassVar[int] = 2  # 2: its replies are QueryReply 2
 
     replies: list[QueryReply] = Field(max_length=MAX_BATCH_TEXTS)

@@ -1,0 +1,126 @@
+"""One query text -> ranked regions with relevancy, match, nearby objects and relations.
+
+Shared by every query path (the query service, ``openfusion query --map-dir``, the in-process run):
+each supplies how to rank regions for a vector (its dictionary, with its rule for regions too
+small to be answers), the regions' embeddings and their boxes; this module does the rest, so
+every path answers alike:
+
+- a plain text: regions ranked by cosine ``score``; each gets ``relevancy`` and ``match``
+  (:mod:`openfusion.mapping.relevancy`);
+- "X REL Y" (:func:`~openfusion.mapping.relations.parse_relation_query`): X candidates ranked by
+  the relation to the best Y matches (:func:`~openfusion.mapping.relations.rank_by_relation`);
+  each X hit that stands in the relation names its anchor; ``score``, ``relevancy`` and ``match``
+  are those of X;
+- every hit: up to three nearby regions with the hit's relation to each
+  (:func:`~openfusion.mapping.relations.nearby_regions`).
+
+:func:`texts_to_embed` lists what to embed for a list of texts (the texts, then the X and Y of
+relation queries), so a caller embeds everything in one encoder call.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from openfusion.mapping.relations import (
+    Nearby,
+    RegionBoxes,
+    RelationQuery,
+    nearby_regions,
+    parse_relation_query,
+    rank_by_relation,
+)
+from openfusion.mapping.relevancy import RelevancyScorer
+
+#: Best Y matches a relation query measures X candidates against.
+MAX_ANCHORS = 3
+#: X candidates a relation query looks at beyond ``top_k``.
+RELATION_CANDIDATES = 32
+
+Rank = Callable[[np.ndarray, int], list[tuple[int, float]]]
+Embeddings = Callable[[list[int]], np.ndarray]
+
+
+@dataclass
+class RankedRegion:
+    """One answer region before it becomes a library result or a wire hit."""
+
+    key: int
+    score: float
+    relevancy: float
+    match: bool
+    nearby: list[Nearby] = field(default_factory=list)
+    relation: Nearby | None = None  # relation queries: the anchor this region stands in the relation to
+
+
+@dataclass
+class TextAnswer:
+    text: str
+    regions: list[RankedRegion]
+    relation: RelationQuery | None = None
+    anchors: list[int] = field(default_factory=list)  # relation queries: the Y regions used
+
+    @property
+    def matched(self) -> bool:
+        return any(r.match for r in self.regions)
+
+
+def texts_to_embed(texts: Sequence[str]) -> list[str]:
+    """Every text, then the X and Y of each relation query; each once, in first-seen order."""
+    wanted = list(texts)
+    for text in texts:
+        rq = parse_relation_query(text)
+        if rq is not None:
+            wanted += [rq.target, rq.anchor]
+    return list(dict.fromkeys(wanted))
+
+
+def _scored(
+    ranked: list[tuple[int, float]], vector: np.ndarray, embeddings: Embeddings, scorer: RelevancyScorer
+) -> list[RankedRegion]:
+    if not ranked:
+        return []
+    rel = scorer.relevancy(vector, embeddings([k for k, _ in ranked]))[0]
+    return [RankedRegion(int(k), float(s), round(float(r), 4), bool(scorer.is_match(r)))
+            for (k, s), r in zip(ranked, rel, strict=True)]
+
+
+def answer_text(
+    text: str,
+    vectors: Mapping[str, np.ndarray],
+    *,
+    rank: Rank,
+    embeddings: Embeddings,
+    scorer: RelevancyScorer,
+    boxes: RegionBoxes | None,
+    top_k: int,
+    up_axis: str = "+z",
+) -> TextAnswer:
+    """The answer to ``text`` (module docstring). ``vectors``: the embedding of every text of
+    :func:`texts_to_embed`; ``rank(vector, n)``: up to ``n`` (key, cosine) best first, regions
+    that are no answers already left out; ``boxes``: every answerable region's box (None: no
+    relations, no nearby)."""
+    rq = parse_relation_query(text) if boxes is not None else None
+    if rq is None:
+        regions = _scored(rank(vectors[text], top_k), vectors[text], embeddings, scorer)
+        anchors: list[int] = []
+    else:
+        candidates = _scored(rank(vectors[rq.target], top_k + RELATION_CANDIDATES), vectors[rq.target], embeddings,
+                             scorer)
+        ys = _scored(rank(vectors[rq.anchor], MAX_ANCHORS), vectors[rq.anchor], embeddings, scorer)
+        anchors = [y.key for y in ys if y.match] or [y.key for y in ys[:1]]
+        by_key = {c.key: c for c in candidates}
+        order = rank_by_relation([(c.key, c.relevancy, c.match) for c in candidates], anchors, boxes, rq.relation,
+                                 up_axis=up_axis)
+        regions = []
+        for r in order[:top_k]:
+            region = by_key[r.key]
+            region.relation = r.anchor
+            regions.append(region)
+    if boxes is not None:
+        for region in regions:
+            region.nearby = nearby_regions(region.key, boxes, up_axis=up_axis)
+    return TextAnswer(text, regions, rq, anchors)

@@ -1,0 +1,75 @@
+"""Word lists that calibrate and test ``match`` (see :mod:`openfusion.mapping.relevancy`).
+
+Each list pairs a query text with the synthetic scene's categories
+(:data:`openfusion.sources.synthetic.CATEGORIES`) it refers to; an empty tuple means the text names
+nothing in the scene ("zebra"), so any match is a false one. ``CALIBRATION`` chose the negative
+phrases and the per-space thresholds in :data:`openfusion.mapping.relevancy.CALIBRATIONS`;
+``HELD_OUT`` was written separately and never used to choose anything: the precision and recall
+the docs report are measured on it (``bench/bench_relevancy.py``, ``tests/unit/test_relevancy.py``).
+
+Three kinds of positives: the class names themselves, synonyms ("couch" -> sofa) and paraphrases
+("something to sit on" -> chair, office chair or sofa). A query is right when the first region of
+its answer that is a match is one of its categories (:func:`openfusion.mapping.relevancy.evaluate_match`).
+"""
+
+from __future__ import annotations
+
+SEAT = ("chair", "office chair", "sofa")
+
+#: (query text, categories it names) used to choose negatives, temperature and thresholds.
+CALIBRATION: tuple[tuple[str, tuple[str, ...]], ...] = (
+    # class names
+    ("wall", ("wall",)), ("floor", ("floor",)), ("ceiling", ("ceiling",)), ("door", ("door",)),
+    ("window", ("window",)), ("picture", ("picture",)), ("bed", ("bed",)), ("pillow", ("pillow",)),
+    ("sofa", ("sofa",)), ("bookshelf", ("bookshelf",)), ("cabinet", ("cabinet",)), ("desk", ("desk",)),
+    ("monitor", ("monitor",)), ("office chair", ("office chair", "chair")), ("table", ("table", "desk")),
+    ("chair", ("chair", "office chair")), ("lamp", ("lamp",)), ("plant", ("plant",)),
+    ("trash can", ("trash can",)),
+    # synonyms
+    ("couch", ("sofa",)), ("seat", SEAT), ("armchair", SEAT), ("computer screen", ("monitor",)),
+    ("display", ("monitor",)), ("rubbish bin", ("trash can",)), ("garbage can", ("trash can",)),
+    ("light", ("lamp",)), ("houseplant", ("plant",)), ("bookcase", ("bookshelf",)),
+    ("cupboard", ("cabinet",)), ("painting", ("picture",)), ("cushion", ("pillow", "sofa")),
+    ("mattress", ("bed",)), ("swivel chair", ("office chair", "chair")), ("writing desk", ("desk", "table")),
+    ("dining table", ("table", "desk")), ("doorway", ("door",)),
+    # paraphrases
+    ("something to sit on", SEAT), ("a place to sleep", ("bed",)), ("where the books are", ("bookshelf",)),
+    ("a bin for garbage", ("trash can",)), ("a screen for the computer", ("monitor",)),
+    ("a green plant in a pot", ("plant",)), ("a framed picture on the wall", ("picture",)),
+    # unrelated
+    ("zebra", ()), ("volcano", ()), ("banana", ()), ("car", ()), ("elephant", ()), ("pizza", ()),
+    ("guitar", ()), ("ocean", ()), ("mountain", ()), ("airplane", ()), ("bicycle", ()), ("giraffe", ()),
+    ("spaceship", ()), ("tornado", ()), ("pineapple", ()), ("violin", ()), ("submarine", ()),
+    ("dinosaur", ()), ("sandwich", ()), ("river", ()), ("helicopter", ()), ("lion", ()), ("glacier", ()),
+    ("tractor", ()), ("a red sports car", ()), ("a herd of cows", ()), ("the moon", ()),
+)
+
+#: Written after CALIBRATION and never used to choose anything: the list the figures are measured on.
+HELD_OUT: tuple[tuple[str, tuple[str, ...]], ...] = (
+    # class names, other forms
+    ("walls", ("wall",)), ("the floor", ("floor",)), ("a door", ("door",)), ("windows", ("window",)),
+    ("a bed", ("bed",)), ("pillows", ("pillow",)), ("a sofa", ("sofa",)), ("the bookshelf", ("bookshelf",)),
+    ("cabinets", ("cabinet",)), ("the desk", ("desk", "table")), ("a monitor", ("monitor",)),
+    ("chairs", ("chair", "office chair")), ("a lamp", ("lamp",)), ("plants", ("plant",)),
+    ("trash", ("trash can",)), ("the ceiling", ("ceiling",)), ("a table", ("table", "desk")),
+    # synonyms
+    ("settee", ("sofa",)), ("stool", SEAT), ("desk chair", ("office chair", "chair")),
+    ("computer monitor", ("monitor",)), ("screen", ("monitor",)), ("waste basket", ("trash can",)),
+    ("dustbin", ("trash can",)), ("floor lamp", ("lamp",)), ("potted plant", ("plant",)),
+    ("bookcase with books", ("bookshelf",)), ("shelves", ("bookshelf", "cabinet")), ("wardrobe", ("cabinet",)),
+    ("poster", ("picture",)), ("photo frame", ("picture",)), ("artwork", ("picture",)),
+    ("loveseat", ("sofa",)), ("workstation", ("desk",)), ("coffee table", ("table", "desk")),
+    ("bedroom bed", ("bed",)), ("reading light", ("lamp",)), ("entrance door", ("door",)),
+    # paraphrases
+    ("somewhere to sit", SEAT), ("something to sleep on", ("bed",)), ("a place to put books", ("bookshelf",)),
+    ("where to throw rubbish", ("trash can",)), ("a place to work at", ("desk", "table")),
+    ("something that gives light", ("lamp",)), ("a comfortable couch", ("sofa",)),
+    ("a soft pillow for the head", ("pillow",)), ("the glass window", ("window",)),
+    # unrelated
+    ("kangaroo", ()), ("earthquake", ()), ("strawberry", ()), ("truck", ()), ("whale", ()),
+    ("hamburger", ()), ("trumpet", ()), ("desert", ()), ("waterfall", ()), ("motorcycle", ()),
+    ("penguin", ()), ("rainbow", ()), ("satellite", ()), ("hurricane", ()), ("watermelon", ()),
+    ("saxophone", ()), ("sailboat", ()), ("crocodile", ()), ("spaghetti", ()), ("forest", ()),
+    ("train", ()), ("tiger", ()), ("iceberg", ()), ("bulldozer", ()), ("a blue racing bike", ()),
+    ("a flock of sheep", ()), ("the sun", ()), ("octopus", ()), ("lightning", ()), ("tennis racket", ()),
+)

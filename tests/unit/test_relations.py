@@ -1,0 +1,146 @@
+"""Spatial relations between region boxes and "X next to Y" queries (openfusion.mapping.relations),
+and a region-summary map of a room with two chairs, one next to the table: "the chair next to the
+table" answers that one first, through the same library path ``openfusion query --map-dir`` uses.
+
+Bad input tried: an unknown up axis, an unknown relation, texts that only look like relation
+queries ("something to sit on": nothing after "on")."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from openfusion.encoders import make_text_encoder
+from openfusion.mapping import RegionDictionary
+from openfusion.mapping.queries import RegionTable, answer_texts
+from openfusion.mapping.relations import (
+    RegionBoxes,
+    RelationQuery,
+    nearby_regions,
+    parse_relation_query,
+    rank_by_relation,
+    relation_of,
+    up_axis_index,
+)
+
+# Boxes (lo, hi) in metres, z up: a table (top at 0.75 m), a mug on it, a lamp hanging above it,
+# a chair beside it, a box under it, and a far chair.
+FLOOR = ((0.0, 0.0, -0.02), (6.0, 5.0, 0.02))
+TABLE = ((2.0, 2.0, 0.0), (3.2, 2.8, 0.75))
+MUG = ((2.4, 2.3, 0.76), (2.5, 2.4, 0.86))
+LAMP = ((2.5, 2.3, 1.6), (2.7, 2.5, 1.9))
+NEAR_CHAIR = ((3.4, 2.1, 0.0), (3.9, 2.6, 0.9))
+FAR_CHAIR = ((0.3, 4.0, 0.0), (0.8, 4.5, 0.9))
+CRATE = ((2.2, 2.2, 0.0), (2.6, 2.6, 0.4))
+
+
+def _rel(a, b, up: str = "+z") -> str | None:  # noqa: ANN001
+    return relation_of(np.array(a[0]), np.array(a[1]), np.array(b[0]), np.array(b[1]), up_axis=up)
+
+
+def test_relations_of_boxes() -> None:
+    assert _rel(MUG, TABLE) == "on"
+    assert _rel(TABLE, MUG) == "under"
+    assert _rel(TABLE, FLOOR) == "on" and _rel(NEAR_CHAIR, FLOOR) == "on"
+    assert _rel(LAMP, TABLE) == "above" and _rel(TABLE, LAMP) == "under"
+    assert _rel(CRATE, TABLE) == "under"  # tucked under: in its footprint, below its top
+    bed, pillow = ((4.0, 1.3, 0.0), (6.0, 2.8, 1.0)), ((5.5, 1.4, 0.5), (5.8, 2.0, 0.64))  # headboard at 1 m
+    assert _rel(pillow, bed) == "on" and _rel(bed, pillow) == "under"
+    walls = ((0.0, 0.0, 0.0), (6.0, 5.0, 2.8))  # a region spanning the room's walls covers all, holds nothing
+    assert _rel(((0.0, 1.0, 0.9), (0.1, 2.0, 2.0)), walls) != "under"
+    assert _rel(NEAR_CHAIR, TABLE) == "next to" and _rel(TABLE, NEAR_CHAIR) == "next to"
+    assert _rel(FAR_CHAIR, TABLE) is None  # 1.2 m away and more
+    assert _rel(LAMP, NEAR_CHAIR) is None  # no shared height, no overlap from above
+
+
+def test_the_up_axis_is_a_parameter() -> None:
+    """The same scene with y up (x, z, y), or with -z up (z negated): the same relations."""
+    swap = lambda b: (tuple(np.array(b[0])[[0, 2, 1]]), tuple(np.array(b[1])[[0, 2, 1]]))  # noqa: E731
+    flip = lambda b: ((b[0][0], b[0][1], -b[1][2]), (b[1][0], b[1][1], -b[0][2]))  # noqa: E731
+    assert _rel(swap(MUG), swap(TABLE), "+y") == "on" and _rel(swap(LAMP), swap(TABLE), "+y") == "above"
+    assert _rel(flip(MUG), flip(TABLE), "-z") == "on" and _rel(flip(CRATE), flip(TABLE), "-z") == "under"
+    assert _rel(swap(MUG), swap(TABLE), "+z") != "on"  # the wrong axis gives other relations
+    with pytest.raises(ValueError, match="up_axis"):
+        up_axis_index("up")
+
+
+@pytest.mark.parametrize(
+    ("text", "parsed"),
+    [
+        ("the chair next to the table", RelationQuery("chair", "next to", "table")),
+        ("cup on the desk", RelationQuery("cup", "on", "desk")),
+        ("a lamp above the table?", RelationQuery("lamp", "above", "table")),
+        ("the box that is underneath the bed", RelationQuery("box", "under", "bed")),
+        ("pillow on top of the sofa", RelationQuery("pillow", "on", "sofa")),
+        ("plant beside a window", RelationQuery("plant", "next to", "window")),
+        ("Chair Near The Door", RelationQuery("Chair", "next to", "Door")),
+        ("something to sit on", None),
+        ("chair", None),
+        ("on the table", None),
+    ],
+)
+def test_parse_relation_query(text: str, parsed: RelationQuery | None) -> None:
+    assert parse_relation_query(text) == parsed
+
+
+def _boxes(*named) -> RegionBoxes:  # noqa: ANN002
+    return RegionBoxes(np.arange(len(named)), np.array([b[0] for b in named], np.float32),
+                       np.array([b[1] for b in named], np.float32))
+
+
+def test_nearby_is_nearest_first_at_most_three_and_deterministic() -> None:
+    boxes = _boxes(FLOOR, TABLE, MUG, LAMP, NEAR_CHAIR, FAR_CHAIR, CRATE)
+    near = nearby_regions(1, boxes)  # the table
+    assert len(near) == 3 and [n.distance_m for n in near] == sorted(n.distance_m for n in near)
+    assert {(n.key, n.relation) for n in near} <= {(0, "on"), (2, "under"), (6, "next to"), (4, "next to"),
+                                                   (3, "under")}
+    assert (0, "on") in {(n.key, n.relation) for n in near}
+    assert nearby_regions(1, boxes) == near
+    assert [(n.key, n.relation) for n in nearby_regions(2, boxes)][0] == (1, "on")  # the mug is on the table
+    assert nearby_regions(99, boxes) == []
+
+
+def test_rank_by_relation_puts_the_matching_candidate_in_the_relation_first() -> None:
+    boxes = _boxes(FLOOR, TABLE, MUG, LAMP, NEAR_CHAIR, FAR_CHAIR, CRATE)
+    # the far chair is the better X by relevancy, the near one stands next to the anchor (table)
+    ranked = rank_by_relation([(5, 0.99, True), (4, 0.98, True), (6, 0.97, False)], [1], boxes, "next to")
+    assert [r.key for r in ranked] == [4, 5, 6] and ranked[0].holds and ranked[0].anchor.key == 1
+    assert not ranked[1].holds and ranked[1].anchor is None
+    # a non-matching region in the relation does not beat a matching one
+    ranked = rank_by_relation([(6, 0.5, False), (5, 0.9, True)], [1], boxes, "under")
+    assert [r.key for r in ranked] == [5, 6]
+    with pytest.raises(ValueError, match="relation"):
+        rank_by_relation([], [1], boxes, "inside")
+
+
+@pytest.mark.parametrize("encoder_name", ["hash"])
+def test_the_chair_next_to_the_table_answers_that_chair_first(encoder_name: str) -> None:
+    """A room's region summaries with two chairs (the far one is the better "chair" by score:
+    it was seen more and its embedding is the name's), a table, a floor and a mug: "the chair next
+    to the table" answers the near chair first, naming the table; "chair" alone answers the far
+    one first; "cup on the table" finds the mug; every hit carries relevancy, match, centroid and
+    nearby regions."""
+    text = make_text_encoder(encoder_name)
+    d = RegionDictionary(text.embedding_space, text.dim)
+    far = d.add(text.encode(["chair"])[0], label="chair")
+    near_vec = text.encode(["chair"])[0] * 0.9 + text.encode(["wooden chair"])[0] * 0.1
+    near = d.add(near_vec / np.linalg.norm(near_vec), label="chair")
+    table = d.add(text.encode(["table"])[0], label="table")
+    floor = d.add(text.encode(["floor"])[0], label="floor")
+    mug = d.add(text.encode(["cup"])[0], label="cup")
+    named = {far: FAR_CHAIR, near: NEAR_CHAIR, table: TABLE, floor: FLOOR, mug: MUG}
+    keys = np.array(sorted(named), np.int32)
+    lo = np.array([named[k][0] for k in keys], np.float32)
+    hi = np.array([named[k][1] for k in keys], np.float32)
+    table_ = RegionTable(keys, np.full(len(keys), 500, np.int64), (lo + hi) / 2, lo, hi)
+    (next_to, answer), (plain, _), (cup, _) = answer_texts(
+        d, table_, ["the chair next to the table", "chair", "cup on the table"], text, top_k=3)
+    assert next_to[0].key == near and next_to[0].relation.key == table and next_to[0].relation.relation == "next to"
+    assert next_to[1].key == far and next_to[1].relation is None
+    assert answer.relation == RelationQuery("chair", "next to", "table") and answer.anchors == [table]
+    assert plain[0].key == far
+    assert cup[0].key == mug and cup[0].relation.relation == "on" and cup[0].match
+    for hit in next_to[:2]:
+        assert hit.match and 0.0 <= hit.relevancy <= 1.0
+        np.testing.assert_allclose(hit.centroid, (np.array(named[hit.key][0]) + named[hit.key][1]) / 2, atol=1e-6)
+        assert (floor, "on") in {(n.key, n.relation) for n in hit.nearby}
