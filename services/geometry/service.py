@@ -184,6 +184,7 @@ class _Summary:
             bbox_min=t.bbox_min[sel],
             bbox_max=t.bbox_max[sel],
             num_points=t.num_points[sel],
+            centroid=np.asarray(t.centroid[sel], np.float32),
         )
 
 

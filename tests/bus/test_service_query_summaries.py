@@ -154,6 +154,9 @@ def test_geometry_summary_is_cached_per_map_version_and_recomputed_after_changes
         np.testing.assert_array_equal(first.bbox_min[i], lo)
         np.testing.assert_array_equal(first.bbox_max[i], hi)
         assert first.num_points[i] == n
+        # the centroid is the mean of the region's surface points, not the middle of its box
+        region = geo.volume.extract_points(keys=[key])
+        np.testing.assert_allclose(first.centroid[i], np.asarray(region.points, np.float64).mean(axis=0), atol=1e-4)
     # New frames + an update with keys up to 25: a new version, recomputed, horizon moved on.
     for f in FRAMES[3:]:
         geo.on_frame(RgbdFrame.from_frame(f))
