@@ -267,41 +267,52 @@ class SemanticService:
         assert self._frames is not None
         stats = runner.stats
         while not runner.stopping:
-            for result in pool.take_results():
-                self._apply_pool_result(runner, result)
-            pool.pump_resends(self._last_applied)
-            alive = pool.alive
-            stats.set(PoolCounter.NO_ENCODER, int(alive == 0 and not self.section.local_encoder))
-            if alive == 0 and self.section.local_encoder:
-                msg = self._frames.recv(timeout_s=0.2)
-                if msg is not None:
-                    try:
-                        stats.incr(PoolCounter.LOCAL_FRAMES)
-                        self._handle(runner, msg)
-                        self._last_applied = max(self._last_applied, msg.frame_id)
-                    finally:
-                        stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
-                continue
-            if not pool.has_capacity():
-                pool.wait(0.2)
-                continue
-            msg = self._frames.recv(timeout_s=0.05)
-            if msg is None:
-                if pool.in_flight():
-                    pool.wait(0.05)
-                continue
-            if msg.frame_id < self._last_dispatched:  # frame ids started again: a new playback
-                logger.info("semantic: frame ids restarted (%d after %d): a new playback", msg.frame_id,
-                            self._last_dispatched)
-                self._last_applied = -1
-            self._last_dispatched = msg.frame_id
-            request = self._pool_request(runner, msg)
-            if request is None:
-                stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
-                continue
-            if not pool.submit(request):  # the worker with room died in between: try it again later
+            try:
+                self._pool_step(runner, pool)
+            except Exception:  # one frame's or result's failure never ends the service: logged, counted
+                logger.exception("semantic: a step of the encoder pool loop failed; going on")
                 stats.incr(SemanticCounter.FRAMES_FAILED)
-                stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
+                stats.add_error()
+
+    def _pool_step(self, runner: ServiceRunner, pool: EncoderPool) -> None:
+        """One turn of :meth:`_loop_pool`: apply results, re-send, then dispatch or encode one frame."""
+        assert self._frames is not None
+        stats = runner.stats
+        for result in pool.take_results():
+            self._apply_pool_result(runner, result)
+        pool.pump_resends(self._last_applied)
+        alive = pool.alive
+        stats.set(PoolCounter.NO_ENCODER, int(alive == 0 and not self.section.local_encoder))
+        if alive == 0 and self.section.local_encoder:
+            msg = self._frames.recv(timeout_s=0.2)
+            if msg is not None:
+                try:
+                    stats.incr(PoolCounter.LOCAL_FRAMES)
+                    self._handle(runner, msg)
+                    self._last_applied = max(self._last_applied, msg.frame_id)
+                finally:
+                    stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
+            return
+        if not pool.has_capacity():
+            pool.wait(0.2)
+            return
+        msg = self._frames.recv(timeout_s=0.05)
+        if msg is None:
+            if pool.in_flight():
+                pool.wait(0.05)
+            return
+        if msg.frame_id < self._last_dispatched:  # frame ids started again: a new playback
+            logger.info("semantic: frame ids restarted (%d after %d): a new playback", msg.frame_id,
+                        self._last_dispatched)
+            self._last_applied = -1
+        self._last_dispatched = msg.frame_id
+        request = self._pool_request(runner, msg)
+        if request is None:
+            stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
+            return
+        if not pool.submit(request):  # the worker with room died in between: try it again later
+            stats.incr(SemanticCounter.FRAMES_FAILED)
+            stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
 
     def _pool_request(self, runner: ServiceRunner, msg: RgbdFrame) -> EncodeRequest | None:
         """The encode request of a frame the switch accepts (joined with its instance image when the
