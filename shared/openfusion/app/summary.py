@@ -28,6 +28,14 @@ class RunSummary(BaseModel):
     into the map (the bridge's published frames, or the frames the in-process loop took), fewer
     than requested when the source is shorter or the run was interrupted; ``interrupted``: the run
     was stopped by SIGINT/SIGTERM, and the map of the ``frames_integrated`` frames was saved.
+
+    Supervision (services run only): ``restarts``: how many times each service was restarted after
+    it died; ``frames_replayed``: frames the bridge published again after a restarted geometry
+    announced the last frame its checkpoint holds (not in ``frames_published``, which counts each
+    frame once); ``frames_duplicate``: frames geometry received and dropped because it already held
+    them. ``frames_integrated`` counts each frame once, restarts or not. ``error``: the run failed
+    (a service died past the restart limit, a timeout) and ``map_saved`` says whether the map of
+    the frames integrated by then was saved to ``map_dir`` anyway.
     """
 
     mode: Literal["services", "in-process"]
@@ -49,11 +57,17 @@ class RunSummary(BaseModel):
     frames_requested: int | None = None
     frames_played: int | None = None
     interrupted: bool = False
+    restarts: dict[str, int] = {}
+    frames_replayed: int = 0
+    frames_duplicate: int = 0
+    error: str | None = None
+    map_saved: bool | None = None
 
     @classmethod
     def from_health(
         cls, stats: dict[str, HealthStats], *, source: str, encoder: str, noise: str, semantic_every: int, wall_s: float,
-        frames_requested: int | None = None, interrupted: bool = False,
+        frames_requested: int | None = None, interrupted: bool = False, restarts: dict[str, int] | None = None,
+        error: str | None = None,
     ) -> RunSummary:
         """From the last health stats of the run's services. After an interrupt the bridge was
         stopped and its last stats can lag by a second of frames; playback loses no frame, so every
@@ -89,6 +103,10 @@ class RunSummary(BaseModel):
             semantic_failed=int(c("semantic", SemanticCounter.FRAMES_FAILED)),
             regions=int(c("semantic", SemanticCounter.REGIONS)),
             rec_fps=_round(rec), sem_rec_fps=_round(sem), wall_s=round(wall_s, 1),
+            restarts=dict(restarts or {}),
+            frames_replayed=int(c("bridge", BridgeCounter.FRAMES_REPLAYED)),
+            frames_duplicate=int(c("geometry", GeometryCounter.FRAMES_DUPLICATE)),
+            error=error, map_saved=False if error else None,
         )
 
     @classmethod

@@ -139,6 +139,7 @@ class IndexedFrameSource(FrameSource):
         if stride < 1:
             raise ValueError(f"stride must be >= 1, got {stride}")
         self.stride = int(stride)
+        self._furthest = -1  # the furthest position a replayable pass reached (replay_from)
 
     @abstractmethod
     def _num_items(self) -> int:
@@ -159,6 +160,41 @@ class IndexedFrameSource(FrameSource):
                 yield Skip(skip.reason, skip.detail)
                 continue
             yield frame
+
+    def positions(self) -> int:
+        """Number of positions one pass looks at (items after striding; before ``max_frames``)."""
+        return len(range(0, self._num_items(), self.stride))
+
+    def start_replayable_pass(self) -> None:
+        """Begin a pass read with :meth:`replay_from` (fresh ``stats``, nothing reached yet)."""
+        self.stats = SourceStats()
+        self._logged_reasons = set()
+        self._furthest = -1
+
+    def replay_from(self, position: int) -> Iterator[tuple[int, Frame]]:
+        """The frames from ``position`` (an index into the strided items) on, each with its
+        position: playback that can go back (the bridge replays the frames after a restarted
+        geometry's checkpoint). Within one pass (:meth:`start_replayable_pass`) an item is counted
+        in ``stats`` (read, skipped, yielded) only the first time any call reaches it, so going
+        back counts nothing twice; ``max_frames`` bounds the distinct frames of the pass. Frames
+        are re-read from the source (a reader's frames are pure functions of the item), never kept."""
+        for pos in range(max(0, position), self.positions()):
+            new = pos > self._furthest
+            if new and self.max_frames is not None and self.stats.yielded >= self.max_frames:
+                return
+            try:
+                frame = self._load(pos * self.stride)
+            except SkipFrame as skip:
+                if new:
+                    self._furthest = pos
+                    self.stats.read += 1
+                    self._record_skip(skip.reason, skip.detail)
+                continue
+            if new:
+                self._furthest = pos
+                self.stats.read += 1
+                self.stats.yielded += 1
+            yield pos, frame
 
     def frame_at(self, index: int) -> Frame:
         """Load one item directly (raises ``SkipFrame`` for an unusable one)."""
