@@ -255,6 +255,14 @@ class BridgeService:
             if not replay:
                 runner.stats.incr(BridgeCounter.SKIPPED_UNENCODABLE)
             return False
+        except Exception:  # anything else on this one frame: logged with its traceback, counted, skipped
+            if runner.stopping:
+                raise
+            logger.exception("bridge: frame %d from %s not published", frame.frame_id, self.source.name)
+            runner.stats.add_error()
+            if not replay:
+                runner.stats.incr(BridgeCounter.SKIPPED_PUBLISH_FAILED)
+            return False
         runner.stats.record(time.monotonic() - started)
         runner.stats.incr(BridgeCounter.FRAMES_REPLAYED if replay else BridgeCounter.FRAMES_PUBLISHED)
         return True

@@ -380,9 +380,9 @@ class GeometryService:
         if not self._admit(msg):
             self._acknowledge(msg, integrated=False)
             return
-        frame = msg.to_frame()
         started = time.monotonic()
         try:
+            frame = msg.to_frame()
             with self._lock:
                 self.volume.integrate(frame)
                 self.frames_integrated += 1
@@ -390,9 +390,17 @@ class GeometryService:
                 self._map_changed()
                 self._dirty = True
         except CapacityError as exc:
-            logger.warning("geometry: frame %d refused: %s", frame.frame_id, exc)
-            self.last_frame_id = frame.frame_id  # taken: the playback goes on after it
+            logger.warning("geometry: frame %d refused: %s", msg.frame_id, exc)
+            self.last_frame_id = msg.frame_id  # taken: the playback goes on after it
             self._count(GeometryCounter.CAPACITY_REFUSED)
+            self._acknowledge(msg, integrated=False)
+            return
+        except Exception:  # anything else on this one frame: logged, counted, taken (a replay never retries it)
+            logger.exception("geometry: frame %d (%s) failed to integrate and was skipped", msg.frame_id, msg.source)
+            self.last_frame_id = msg.frame_id
+            self._count(GeometryCounter.FRAMES_FAILED)
+            if self._runner is not None:
+                self._runner.stats.add_error()
             self._acknowledge(msg, integrated=False)
             return
         ended = time.monotonic()
@@ -590,6 +598,13 @@ class GeometryService:
                 try:
                     self.save()
                 except CheckpointFailed:  # logged and counted by save(); mapping goes on
+                    runner.stats.add_error()
+                except Exception:  # not an OSError: logged with its traceback; tried again one period later
+                    logger.exception("geometry: checkpoint to %s failed; the map is kept in memory",
+                                     self.checkpoint_dir)
+                    self._last_checkpoint = time.monotonic()
+                    self.checkpoint_failures += 1
+                    self._count(GeometryCounter.CHECKPOINT_FAILURES)
                     runner.stats.add_error()
 
     def close(self) -> None:

@@ -288,7 +288,8 @@ def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
             cluster.check_alive()
             stats.update(collect_health(client.session, client.keys, timeout_s=1.0))
             integrated = _counter(stats, "geometry", GeometryCounter.FRAMES_INTEGRATED)
-            refused = _counter(stats, "geometry", GeometryCounter.CAPACITY_REFUSED)
+            refused = (_counter(stats, "geometry", GeometryCounter.CAPACITY_REFUSED)
+                       + _counter(stats, "geometry", GeometryCounter.FRAMES_FAILED))
             bar.n = int(integrated)
             bar.set_postfix(semantic=int(_counter(stats, "semantic", SemanticCounter.SEMANTIC_FRAMES)),
                             regions=int(_counter(stats, "semantic", SemanticCounter.REGIONS)))

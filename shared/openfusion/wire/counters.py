@@ -30,6 +30,7 @@ class BridgeCounter(StrEnum):
     FLOW_WAIT_S = "flow_wait_s"  # time spent waiting for geometry's acknowledgements
     FLOW_TIMEOUTS = "flow_timeouts"
     SKIPPED_UNENCODABLE = "skipped_unencodable"
+    SKIPPED_PUBLISH_FAILED = "skipped_publish_failed"  # publishing raised something else (logged with traceback)
     FRAMES_THROTTLED = "frames_throttled"  # live frames dropped to keep to rate_hz
     FRAMES_REPLAYED = "frames_replayed"  # playback: frames published again for a restarted geometry
     REWINDS = "rewinds"  # playback: times the bridge went back to the frame after geometry's checkpoint
@@ -59,6 +60,7 @@ class GeometryCounter(StrEnum):
     DICTIONARY_RESYNCS = "dictionary_resyncs"
     FRAMES_DUPLICATE = "frames_duplicate"  # playback frames dropped: already held (id <= the last one taken)
     FRAMES_OUT_OF_ORDER = "frames_out_of_order"  # playback frames dropped: the frame before them is not held
+    FRAMES_FAILED = "frames_failed"  # integration raised on the frame (logged, taken as done: never retried)
     FRAMES_GAP = "frames_gap"  # live frames that never reached the map (ids skipped between two frames taken)
 
 
