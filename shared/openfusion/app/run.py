@@ -24,9 +24,10 @@ terminal's Ctrl-C reaches only this process, and none outlives it (:mod:`openfus
 Supervision: a service that dies during the run is restarted (``--max-restarts``, default 3 per
 service, ``--restart-backoff-s``, doubled for each restart; :mod:`openfusion.app.launcher`) and
 ``run.json`` counts ``restarts`` per service. Geometry checkpoints to ``OUT/checkpoints`` every
-``supervision.checkpoint_period_s`` (5 s); a restarted geometry loads the last checkpoint and
-announces the last frame it holds, the bridge replays the frames after it, and geometry ignores
-frames it already holds, so every frame is integrated exactly once (README, "Crash-proof mapping").
+``supervision.checkpoint_period_s`` (10 s; a save of the room takes about 24 frames' integration,
+``bench/bench_checkpoint.py``); a restarted geometry loads the last checkpoint and announces the
+last frame it holds, the bridge replays the frames after it, and geometry ignores frames it
+already holds, so every frame is integrated exactly once (README, "Crash-proof mapping").
 Past the restart limit the run fails as without supervision, but first saves the map geometry
 holds (when it is alive) and writes ``run.json`` with the ``error``.
 

@@ -45,7 +45,7 @@ class SupervisionSection(ConfigSection):
                                      "each further restart of it")
     restart_backoff_max_s: float = Field(30.0, ge=0, description="longest wait before a restart")
     checkpoint_period_s: float = Field(
-        5.0, ge=0, description="seconds between geometry's checkpoints during the run: a restarted geometry "
+        10.0, ge=0, description="seconds between geometry's checkpoints during the run: a restarted geometry "
         "resumes from the last one and the bridge replays the frames after it (0 = no checkpoints: a restarted "
         "geometry starts an empty map and the whole playback is replayed)")
 
