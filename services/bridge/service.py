@@ -41,6 +41,13 @@ each frame once), also after its playback was done. It goes back once per announ
 announcement's ``incarnation`` and ``resume``), and again for the same one only when geometry still
 repeats it ``flow_wait_s`` later (the replayed frames were lost). The start announcement of the
 first geometry it hears of is not a restart (the frames already published are on their way to it).
+
+The semantic service takes the latest frame only, so frames published while it is down are never
+fused. The bridge therefore watches its liveliness token (``health/semantic``): when it goes away,
+the bridge notes the last frame published, and when a semantic service is back it goes back to that
+frame too (geometry drops the replayed frames it holds, as duplicates, and the semantic service
+sees them again). Replayed frames are paced like the first ones (``rate_hz``, or their own
+timestamps), so the semantic service takes as many of them as it would have the first time.
 """
 
 from __future__ import annotations
@@ -177,6 +184,8 @@ class BridgeService:
         self._handled: tuple[str, int] | None = None  # the last announcement gone back for, and when
         self._handled_at = 0.0
         self._incarnations: set[str] = set()  # the geometry processes heard from
+        self._semantic_lost_at: int | None = None  # position of the last frame published when it went away
+        self._semantic_watch: Any = None
 
     def setup(self, runner: ServiceRunner) -> None:
         import zenoh
@@ -190,6 +199,36 @@ class BridgeService:
         self._instance_pub = runner.publisher(SENSOR_INSTANCE, congestion_control=congestion)
         if self.window is not None or self.replayable:
             runner.subscriber(GEOMETRY_PROGRESS, self.on_progress, queue_size=256)
+        if self.replayable and getattr(runner, "session", None) is not None:
+            self._semantic_watch = runner.session.liveliness().declare_subscriber(
+                runner.keys.liveliness("semantic"), zenoh.handlers.Callback(self._on_semantic_liveliness))
+
+    def _on_semantic_liveliness(self, sample: Any) -> None:
+        # On a Zenoh thread: bookkeeping only.
+        import zenoh
+
+        self.on_semantic(alive=sample.kind == zenoh.SampleKind.PUT)
+
+    def on_semantic(self, *, alive: bool) -> None:
+        """The semantic service's liveliness token came (``alive``) or went: when one comes back
+        after one went away, go back to the last frame published when it went (module docstring)."""
+        with self._replay_lock:
+            if not alive:
+                self._semantic_lost_at = max(0, self._next_position - 1) if self._positions else None
+                return
+            position, self._semantic_lost_at = self._semantic_lost_at, None
+            if position is None or position >= self._next_position:
+                return
+            before = [p for p in self._positions.values() if p < position]
+            previous = max(before, default=-1)
+            prev_id = next((fid for fid, p in self._positions.items() if p == previous), -1)
+            self._request_rewind((position, prev_id))
+        logger.warning("bridge: the semantic service is back; replaying from position %d for it", position)
+
+    def _request_rewind(self, target: tuple[int, int]) -> None:
+        """Call with ``_replay_lock`` held: go back to ``target`` (the earliest of those pending)."""
+        if self._rewind_to is None or target[0] < self._rewind_to[0]:
+            self._rewind_to = target
 
     def on_progress(self, msg: GeometryProgress) -> None:
         """An acknowledgement (flow control) and/or a resume announcement of geometry."""
@@ -223,7 +262,7 @@ class BridgeService:
             self._handled, self._handled_at = key, now
             if target[0] >= self._next_position:
                 return  # nothing published after it yet
-            self._rewind_to = target
+            self._request_rewind(target)
         logger.warning("bridge: geometry %s holds frames up to %d of this playback; replaying from the frame after it",
                        msg.incarnation, target[1])
 
@@ -364,9 +403,9 @@ class BridgeService:
                 replay = frame.frame_id <= newest_id
                 if not replay:
                     runner.stats.incr(BridgeCounter.FRAMES_READ)
-                    wait_s = pacer.due_s(frame.stamp_ns)
-                    if wait_s > 0 and runner.wait(wait_s):
-                        break
+                wait_s = pacer.due_s(frame.stamp_ns)  # replays too: the semantic service sees them as before
+                if wait_s > 0 and runner.wait(wait_s):
+                    break
                 if not self._wait_for_geometry(runner):
                     break
                 target = self._take_rewind()
@@ -386,6 +425,7 @@ class BridgeService:
                     progress.update(1)
             if rewound:
                 self._went_back(runner)
+                pacer = Pacer(self.section.rate_hz)
                 continue
             if runner.stopping:
                 break
@@ -399,6 +439,7 @@ class BridgeService:
                     prev_id = target[1]
                     runner.stats.set(BridgeCounter.PLAYBACK_DONE, 0)
                     self._went_back(runner)
+                    pacer = Pacer(self.section.rate_hz)
                     break
         if progress is not None:
             progress.close()
@@ -409,6 +450,14 @@ class BridgeService:
             self.window.reset()
 
     def close(self) -> None:
+        if self._semantic_watch is not None:
+            import zenoh
+
+            try:
+                self._semantic_watch.undeclare()
+            except zenoh.ZError as exc:
+                logger.debug("semantic liveliness subscriber already undeclared: %s", exc)
+            self._semantic_watch = None
         close = getattr(self.source, "close", None)
         if callable(close):
             close()

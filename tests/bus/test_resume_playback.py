@@ -253,3 +253,25 @@ def test_the_first_geometrys_start_announcement_is_not_a_restart() -> None:
     bridge.loop(runner)  # type: ignore[arg-type]
     assert [m.frame_id for m in sent.sent] == [0, 1, 2, 3, 4, 3, 4]
     assert runner.counter(BridgeCounter.REWINDS) == 1
+
+
+def test_bridge_replays_for_a_semantic_service_that_came_back() -> None:
+    """The semantic service's token goes after frame 5 was published and comes back after frame 7:
+    the bridge goes back to frame 5 (the latest-only semantic service never saw what came while it
+    was down), the chain intact; a token that comes with none gone before changes nothing."""
+    bridge = _bridge(9)
+    bridge.on_semantic(alive=True)
+    sent: list[RgbdFrame] = []
+
+    def on_put(msg: RgbdFrame) -> None:
+        sent.append(msg)
+        if len(sent) == 7:  # publishing frame 6: frame 5 is the last one out
+            bridge.on_semantic(alive=False)
+        if len(sent) == 8:
+            bridge.on_semantic(alive=True)
+
+    bridge._pub, bridge._instance_pub = _Recorder(on_put), _Recorder()
+    runner = _Runner()
+    bridge.loop(runner)  # type: ignore[arg-type]
+    assert [(m.frame_id, m.prev_frame_id) for m in sent] == [(i, i - 1) for i in range(8)] + [(i, i - 1) for i in range(5, 9)]
+    assert runner.counter(BridgeCounter.FRAMES_REPLAYED) == 3 and runner.counter(BridgeCounter.FRAMES_PUBLISHED) == 9

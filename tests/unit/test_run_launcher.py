@@ -170,3 +170,23 @@ def test_a_service_refusing_its_config_or_stopped_on_purpose_is_not_restarted(tm
     without.processes["geometry"].proc.end(-9)
     with pytest.raises(RunError, match="killed by SIGKILL"):
         without.check_alive()
+
+
+def test_a_restarted_semantic_services_counts_add_up_in_run_json() -> None:
+    """A restarted process counts from 0: run.json adds the last counts of the one before."""
+    from openfusion.app.run import _carry_over, _with_carried
+    from openfusion.wire.schemas import HealthStats
+
+    def semantic(frames: float, restarts: float) -> HealthStats:
+        return HealthStats(service="semantic", map_id="m", pid=1, uptime_s=1.0, fps=0.0, latency_ms_p50=0.0,
+                           latency_ms_p99=0.0, drops=0, errors=0, counters={"semantic_frames": frames,
+                                                                             "restarts": restarts})
+
+    stats, carried = {"semantic": semantic(40, 0)}, {}
+    _carry_over(stats, {"semantic": semantic(41, 0)}, carried)  # same process: nothing carried
+    assert carried == {}
+    stats = {"semantic": semantic(41, 0)}
+    _carry_over(stats, {"semantic": semantic(3, 1)}, carried)
+    stats = {"semantic": semantic(3, 1)}
+    assert _with_carried(stats, carried)["semantic"].counter("semantic_frames") == 44
+    assert stats["semantic"].counter("semantic_frames") == 3  # the live stats are untouched

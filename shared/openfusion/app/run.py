@@ -184,17 +184,18 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
         raise signals.interrupted("stopped before playback started; nothing to save")
     cluster.start("bridge")
     stats: dict[str, Any] = {}
+    carried: dict[str, dict[str, float]] = {}
     map_dir = out / "map"
 
     def summary_now(error: str | None = None) -> RunSummary:
         return RunSummary.from_health(
-            stats, source=config.bridge.source, encoder=config.semantic.encoder, noise=config.semantic.noise,
+            _with_carried(stats, carried), source=config.bridge.source, encoder=config.semantic.encoder, noise=config.semantic.noise,
             semantic_every=config.semantic.every_k, wall_s=time.monotonic() - started,
             frames_requested=config.bridge.max_frames, interrupted=signals.requested is not None,
             restarts=cluster.restarts, error=error)
 
     try:
-        stats = _follow_progress(args, client, cluster, signals, stats)
+        stats = _follow_progress(args, client, cluster, signals, stats, carried)
     except RunError as exc:  # past the restart limit (or a timeout): keep what can be kept, then fail
         _save_what_is_left(args, client, cluster, map_dir, summary_now(str(exc)))
         raise
@@ -243,6 +244,37 @@ def _save_what_is_left(args: argparse.Namespace, client: Any, cluster: Cluster, 
         logger.warning("could not write run.json: %s", exc)
 
 
+#: Counters of a service that add up over its restarts in run.json (a restarted process counts from 0).
+CARRIED_COUNTERS: dict[str, tuple[str, ...]] = {
+    "semantic": (SemanticCounter.SEMANTIC_FRAMES, SemanticCounter.BUSY_S, SemanticCounter.FRAMES_FAILED),
+}
+
+
+def _carry_over(stats: dict[str, Any], fresh: dict[str, Any], carried: dict[str, dict[str, float]]) -> None:
+    """Before ``fresh`` stats replace ``stats``: a service whose ``restarts`` went up leaves its
+    last counts of :data:`CARRIED_COUNTERS` in ``carried`` (geometry restores its own from its
+    checkpoint)."""
+    for name, counters in CARRIED_COUNTERS.items():
+        old, new = stats.get(name), fresh.get(name)
+        if old is None or new is None or new.counter(CommonCounter.RESTARTS) <= old.counter(CommonCounter.RESTARTS):
+            continue
+        into = carried.setdefault(name, {})
+        for counter in counters:
+            into[counter] = into.get(counter, 0.0) + old.counter(counter)
+
+
+def _with_carried(stats: dict[str, Any], carried: dict[str, dict[str, float]]) -> dict[str, Any]:
+    """``stats`` with the counts of earlier processes of a restarted service added."""
+    out = dict(stats)
+    for name, extra in carried.items():
+        if name in out:
+            counters = dict(out[name].counters)
+            for counter, value in extra.items():
+                counters[counter] = counters.get(counter, 0.0) + value
+            out[name] = out[name].model_copy(update={"counters": counters})
+    return out
+
+
 def _current(stats: dict[str, Any], cluster: Cluster) -> bool:
     """Every service is running and the stats held for it come from its current process (its
     ``restarts`` counter matches the launcher's count): a dead or restarted service's last stats
@@ -259,7 +291,8 @@ def _current(stats: dict[str, Any], cluster: Cluster) -> bool:
 
 
 def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
-                     signals: StopSignals | None = None, stats: dict[str, Any] | None = None) -> dict[str, Any]:
+                     signals: StopSignals | None = None, stats: dict[str, Any] | None = None,
+                     carried: dict[str, dict[str, float]] | None = None) -> dict[str, Any]:
     """Show progress until geometry has taken every frame the bridge published and geometry and
     semantic have settled (no counter changed for :data:`SETTLE_S`); the last stats of each service
     (also kept in ``stats``, so a caller has them when this raises).
@@ -287,7 +320,9 @@ def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
                 playback_stopped = True
                 stable_since = None
             cluster.check_alive()
-            stats.update(collect_health(client.session, client.keys, timeout_s=1.0))
+            fresh = collect_health(client.session, client.keys, timeout_s=1.0)
+            _carry_over(stats, fresh, {} if carried is None else carried)
+            stats.update(fresh)
             integrated = _counter(stats, "geometry", GeometryCounter.FRAMES_INTEGRATED)
             refused = (_counter(stats, "geometry", GeometryCounter.CAPACITY_REFUSED)
                        + _counter(stats, "geometry", GeometryCounter.FRAMES_FAILED))
