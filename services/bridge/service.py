@@ -4,8 +4,9 @@
 |---|---|---|
 | ``…/sensor/rgbd`` | publishes | :class:`~openfusion.wire.schemas.RgbdFrame` (without the instance image) |
 | ``…/sensor/instance`` | publishes, for frames that have one, just before the frame | :class:`~openfusion.wire.schemas.InstanceFrame` |
-| ``…/geometry/progress`` | subscribes (flow control, playback only) | :class:`~openfusion.wire.schemas.GeometryProgress` |
-| ``…/health/bridge`` | liveliness + stats | counters ``frames_read``, ``frames_published``, ``instances_published``, ``skipped_<reason>``, ``frames_throttled``, ``playback_done``, ``flow_wait_s``, ``flow_timeouts`` |
+| ``…/geometry/progress`` | subscribes (flow control and resume announcements, playback only) | :class:`~openfusion.wire.schemas.GeometryProgress` |
+| ``…/health/semantic`` | liveliness subscriber (replayable playback only) | the semantic service went away / came back |
+| ``…/health/bridge`` | liveliness + stats | counters ``frames_read``, ``frames_published``, ``instances_published``, ``skipped_<reason>``, ``frames_throttled``, ``playback_done``, ``flow_wait_s``, ``flow_timeouts``, ``frames_replayed``, ``rewinds`` |
 
 Ground-truth instance images (synthetic scene, ScanNet, Replica) go on their own key: only the
 semantic service's gt encoder reads them, and on ``sensor/rgbd`` they were 45 % of every
@@ -401,8 +402,6 @@ class BridgeService:
                     prev_id, rewound = target[1], True
                     break
                 replay = frame.frame_id <= newest_id
-                if not replay:
-                    runner.stats.incr(BridgeCounter.FRAMES_READ)
                 wait_s = pacer.due_s(frame.stamp_ns)  # replays too: the semantic service sees them as before
                 if wait_s > 0 and runner.wait(wait_s):
                     break
@@ -417,9 +416,11 @@ class BridgeService:
                     self._next_position = position + 1
                     if published:
                         self._positions[frame.frame_id] = position
+                if not replay:  # counted once it went out (or failed to): a frame read before a rewind is not
+                    runner.stats.incr(BridgeCounter.FRAMES_READ)
+                newest_id = max(newest_id, frame.frame_id)
                 if published:
                     prev_id = frame.frame_id
-                    newest_id = max(newest_id, frame.frame_id)
                 self._sync_source_stats(runner)
                 if progress is not None and not replay:
                     progress.update(1)

@@ -5,14 +5,14 @@
 | ``…/sensor/rgbd`` | subscribes (every frame, bounded queue) | :class:`~openfusion.wire.schemas.RgbdFrame` |
 | ``…/semantic/update`` | subscribes | :class:`~openfusion.wire.schemas.SemanticUpdate` |
 | ``…/semantic/dictionary/delta`` | subscribes (replica for checkpoints) | :class:`~openfusion.wire.schemas.DictionaryDelta` |
-| ``…/geometry/progress`` | publishes, one per frame taken from the queue | :class:`~openfusion.wire.schemas.GeometryProgress` (the bridge's flow control) |
+| ``…/geometry/progress`` | publishes, one per frame taken from the queue, and resume announcements | :class:`~openfusion.wire.schemas.GeometryProgress` (the bridge's flow control; where a playback resumes) |
 | ``…/geometry/render`` | queryable | RenderRequest → RenderReply |
 | ``…/geometry/points`` | queryable | PointsRequest → PointsReply (capped) |
 | ``…/geometry/mesh`` | queryable | MeshRequest → MeshReply |
 | ``…/geometry/regions`` | queryable | RegionSummaryRequest → RegionSummaryReply (per-region bbox + surface point count) |
 | ``…/geometry/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot (what the last checkpoint + deltas hold) |
 | ``…/control/{save,load,reset}`` | queryable (admin) | ControlRequest → ControlReply |
-| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC) |
+| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC) |
 
 Checkpoints go to ``{map_dir}/{map_id}`` every ``checkpoint_period_s`` (when something changed)
 and on ``control/save``; :func:`~openfusion.mapping.save_map` writes them atomically and keeps

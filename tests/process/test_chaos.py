@@ -82,6 +82,10 @@ def test_kill_geometry_semantic_and_query_mid_run_and_lose_nothing(tmp_path: Pat
     finally:
         calm.close()
 
+    chaos_points, chaos_fmiou = map_quality(chaos.out / "map")
+    calm_points, calm_fmiou = map_quality(calm.out / "map")
+    print(f"chaos {plan}: {chaos_points} points, f-mIoU {chaos_fmiou:.3f}, {chaos_summary}; "
+          f"uninterrupted: {calm_points} points, f-mIoU {calm_fmiou:.3f}")
     assert chaos_summary["restarts"] == {"geometry": 1, "semantic": 1, "query": 1, "bridge": 0}, plan
     assert calm_summary["restarts"] == {"geometry": 0, "semantic": 0, "query": 0, "bridge": 0}
     for summary in (chaos_summary, calm_summary):
@@ -89,10 +93,6 @@ def test_kill_geometry_semantic_and_query_mid_run_and_lose_nothing(tmp_path: Pat
         assert summary["frames_integrated"] == summary["frames_read"] - skipped == FRAMES
         assert summary["error"] is None
     assert chaos_summary["frames_replayed"] > 0
-    chaos_points, chaos_fmiou = map_quality(chaos.out / "map")
-    calm_points, calm_fmiou = map_quality(calm.out / "map")
-    print(f"chaos {plan}: {chaos_points} points, f-mIoU {chaos_fmiou:.3f}; "
-          f"uninterrupted: {calm_points} points, f-mIoU {calm_fmiou:.3f}")
     assert abs(chaos_points - calm_points) <= 0.01 * calm_points
     assert abs(chaos_fmiou - calm_fmiou) <= 0.02
     assert calm_fmiou > 0.3  # the comparison means something: the map is labelled
