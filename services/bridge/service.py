@@ -42,6 +42,9 @@ each frame once), also after its playback was done. It goes back once per announ
 announcement's ``incarnation`` and ``resume``), and again for the same one only when geometry still
 repeats it ``flow_wait_s`` later (the replayed frames were lost). The start announcement of the
 first geometry it hears of is not a restart (the frames already published are on their way to it).
+A bridge restarted with the same ``playback`` name (``openfusion run`` gives its bridge one)
+continues that playback: it publishes from the first frame again and geometry drops the frames
+it already holds, so none is integrated twice.
 
 The semantic service takes the latest frame only, so frames published while it is down are never
 fused. The bridge therefore watches its liveliness token (``health/semantic``): when it goes away,
@@ -106,6 +109,10 @@ class BridgeSection(ConfigSection):
         "well under geometry's frame queue"
     )
     flow_wait_s: float = Field(5.0, gt=0, description="playback: without an acknowledgement this long, go open loop")
+    playback: str = Field(
+        "", max_length=64, description="name of this playback (none = a new one); a bridge restarted with the same "
+        "name continues it: geometry drops the frames it already holds"
+    )
 
 
 class BridgeConfig(ServiceConfig):
@@ -177,7 +184,7 @@ class BridgeService:
             self.window = InFlightWindow(self.section.max_in_flight)
         # Replay for a restarted geometry (module docstring): an indexed playback source only.
         self.replayable = isinstance(self.source, IndexedFrameSource) and not self.source.live and not self.section.loop
-        self.playback = uuid.uuid4().hex[:16] if self.replayable else ""
+        self.playback = (self.section.playback or uuid.uuid4().hex[:16]) if self.replayable else ""
         self._replay_lock = threading.Lock()
         self._positions: dict[int, int] = {}  # frame id -> source position, for frames published
         self._next_position = 0

@@ -275,3 +275,15 @@ def test_bridge_replays_for_a_semantic_service_that_came_back() -> None:
     bridge.loop(runner)  # type: ignore[arg-type]
     assert [(m.frame_id, m.prev_frame_id) for m in sent] == [(i, i - 1) for i in range(8)] + [(i, i - 1) for i in range(5, 9)]
     assert runner.counter(BridgeCounter.FRAMES_REPLAYED) == 3 and runner.counter(BridgeCounter.FRAMES_PUBLISHED) == 9
+
+
+def test_a_restarted_bridge_with_the_same_playback_name_integrates_nothing_twice(tmp_path: Path) -> None:
+    """The bridge of `openfusion run` is named; restarted, it plays from the first frame again under
+    the same name: geometry drops the frames it holds and takes the rest in order."""
+    config = BridgeConfig(map_id="resume", bridge=BridgeSection(source="synthetic", playback=PLAYBACK))
+    assert BridgeService(config, source=SyntheticSource(SyntheticWorld(0), num_frames=2, width_px=40,
+                                                        height_px=30)).playback == PLAYBACK
+    geo, runner = _geometry(tmp_path / "maps")
+    _play(geo, FRAMES[:5])
+    _play(geo, FRAMES)  # the restarted bridge, same playback
+    assert geo.frames_integrated == N and runner.counter(GeometryCounter.FRAMES_DUPLICATE) == 5

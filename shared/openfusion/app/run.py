@@ -47,6 +47,7 @@ import os
 import shutil
 import sys
 import time
+import uuid
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -126,6 +127,8 @@ def run_services(args: argparse.Namespace, config: RunConfig) -> RunSummary:
     config.geometry.checkpoint_period_s = config.supervision.checkpoint_period_s
     config.geometry.load_on_start = True
     shutil.rmtree(config.geometry.map_dir / config.map_id, ignore_errors=True)
+    # One playback name for the run: a restarted bridge continues it (geometry drops what it holds).
+    config.bridge.playback = config.bridge.playback or uuid.uuid4().hex[:16]
     config_file = write_service_config(config, out / "run-config.json")
     port = free_loopback_port()
     endpoint = f"tcp/127.0.0.1:{port}"
