@@ -7,12 +7,18 @@ service) and a factory that builds the service object (plain library code; ``set
 declares its entities, ``loop(runner)`` optionally runs until ``runner.stopping``, ``close()``
 releases what it holds). The service's flags are derived from its section's fields
 (:func:`openfusion.config.add_section_options`), so a parameter is declared once, in the section.
+
+A supervisor that restarts a service (``openfusion run``'s launcher) sets :data:`RESTARTS_ENV` to
+the number of restarts so far; the service publishes it as its ``restarts`` health counter
+(:attr:`~openfusion.wire.counters.CommonCounter.RESTARTS`; 0 when unset), so ``openfusion health``
+and ``run.json`` show it.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -25,8 +31,18 @@ from openfusion.config import (
     config_from_args,
     setup_logging,
 )
+from openfusion.wire.counters import CommonCounter
 
 logger = logging.getLogger(__name__)
+
+#: The restart count a supervisor gives a restarted service (published as the ``restarts`` counter).
+RESTARTS_ENV = "OPENFUSION_RESTARTS"
+
+
+def restarts_from_env() -> int:
+    """The service's restart count from :data:`RESTARTS_ENV` (0 when unset or not a count)."""
+    text = os.environ.get(RESTARTS_ENV, "0").strip()
+    return int(text) if text.isdigit() else 0
 
 
 class ServiceApp(Protocol):
@@ -63,8 +79,14 @@ class ServiceDefinition:
         setup_logging(config.log_level)
         app = self.build(config)
         loop = getattr(app, "loop", None)
+        restarts = restarts_from_env()
+
+        def setup(runner: ServiceRunner) -> None:
+            runner.stats.set(CommonCounter.RESTARTS, restarts)
+            app.setup(runner)
+
         try:
             name = self.instance_name(config) if self.instance_name is not None else self.name
-            return run_service(config, name, app.setup, loop=loop)
+            return run_service(config, name, setup, loop=loop)
         finally:
             app.close()

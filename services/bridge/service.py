@@ -4,8 +4,9 @@
 |---|---|---|
 | ``…/sensor/rgbd`` | publishes | :class:`~openfusion.wire.schemas.RgbdFrame` (without the instance image) |
 | ``…/sensor/instance`` | publishes, for frames that have one, just before the frame | :class:`~openfusion.wire.schemas.InstanceFrame` |
-| ``…/geometry/progress`` | subscribes (flow control, playback only) | :class:`~openfusion.wire.schemas.GeometryProgress` |
-| ``…/health/bridge`` | liveliness + stats | counters ``frames_read``, ``frames_published``, ``instances_published``, ``skipped_<reason>``, ``frames_throttled``, ``playback_done``, ``flow_wait_s``, ``flow_timeouts`` |
+| ``…/geometry/progress`` | subscribes (flow control and resume announcements, playback only) | :class:`~openfusion.wire.schemas.GeometryProgress` |
+| ``…/health/semantic`` | liveliness subscriber (replayable playback only) | the semantic service went away / came back |
+| ``…/health/bridge`` | liveliness + stats | counters ``frames_read``, ``frames_published``, ``instances_published``, ``skipped_<reason>``, ``frames_throttled``, ``playback_done``, ``flow_wait_s``, ``flow_timeouts``, ``frames_replayed``, ``rewinds`` |
 
 Ground-truth instance images (synthetic scene, ScanNet, Replica) go on their own key: only the
 semantic service's gt encoder reads them, and on ``sensor/rgbd`` they were 45 % of every
@@ -29,12 +30,36 @@ source (``FrameSource.live``: Kinect + T265, ROS 2 topics) the bridge never bloc
 drops a frame under congestion and geometry's queue drops its oldest, since a stale frame is worth
 less than a fresh one. ``block_when_congested`` (default: by source) overrides the choice. See
 :mod:`openfusion.bus.flow_control`.
+
+Replay for a restarted geometry (an indexed playback source: datasets, the synthetic scene; not
+with ``loop``): each frame carries the playback's name (new for each bridge process) and the id
+of the frame published before it (``prev_frame_id``). Geometry announces on ``geometry/progress``
+the last frame of this playback it holds (from its checkpoint, after a restart) whenever it
+needs the frames after it (:class:`~openfusion.wire.schemas.GeometryProgress`, ``resume > 0``);
+the bridge then goes back to the frame after that one (``rewinds``), re-reads the frames from the
+source and publishes them again (``frames_replayed``; ``frames_read`` and ``frames_published`` count
+each frame once), also after its playback was done. It goes back once per announcement (the
+announcement's ``incarnation`` and ``resume``), and again for the same one only when geometry still
+repeats it ``flow_wait_s`` later (the replayed frames were lost). The start announcement of the
+first geometry it hears of is not a restart (the frames already published are on their way to it).
+A bridge restarted with the same ``playback`` name (``openfusion run`` gives its bridge one)
+continues that playback: it publishes from the first frame again and geometry drops the frames
+it already holds, so none is integrated twice.
+
+The semantic service takes the latest frame only, so frames published while it is down are never
+fused. The bridge therefore watches its liveliness token (``health/semantic``): when it goes away,
+the bridge notes the last frame published, and when a semantic service is back it goes back to that
+frame too (geometry drops the replayed frames it holds, as duplicates, and the semantic service
+sees them again). Replayed frames are paced like the first ones (``rate_hz``, or their own
+timestamps), so the semantic service takes as many of them as it would have the first time.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
+import uuid
 from typing import Any
 
 from pydantic import Field
@@ -45,10 +70,11 @@ from openfusion.config import ConfigSection, ServiceConfig
 from openfusion.frame import Frame
 from openfusion.services.common import ServiceDefinition
 from openfusion.sources import FrameSource, open_source
+from openfusion.sources.base import IndexedFrameSource
 from openfusion.wire.codec import EncodeError
 from openfusion.wire.counters import BridgeCounter
 from openfusion.wire.endpoints import GEOMETRY_PROGRESS, SENSOR_INSTANCE, SENSOR_RGBD
-from openfusion.wire.schemas import InstanceFrame, RgbdFrame
+from openfusion.wire.schemas import GeometryProgress, InstanceFrame, RgbdFrame
 
 logger = logging.getLogger(__name__)
 
@@ -84,6 +110,10 @@ class BridgeSection(ConfigSection):
         "well under geometry's frame queue"
     )
     flow_wait_s: float = Field(5.0, gt=0, description="playback: without an acknowledgement this long, go open loop")
+    playback: str = Field(
+        "", max_length=64, description="name of this playback (none = a new one); a bridge restarted with the same "
+        "name continues it: geometry drops the frames it already holds"
+    )
 
 
 class BridgeConfig(ServiceConfig):
@@ -153,6 +183,18 @@ class BridgeService:
         self.window: InFlightWindow | None = None
         if self.blocking and self.section.max_in_flight > 0:
             self.window = InFlightWindow(self.section.max_in_flight)
+        # Replay for a restarted geometry (module docstring): an indexed playback source only.
+        self.replayable = isinstance(self.source, IndexedFrameSource) and not self.source.live and not self.section.loop
+        self.playback = (self.section.playback or uuid.uuid4().hex[:16]) if self.replayable else ""
+        self._replay_lock = threading.Lock()
+        self._positions: dict[int, int] = {}  # frame id -> source position, for frames published
+        self._next_position = 0
+        self._rewind_to: tuple[int, int] | None = None  # (position, id of the frame before it)
+        self._handled: tuple[str, int] | None = None  # the last announcement gone back for, and when
+        self._handled_at = 0.0
+        self._incarnations: set[str] = set()  # the geometry processes heard from
+        self._semantic_lost_at: int | None = None  # position of the last frame published when it went away
+        self._semantic_watch: Any = None
 
     def setup(self, runner: ServiceRunner) -> None:
         import zenoh
@@ -164,15 +206,89 @@ class BridgeService:
                     else "never blocks (frames may be dropped under congestion)")
         self._pub = runner.publisher(SENSOR_RGBD, congestion_control=congestion)
         self._instance_pub = runner.publisher(SENSOR_INSTANCE, congestion_control=congestion)
-        if self.window is not None:
-            window = self.window
-            runner.subscriber(GEOMETRY_PROGRESS, lambda m: window.acknowledge(m.frame_id, m.stamp_ns), queue_size=256)
+        if self.window is not None or self.replayable:
+            runner.subscriber(GEOMETRY_PROGRESS, self.on_progress, queue_size=256)
+        if self.replayable and getattr(runner, "session", None) is not None:
+            self._semantic_watch = runner.session.liveliness().declare_subscriber(
+                runner.keys.liveliness("semantic"), zenoh.handlers.Callback(self._on_semantic_liveliness))
 
-    def _publish(self, runner: ServiceRunner, frame: Frame) -> None:
+    def _on_semantic_liveliness(self, sample: Any) -> None:
+        # On a Zenoh thread: bookkeeping only.
+        import zenoh
+
+        self.on_semantic(alive=sample.kind == zenoh.SampleKind.PUT)
+
+    def on_semantic(self, *, alive: bool) -> None:
+        """The semantic service's liveliness token came (``alive``) or went: when one comes back
+        after one went away, go back to the last frame published when it went (module docstring)."""
+        with self._replay_lock:
+            if not alive:
+                self._semantic_lost_at = max(0, self._next_position - 1) if self._positions else None
+                return
+            position, self._semantic_lost_at = self._semantic_lost_at, None
+            if position is None or position >= self._next_position:
+                return
+            before = [p for p in self._positions.values() if p < position]
+            previous = max(before, default=-1)
+            prev_id = next((fid for fid, p in self._positions.items() if p == previous), -1)
+            self._request_rewind((position, prev_id))
+        logger.warning("bridge: the semantic service is back; replaying from position %d for it", position)
+
+    def _request_rewind(self, target: tuple[int, int]) -> None:
+        """Call with ``_replay_lock`` held: go back to ``target`` (the earliest of those pending)."""
+        if self._rewind_to is None or target[0] < self._rewind_to[0]:
+            self._rewind_to = target
+
+    def on_progress(self, msg: GeometryProgress) -> None:
+        """An acknowledgement (flow control) and/or a resume announcement of geometry."""
+        if self.window is not None and msg.frame_id >= 0:
+            self.window.acknowledge(msg.frame_id, msg.stamp_ns)
+        if msg.resume > 0 and self.replayable:
+            self.on_resume(msg)
+        if msg.incarnation:
+            with self._replay_lock:
+                self._incarnations.add(msg.incarnation)
+
+    def on_resume(self, msg: GeometryProgress, now_s: float | None = None) -> None:
+        """Geometry wants the frames of this playback after ``holds_frame_id``: go back there when
+        frames after it were published (module docstring)."""
+        now = time.monotonic() if now_s is None else now_s
+        key = (msg.incarnation, msg.resume)
+        with self._replay_lock:
+            if key == self._handled and now - self._handled_at < self.section.flow_wait_s:
+                return
+            if msg.resume == 1 and not self._incarnations - {msg.incarnation}:
+                # The start announcement of the first geometry this bridge hears of: the frames
+                # published so far are on their way to it, not lost (it may have sent this before
+                # they reached it). Frames lost anyway come out of order and it announces again.
+                return
+            if msg.holds_playback == self.playback and msg.holds_frame_id in self._positions:
+                target = (self._positions[msg.holds_frame_id] + 1, msg.holds_frame_id)
+            elif msg.holds_playback == self.playback and msg.holds_frame_id >= 0:
+                return  # a frame this bridge never published: nothing it could replay
+            else:  # geometry holds nothing of this playback
+                target = (0, -1)
+            self._handled, self._handled_at = key, now
+            if target[0] >= self._next_position:
+                return  # nothing published after it yet
+            self._request_rewind(target)
+        logger.warning("bridge: geometry %s holds frames up to %d of this playback; replaying from the frame after it",
+                       msg.incarnation, target[1])
+
+    def _take_rewind(self) -> tuple[int, int] | None:
+        with self._replay_lock:
+            target, self._rewind_to = self._rewind_to, None
+            if target is not None:
+                self._next_position = target[0]
+            return target
+
+    def _publish(self, runner: ServiceRunner, frame: Frame, *, prev_frame_id: int | None = None,
+                 replay: bool = False) -> bool:
+        """Publish one frame (and its instance image); False when it could not be encoded (counted)."""
         assert self._pub is not None and self._instance_pub is not None
         started = time.monotonic()
         try:
-            rgbd = RgbdFrame.from_frame(frame, with_instance=False)
+            rgbd = RgbdFrame.from_frame(frame, with_instance=False, playback=self.playback, prev_frame_id=prev_frame_id)
             instance = InstanceFrame.from_frame(frame)
             # The instance image goes first, so a subscriber that has the frame has it too.
             if instance is not None:
@@ -184,10 +300,20 @@ class BridgeService:
         except (EncodeError, ValueError) as exc:
             logger.warning("bridge: frame %d not published: %s", frame.frame_id, exc)
             runner.stats.add_error()
-            runner.stats.incr(BridgeCounter.SKIPPED_UNENCODABLE)
-            return
+            if not replay:
+                runner.stats.incr(BridgeCounter.SKIPPED_UNENCODABLE)
+            return False
+        except Exception:  # anything else on this one frame: logged with its traceback, counted, skipped
+            if runner.stopping:
+                raise
+            logger.exception("bridge: frame %d from %s not published", frame.frame_id, self.source.name)
+            runner.stats.add_error()
+            if not replay:
+                runner.stats.incr(BridgeCounter.SKIPPED_PUBLISH_FAILED)
+            return False
         runner.stats.record(time.monotonic() - started)
-        runner.stats.incr(BridgeCounter.FRAMES_PUBLISHED)
+        runner.stats.incr(BridgeCounter.FRAMES_REPLAYED if replay else BridgeCounter.FRAMES_PUBLISHED)
+        return True
 
     def _wait_for_geometry(self, runner: ServiceRunner) -> bool:
         """Flow control: wait until geometry has room for another frame. False when stopping."""
@@ -198,6 +324,8 @@ class BridgeService:
         while not self.window.wait_for_room(min(0.2, max(0.0, deadline - time.monotonic()))):
             if runner.stopping:
                 return False
+            if self._rewind_to is not None:  # geometry came back and asked for earlier frames
+                break
             if time.monotonic() >= deadline:
                 self.window.give_up()
                 runner.stats.set(BridgeCounter.FLOW_TIMEOUTS, self.window.timeouts)
@@ -224,6 +352,9 @@ class BridgeService:
                            self.section.wait_for_subscribers_s)
         progress = _progress(self.source, enabled=self.section.progress)
         runner.stats.set(BridgeCounter.PLAYBACK_DONE, 0)
+        if self.replayable:
+            self._replayable_loop(runner, progress)
+            return
         passes = 0
         while not runner.stopping:
             pacer = Pacer(self.section.rate_hz)
@@ -260,7 +391,82 @@ class BridgeService:
         logger.info("bridge: playback done (%d pass(es), %s)", passes, self.source.stats)
         runner.wait()
 
+    def _replayable_loop(self, runner: ServiceRunner, progress: Any) -> None:
+        """One pass over an indexed playback source that goes back when geometry asks
+        (:meth:`on_resume`); after the pass, it waits and goes back again if asked."""
+        source = self.source
+        assert isinstance(source, IndexedFrameSource)
+        source.start_replayable_pass()
+        pacer = Pacer(self.section.rate_hz)
+        prev_id = -1
+        newest_id = -1  # the newest frame published: frames up to it are replays
+        while not runner.stopping:
+            rewound = False
+            for position, frame in source.replay_from(self._next_position):
+                if runner.stopping:
+                    break
+                target = self._take_rewind()
+                if target is not None:
+                    prev_id, rewound = target[1], True
+                    break
+                replay = frame.frame_id <= newest_id
+                wait_s = pacer.due_s(frame.stamp_ns)  # replays too: the semantic service sees them as before
+                if wait_s > 0 and runner.wait(wait_s):
+                    break
+                if not self._wait_for_geometry(runner):
+                    break
+                target = self._take_rewind()
+                if target is not None:
+                    prev_id, rewound = target[1], True
+                    break
+                published = self._publish(runner, frame, prev_frame_id=prev_id, replay=replay)
+                with self._replay_lock:
+                    self._next_position = position + 1
+                    if published:
+                        self._positions[frame.frame_id] = position
+                if not replay:  # counted once it went out (or failed to): a frame read before a rewind is not
+                    runner.stats.incr(BridgeCounter.FRAMES_READ)
+                newest_id = max(newest_id, frame.frame_id)
+                if published:
+                    prev_id = frame.frame_id
+                self._sync_source_stats(runner)
+                if progress is not None and not replay:
+                    progress.update(1)
+            if rewound:
+                self._went_back(runner)
+                pacer = Pacer(self.section.rate_hz)
+                continue
+            if runner.stopping:
+                break
+            self._sync_source_stats(runner)
+            runner.stats.set(BridgeCounter.PLAYBACK_DONE, 1)
+            runner.stats.set(BridgeCounter.PASSES, 1)
+            logger.info("bridge: playback done (%s)", source.stats)
+            while not runner.wait(0.2):  # done: until stopped, or until geometry asks for frames again
+                target = self._take_rewind()
+                if target is not None:
+                    prev_id = target[1]
+                    runner.stats.set(BridgeCounter.PLAYBACK_DONE, 0)
+                    self._went_back(runner)
+                    pacer = Pacer(self.section.rate_hz)
+                    break
+        if progress is not None:
+            progress.close()
+
+    def _went_back(self, runner: ServiceRunner) -> None:
+        runner.stats.incr(BridgeCounter.REWINDS)
+        if self.window is not None:
+            self.window.reset()
+
     def close(self) -> None:
+        if self._semantic_watch is not None:
+            import zenoh
+
+            try:
+                self._semantic_watch.undeclare()
+            except zenoh.ZError as exc:
+                logger.debug("semantic liveliness subscriber already undeclared: %s", exc)
+            self._semantic_watch = None
         close = getattr(self.source, "close", None)
         if callable(close):
             close()

@@ -5,14 +5,14 @@
 | ``…/sensor/rgbd`` | subscribes (every frame, bounded queue) | :class:`~openfusion.wire.schemas.RgbdFrame` |
 | ``…/semantic/update`` | subscribes | :class:`~openfusion.wire.schemas.SemanticUpdate` |
 | ``…/semantic/dictionary/delta`` | subscribes (replica for checkpoints) | :class:`~openfusion.wire.schemas.DictionaryDelta` |
-| ``…/geometry/progress`` | publishes, one per frame taken from the queue | :class:`~openfusion.wire.schemas.GeometryProgress` (the bridge's flow control) |
+| ``…/geometry/progress`` | publishes, one per frame taken from the queue, and resume announcements | :class:`~openfusion.wire.schemas.GeometryProgress` (the bridge's flow control; where a playback resumes) |
 | ``…/geometry/render`` | queryable | RenderRequest → RenderReply |
 | ``…/geometry/points`` | queryable | PointsRequest → PointsReply (capped) |
 | ``…/geometry/mesh`` | queryable | MeshRequest → MeshReply |
 | ``…/geometry/regions`` | queryable | RegionSummaryRequest → RegionSummaryReply (per-region bbox + surface point count) |
 | ``…/geometry/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot (what the last checkpoint + deltas hold) |
 | ``…/control/{save,load,reset}`` | queryable (admin) | ControlRequest → ControlReply |
-| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC) |
+| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC) |
 
 Checkpoints go to ``{map_dir}/{map_id}`` every ``checkpoint_period_s`` (when something changed)
 and on ``control/save``; :func:`~openfusion.mapping.save_map` writes them atomically and keeps
@@ -28,6 +28,23 @@ read-only folder) is logged in one line naming the path and reason, counted as
 ``checkpoint_failed``; the map stays in memory, integration goes on, and the periodic loop tries
 again one ``checkpoint_period_s`` later. Every bad message is counted and dropped before it
 reaches the volume; a bad request is answered with ``reply_err`` naming the limit or field.
+
+Resume with nothing lost (playback): frames of a playback the bridge can replay carry the
+playback's name and ``prev_frame_id`` (the frame published before them). The service takes such a
+frame only when it holds that predecessor (:attr:`GeometryService.last_frame_id` of
+:attr:`GeometryService.playback`, the last frame taken, restored from the checkpoint at start; the
+first frame of a new playback follows -1): one it already holds (id <= the last taken) is dropped and counted as
+``frames_duplicate``, one whose predecessor it does not hold as ``frames_out_of_order``; either is
+acknowledged (the bridge's flow control) but changes nothing. On start, and whenever a frame comes
+out of order, it announces on ``geometry/progress`` the last frame it holds
+(:class:`~openfusion.wire.schemas.GeometryProgress` with ``resume > 0``), repeated every second
+until the next frame arrives in order; the bridge then replays from the frame after it. So the
+acknowledgement (frame taken from the queue) is only flow control: the resume point is the
+checkpoint, and the frames acknowledged after it are replayed after a crash. A restart also
+restores ``frames_integrated`` and ``integrate_busy_s`` from the checkpoint, so they count each
+frame once. Live frames (no ``prev_frame_id``) are taken as they come, as before; the ids missing
+between two of them (frames dropped anywhere: the rate cap, congestion, a restart) are counted in
+``frames_gap``.
 
 Region summaries (``geometry/regions``, what the query service ranks with): computed from the
 same surface points as ``geometry/points`` and cached per ``map_version`` (a counter bumped by
@@ -45,6 +62,7 @@ import contextlib
 import logging
 import threading
 import time
+import uuid
 from pathlib import Path
 from typing import Any
 
@@ -199,7 +217,7 @@ class GeometryService:
         self.replica = DictionaryReplica()
         self.frames_integrated = 0
         self.updates_applied = 0
-        self.last_frame_id: int | None = None  # the last frame integrated into the volume
+        self.last_frame_id: int | None = None  # the last frame taken (integrated, or refused for capacity)
         # The last frame id recorded in the newest checkpoint this service loaded or saved.
         self.checkpoint_last_frame_id: int | None = None
         self.checkpoint_failures = 0
@@ -217,14 +235,26 @@ class GeometryService:
         self._runner: ServiceRunner | None = None
         self._frames_sub: Subscriber[RgbdFrame] | None = None
         self._progress_pub: Publisher | None = None
+        # Resume (module docstring): this process's name, the number of its last announcement, and
+        # whether it waits for the playback frame after last_frame_id.
+        self.incarnation = uuid.uuid4().hex[:16]
+        self.playback = ""  # the playback whose frames up to last_frame_id this map holds
+        self.resume = 1
+        self.waiting_for_frames = True
+        self.integrate_busy_s = 0.0
         if self.section.load_on_start and self.checkpoint_dir is not None and _has_checkpoint(self.checkpoint_dir):
-            self._load(self.checkpoint_dir, fallback=True)
+            self._load(self.checkpoint_dir, fallback=True, restore_counts=True)
 
     # ------------------------------------------------------------------ state changes
-    def _load(self, path: Path, *, fallback: bool = False) -> None:
-        """Load a map file; ``fallback``: a checkpoint of ours, the ``.prev`` one when the newest is bad."""
+    def _load(self, path: Path, *, fallback: bool = False, restore_counts: bool = False) -> None:
+        """Load a map file; ``fallback``: a checkpoint of ours, the ``.prev`` one when the newest is bad;
+        ``restore_counts``: (a restart) take ``frames_integrated`` and ``integrate_busy_s`` from it."""
         loaded = (load_latest_map if fallback else load_map)(path, device=self.section.device)
         last = loaded.meta.get("last_frame_id")
+        self.playback = str(loaded.meta.get("playback") or "")
+        if restore_counts:
+            self.frames_integrated = int(loaded.meta.get("frames_integrated") or 0)
+            self.integrate_busy_s = float(loaded.meta.get("integrate_busy_s") or 0.0)
         with self._lock:
             self.volume = loaded.volume
             has_semantics = loaded.dictionary.embedding_space != NO_EMBEDDING_SPACE
@@ -263,7 +293,9 @@ class GeometryService:
                     meta={
                         "map_id": self.config.map_id,
                         "frames_integrated": self.frames_integrated,
+                        "integrate_busy_s": self.integrate_busy_s,
                         "last_frame_id": last,
+                        "playback": self.playback,
                     },
                     regions=regions,
                 )
@@ -301,10 +333,57 @@ class GeometryService:
             self._runner.stats.incr(name, by)
 
     # ---------------------------------------------------------------------- handlers
+    def _admit(self, msg: RgbdFrame) -> bool:
+        """Whether to take this frame (module docstring, "Resume"); a playback frame already held or
+        out of order is counted here (and an announcement sent for the latter)."""
+        held = NO_FRAME_ID if self.last_frame_id is None else self.last_frame_id
+        if msg.prev_frame_id is None:  # live: as it comes; count the ids that never arrived
+            if self.last_frame_id is not None and msg.frame_id > held + 1:
+                self._count(GeometryCounter.FRAMES_GAP, msg.frame_id - held - 1)
+            self.waiting_for_frames = False
+            return True
+        if msg.playback != self.playback:  # another playback: it starts at its first frame
+            if msg.prev_frame_id == NO_FRAME_ID:
+                self.playback = msg.playback
+                self.waiting_for_frames = False
+                return True
+            held = NO_FRAME_ID
+        elif msg.frame_id <= held:
+            self._count(GeometryCounter.FRAMES_DUPLICATE)
+            logger.debug("geometry: frame %d dropped: already held (last %d)", msg.frame_id, held)
+            return False
+        if msg.prev_frame_id != held:
+            self._count(GeometryCounter.FRAMES_OUT_OF_ORDER)
+            if not self.waiting_for_frames:
+                self.waiting_for_frames = True
+                self.resume += 1
+                logger.warning("geometry: frame %d follows frame %d, but the last frame held is %d; asking for "
+                               "the frames after it", msg.frame_id, msg.prev_frame_id, held)
+                self.announce()
+            return False
+        self.waiting_for_frames = False
+        return True
+
+    def announce(self) -> None:
+        """Publish where playback should continue (``resume`` announcement on ``geometry/progress``)."""
+        if self._progress_pub is None:
+            return
+        held = NO_FRAME_ID if self.last_frame_id is None else self.last_frame_id
+        try:
+            self._progress_pub.put(GeometryProgress(
+                frame_id=-1, stamp_ns=0, integrated=False, frames_integrated=self.frames_integrated, queued=0,
+                incarnation=self.incarnation, holds_playback=self.playback, holds_frame_id=held,
+                resume=self.resume))
+        except zenoh.ZError as exc:  # repeated every second while waiting
+            logger.warning("geometry: resume announcement not published: %s", exc)
+
     def on_frame(self, msg: RgbdFrame) -> None:
-        frame = msg.to_frame()
+        if not self._admit(msg):
+            self._acknowledge(msg, integrated=False)
+            return
         started = time.monotonic()
         try:
+            frame = msg.to_frame()
             with self._lock:
                 self.volume.integrate(frame)
                 self.frames_integrated += 1
@@ -312,16 +391,26 @@ class GeometryService:
                 self._map_changed()
                 self._dirty = True
         except CapacityError as exc:
-            logger.warning("geometry: frame %d refused: %s", frame.frame_id, exc)
+            logger.warning("geometry: frame %d refused: %s", msg.frame_id, exc)
+            self.last_frame_id = msg.frame_id  # taken: the playback goes on after it
             self._count(GeometryCounter.CAPACITY_REFUSED)
             self._acknowledge(msg, integrated=False)
             return
+        except Exception:  # anything else on this one frame: logged, counted, taken (a replay never retries it)
+            logger.exception("geometry: frame %d (%s) failed to integrate and was skipped", msg.frame_id, msg.source)
+            self.last_frame_id = msg.frame_id
+            self._count(GeometryCounter.FRAMES_FAILED)
+            if self._runner is not None:
+                self._runner.stats.add_error()
+            self._acknowledge(msg, integrated=False)
+            return
+        ended = time.monotonic()
+        elapsed = ended - started
+        self.integrate_busy_s += elapsed
         self._acknowledge(msg, integrated=True)
         if self._runner is not None:
-            ended = time.monotonic()
-            elapsed = ended - started
             self._runner.stats.record(elapsed)
-            self._runner.stats.incr(GeometryCounter.INTEGRATE_BUSY_S, elapsed)
+            self._runner.stats.set(GeometryCounter.INTEGRATE_BUSY_S, self.integrate_busy_s)
             self._runner.stats.set(GeometryCounter.LAST_INTEGRATED_AT_S, ended)
             self._runner.stats.set(GeometryCounter.FRAMES_INTEGRATED, self.frames_integrated)
             self._runner.stats.set(GeometryCounter.NUM_BLOCKS, self.volume.num_blocks)
@@ -333,8 +422,11 @@ class GeometryService:
             return
         queued = self._frames_sub.queued if self._frames_sub is not None else 0
         try:
+            held = NO_FRAME_ID if self.last_frame_id is None else self.last_frame_id
             self._progress_pub.put(GeometryProgress(frame_id=msg.frame_id, stamp_ns=msg.stamp_ns, integrated=integrated,
-                                                    frames_integrated=self.frames_integrated, queued=queued))
+                                                    frames_integrated=self.frames_integrated, queued=queued,
+                                                    incarnation=self.incarnation, holds_playback=self.playback,
+                                                    holds_frame_id=held))
         except zenoh.ZError as exc:  # the map is fine; the bridge falls back to open loop
             logger.warning("geometry: progress for frame %d not published: %s", msg.frame_id, exc)
 
@@ -463,6 +555,7 @@ class GeometryService:
             self.replica.reset(None)
             self.frames_integrated = 0
             self.last_frame_id = None
+            self.playback = ""
             self._map_changed(reset_keys=True)
             self._dirty = True
         return ControlReply(ok=True, message="map reset")
@@ -482,13 +575,21 @@ class GeometryService:
         for action, endpoint in CONTROL.items():
             runner.queryable(endpoint, lambda req, action=action: self.handle_control(req, action=action))
         runner.stats.set(GeometryCounter.FRAMES_INTEGRATED, self.frames_integrated)
+        runner.stats.set(GeometryCounter.INTEGRATE_BUSY_S, self.integrate_busy_s)
         runner.stats.set(GeometryCounter.NUM_BLOCKS, self.volume.num_blocks)
         runner.stats.set(GeometryCounter.CHECKPOINT_FAILURES, self.checkpoint_failures)
+        for name in (GeometryCounter.FRAMES_DUPLICATE, GeometryCounter.FRAMES_OUT_OF_ORDER):
+            runner.stats.set(name, 0)
+        if self.last_frame_id is not None:
+            runner.stats.set(GeometryCounter.LAST_FRAME_ID, self.last_frame_id)
         self._set_checkpoint_frame()
+        self.announce()
 
     def loop(self, runner: ServiceRunner) -> None:
         period = self.section.checkpoint_period_s
-        while not runner.wait(min(period, 1.0) if period > 0 else None):
+        while not runner.wait(min(period, 1.0) if period > 0 else 1.0):
+            if self.waiting_for_frames:  # until the next playback frame comes in order
+                self.announce()
             if (
                 period > 0
                 and self._dirty
@@ -498,6 +599,13 @@ class GeometryService:
                 try:
                     self.save()
                 except CheckpointFailed:  # logged and counted by save(); mapping goes on
+                    runner.stats.add_error()
+                except Exception:  # not an OSError: logged with its traceback; tried again one period later
+                    logger.exception("geometry: checkpoint to %s failed; the map is kept in memory",
+                                     self.checkpoint_dir)
+                    self._last_checkpoint = time.monotonic()
+                    self.checkpoint_failures += 1
+                    self._count(GeometryCounter.CHECKPOINT_FAILURES)
                     runner.stats.add_error()
 
     def close(self) -> None:

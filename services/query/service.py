@@ -570,11 +570,15 @@ class QueryService:
         period = min(self.section.summary_refresh_s, self.section.resync_period_s)
         last_resync_check = time.monotonic()
         while not runner.wait(period):
-            self._keep_summaries_warm()
-            if time.monotonic() - last_resync_check >= self.section.resync_period_s:
-                last_resync_check = time.monotonic()
-                if self.replica.embedding_space is None:
-                    self.resync()
+            try:
+                self._keep_summaries_warm()
+                if time.monotonic() - last_resync_check >= self.section.resync_period_s:
+                    last_resync_check = time.monotonic()
+                    if self.replica.embedding_space is None:
+                        self.resync()
+            except Exception:  # one failed refresh or resync: logged, counted, tried again next period
+                logger.exception("query: background refresh failed; trying again in %.1f s", period)
+                runner.stats.add_error()
 
     def close(self) -> None:
         return None

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from openfusion.app.launcher import ServiceProcess, _reason_and_tail
+from openfusion.app.launcher import Cluster, RestartPolicy, RunError, ServiceProcess, _reason_and_tail
 from openfusion.app.run import BUILTIN_LAP_FRAMES, builtin_scene_spec, shortfall_note
 from openfusion.app.summary import RunSummary
 
@@ -87,3 +87,106 @@ def test_a_shorter_source_is_said_and_an_old_run_json_still_loads(tmp_path: Path
     old = _summary().model_dump(exclude={"frames_requested", "frames_played", "interrupted"})
     loaded = RunSummary.model_validate(old)
     assert loaded.frames_requested is None and not loaded.interrupted and shortfall_note(loaded) is None
+
+
+class _Proc:
+    """A stand-in Popen: alive until ``end(code)``."""
+
+    def __init__(self) -> None:
+        self.returncode: int | None = None
+
+    def poll(self) -> int | None:
+        return self.returncode
+
+    def end(self, code: int) -> None:
+        self.returncode = code
+
+
+def _supervised(tmp_path: Path, policy: RestartPolicy) -> tuple[Cluster, list[tuple[str, int]]]:
+    """A cluster whose start() makes stand-in processes (and records (name, restarts))."""
+    cluster = Cluster("m", "tcp/127.0.0.1:1", tmp_path, restart_policy=policy)
+    started: list[tuple[str, int]] = []
+
+    def start(name: str, extra=(), env=None, *, restarts: int = 0) -> ServiceProcess:  # noqa: ANN001
+        log = tmp_path / f"{name}.log"
+        log.touch()
+        sp = ServiceProcess(name, _Proc(), log, extra=tuple(extra), env=env, log_offset=log.stat().st_size,
+                            restarts=restarts)
+        cluster.processes[name] = sp
+        started.append((name, restarts))
+        return sp
+
+    cluster.start = start  # type: ignore[method-assign]
+    return cluster, started
+
+
+def test_a_dead_service_is_restarted_with_backoff_up_to_the_limit(tmp_path: Path) -> None:
+    """Backoff 1 s doubled per restart (capped at 3 s), 3 restarts: each death waits its delay,
+    the restarted process keeps its arguments and gets its count, the log is marked with why, and
+    the fourth death ends the run with the reason of the last process (not of an earlier one)."""
+    cluster, started = _supervised(tmp_path, RestartPolicy(max_restarts=3, backoff_s=1.0, backoff_max_s=3.0))
+    cluster.start("geometry", ["--x"])
+    cluster.start("query")
+    assert [RestartPolicy(backoff_s=1.0, backoff_max_s=3.0).delay_s(n) for n in range(4)] == [1.0, 2.0, 3.0, 3.0]
+    t = 100.0
+    for n, delay in enumerate([1.0, 2.0, 3.0], start=1):
+        geometry = cluster.processes["geometry"]
+        with geometry.log_path.open("a") as log:
+            log.write(f"Traceback (most recent call last):\n  File x\nRuntimeError: crash {n}\n")
+        geometry.proc.end(-9 if n == 1 else 1)
+        assert cluster.supervise(t) == [] and cluster.restarting
+        assert cluster.supervise(t + delay - 0.01) == []
+        assert cluster.supervise(t + delay) == ["geometry"] and not cluster.restarting
+        assert started[-1] == ("geometry", n) and cluster.processes["geometry"].extra == ("--x",)
+        t += 10
+    assert cluster.restarts == {"geometry": 3, "query": 0}
+    log = (tmp_path / "geometry.log").read_text()
+    assert "---- openfusion run: the geometry service was killed by SIGKILL: RuntimeError: crash 1; restart 1 in 1.0 s ----" in log
+    assert "exited with code 1: RuntimeError: crash 3; restart 3 in 3.0 s ----" in log
+    with (tmp_path / "geometry.log").open("a") as f:
+        f.write("ERROR geometry: out of memory\n")
+    cluster.processes["geometry"].proc.end(1)
+    with pytest.raises(RunError) as info:
+        cluster.supervise(t)
+    assert str(info.value).startswith("the geometry service exited with code 1: ERROR geometry: out of memory "
+                                      "(restarted 3 times, the limit) (log: ")
+
+
+def test_a_service_refusing_its_config_or_stopped_on_purpose_is_not_restarted(tmp_path: Path) -> None:
+    cluster, started = _supervised(tmp_path, RestartPolicy())
+    cluster.start("bridge")
+    cluster.start("query")
+    cluster.processes["query"].stopped = True
+    cluster.processes["query"].proc.end(0)
+    assert cluster.supervise(0.0) == [] and not cluster.restarting
+    (tmp_path / "bridge.log").write_text("openfusion service: error: cannot open source 'folder:/x'\n")
+    cluster.processes["bridge"].proc.end(2)
+    with pytest.raises(RunError, match=r"exited with code 2: cannot open source 'folder:/x' \(its config or "
+                       r"arguments are refused; not restarted\)"):
+        cluster.check_alive()
+    assert started == [("bridge", 0), ("query", 0)]
+    without = Cluster("m", "e", tmp_path)  # no policy: a death ends the run at once, as before
+    without.processes["geometry"] = ServiceProcess("geometry", _Proc(), tmp_path / "bridge.log")
+    without.processes["geometry"].proc.end(-9)
+    with pytest.raises(RunError, match="killed by SIGKILL"):
+        without.check_alive()
+
+
+def test_a_restarted_semantic_services_counts_add_up_in_run_json() -> None:
+    """A restarted process counts from 0: run.json adds the last counts of the one before."""
+    from openfusion.app.run import _carry_over, _with_carried
+    from openfusion.wire.schemas import HealthStats
+
+    def semantic(frames: float, restarts: float) -> HealthStats:
+        return HealthStats(service="semantic", map_id="m", pid=1, uptime_s=1.0, fps=0.0, latency_ms_p50=0.0,
+                           latency_ms_p99=0.0, drops=0, errors=0, counters={"semantic_frames": frames,
+                                                                             "restarts": restarts})
+
+    stats, carried = {"semantic": semantic(40, 0)}, {}
+    _carry_over(stats, {"semantic": semantic(41, 0)}, carried)  # same process: nothing carried
+    assert carried == {}
+    stats = {"semantic": semantic(41, 0)}
+    _carry_over(stats, {"semantic": semantic(3, 1)}, carried)
+    stats = {"semantic": semantic(3, 1)}
+    assert _with_carried(stats, carried)["semantic"].counter("semantic_frames") == 44
+    assert stats["semantic"].counter("semantic_frames") == 3  # the live stats are untouched

@@ -11,6 +11,17 @@ by SIGKILL (:func:`follow_launcher`: Linux sends it SIGTERM when the launcher di
 A service that dies is reported by :class:`RunError` with the reason taken from its log
 (:meth:`ServiceProcess.reason`: the last line of a traceback, the service's one-line error) and
 the last lines of the log as ``details``.
+
+Supervision (:class:`RestartPolicy`, ``openfusion run``'s ``--max-restarts`` and
+``--restart-backoff-s``): a service that exits while nobody asked it to stop is started again
+with the same command, after ``backoff_s``, doubled for each restart of that service (at most
+``backoff_max_s``), up to ``max_restarts`` times; each restart is logged with the reason from the
+dead process's log (a warning line, and a marker line in the service's own log, which the new
+process appends to) and counted per service (:attr:`Cluster.restarts`). The restarted process gets
+its restart count in :data:`~openfusion.services.common.RESTARTS_ENV`, which its health stats
+publish as the ``restarts`` counter. A service that exits with code 2 (its config or arguments are
+bad: a restart cannot help) or dies once more past the limit ends the run with :class:`RunError`,
+as without supervision.
 """
 
 from __future__ import annotations
@@ -29,6 +40,7 @@ from types import FrameType
 from typing import Any
 
 from openfusion.errors import Interrupted, OpenFusionError
+from openfusion.services.common import RESTARTS_ENV
 
 logger = logging.getLogger(__name__)
 
@@ -91,6 +103,23 @@ def _reason_and_tail(text: str, lines: int = TAIL_LINES) -> tuple[str, list[str]
     return rows[end].strip(), rows[max(0, end - lines + 1): end + 1]
 
 
+#: Exit code of a service refusing its config or arguments (UserError): restarting cannot help.
+USAGE_EXIT_CODE = 2
+
+
+@dataclass(frozen=True)
+class RestartPolicy:
+    """How :class:`Cluster` restarts a service that exits unexpectedly (module docstring)."""
+
+    max_restarts: int = 3
+    backoff_s: float = 1.0
+    backoff_max_s: float = 30.0
+
+    def delay_s(self, restarts_so_far: int) -> float:
+        """Seconds to wait before restart number ``restarts_so_far + 1`` (exponential backoff)."""
+        return min(self.backoff_max_s, self.backoff_s * (2.0 ** restarts_so_far))
+
+
 @dataclass
 class ServiceProcess:
     name: str
@@ -98,16 +127,29 @@ class ServiceProcess:
     log_path: Path
     #: Stopped on purpose (``Cluster.stop(name)``): not a death :meth:`Cluster.check_alive` reports.
     stopped: bool = False
-    #: The run goes on without it (an encoder worker: the pool sends its frames elsewhere); its
-    #: death is logged once, not raised.
+    #: The run goes on without it (an encoder worker: the pool sends its frames elsewhere): past the
+    #: restart limit, or with no restart policy, its death is logged, not raised.
     optional: bool = False
+    #: The ``openfusion service`` it runs when that is not its name (encoder workers ``encoder-w1``...).
+    service: str | None = None
+    #: The command-line arguments and extra environment it was started with (a restart reuses them).
+    extra: tuple[str, ...] = ()
+    env: dict[str, str] | None = None
+    #: Where this process's output begins in its log (a restarted one appends to the same file).
+    log_offset: int = 0
+    #: How many times the service was restarted before this process; when the next restart is due.
+    restarts: int = 0
+    restart_due: float | None = None
 
     def alive(self) -> bool:
         return self.proc.poll() is None
 
     def log_text(self) -> str:
+        """This process's part of its log (not what an earlier process of the service wrote)."""
         try:
-            return self.log_path.read_text(errors="replace")
+            with open(self.log_path, "rb") as f:
+                f.seek(self.log_offset)
+                return f.read().decode(errors="replace")
         except OSError:
             return ""
 
@@ -118,9 +160,9 @@ class ServiceProcess:
         """Why the process ended and the log lines leading to it (:func:`_reason_and_tail`)."""
         return _reason_and_tail(self.log_text())
 
-    def death(self) -> RunError:
-        """The :class:`RunError` of this dead process: the reason in the one-line message, the
-        last lines of its log as details."""
+    def how_it_ended(self) -> tuple[str, str, str, list[str]]:
+        """(``"was killed by SIGKILL"`` / ``"exited with code 1"``, the reason for a message, the
+        reason line as the log says it, the log lines leading to it)."""
         reason, tail = self.reason()
         said = reason
         code = self.proc.returncode
@@ -134,7 +176,14 @@ class ServiceProcess:
             said = reason = reason or (tail[-1].strip() if tail else "")  # no error line: its last words
         if reason.startswith("openfusion ") and ": error: " in reason:  # the service's own one-line error
             reason = reason.split(": error: ", 1)[1]
-        message = f"the {self.name} service {how}" + (f": {reason}" if reason else "") + f" (log: {self.log_path})"
+        return how, reason, said, tail
+
+    def death(self, *, after: str = "") -> RunError:
+        """The :class:`RunError` of this dead process: the reason in the one-line message, the
+        last lines of its log as details; ``after``: words after the reason (``restarted 3 times``)."""
+        how, reason, said, tail = self.how_it_ended()
+        message = (f"the {self.name} service {how}" + (f": {reason}" if reason else "")
+                   + (f" ({after})" if after else "") + f" (log: {self.log_path})")
         # The log's last lines above the error, when they say more than the reason.
         details = ("\n".join([f"last lines of {self.log_path}:", *(f"  {line}" for line in tail)])
                    if tail and [line.strip() for line in tail] != [said] else "")
@@ -192,6 +241,8 @@ class Cluster:
     #: (the file already holds them, and the environment must not override the launcher's options).
     config_file: Path | None = None
     processes: dict[str, ServiceProcess] = field(default_factory=dict)
+    #: None: a service that dies ends the run (:meth:`check_alive` raises); else it is restarted.
+    restart_policy: RestartPolicy | None = None
 
     def base_args(self) -> list[str]:
         args = ["--map", self.map_id, "--mode", "peer", "--connect", self.endpoint, "--no-multicast",
@@ -205,24 +256,42 @@ class Cluster:
         return {**env, LAUNCHER_PID_ENV: str(os.getpid()), **(extra or {})}
 
     def start(self, name: str, extra: Sequence[str] = (), env: dict[str, str] | None = None, *,
-              service: str | None = None, optional: bool = False) -> ServiceProcess:
+              restarts: int = 0, service: str | None = None, optional: bool = False) -> ServiceProcess:
         """Start ``openfusion service SERVICE`` (default: ``name``) as process ``name`` (its log is
-        ``name.log``; several encoder workers are one service under several names)."""
+        ``name.log``; several encoder workers are one service under several names); ``optional``:
+        the run goes on without it (:attr:`ServiceProcess.optional`)."""
         self.log_dir.mkdir(parents=True, exist_ok=True)
         log_path = self.log_dir / f"{name}.log"
         log = open(log_path, "ab")  # noqa: SIM115 - closed when the process ends (child keeps its fd)
+        offset = log.tell()
         cmd = [sys.executable, "-m", "openfusion.app.cli", "service", service or name, *self.base_args(), *extra]
+        environment = self._environment(env)
+        environment[RESTARTS_ENV] = str(restarts)
         # Its own session: a terminal's Ctrl-C goes to the launcher only (StopSignals decides).
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                env=self._environment(env), start_new_session=True)
+                                env=environment, start_new_session=True)
         log.close()
-        sp = ServiceProcess(name, proc, log_path, optional=optional)
+        sp = ServiceProcess(name, proc, log_path, optional=optional, service=service, extra=tuple(extra), env=env,
+                            log_offset=offset, restarts=restarts)
         self.processes[name] = sp
         return sp
 
+    @property
+    def restarts(self) -> dict[str, int]:
+        """Restarts of each service so far (0 for one never restarted)."""
+        return {name: sp.restarts for name, sp in self.processes.items()}
+
+    @property
+    def restarting(self) -> bool:
+        """A service is dead and its restart is pending."""
+        return any(sp.restart_due is not None and not sp.stopped for sp in self.processes.values())
+
     def check_alive(self) -> None:
-        """RunError (with the reason from its log) for a service that died; one stopped on purpose
-        is not reported."""
+        """Without a restart policy: RunError (with the reason from its log) for a service that
+        died; one stopped on purpose is not reported. With one: :meth:`supervise`."""
+        if self.restart_policy is not None:
+            self.supervise()
+            return
         for sp in self.processes.values():
             if not sp.stopped and not sp.alive():
                 if sp.optional:
@@ -230,6 +299,46 @@ class Cluster:
                     logger.warning("%s; the run goes on without it", sp.death())
                     continue
                 raise sp.death()
+
+    def supervise(self, now: float | None = None) -> list[str]:
+        """Restart the services that died unexpectedly once their backoff has passed (module
+        docstring); the names restarted now. RunError for one that cannot be restarted."""
+        policy = self.restart_policy or RestartPolicy(max_restarts=0)
+        now = time.monotonic() if now is None else now
+        restarted: list[str] = []
+        for name, sp in list(self.processes.items()):
+            if sp.stopped or sp.alive():
+                continue
+            if sp.restart_due is None:  # just found dead: decide
+                if sp.proc.returncode == USAGE_EXIT_CODE:
+                    raise sp.death(after="its config or arguments are refused; not restarted")
+                if sp.restarts >= policy.max_restarts:
+                    death = sp.death(after=f"restarted {sp.restarts} times, the limit" if sp.restarts else "")
+                    if sp.optional:
+                        sp.stopped = True
+                        logger.warning("%s; the run goes on without it", death)
+                        continue
+                    raise death
+                how, reason, _said, _tail = sp.how_it_ended()
+                delay = policy.delay_s(sp.restarts)
+                sp.restart_due = now + delay
+                logger.warning("the %s service %s%s; restarting it in %.1f s (restart %d of at most %d)",
+                               name, how, f": {reason}" if reason else "", delay, sp.restarts + 1,
+                               policy.max_restarts)
+                self._mark_log(sp, f"{how}{': ' + reason if reason else ''}; restart {sp.restarts + 1} "
+                               f"in {delay:.1f} s")
+            if now >= sp.restart_due:
+                self.start(name, sp.extra, sp.env, restarts=sp.restarts + 1, service=sp.service, optional=sp.optional)
+                restarted.append(name)
+        return restarted
+
+    @staticmethod
+    def _mark_log(sp: ServiceProcess, text: str) -> None:
+        try:
+            with open(sp.log_path, "a") as log:
+                log.write(f"---- openfusion run: the {sp.name} service {text} ----\n")
+        except OSError as exc:  # the warning on the launcher's stderr says it anyway
+            logger.debug("cannot mark %s: %s", sp.log_path, exc)
 
     def kill(self) -> None:
         """SIGKILL every service still running, without waiting (safe in a signal handler)."""

@@ -24,6 +24,16 @@ semantic finish the frames they already have, saves the map to ``OUT/map``, writ
 at once (every service killed, no map). The services run in their own process group, so a
 terminal's Ctrl-C reaches only this process, and none outlives it (:mod:`openfusion.app.launcher`).
 
+Supervision: a service that dies during the run is restarted (``--max-restarts``, default 3 per
+service, ``--restart-backoff-s``, doubled for each restart; :mod:`openfusion.app.launcher`) and
+``run.json`` counts ``restarts`` per service. Geometry checkpoints to ``OUT/checkpoints`` every
+``supervision.checkpoint_period_s`` (10 s; a save of the room takes about 24 frames' integration,
+``bench/bench_checkpoint.py``); a restarted geometry loads the last checkpoint and announces the
+last frame it holds, the bridge replays the frames after it, and geometry ignores frames it
+already holds, so every frame is integrated exactly once (README, "Crash-proof mapping").
+Past the restart limit the run fails as without supervision, but first saves the map geometry
+holds (when it is alive) and writes ``run.json`` with the ``error``.
+
 Settings: one :class:`~openfusion.app.run_config.RunConfig` (every service's section), validated
 before anything starts, written to ``OUT/run-config.json`` and read by every service.
 
@@ -37,8 +47,10 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import shutil
 import sys
 import time
+import uuid
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -54,7 +66,7 @@ from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings, add_section_options, config_from_args
 from openfusion.errors import UsageError
 from openfusion.sources.registry import check_source_spec, describe_source, parse_key_values
-from openfusion.wire.counters import BridgeCounter, GeometryCounter, SemanticCounter
+from openfusion.wire.counters import BridgeCounter, CommonCounter, GeometryCounter, SemanticCounter
 from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
 from openfusion.wire.keys import validate_map_id
 from openfusion.wire.schemas import TextQuery
@@ -112,16 +124,21 @@ def run_services(args: argparse.Namespace, config: RunConfig) -> RunSummary:
 
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
-    # The run's own choices for geometry: checkpoints under OUT, saved only on request, a fresh map.
+    # The run's own choices for geometry: checkpoints under OUT, every supervision.checkpoint_period_s,
+    # a fresh map (an earlier run's checkpoints are removed), loaded again by a restarted geometry.
     config.geometry.map_dir = out / "checkpoints"
-    config.geometry.checkpoint_period_s = 0.0
-    config.geometry.load_on_start = False
+    config.geometry.checkpoint_period_s = config.supervision.checkpoint_period_s
+    config.geometry.load_on_start = True
+    shutil.rmtree(config.geometry.map_dir / config.map_id, ignore_errors=True)
+    # One playback name for the run: a restarted bridge continues it (geometry drops what it holds).
+    config.bridge.playback = config.bridge.playback or uuid.uuid4().hex[:16]
     if args.encoder_workers:
         config.use_encoder_pool()
     config_file = write_service_config(config, out / "run-config.json")
     port = free_loopback_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    cluster = Cluster(config.map_id, endpoint, out / "logs", config_file=config_file)
+    cluster = Cluster(config.map_id, endpoint, out / "logs", config_file=config_file,
+                      restart_policy=config.supervision.policy())
     # From here on the first SIGINT/SIGTERM stops playback and keeps the map, a second one kills
     # every service at once; the handlers stay until the services are stopped.
     with StopSignals(on_abort=cluster.kill, aborted="every service was killed, no map was saved") as signals:
@@ -184,16 +201,22 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
     if signals.requested:
         raise signals.interrupted("stopped before playback started; nothing to save")
     cluster.start("bridge")
-    stats = _follow_progress(args, client, cluster, signals)
+    stats: dict[str, Any] = {}
+    carried: dict[str, dict[str, float]] = {}
+    map_dir = out / "map"
 
-    def summary_now() -> RunSummary:
+    def summary_now(error: str | None = None) -> RunSummary:
         return RunSummary.from_health(
-            stats, source=config.bridge.source, encoder=config.semantic.encoder, noise=config.semantic.noise,
+            _with_carried(stats, carried), source=config.bridge.source, encoder=config.semantic.encoder, noise=config.semantic.noise,
             semantic_every=config.semantic.every_k, wall_s=time.monotonic() - started,
             frames_requested=config.bridge.max_frames, interrupted=signals.requested is not None,
-            encoder_workers=args.encoder_workers)
+            restarts=cluster.restarts, error=error, encoder_workers=args.encoder_workers)
 
-    map_dir = out / "map"
+    try:
+        stats = _follow_progress(args, client, cluster, signals, stats, carried)
+    except RunError as exc:  # past the restart limit (or a timeout): keep what can be kept, then fail
+        _save_what_is_left(args, client, cluster, map_dir, summary_now(str(exc)))
+        raise
     if signals.requested:
         summary = summary_now()
         if summary.frames_integrated == 0:
@@ -221,6 +244,24 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
     return summary_now()
 
 
+def _save_what_is_left(args: argparse.Namespace, client: Any, cluster: Cluster, map_dir: Path,
+                       summary: RunSummary) -> None:
+    """A run that fails after playback started: save the map geometry holds (when it is alive) and
+    write ``run.json`` with the error; neither may hide the error itself."""
+    geometry = cluster.processes.get("geometry")
+    if geometry is not None and geometry.alive() and summary.frames_integrated > 0:
+        try:
+            client.control("save", str(map_dir.resolve()))
+            summary.map_saved = True
+            _say(args, f"saved the map of {summary.frames_integrated} integrated frames to {map_dir}")
+        except Exception as exc:  # noqa: BLE001 - the run's own error is what the user must see
+            logger.warning("could not save the map after the run failed: %s", exc)
+    try:
+        (args.out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
+    except OSError as exc:
+        logger.warning("could not write run.json: %s", exc)
+
+
 def _start_page(args: argparse.Namespace, client: Any) -> Any:
     """``--web``: the query page beside the services (127.0.0.1); its URL on stderr, even with --quiet."""
     from openfusion.app.web_cmd import start_query_page
@@ -240,11 +281,61 @@ def _serve_page_until_stopped(args: argparse.Namespace, page: Any, summary: RunS
         time.sleep(0.2)
 
 
-def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
-                     signals: StopSignals | None = None) -> dict[str, Any]:
-    """Show progress until geometry has taken every frame the bridge published and geometry and
-    semantic have settled (no counter changed for :data:`SETTLE_S`); the last stats of each service.
+#: Counters of a service that add up over its restarts in run.json (a restarted process counts from 0).
+CARRIED_COUNTERS: dict[str, tuple[str, ...]] = {
+    "semantic": (SemanticCounter.SEMANTIC_FRAMES, SemanticCounter.BUSY_S, SemanticCounter.FRAMES_FAILED),
+}
 
+
+def _carry_over(stats: dict[str, Any], fresh: dict[str, Any], carried: dict[str, dict[str, float]]) -> None:
+    """Before ``fresh`` stats replace ``stats``: a service whose ``restarts`` went up leaves its
+    last counts of :data:`CARRIED_COUNTERS` in ``carried`` (geometry restores its own from its
+    checkpoint)."""
+    for name, counters in CARRIED_COUNTERS.items():
+        old, new = stats.get(name), fresh.get(name)
+        if old is None or new is None or new.counter(CommonCounter.RESTARTS) <= old.counter(CommonCounter.RESTARTS):
+            continue
+        into = carried.setdefault(name, {})
+        for counter in counters:
+            into[counter] = into.get(counter, 0.0) + old.counter(counter)
+
+
+def _with_carried(stats: dict[str, Any], carried: dict[str, dict[str, float]]) -> dict[str, Any]:
+    """``stats`` with the counts of earlier processes of a restarted service added."""
+    out = dict(stats)
+    for name, extra in carried.items():
+        if name in out:
+            counters = dict(out[name].counters)
+            for counter, value in extra.items():
+                counters[counter] = counters.get(counter, 0.0) + value
+            out[name] = out[name].model_copy(update={"counters": counters})
+    return out
+
+
+def _current(stats: dict[str, Any], cluster: Cluster) -> bool:
+    """Every service is running and the stats held for it come from its current process (its
+    ``restarts`` counter matches the launcher's count): a dead or restarted service's last stats
+    must not make the run look finished."""
+    if cluster.restarting:
+        return False
+    for name, sp in cluster.processes.items():
+        if sp.stopped:
+            continue
+        s = stats.get(name)
+        if not sp.alive() or s is None or int(s.counter(CommonCounter.RESTARTS)) != sp.restarts:
+            return False
+    return True
+
+
+def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
+                     signals: StopSignals | None = None, stats: dict[str, Any] | None = None,
+                     carried: dict[str, dict[str, float]] | None = None) -> dict[str, Any]:
+    """Show progress until geometry has taken every frame the bridge published and geometry and
+    semantic have settled (no counter changed for :data:`SETTLE_S`); the last stats of each service
+    (also kept in ``stats``, so a caller has them when this raises).
+
+    Services that die are restarted (:meth:`Cluster.check_alive` with the run's restart policy);
+    the run is not finished while one is down or its stats are from before its restart.
     After a stop signal (``signals.requested``) the bridge is stopped (no more frames) and the same
     wait lets geometry and semantic finish the frames they already have; the bridge's last stats
     are kept."""
@@ -254,7 +345,7 @@ def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
     try:
         stable_since: float | None = None
         last_key: tuple[float, ...] = ()
-        stats: dict[str, Any] = {}
+        stats = {} if stats is None else stats
         playback_stopped = False
         deadline = time.monotonic() + args.timeout_s
         while True:
@@ -266,9 +357,12 @@ def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
                 playback_stopped = True
                 stable_since = None
             cluster.check_alive()
-            stats = {**stats, **collect_health(client.session, client.keys, timeout_s=1.0)}
+            fresh = collect_health(client.session, client.keys, timeout_s=1.0)
+            _carry_over(stats, fresh, {} if carried is None else carried)
+            stats.update(fresh)
             integrated = _counter(stats, "geometry", GeometryCounter.FRAMES_INTEGRATED)
-            refused = _counter(stats, "geometry", GeometryCounter.CAPACITY_REFUSED)
+            refused = (_counter(stats, "geometry", GeometryCounter.CAPACITY_REFUSED)
+                       + _counter(stats, "geometry", GeometryCounter.FRAMES_FAILED))
             bar.n = int(integrated)
             bar.set_postfix(semantic=int(_counter(stats, "semantic", SemanticCounter.SEMANTIC_FRAMES)),
                             regions=int(_counter(stats, "semantic", SemanticCounter.REGIONS)))
@@ -276,8 +370,8 @@ def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
             done = playback_stopped or _counter(stats, "bridge", BridgeCounter.PLAYBACK_DONE) >= 1
             published = _counter(stats, "bridge", BridgeCounter.FRAMES_PUBLISHED)
             key = (integrated, refused, _counter(stats, "semantic", SemanticCounter.SEMANTIC_FRAMES),
-                   _counter(stats, "geometry", GeometryCounter.UPDATES_APPLIED))
-            if done and integrated + refused >= published:
+                   _counter(stats, "geometry", GeometryCounter.UPDATES_APPLIED), *cluster.restarts.values())
+            if done and integrated + refused >= published and _current(stats, cluster):
                 if key == last_key and stable_since is not None and time.monotonic() - stable_since > SETTLE_S:
                     break
                 if key != last_key or stable_since is None:
@@ -372,7 +466,9 @@ class RunCommand:
                             help="any parameter of any service, e.g. --set geometry.voxel_size_m=0.04 (repeatable; "
                             "`openfusion config --show SERVICE` lists them)")
         for section, fields in RUN_FLAGS.items():
-            add_section_options(parser, SECTION_MODELS[section], section, fields=fields, title=f"{section} service")
+            add_section_options(parser, SECTION_MODELS[section], section, fields=fields,
+                                title="supervision (services that die are restarted)" if section == "supervision"
+                                else f"{section} service")
 
     @staticmethod
     def config_from_args(args: argparse.Namespace) -> RunConfig:

@@ -8,6 +8,9 @@ service can be set with ``--set`` or the file. The launcher writes the validated
 ``OUT/run-config.json`` and starts each service with ``--config`` that file (and no
 ``OPENFUSION_*`` variables, which are already folded in), so services never receive settings as
 re-typed argument strings; the in-process run reads the same sections.
+
+The ``supervision`` section is the launcher's own (:class:`SupervisionSection`: how dead services
+are restarted, how often geometry checkpoints during the run); no service reads it.
 """
 
 from __future__ import annotations
@@ -17,7 +20,8 @@ from pathlib import Path
 
 from pydantic import Field
 
-from openfusion.config import ServiceConfig
+from openfusion.app.launcher import RestartPolicy
+from openfusion.config import ConfigSection, ServiceConfig
 from openfusion.services.bridge.service import BridgeSection
 from openfusion.services.encoder.options import EncoderOptions
 from openfusion.services.encoder.service import EncoderSection
@@ -30,7 +34,26 @@ RUN_FLAGS: dict[str, list[str]] = {
     "bridge": ["source", "rate_hz"],
     "semantic": ["encoder", "noise", "every_k", "encoder_delay_ms"],
     "query": ["text_encoder"],
+    "supervision": ["max_restarts", "restart_backoff_s"],
 }
+
+
+class SupervisionSection(ConfigSection):
+    """How ``openfusion run`` keeps its services alive (:class:`~openfusion.app.launcher.RestartPolicy`)."""
+
+    max_restarts: int = Field(3, ge=0, description="restarts of each service before a death ends the run "
+                              "(0 = a service that dies ends the run)")
+    restart_backoff_s: float = Field(1.0, ge=0, description="wait before a service's first restart; doubled for "
+                                     "each further restart of it")
+    restart_backoff_max_s: float = Field(30.0, ge=0, description="longest wait before a restart")
+    checkpoint_period_s: float = Field(
+        10.0, ge=0, description="seconds between geometry's checkpoints during the run: a restarted geometry "
+        "resumes from the last one and the bridge replays the frames after it (0 = no checkpoints: a restarted "
+        "geometry starts an empty map and the whole playback is replayed)")
+
+    def policy(self) -> RestartPolicy:
+        return RestartPolicy(max_restarts=self.max_restarts, backoff_s=self.restart_backoff_s,
+                             backoff_max_s=self.restart_backoff_max_s)
 
 
 class RunConfig(ServiceConfig):
@@ -40,6 +63,7 @@ class RunConfig(ServiceConfig):
     geometry: GeometrySection = Field(default_factory=GeometrySection)
     semantic: SemanticSection = Field(default_factory=SemanticSection)
     query: QuerySection = Field(default_factory=QuerySection)
+    supervision: SupervisionSection = Field(default_factory=SupervisionSection)
     #: the encoder workers' section (``--encoder-workers``): the semantic section's encoder options
     encoder: EncoderSection = Field(default_factory=EncoderSection)
 
@@ -50,13 +74,14 @@ class RunConfig(ServiceConfig):
         self.encoder = EncoderSection(**self.semantic.model_dump(include=set(EncoderOptions.model_fields)))
 
 
-SECTION_MODELS = {name: RunConfig.model_fields[name].annotation for name in ("bridge", "geometry", "semantic", "query")}
+SECTION_MODELS = {name: RunConfig.model_fields[name].annotation
+                  for name in ("bridge", "geometry", "semantic", "query", "supervision")}
 
 
 def write_service_config(config: RunConfig, path: Path) -> Path:
     """The config file every service of the run reads (JSON; its Zenoh settings are left out:
     the launcher gives each service its endpoints)."""
-    data = config.model_dump(mode="json", exclude={"zenoh"})
+    data = config.model_dump(mode="json", exclude={"zenoh", "supervision"})
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=2) + "\n")
     return path

@@ -40,6 +40,14 @@ class RunSummary(BaseModel):
     into the map (the bridge's published frames, or the frames the in-process loop took), fewer
     than requested when the source is shorter or the run was interrupted; ``interrupted``: the run
     was stopped by SIGINT/SIGTERM, and the map of the ``frames_integrated`` frames was saved.
+
+    Supervision (services run only): ``restarts``: how many times each service was restarted after
+    it died; ``frames_replayed``: frames the bridge published again after a restarted geometry
+    announced the last frame its checkpoint holds (not in ``frames_published``, which counts each
+    frame once); ``frames_duplicate``: frames geometry received and dropped because it already held
+    them. ``frames_integrated`` counts each frame once, restarts or not. ``error``: the run failed
+    (a service died past the restart limit, a timeout) and ``map_saved`` says whether the map of
+    the frames integrated by then was saved to ``map_dir`` anyway.
     """
 
     mode: Literal["services", "in-process"]
@@ -72,11 +80,17 @@ class RunSummary(BaseModel):
     #: semantic frames per second of mapping time (first to last fused frame): with encoder workers
     #: the semantic service waits on them, so its busy time no longer bounds its rate
     semantic_rate_hz: float | None = None
+    restarts: dict[str, int] = {}
+    frames_replayed: int = 0
+    frames_duplicate: int = 0
+    error: str | None = None
+    map_saved: bool | None = None
 
     @classmethod
     def from_health(
         cls, stats: dict[str, HealthStats], *, source: str, encoder: str, noise: str, semantic_every: int, wall_s: float,
         frames_requested: int | None = None, interrupted: bool = False, encoder_workers: int = 0,
+        restarts: dict[str, int] | None = None, error: str | None = None,
     ) -> RunSummary:
         """From the last health stats of the run's services. After an interrupt the bridge was
         stopped and its last stats can lag by a second of frames; playback loses no frame, so every
@@ -121,6 +135,10 @@ class RunSummary(BaseModel):
             semantic_rate_hz=_round(_rate(c("semantic", SemanticCounter.SEMANTIC_FRAMES),
                                           c("semantic", SemanticCounter.FIRST_FUSED_AT_S),
                                           c("semantic", SemanticCounter.LAST_FUSED_AT_S))),
+            restarts=dict(restarts or {}),
+            frames_replayed=int(c("bridge", BridgeCounter.FRAMES_REPLAYED)),
+            frames_duplicate=int(c("geometry", GeometryCounter.FRAMES_DUPLICATE)),
+            error=error, map_saved=False if error else None,
         )
 
     @classmethod

@@ -80,6 +80,14 @@ class InFlightWindow:
                 self._cond.wait(remaining)
             return True
 
+    def reset(self) -> None:
+        """Forget what is in flight and wait for acknowledgements again (the bridge went back to
+        replay frames for a restarted geometry: the frames in flight will never be taken)."""
+        with self._cond:
+            self._pending.clear()
+            self._open_loop = False
+            self._cond.notify_all()
+
     def give_up(self) -> None:
         """No acknowledgement came in time: count it, forget what is in flight and publish open
         loop until the next acknowledgement."""

@@ -7,7 +7,11 @@ Errors that make the whole source unusable (missing folder, unreadable intrinsic
 raised when the source is opened, before the first frame.
 
 Subclasses implement ``_produce()``: a generator of ``Frame`` or ``Skip`` items. Dataset
-readers with random access implement ``IndexedFrameSource`` (``_num_items`` + ``_load``).
+readers with random access implement ``IndexedFrameSource`` (``_num_items`` + ``_load``). In
+playback (``replay_from``, what the bridge reads) any exception while loading one item (not only
+``SkipFrame``: a reader's bug on one odd file) skips that item as ``read_failed``, logged with its
+traceback at debug level, so one item never ends a playback and a replay skips it again instead of
+failing on it again; a plain pass (``iter``: writers, evaluation) still raises it.
 """
 
 from __future__ import annotations
@@ -131,14 +135,29 @@ class FrameSource(ABC):
         return f"{type(self).__name__}(name={self.name!r})"
 
 
+#: The skip reason of an item whose loading raised something other than ``SkipFrame``.
+READ_FAILED = "read_failed"
+
+
 class IndexedFrameSource(FrameSource):
     """A source whose items are numbered 0..n-1 and loaded independently (datasets)."""
+
+    def _load_or_skip(self, index: int) -> Frame | Skip:
+        """Item ``index`` as a frame, or the ``Skip`` saying why it cannot be one."""
+        try:
+            return self._load(index)
+        except SkipFrame as skip:
+            return Skip(skip.reason, skip.detail)
+        except Exception as exc:  # one odd item must not end the playback: logged with its traceback, skipped
+            logger.debug("source %s: item %d failed", self.name, index, exc_info=True)
+            return Skip(READ_FAILED, f"item {index}: {type(exc).__name__}: {exc}")
 
     def __init__(self, name: str, *, stride: int = 1, max_frames: int | None = None) -> None:
         super().__init__(name, max_frames=max_frames)
         if stride < 1:
             raise ValueError(f"stride must be >= 1, got {stride}")
         self.stride = int(stride)
+        self._furthest = -1  # the furthest position a replayable pass reached (replay_from)
 
     @abstractmethod
     def _num_items(self) -> int:
@@ -159,6 +178,40 @@ class IndexedFrameSource(FrameSource):
                 yield Skip(skip.reason, skip.detail)
                 continue
             yield frame
+
+    def positions(self) -> int:
+        """Number of positions one pass looks at (items after striding; before ``max_frames``)."""
+        return len(range(0, self._num_items(), self.stride))
+
+    def start_replayable_pass(self) -> None:
+        """Begin a pass read with :meth:`replay_from` (fresh ``stats``, nothing reached yet)."""
+        self.stats = SourceStats()
+        self._logged_reasons = set()
+        self._furthest = -1
+
+    def replay_from(self, position: int) -> Iterator[tuple[int, Frame]]:
+        """The frames from ``position`` (an index into the strided items) on, each with its
+        position: playback that can go back (the bridge replays the frames after a restarted
+        geometry's checkpoint). Within one pass (:meth:`start_replayable_pass`) an item is counted
+        in ``stats`` (read, skipped, yielded) only the first time any call reaches it, so going
+        back counts nothing twice; ``max_frames`` bounds the distinct frames of the pass. Frames
+        are re-read from the source (a reader's frames are pure functions of the item), never kept."""
+        for pos in range(max(0, position), self.positions()):
+            new = pos > self._furthest
+            if new and self.max_frames is not None and self.stats.yielded >= self.max_frames:
+                return
+            frame = self._load_or_skip(pos * self.stride)
+            if isinstance(frame, Skip):
+                if new:
+                    self._furthest = pos
+                    self.stats.read += 1
+                    self._record_skip(frame.reason, frame.detail)
+                continue
+            if new:
+                self._furthest = pos
+                self.stats.read += 1
+                self.stats.yielded += 1
+            yield pos, frame
 
     def frame_at(self, index: int) -> Frame:
         """Load one item directly (raises ``SkipFrame`` for an unusable one)."""

@@ -17,6 +17,7 @@ class CommonCounter(StrEnum):
 
     PUBLISHED = "published"  # messages published
     REFUSED = "refused"  # queries refused with a reason (RequestError)
+    RESTARTS = "restarts"  # times a supervisor restarted this service (openfusion.services.common.RESTARTS_ENV)
 
 
 class BridgeCounter(StrEnum):
@@ -29,7 +30,10 @@ class BridgeCounter(StrEnum):
     FLOW_WAIT_S = "flow_wait_s"  # time spent waiting for geometry's acknowledgements
     FLOW_TIMEOUTS = "flow_timeouts"
     SKIPPED_UNENCODABLE = "skipped_unencodable"
+    SKIPPED_PUBLISH_FAILED = "skipped_publish_failed"  # publishing raised something else (logged with traceback)
     FRAMES_THROTTLED = "frames_throttled"  # live frames dropped to keep to rate_hz
+    FRAMES_REPLAYED = "frames_replayed"  # playback: frames published again for a restarted geometry
+    REWINDS = "rewinds"  # playback: times the bridge went back to the frame after geometry's checkpoint
 
     @staticmethod
     def skipped(reason: str) -> str:
@@ -54,6 +58,10 @@ class GeometryCounter(StrEnum):
     CHECKPOINT_FAILURES = "checkpoint_failures"  # checkpoints that failed (OSError: disk full, read-only)
     CHECKPOINT_LAST_FRAME_ID = "checkpoint_last_frame_id"  # last frame in the newest checkpoint (-1: none)
     DICTIONARY_RESYNCS = "dictionary_resyncs"
+    FRAMES_DUPLICATE = "frames_duplicate"  # playback frames dropped: already held (id <= the last one taken)
+    FRAMES_OUT_OF_ORDER = "frames_out_of_order"  # playback frames dropped: the frame before them is not held
+    FRAMES_FAILED = "frames_failed"  # integration raised on the frame (logged, taken as done: never retried)
+    FRAMES_GAP = "frames_gap"  # live frames that never reached the map (ids skipped between two frames taken)
 
 
 class SemanticCounter(StrEnum):

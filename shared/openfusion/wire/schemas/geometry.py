@@ -24,16 +24,28 @@ from openfusion.wire.schemas.base import (
 class GeometryProgress(Message):
     """The geometry service took frame (``frame_id``, ``stamp_ns``) out of its queue (integrated
     it, or refused it for capacity), on ``…/geometry/progress``: the acknowledgement the bridge's
-    flow control (:mod:`openfusion.bus.flow_control`) waits for during playback."""
+    flow control (:mod:`openfusion.bus.flow_control`) waits for during playback.
+
+    v2, resume after a restart: ``incarnation`` names the geometry process (new at each start);
+    ``holds_frame_id`` is the last frame of playback ``holds_playback`` it holds (its loaded
+    checkpoint's, then the last one taken; -1 and ``""``: none). A message with ``resume > 0`` is an announcement (``frame_id = -1`` when it
+    acknowledges no frame): this geometry wants the playback frames after ``holds_frame_id``; it
+    sends one when it starts and when a frame comes whose predecessor it does not hold, repeats it
+    every second until the next frame arrives in order, and numbers each new one, so the bridge
+    goes back once per (``incarnation``, ``resume``)."""
 
     schema_name: ClassVar[str] = "geometry.progress"
-    schema_version: ClassVar[int] = 1
+    schema_version: ClassVar[int] = 2
 
-    frame_id: int = Field(ge=0)
+    frame_id: int = Field(ge=-1)
     stamp_ns: int = Field(ge=0)
     integrated: bool
     frames_integrated: int = Field(ge=0)
     queued: int = Field(ge=0)  # frames waiting in geometry's queue after this one
+    incarnation: str = Field("", max_length=64)
+    holds_playback: str = Field("", max_length=64)
+    holds_frame_id: int = Field(-1, ge=-1)
+    resume: int = Field(0, ge=0)
 
 
 class RenderRequest(PinholeMessage):

@@ -19,10 +19,16 @@ from openfusion.wire.schemas.base import (
 
 
 class RgbdFrame(PinholeMessage):
-    """One registered RGB-D frame with its camera-to-world pose (see :class:`openfusion.frame.Frame`)."""
+    """One registered RGB-D frame with its camera-to-world pose (see :class:`openfusion.frame.Frame`).
+
+    ``playback`` and ``prev_frame_id`` (v2): in a playback the bridge can replay, the playback's
+    name (new for each bridge process) and the id of the frame it published before this one (-1 for
+    the first): geometry integrates a frame only right after that one, so after a restart it neither
+    skips nor repeats a frame (:mod:`openfusion.services.geometry.service`). ``""`` and None for
+    live frames (taken as they come)."""
 
     schema_name: ClassVar[str] = "sensor.rgbd"
-    schema_version: ClassVar[int] = 1
+    schema_version: ClassVar[int] = 2
 
     frame_id: int = Field(ge=0)
     stamp_ns: int = Field(ge=0)
@@ -33,6 +39,8 @@ class RgbdFrame(PinholeMessage):
     instance: KeyMap | None = None
     instance_categories: dict[int, str] = Field(default_factory=dict)
     source: str = ""
+    playback: str = Field("", max_length=64)
+    prev_frame_id: int | None = Field(None, ge=-1)
 
     @model_validator(mode="after")
     def _check_frame(self) -> RgbdFrame:
@@ -41,7 +49,8 @@ class RgbdFrame(PinholeMessage):
         return self
 
     @classmethod
-    def from_frame(cls, frame: Frame, *, with_instance: bool = True) -> RgbdFrame:
+    def from_frame(cls, frame: Frame, *, with_instance: bool = True, playback: str = "",
+                   prev_frame_id: int | None = None) -> RgbdFrame:
         """The message of a frame (arrays are not copied). ``with_instance=False`` leaves the
         ground-truth instance image out: the bridge sends it on its own key
         (:class:`InstanceFrame`), so geometry never receives those bytes."""
@@ -57,6 +66,8 @@ class RgbdFrame(PinholeMessage):
             instance=frame.instance if with_instance else None,
             instance_categories=dict(frame.instance_categories) if with_instance else {},
             source=frame.source,
+            playback=playback,
+            prev_frame_id=prev_frame_id,
         )
 
     def to_frame(self, instance: InstanceFrame | None = None) -> Frame:

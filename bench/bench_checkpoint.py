@@ -1,0 +1,71 @@
+#!/usr/bin/env python3
+"""What a geometry checkpoint costs during ``openfusion run``: the built-in synthetic room mapped
+in this process (geometry only, the run's default volume parameters), then ``save_map`` of it,
+timed ``--runs`` times, against the integration of one frame measured in the same run.
+
+A checkpoint holds geometry's lock while it writes (integration waits), so its cost per second is
+``save_s / checkpoint_period_s``; the table gives that share for a few periods, and the frames a
+crash loses at most (the bridge replays them) at the run's frame rate.
+
+    .venv/bin/python bench/bench_checkpoint.py --quick     # 40 frames, 320x240
+    .venv/bin/python bench/bench_checkpoint.py --full      # the default run: 120 frames, 640x480
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from openfusion.mapping import RegionDictionary, SemanticVolume, VolumeParams, save_map
+from openfusion.sources import open_source
+
+PERIODS_S = (1.0, 2.0, 5.0, 10.0, 30.0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_true", help="40 frames at 320x240 (default)")
+    size.add_argument("--full", action="store_true", help="120 frames at 640x480 (the default openfusion run)")
+    parser.add_argument("--runs", type=int, default=3)
+    args = parser.parse_args(argv)
+    frames, width, height = (120, 640, 480) if args.full else (40, 320, 240)
+    source = open_source(f"synthetic:seed=1,frames={frames},width={width},height={height}")
+    volume = SemanticVolume(VolumeParams())
+    integrate_s = []
+    for frame in source:
+        t0 = time.perf_counter()
+        volume.integrate(frame)
+        integrate_s.append(time.perf_counter() - t0)
+    per_frame_s = statistics.median(integrate_s[len(integrate_s) // 2:])  # warm frames
+    dictionary = RegionDictionary("none", 1)
+    saves, size_mb = [], 0.0
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(args.runs):
+            t0 = time.perf_counter()
+            path = save_map(Path(tmp) / "map", volume, dictionary, meta={"run": i, "last_frame_id": frames - 1})
+            saves.append(time.perf_counter() - t0)
+        size_mb = path.stat().st_size / 1e6
+    save_s = statistics.median(saves)
+    rate_fps = 1.0 / per_frame_s
+    print(f"## Geometry checkpoint of the synthetic room ({frames} frames, {width}x{height}, "
+          f"{volume.num_blocks} blocks, {size_mb:.1f} MB file)\n")
+    print("| what | time | ratio to one frame's integration |")
+    print("|---|---|---|")
+    print(f"| integrate one frame (median of the warm half) | {per_frame_s * 1e3:.1f} ms | 1.0x |")
+    print(f"| save_map (median of {args.runs}) | {save_s * 1e3:.0f} ms | {save_s / per_frame_s:.1f}x |")
+    print()
+    print("| checkpoint_period_s | share of geometry's time spent saving | frames a crash loses at most "
+          f"(replayed), at {rate_fps:.0f} fps |")
+    print("|---|---|---|")
+    for period in PERIODS_S:
+        print(f"| {period:g} | {100 * save_s / (period + save_s):.1f} % | {int(period * rate_fps + 0.5)} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
