@@ -107,11 +107,12 @@ def _supervised(tmp_path: Path, policy: RestartPolicy) -> tuple[Cluster, list[tu
     cluster = Cluster("m", "tcp/127.0.0.1:1", tmp_path, restart_policy=policy)
     started: list[tuple[str, int]] = []
 
-    def start(name: str, extra=(), env=None, *, restarts: int = 0) -> ServiceProcess:  # noqa: ANN001
+    def start(name: str, extra=(), env=None, *, restarts: int = 0, service: str | None = None,  # noqa: ANN001
+              optional: bool = False) -> ServiceProcess:
         log = tmp_path / f"{name}.log"
         log.touch()
         sp = ServiceProcess(name, _Proc(), log, extra=tuple(extra), env=env, log_offset=log.stat().st_size,
-                            restarts=restarts)
+                            restarts=restarts, service=service, optional=optional)
         cluster.processes[name] = sp
         started.append((name, restarts))
         return sp
@@ -170,6 +171,26 @@ def test_a_service_refusing_its_config_or_stopped_on_purpose_is_not_restarted(tm
     without.processes["geometry"].proc.end(-9)
     with pytest.raises(RunError, match="killed by SIGKILL"):
         without.check_alive()
+
+
+def test_an_encoder_worker_is_restarted_and_past_the_limit_the_run_goes_on_without_it(tmp_path: Path) -> None:
+    """Encoder workers (optional processes of the ``encoder`` service) are restarted like the others,
+    as the same service; past the limit the run goes on with the other workers. Without a restart
+    policy a worker's death is logged, not raised."""
+    cluster, started = _supervised(tmp_path, RestartPolicy(max_restarts=1, backoff_s=1.0))
+    cluster.start("encoder-w1", ["--worker-id", "w1"], service="encoder", optional=True)
+    cluster.processes["encoder-w1"].proc.end(-9)
+    assert cluster.supervise(0.0) == [] and cluster.supervise(1.0) == ["encoder-w1"]
+    worker = cluster.processes["encoder-w1"]
+    assert (worker.service, worker.optional, worker.extra, worker.restarts) == ("encoder", True, ("--worker-id", "w1"), 1)
+    worker.proc.end(-9)
+    assert cluster.supervise(2.0) == [] and worker.stopped  # the limit: no RunError, no restart
+    assert started == [("encoder-w1", 0), ("encoder-w1", 1)]
+    without = Cluster("m", "e", tmp_path)
+    without.processes["encoder-w2"] = ServiceProcess("encoder-w2", _Proc(), tmp_path / "w2.log", optional=True)
+    without.processes["encoder-w2"].proc.end(-9)
+    without.check_alive()
+    assert without.processes["encoder-w2"].stopped
 
 
 def test_a_restarted_semantic_services_counts_add_up_in_run_json() -> None:
