@@ -89,6 +89,12 @@ class ZenohSettings(ConfigSection):
     connect: list[str] = Field(default_factory=list)
     listen: list[str] = Field(default_factory=list)
     multicast_scouting: bool | None = None
+    #: Zenoh shared memory between processes on one host (``transport/shared_memory/enabled``). None =
+    #: Zenoh's default, which is on in 1.x: a message over 3 KB to a process on the same host goes
+    #: through a shared-memory pool instead of the TCP link (measured in the README); across hosts
+    #: Zenoh sends the bytes over the network anyway. False turns it off (debugging, a host whose
+    #: /dev/shm is too small).
+    shared_memory: bool | None = None
 
     @field_validator("connect", "listen")
     @classmethod
@@ -531,6 +537,8 @@ def zenoh_config(config: ServiceConfig) -> Any:
         items.append(("listen/endpoints", settings.listen))
     if settings.multicast_scouting is not None:
         items.append(("scouting/multicast/enabled", settings.multicast_scouting))
+    if settings.shared_memory is not None:
+        items.append(("transport/shared_memory/enabled", settings.shared_memory))
     for key, value in items:
         try:
             conf.insert_json5(key, json.dumps(value))

@@ -170,3 +170,16 @@ def test_zenoh_config_applies_only_what_is_set(tmp_path: Path) -> None:
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
     with pytest.raises(ConfigError, match="zenoh config file"):
         zenoh_config(_parse(["--zenoh-config", str(tmp_path / "nope.json5")]))
+
+
+def test_shared_memory_switch_reaches_the_zenoh_config() -> None:
+    """`zenoh.shared_memory` (flag --set zenoh.shared_memory=false, file, env) sets Zenoh's
+    transport/shared_memory/enabled; unset keeps Zenoh's own default (on in 1.x)."""
+    import json
+
+    from openfusion.config import ServiceConfig, zenoh_config
+
+    default = json.loads(zenoh_config(ServiceConfig()).get_json("transport/shared_memory/enabled"))
+    off = ServiceConfig.model_validate({"zenoh": {"shared_memory": False}})
+    assert default is True
+    assert json.loads(zenoh_config(off).get_json("transport/shared_memory/enabled")) is False
