@@ -43,6 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="120 frames")
     ap.add_argument("--workers", default="1,2,4", help="pool sizes (default 1,2,4)")
+    ap.add_argument("--full", action="store_true", help="the default size (bench/run_all.py --full passes it)")
     ap.add_argument("--delay-ms", type=float, default=250.0, help="encoder cost per frame (default 250)")
     ap.add_argument("--rate-hz", type=float, default=30.0, help="camera rate (default 30)")
     ap.add_argument("--frames", type=int, default=None, help="frames per run (default 240, quick 120)")
