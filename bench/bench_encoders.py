@@ -224,23 +224,14 @@ def _regions_encoder(model: str, backend: str, device: str, work: Path):  # noqa
     import torch
     from onnxruntime.quantization import QuantType, quantize_dynamic
 
-    from openfusion.encoders.clip_export import _export, _features, set_onnx_metadata
+    from openfusion.encoders.clip_export import _export, image_tower, set_onnx_metadata
 
     clip = load_clip(model, device="cpu")
-    net = clip.model.float()
-
-    class ImageTower(torch.nn.Module):
-        def __init__(self) -> None:
-            super().__init__()
-            self.net = net
-
-        def forward(self, crops: torch.Tensor) -> torch.Tensor:
-            return _features(self.net.get_image_features(pixel_values=crops))
 
     s = clip.crop_spec.size
     fp32, int8 = work / f"{model.replace('/', '-')}-crops.onnx", work / f"{model.replace('/', '-')}-crops-int8.onnx"
     with torch.no_grad():
-        _export(ImageTower().eval(), (torch.zeros(2, 3, s, s),), fp32, ["crops"], ["embeddings"],
+        _export(image_tower(clip.model.float()), (torch.zeros(2, 3, s, s),), fp32, ["crops"], ["embeddings"],
                 {"crops": {0: "batch"}, "embeddings": {0: "batch"}}, 17)
     quantize_dynamic(str(fp32), str(int8), weight_type=QuantType.QInt8, op_types_to_quantize=["MatMul", "Gemm"])
     set_onnx_metadata(int8, {"embedding_space": clip.embedding_space, "dim": clip.dim, "kind": "crop-embedder",

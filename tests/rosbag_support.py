@@ -101,22 +101,6 @@ def write_frames_bag(path: Path, frames: list[Frame], *, storage: str, distro: s
 def synthetic_f_miou(volume: object, dictionary: object, *, seed: int, text_encoder: object,
                      spacing_m: float = 0.05) -> float:
     """f-mIoU of a map of ``synthetic:seed=N`` against the world's ground truth (every class queried)."""
-    from openfusion.eval.ground_truth import synthetic_ground_truth
-    from openfusion.eval.metrics import compute_metrics
-    from openfusion.eval.protocol import (
-        classify_embeddings,
-        confusion_for_points,
-        ground_truth_labels_for,
-        labels_from_region_keys,
-    )
-    from openfusion.sources.synthetic import SyntheticWorld
+    from openfusion.eval.saved_map import synthetic_map_quality
 
-    gt = synthetic_ground_truth(SyntheticWorld(seed), spacing_m=spacing_m)
-    surface = volume.extract_points()  # type: ignore[attr-defined]
-    points = np.asarray(surface.points, np.float64)
-    class_emb = np.asarray(text_encoder.encode(list(gt.class_names)), np.float32)  # type: ignore[attr-defined]
-    region_keys = np.asarray(dictionary.keys, np.int64)  # type: ignore[attr-defined]
-    region_cls = classify_embeddings(np.asarray(dictionary.unit_embeddings(), np.float32), class_emb)  # type: ignore[attr-defined]
-    pred = labels_from_region_keys(np.asarray(surface.keys, np.int64), region_keys, region_cls)
-    gt_of_points, _ = ground_truth_labels_for(points, gt)
-    return float(compute_metrics(confusion_for_points(pred, gt_of_points, gt.class_names)).f_mIoU)
+    return synthetic_map_quality(volume, dictionary, seed=seed, text_encoder=text_encoder, spacing_m=spacing_m)["f_mIoU"]

@@ -63,8 +63,7 @@ from openfusion.encoders.base import (
 )
 from openfusion.encoders.clip_regions import DEFAULT_CLIP_MODEL, LoadedClip, _features, load_clip
 from openfusion.encoders.crops import preprocess_image
-from openfusion.encoders.graph_segmentation import GraphSegmentationProposer
-from openfusion.encoders.proposal_encoder import RegionProposer
+from openfusion.encoders.proposers import make_proposer
 from openfusion.frame import Frame
 
 logger = logging.getLogger(__name__)
@@ -313,15 +312,7 @@ class ClipDenseRegionEncoder(RegionEncoder, ImageQueryEncoder):
         self.input_long_side_px = int(input_long_side_px)
         self.cache_dir = cache_dir
         self.patch_px = int(self.clip.model.config.vision_config.patch_size)
-        proposer: RegionProposer
-        if mask_model_path is not None:
-            from openfusion.encoders.onnx_backend import OnnxMaskProposer
-            from openfusion.encoders.onnx_contract import load_onnx_model
-
-            mask_model = load_onnx_model(mask_model_path, expected_kind="mask-proposer", device=self.clip.device)
-            proposer = OnnxMaskProposer(mask_model, **(proposer_options or {}))
-        else:
-            proposer = GraphSegmentationProposer(**(proposer_options or {}))
+        proposer = make_proposer(mask_model_path, proposer_options, device=self.clip.device)
         self.proposer = proposer
         self._runners: dict[tuple[int, int], Any] = {}
         self._lock = threading.Lock()

@@ -69,6 +69,22 @@ def _export(module: Any, args: tuple, path: Path, input_names: list[str], output
         )
 
 
+def image_tower(net: Any) -> Any:
+    """A torch module: (b, 3, S, S) preprocessed crops -> (b, d) image embeddings of a transformers
+    ``CLIPModel`` (what the crop-embedder ONNX export runs)."""
+    import torch
+
+    class ImageTower(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.net = net
+
+        def forward(self, crops: torch.Tensor) -> torch.Tensor:
+            return _features(self.net.get_image_features(pixel_values=crops))
+
+    return ImageTower().eval()
+
+
 def export_clip_to_onnx(
     model: str = DEFAULT_CLIP_MODEL,
     out_dir: str | Path = "clip_onnx",
@@ -90,13 +106,6 @@ def export_clip_to_onnx(
     out.mkdir(parents=True, exist_ok=True)
     net = clip.model
 
-    class ImageTower(torch.nn.Module):
-        def __init__(self) -> None:
-            super().__init__()
-            self.net = net
-
-        def forward(self, crops: torch.Tensor) -> torch.Tensor:
-            return _features(self.net.get_image_features(pixel_values=crops))
 
     class TextTower(torch.nn.Module):
         def __init__(self) -> None:
@@ -116,7 +125,7 @@ def export_clip_to_onnx(
 
     image_path, text_path, tok_path = out / IMAGE_FILE, out / TEXT_FILE, out / TOKENIZER_FILE
     with torch.inference_mode(False), torch.no_grad():
-        _export(ImageTower().eval(), (example_crops,), image_path, ["crops"], ["embeddings"],
+        _export(image_tower(net), (example_crops,), image_path, ["crops"], ["embeddings"],
                 {"crops": {0: "batch"}, "embeddings": {0: "batch"}}, opset)
         _export(TextTower().eval(), example_text, text_path, ["input_ids", "attention_mask"], ["text_embeddings"],
                 {"input_ids": {0: "batch"}, "attention_mask": {0: "batch"}, "text_embeddings": {0: "batch"}}, opset)

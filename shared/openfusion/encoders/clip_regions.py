@@ -32,8 +32,8 @@ from openfusion.encoders.base import (
 )
 from openfusion.encoders.crops import CLIP_MEAN, CLIP_STD, CropSpec
 from openfusion.encoders.device import select_device
-from openfusion.encoders.graph_segmentation import GraphSegmentationProposer
-from openfusion.encoders.proposal_encoder import ProposalRegionEncoder, RegionProposer
+from openfusion.encoders.proposal_encoder import ProposalRegionEncoder
+from openfusion.encoders.proposers import make_proposer
 
 logger = logging.getLogger(__name__)
 
@@ -183,15 +183,7 @@ class ClipRegionEncoder(ProposalRegionEncoder):
         mask_background: bool = True,
     ) -> None:
         self.clip = load_clip(model, device=device, embedding_space=embedding_space)
-        proposer: RegionProposer
-        if mask_model_path is not None:
-            from openfusion.encoders.onnx_backend import OnnxMaskProposer
-            from openfusion.encoders.onnx_contract import load_onnx_model
-
-            mask_model = load_onnx_model(mask_model_path, expected_kind="mask-proposer", device=self.clip.device)
-            proposer = OnnxMaskProposer(mask_model, **(proposer_options or {}))
-        else:
-            proposer = GraphSegmentationProposer(**(proposer_options or {}))
+        proposer = make_proposer(mask_model_path, proposer_options, device=self.clip.device)
         embedder = TorchClipCropEmbedder(self.clip, padding=crop_padding, mask_background=mask_background)
         super().__init__(proposer, embedder, name="clip-regions", output_scale=output_scale, batch_size=batch_size)
 
