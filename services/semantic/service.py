@@ -36,7 +36,7 @@ from openfusion.config import ServiceConfig
 from openfusion.encoders import NOISE_PROFILES, REGION_ENCODER_NAMES, make_region_encoder
 from openfusion.frame import resize_nearest
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
-from openfusion.mapping.params import MatchParams
+from openfusion.mapping.params import MatchParams, MergeParams
 from openfusion.services.common import ServiceDefinition
 from openfusion.wire.counters import SemanticCounter
 from openfusion.wire.endpoints import (
@@ -60,9 +60,9 @@ from openfusion.wire.schemas import (
 logger = logging.getLogger(__name__)
 
 
-class SemanticSection(MatchParams):
-    """The semantic service's settings: every matching parameter (:class:`MatchParams`, declared
-    there once) plus the encoder and the service's own."""
+class SemanticSection(MatchParams, MergeParams):
+    """The semantic service's settings: every matching and merging parameter (:class:`MatchParams`,
+    :class:`MergeParams`, declared there once) plus the encoder and the service's own."""
 
     encoder: str = Field("gt", description=f"region encoder: {', '.join(REGION_ENCODER_NAMES)}")
     model_path: str | None = Field(None, description="model file or folder of the onnx / clip-regions encoder")

@@ -351,6 +351,15 @@ class SemanticVolume:
         """
         return self._storage.relabel_keys(mapping)
 
+    @_locked
+    def region_contacts(self, *, radius_vox: int = 1) -> Any:
+        """Which regions' labelled voxels touch, how much, and each region's labelled voxel count
+        (:func:`openfusion.mapping.merging.region_contacts`; what a merge pass decides on)."""
+        from openfusion.mapping.merging import region_contacts
+
+        voxels, keys = self._storage.labelled_voxels()
+        return region_contacts(voxels, keys, radius_vox=radius_vox)
+
     # ------------------------------------------------------------------ read-out
     @_locked
     def extract_points(
