@@ -11,6 +11,7 @@
 | ``…/geometry/mesh`` | queryable | MeshRequest → MeshReply |
 | ``…/geometry/regions`` | queryable | RegionSummaryRequest → RegionSummaryReply (per-region bbox + surface point count) |
 | ``…/geometry/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot (what the last checkpoint + deltas hold) |
+| ``…/geometry/contacts`` | queryable | RegionContactsRequest → RegionContactsReply (which regions' voxels touch; the semantic service's merges) |
 | ``…/control/{save,load,reset}`` | queryable (admin) | ControlRequest → ControlReply |
 | ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC) |
 
@@ -65,6 +66,7 @@ from openfusion.mapping import (
     save_map,
 )
 from openfusion.mapping.mapfile import previous_map_path, resolve_map_path
+from openfusion.mapping.merging import region_contacts
 from openfusion.mapping.queries import RegionTable
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
@@ -72,6 +74,7 @@ from openfusion.wire.counters import GeometryCounter
 from openfusion.wire.endpoints import (
     CONTROL,
     DICTIONARY_DELTA,
+    GEOMETRY_CONTACTS,
     GEOMETRY_DICTIONARY,
     GEOMETRY_MESH,
     GEOMETRY_POINTS,
@@ -93,6 +96,8 @@ from openfusion.wire.schemas import (
     MeshRequest,
     PointsReply,
     PointsRequest,
+    RegionContactsReply,
+    RegionContactsRequest,
     RegionSummaryReply,
     RegionSummaryRequest,
     RenderReply,
@@ -339,9 +344,10 @@ class GeometryService:
 
     def on_update(self, msg: SemanticUpdate) -> None:
         check_update(msg)
+        key_map = self.replica.resolve_keys(msg.key_map)  # planned before a merge this replica has seen
         with self._lock:
             self.volume.apply_update(
-                msg.T_world_cam, msg.intrinsics, msg.key_map, msg.conf_map, observed_depth_m=msg.depth_m
+                msg.T_world_cam, msg.intrinsics, key_map, msg.conf_map, observed_depth_m=msg.depth_m
             )
             self.updates_applied += 1
             self._map_changed()
@@ -359,7 +365,8 @@ class GeometryService:
             self._resync_dictionary()
         with self._lock:
             if merges:
-                self.volume.relabel_keys(merges)
+                # Merged keys' voxels take the surviving key, so renders, points and answers follow.
+                self._count(GeometryCounter.VOXELS_RELABELLED, self.volume.relabel_keys(merges))
                 self._map_changed()
             self._dirty = True
 
@@ -421,6 +428,15 @@ class GeometryService:
                 cached = self._summary = _Summary(version, horizon, table)
         return cached.reply(req.keys)
 
+    def handle_contacts(self, req: RegionContactsRequest) -> RegionContactsReply:
+        with self._lock:
+            version = self.map_version
+            voxels, keys = self.volume.labelled_voxels()
+        c = region_contacts(voxels, keys, radius_vox=req.radius_vox)  # outside the lock: integration goes on
+        return RegionContactsReply(map_version=version, keys=c.keys.astype(np.int32), surface_voxels=c.surface_voxels,
+                                   pair_a=c.pair_a.astype(np.int32), pair_b=c.pair_b.astype(np.int32),
+                                   contact_a=c.contact_a, contact_b=c.contact_b)
+
     def handle_mesh(self, req: MeshRequest) -> MeshReply:
         with self._lock:
             mesh = self.volume.extract_mesh(keys=req.keys)
@@ -478,6 +494,7 @@ class GeometryService:
         runner.queryable(GEOMETRY_MESH, self.handle_mesh)
         runner.queryable(GEOMETRY_REGIONS, self.handle_regions)
         runner.queryable(GEOMETRY_DICTIONARY, self.handle_dictionary)
+        runner.queryable(GEOMETRY_CONTACTS, self.handle_contacts)
         for action, endpoint in CONTROL.items():
             runner.queryable(endpoint, lambda req, action=action: self.handle_control(req, action=action))
         runner.stats.set(GeometryCounter.FRAMES_INTEGRATED, self.frames_integrated)

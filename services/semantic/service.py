@@ -6,10 +6,11 @@
 | ``…/sensor/instance`` | subscribes when the encoder reads instance images (gt) | :class:`~openfusion.wire.schemas.InstanceFrame` |
 | ``…/geometry/render`` | queries | RenderRequest → RenderReply |
 | ``…/geometry/dictionary`` | queries once on start (recovery) | DictionaryRequest → DictionarySnapshot |
+| ``…/geometry/contacts`` | queries every ``merge_every`` semantic frames | RegionContactsRequest → RegionContactsReply |
 | ``…/semantic/update`` | publishes | :class:`~openfusion.wire.schemas.SemanticUpdate` |
 | ``…/semantic/dictionary/delta`` | publishes | :class:`~openfusion.wire.schemas.DictionaryDelta` |
 | ``…/semantic/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot |
-| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions`` |
+| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions``, ``merge_passes``, ``regions_merged``, ``merge_failures`` |
 
 A slow encoder never builds a queue: the frame subscription keeps only the newest frame and
 counts the ones it replaced. An encoder that reads ground-truth instance images (gt) gets each
@@ -19,6 +20,14 @@ frame whose instance image has not come within ``instance_wait_s`` is skipped an
 ``every_k = k`` uses every k-th frame (by frame id), ``max_hz`` caps the rate.
 On start the service asks geometry for the dictionary it checkpointed, so a restarted semantic
 service continues with the same keys and embeddings.
+
+Merges (:mod:`openfusion.mapping.merging`, parameters ``merge_*`` of :class:`MergeParams`): every
+``merge_every`` semantic frames the service asks geometry (which owns the voxels) which regions
+touch, decides in its dictionary which of them are one object, and publishes the merges as one
+dictionary delta (``removed_keys`` + ``merged_into``). Geometry relabels the merged keys' voxels
+and its replica follows, as does the query service's; a restarted semantic service recovers the
+merged dictionary from geometry. A pass geometry does not answer is skipped and counted
+(``merge_failures``); mapping goes on.
 """
 
 from __future__ import annotations
@@ -36,11 +45,13 @@ from openfusion.config import ServiceConfig
 from openfusion.encoders import NOISE_PROFILES, REGION_ENCODER_NAMES, make_region_encoder
 from openfusion.frame import resize_nearest
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
+from openfusion.mapping.merging import MergeSchedule, RegionContacts, apply_merges, plan_merges
 from openfusion.mapping.params import MatchParams, MergeParams
 from openfusion.services.common import ServiceDefinition
 from openfusion.wire.counters import SemanticCounter
 from openfusion.wire.endpoints import (
     DICTIONARY_DELTA,
+    GEOMETRY_CONTACTS,
     GEOMETRY_DICTIONARY,
     GEOMETRY_RENDER,
     SEMANTIC_DICTIONARY,
@@ -52,6 +63,7 @@ from openfusion.wire.schemas import (
     DictionaryRequest,
     DictionarySnapshot,
     InstanceFrame,
+    RegionContactsRequest,
     RenderRequest,
     RgbdFrame,
     SemanticUpdate,
@@ -143,6 +155,8 @@ class SemanticService:
         self.encoder = encoder if encoder is not None else region_encoder_from_section(self.section)
         self.dictionary = RegionDictionary(self.encoder.embedding_space, self.encoder.dim)
         self.match_params = MatchParams.from_section(self.section)
+        self.merge_params = MergeParams.from_section(self.section)
+        self._merge_schedule = MergeSchedule(self.merge_params)
         self.switch = SemanticSwitch(self.section.every_k, self.section.max_hz)
         self._frames: Subscriber[RgbdFrame] | None = None
         self._instances: InstanceBuffer | None = InstanceBuffer() if self.encoder.needs_instances else None
@@ -201,10 +215,7 @@ class SemanticService:
         planned = plan_update(obs, rendered, self.dictionary, self.match_params)
         assert self._update_pub is not None and self._delta_pub is not None
         # The delta goes first, so a key never reaches geometry before its dictionary row.
-        delta = self.dictionary.delta_since(self._published_version)
-        if delta is not None:
-            self._delta_pub.put(delta)
-            self._published_version = self.dictionary.version
+        self._publish_delta()
         self._update_pub.put(SemanticUpdate(
             frame_id=frame.frame_id, T_world_cam=frame.T_world_cam, **SemanticUpdate.intrinsics_fields(K_small),
             key_map=planned.key_map, conf_map=planned.conf_map,
@@ -222,6 +233,45 @@ class SemanticService:
         logger.debug("semantic: frame %d: %d regions, %d matched, %d new (dictionary v%d -> v%d)",
                      frame.frame_id, obs.conf_maps.shape[0], len(planned.matched), len(planned.new_keys),
                      prev_version, self.dictionary.version)
+        if self._merge_schedule.due():
+            self.merge_pass(runner)
+
+    def _publish_delta(self) -> None:
+        """Publish what changed in the dictionary since the last delta (nothing when nothing did)."""
+        assert self._delta_pub is not None
+        delta = self.dictionary.delta_since(self._published_version)
+        if delta is not None:
+            self._delta_pub.put(delta)
+            self._published_version = self.dictionary.version
+
+    def merge_pass(self, runner: ServiceRunner) -> int:
+        """Merge the regions that are one object (contacts from geometry, decision here), publish the
+        merges as one delta; returns the number of regions merged away. A pass geometry does not
+        answer is logged, counted in ``merge_failures`` and skipped."""
+        started = time.monotonic()
+        try:
+            reply = runner.call(GEOMETRY_CONTACTS, RegionContactsRequest(radius_vox=self.merge_params.merge_contact_radius_vox),
+                                timeout_s=self.section.render_timeout_s)
+        except QueryError as exc:
+            logger.warning("semantic: merge pass skipped: geometry did not give region contacts (%s)", exc)
+            runner.stats.incr(SemanticCounter.MERGE_FAILURES)
+            return 0
+        contacts = RegionContacts(
+            keys=reply.keys.astype(np.int64), surface_voxels=reply.surface_voxels.astype(np.int64),
+            pair_a=reply.pair_a.astype(np.int64), pair_b=reply.pair_b.astype(np.int64),
+            contact_a=reply.contact_a.astype(np.int64), contact_b=reply.contact_b.astype(np.int64))
+        plan = plan_merges(self.dictionary, contacts, self.merge_params)
+        runner.stats.incr(SemanticCounter.MERGE_PASSES)
+        if not plan.merged_into:
+            return 0
+        apply_merges(self.dictionary, plan.merged_into, embedding=self.merge_params.merge_embedding)
+        self._publish_delta()
+        runner.stats.incr(SemanticCounter.REGIONS_MERGED, len(plan.merged_into))
+        runner.stats.set(SemanticCounter.REGIONS, len(self.dictionary))
+        runner.stats.set(SemanticCounter.DICTIONARY_VERSION, self.dictionary.version)
+        logger.info("semantic: merged %d regions into %d (map version %d, %.0f ms): %s", len(plan.merged_into),
+                    len(plan.groups), reply.map_version, (time.monotonic() - started) * 1e3, plan.groups)
+        return len(plan.merged_into)
 
     def setup(self, runner: ServiceRunner) -> None:
         self.recover(runner)
@@ -232,6 +282,8 @@ class SemanticService:
             runner.subscriber(SENSOR_INSTANCE, self._instances.add, queue_size=8)
         self._frames = runner.subscriber(SENSOR_RGBD, latest_only=True)
         runner.stats.set(SemanticCounter.SEMANTIC_FRAMES, 0)
+        runner.stats.set(SemanticCounter.MERGE_PASSES, 0)
+        runner.stats.set(SemanticCounter.REGIONS_MERGED, 0)
         runner.stats.set(SemanticCounter.REGIONS, len(self.dictionary))
 
     def loop(self, runner: ServiceRunner) -> None:

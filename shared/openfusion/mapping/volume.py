@@ -352,12 +352,17 @@ class SemanticVolume:
         return self._storage.relabel_keys(mapping)
 
     @_locked
+    def labelled_voxels(self) -> tuple[np.ndarray, np.ndarray]:
+        """(integer voxel coordinates (n, 3) int64, keys (n,) int64) of every voxel carrying a key."""
+        return self._storage.labelled_voxels()
+
     def region_contacts(self, *, radius_vox: int = 1) -> Any:
         """Which regions' labelled voxels touch, how much, and each region's labelled voxel count
-        (:func:`openfusion.mapping.merging.region_contacts`; what a merge pass decides on)."""
+        (:func:`openfusion.mapping.merging.region_contacts`; what a merge pass decides on). Holds
+        the volume's lock only while copying the labelled voxels out."""
         from openfusion.mapping.merging import region_contacts
 
-        voxels, keys = self._storage.labelled_voxels()
+        voxels, keys = self.labelled_voxels()
         return region_contacts(voxels, keys, radius_vox=radius_vox)
 
     # ------------------------------------------------------------------ read-out

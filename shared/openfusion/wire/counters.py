@@ -54,6 +54,7 @@ class GeometryCounter(StrEnum):
     CHECKPOINT_FAILURES = "checkpoint_failures"  # checkpoints that failed (OSError: disk full, read-only)
     CHECKPOINT_LAST_FRAME_ID = "checkpoint_last_frame_id"  # last frame in the newest checkpoint (-1: none)
     DICTIONARY_RESYNCS = "dictionary_resyncs"
+    VOXELS_RELABELLED = "voxels_relabelled"  # voxels whose key a merge delta changed to the surviving key
 
 
 class SemanticCounter(StrEnum):
@@ -70,6 +71,9 @@ class SemanticCounter(StrEnum):
     SKIPPED_NO_RENDER = "skipped_no_render"  # geometry did not answer the render request
     FRAMES_FAILED = "frames_failed"  # the encoder or a step raised on the frame (logged, skipped)
     INSTANCES_EVICTED = "instances_evicted"
+    MERGE_PASSES = "merge_passes"  # region merge passes run (every merge_every semantic frames)
+    REGIONS_MERGED = "regions_merged"  # regions folded into another by those passes
+    MERGE_FAILURES = "merge_failures"  # passes skipped: geometry did not answer geometry/contacts
 
 
 class QueryCounter(StrEnum):
