@@ -66,7 +66,7 @@ from openfusion.mapping import (
     save_map,
 )
 from openfusion.mapping.mapfile import previous_map_path, resolve_map_path
-from openfusion.mapping.merging import region_contacts
+from openfusion.mapping.merging import block_contacts
 from openfusion.mapping.queries import RegionTable
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
@@ -344,8 +344,8 @@ class GeometryService:
 
     def on_update(self, msg: SemanticUpdate) -> None:
         check_update(msg)
-        key_map = self.replica.resolve_keys(msg.key_map)  # planned before a merge this replica has seen
-        with self._lock:
+        with self._lock:  # resolved and applied under the lock on_delta relabels under: no orphan keys
+            key_map = self.replica.resolve_keys(msg.key_map)  # planned before a merge this replica has seen
             self.volume.apply_update(
                 msg.T_world_cam, msg.intrinsics, key_map, msg.conf_map, observed_depth_m=msg.depth_m
             )
@@ -360,15 +360,16 @@ class GeometryService:
 
     def on_delta(self, msg: DictionaryDelta) -> None:
         merges = RegionDictionary.merges_of(msg)
-        if not self.replica.apply_delta(msg):
-            self._count(GeometryCounter.DICTIONARY_RESYNCS)
-            self._resync_dictionary()
         with self._lock:
+            applied = self.replica.apply_delta(msg)
             if merges:
                 # Merged keys' voxels take the surviving key, so renders, points and answers follow.
                 self._count(GeometryCounter.VOXELS_RELABELLED, self.volume.relabel_keys(merges))
                 self._map_changed()
             self._dirty = True
+        if not applied:
+            self._count(GeometryCounter.DICTIONARY_RESYNCS)
+            self._resync_dictionary()
 
     def _resync_dictionary(self) -> None:
         if self._runner is None:
@@ -431,8 +432,8 @@ class GeometryService:
     def handle_contacts(self, req: RegionContactsRequest) -> RegionContactsReply:
         with self._lock:
             version = self.map_version
-            voxels, keys = self.volume.labelled_voxels()
-        c = region_contacts(voxels, keys, radius_vox=req.radius_vox)  # outside the lock: integration goes on
+            coords, keys = self.volume.labelled_blocks()
+        c = block_contacts(coords, keys, radius_vox=req.radius_vox)  # outside the lock: integration goes on
         return RegionContactsReply(map_version=version, keys=c.keys.astype(np.int32), surface_voxels=c.surface_voxels,
                                    pair_a=c.pair_a.astype(np.int32), pair_b=c.pair_b.astype(np.int32),
                                    contact_a=c.contact_a, contact_b=c.contact_b)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from openfusion.frame import CameraIntrinsics
-from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume, VolumeParams, merging
+from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume, VolumeParams
 from openfusion.mapping.matching import plan_update
 from openfusion.mapping.merging import MergeSchedule, merge_regions, plan_merges, region_contacts
 from openfusion.mapping.params import MatchParams, MergeParams
@@ -61,17 +61,32 @@ def test_contacts_count_each_voxel_next_to_the_other_region_once() -> None:
     assert (wider.contact_a.tolist(), wider.contact_b.tolist()) == ([80], [80])
 
 
-def test_contacts_by_binary_search_equal_the_dense_lookup(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A map too big for the dense index is searched instead: same answer."""
-    rng = np.random.default_rng(0)
-    vox = np.unique(rng.integers(0, 12, size=(900, 3)), axis=0)
+def _brute_force_contacts(vox: np.ndarray, keys: np.ndarray, radius: int) -> dict[tuple[int, int], int]:
+    """{(a, b): voxels of a with a voxel of b within ``radius`` per axis}, the obvious way."""
+    where = {tuple(v): int(k) for v, k in zip(vox.tolist(), keys.tolist(), strict=True)}
+    out: dict[tuple[int, int], int] = {}
+    rng = range(-radius, radius + 1)
+    for v, k in where.items():
+        near = {where.get((v[0] + dx, v[1] + dy, v[2] + dz)) for dx in rng for dy in rng for dz in rng}
+        for other in near - {None, k}:
+            out[(k, other)] = out.get((k, other), 0) + 1
+    return out
+
+
+@pytest.mark.parametrize("radius", [1, 2])
+def test_contacts_equal_a_brute_force_count_across_block_borders(radius: int) -> None:
+    """Random voxels of 5 interleaved regions around block borders (negative coordinates too): the
+    block-padded computation counts exactly what a voxel-by-voxel search counts."""
+    rng = np.random.default_rng(radius)
+    vox = np.unique(rng.integers(-10, 14, size=(1500, 3)), axis=0)
     keys = rng.integers(0, 5, size=len(vox))
-    dense = region_contacts(vox, keys)
-    monkeypatch.setattr(merging, "DENSE_LOOKUP_MAX_CELLS", 0)
-    searched = region_contacts(vox, keys)
-    for name in ("keys", "surface_voxels", "pair_a", "pair_b", "contact_a", "contact_b"):
-        np.testing.assert_array_equal(getattr(dense, name), getattr(searched, name))
-    assert len(dense.pair_a) == 10  # every pair of the 5 interleaved regions touches
+    c = region_contacts(vox, keys, radius_vox=radius)
+    expected = _brute_force_contacts(vox, keys, radius)
+    got = {}
+    for a, b, ca, cb in zip(c.pair_a, c.pair_b, c.contact_a, c.contact_b, strict=True):
+        got[(int(a), int(b))], got[(int(b), int(a))] = int(ca), int(cb)
+    assert got == expected and len(c.pair_a) == 10
+    np.testing.assert_array_equal(c.surface_voxels, np.bincount(keys))
 
 
 def test_contacts_refuse_bad_input() -> None:

@@ -30,10 +30,10 @@ running means (counts summed), normalised for ranking -- the running mean the re
 had if every observation had been matched to it from the start. Measured against the plain mean
 of the two and against keeping the survivor's embedding (docs/EVAL.md, "Merging regions").
 
-Cost: ``O(n)`` in the labelled voxels ``n`` (13 lookups for radius 1 in a dense index over their
-bounding box; ``O(n log n)`` binary search when that box is too big). Written with numpy rather than an Open3D neighbour search because Open3D's
-``VoxelBlockGrid`` has no per-voxel neighbour query and its point-cloud KD-tree would need the
-points first; the sorted voxel index does the same in a few passes over flat arrays.
+Cost (:func:`block_contacts`): linear in the labelled blocks, working on the grid's own block
+layout (each block padded with its neighbours' border voxels; blocks inside one region skipped).
+Written with numpy because Open3D's ``VoxelBlockGrid`` has no neighbour query between voxels (its
+KD-trees work on extracted points, which would cost a surface read-out first).
 """
 
 from __future__ import annotations
@@ -75,51 +75,101 @@ class RegionContacts:
         return {int(k): int(n) for k, n in zip(self.keys, self.surface_voxels, strict=True)}
 
 
-def _half_offsets(radius: int) -> np.ndarray:
-    """Offsets of the (2r+1)^3 cube without 0, one of each +-pair (lexicographically positive)."""
-    rng = range(-radius, radius + 1)
-    out = [d for d in itertools.product(rng, rng, rng) if d > (0, 0, 0)]
-    return np.array(out, np.int64)
+#: Edge length (voxels) of the blocks :func:`region_contacts` groups loose voxels into (the grid's own
+#: block resolution is used for a volume).
+CONTACT_BLOCK_VOXELS = 8
 
 
-#: Up to this many cells of the voxels' bounding box, neighbours are looked up in a dense array
-#: (64 MiB of int32; a furnished 6 x 5 x 3 m room at 2 cm is 11 M cells), else by binary search.
-DENSE_LOOKUP_MAX_CELLS = 16_000_000
+def _block_rows(coords: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sorted linear codes of block coordinates, their rows, and the code's box (for lookups)."""
+    lo = coords.min(axis=0) - 1
+    dims = coords.max(axis=0) - lo + 2
+    rel = coords - lo
+    codes = (rel[:, 0] * dims[1] + rel[:, 1]) * dims[2] + rel[:, 2]
+    order = np.argsort(codes)
+    return codes[order], order, np.concatenate([lo, dims])
 
 
-def _neighbour_pairs(
-    lin: np.ndarray, key: np.ndarray, dims: np.ndarray, radius: int
-) -> list[tuple[np.ndarray, np.ndarray]]:
-    """For every half-offset, (i, j): voxel ``j`` is voxel ``i``'s neighbour and has another key.
-    ``lin``: linear voxel index in a box of ``dims`` that keeps every offset inside it."""
-    out = []
-    steps = [int((d[0] * dims[1] + d[1]) * dims[2] + d[2]) for d in _half_offsets(radius)]
-    if int(np.prod(dims)) <= DENSE_LOOKUP_MAX_CELLS:
-        index = np.full(int(np.prod(dims)), -1, np.int32 if len(lin) < 2**31 else np.int64)
-        index[lin] = np.arange(len(lin))
-        for step in steps:
-            j = index[lin + step]
-            i = np.flatnonzero(j >= 0)
-            j = j[i].astype(np.int64)
-            differ = key[j] != key[i]
-            if differ.any():
-                out.append((i[differ], j[differ]))
-        return out
-    order = np.argsort(lin, kind="stable")
-    lin_sorted = lin[order]
-    key_sorted = key[order]
-    for step in steps:
-        target = lin + step
-        pos = np.minimum(np.searchsorted(lin_sorted, target), len(lin_sorted) - 1)
-        i = np.flatnonzero((lin_sorted[pos] == target) & (key_sorted[pos] != key))
-        if len(i):
-            out.append((i, order[pos[i]]))
-    return out
+def block_contacts(block_coords: np.ndarray, block_keys: np.ndarray, *, radius_vox: int = 1) -> RegionContacts:
+    """Contacts between regions (see the module docstring) from the grid's own layout: block
+    coordinates (N, 3) (x, y, z) and each block's voxel keys (N, R, R, R) indexed [z, y, x], -1 =
+    no key (the layout of Open3D's voxel buffers, ``VoxelStorage.labelled_blocks``).
+
+    Each block is padded with ``radius_vox`` voxels of its 26 neighbour blocks; blocks whose padded
+    neighbourhood holds a single key (the inside of a region: most of them) are skipped, and the
+    rest compare every voxel with its neighbours by slicing the padded array. Cost: O(N R^3) to pad
+    and screen, plus 26 (radius 1) array comparisons over the border blocks only.
+    """
+    coords = np.asarray(block_coords, np.int64).reshape(-1, 3)
+    kb = np.asarray(block_keys)
+    if radius_vox < 1:
+        raise ValueError(f"radius_vox must be >= 1, got {radius_vox}")
+    if kb.ndim != 4 or kb.shape[0] != len(coords) or not (kb.shape[1] == kb.shape[2] == kb.shape[3]):
+        raise ValueError(f"block_keys must be (N, R, R, R) for {len(coords)} blocks, got {kb.shape}")
+    R, r = kb.shape[1], int(radius_vox)
+    if r >= R:
+        raise ValueError(f"radius_vox ({r}) must be below the block resolution ({R})")
+    kb = kb.astype(np.int32, copy=False)
+    labelled = kb >= 0
+    if not labelled.any():
+        return RegionContacts.empty()
+    region_keys, surface = np.unique(kb[labelled], return_counts=True)
+    region_keys, surface = region_keys.astype(np.int64), surface.astype(np.int64)
+    n, S = len(coords), R + 2 * r
+    padded = np.full((n, S, S, S), -1, np.int32)
+    padded[:, r : r + R, r : r + R, r : r + R] = kb
+    codes, order, box = _block_rows(coords)
+    lo, dims = box[:3], box[3:]
+    # Per axis offset -1 / 0 / +1: (destination slice in the padded block, source slice in the neighbour).
+    spans = {-1: (slice(0, r), slice(R - r, R)), 0: (slice(r, r + R), slice(0, R)), 1: (slice(r + R, S), slice(0, r))}
+    for dx, dy, dz in itertools.product((-1, 0, 1), repeat=3):
+        if dx == dy == dz == 0:
+            continue
+        rel = coords + np.array([dx, dy, dz]) - lo
+        target = (rel[:, 0] * dims[1] + rel[:, 1]) * dims[2] + rel[:, 2]
+        pos = np.minimum(np.searchsorted(codes, target), n - 1)
+        rows = np.flatnonzero(codes[pos] == target)
+        if len(rows) == 0:
+            continue
+        nb = order[pos[rows]]
+        (zd, zs), (yd, ys), (xd, xs) = spans[dz], spans[dy], spans[dx]
+        padded[rows, zd, yd, xd] = kb[nb, zs, ys, xs]
+    # Screen: blocks whose padded neighbourhood holds one key (or none) have no contact.
+    big = np.iinfo(np.int32).max
+    high = padded.reshape(n, -1).max(axis=1)
+    low = np.where(padded >= 0, padded, big).reshape(n, -1).min(axis=1)
+    border = np.flatnonzero((high > low) & labelled.reshape(n, -1).any(axis=1))
+    pb, centre = padded[border], kb[border]
+    span = int(region_keys.max()) + 1
+    codes_out: list[np.ndarray] = []
+    for dx, dy, dz in itertools.product(range(-r, r + 1), repeat=3):
+        if dx == dy == dz == 0:
+            continue
+        other = pb[:, r + dz : r + dz + R, r + dy : r + dy + R, r + dx : r + dx + R]
+        hit = np.flatnonzero(((centre >= 0) & (other >= 0) & (other != centre)).reshape(-1))
+        if len(hit):
+            codes_out.append(hit * span + other.reshape(-1)[hit].astype(np.int64))
+    if not codes_out:
+        z = np.zeros(0, np.int64)
+        return RegionContacts(region_keys, surface, z, z.copy(), z.copy(), z.copy())
+    # Each (voxel, other region) once: a voxel touching b through several neighbours counts once.
+    touching = np.unique(np.concatenate(codes_out))
+    voxel, against = touching // span, touching % span
+    owner = centre.reshape(-1)[voxel].astype(np.int64)
+    pair_codes, counts = np.unique(owner * span + against, return_counts=True)
+    owner, against = pair_codes // span, pair_codes % span
+    lower = owner < against
+    a, b, ca = owner[lower], against[lower], counts[lower]
+    # b's voxels touching a: the directed count (b, a), 0 when none (not possible for r >= 1).
+    reverse = dict(zip(pair_codes.tolist(), counts.tolist(), strict=True))
+    cb = np.array([reverse.get(int(y) * span + int(x), 0) for x, y in zip(a, b, strict=True)], np.int64)
+    return RegionContacts(region_keys, surface, a, b, ca.astype(np.int64), cb)
 
 
 def region_contacts(voxels: np.ndarray, keys: np.ndarray, *, radius_vox: int = 1) -> RegionContacts:
-    """Contacts between regions from labelled voxels: integer voxel coordinates ``voxels`` (n, 3)
-    and their region ``keys`` (n,), each voxel once (see the module docstring)."""
+    """Contacts between regions from loose labelled voxels: integer voxel coordinates ``voxels``
+    (n, 3) and their region ``keys`` (n,), each voxel once; grouped into blocks of
+    :data:`CONTACT_BLOCK_VOXELS` for :func:`block_contacts`."""
     vox = np.asarray(voxels, np.int64).reshape(-1, 3)
     key = np.asarray(keys, np.int64).reshape(-1)
     if len(vox) != len(key):
@@ -130,34 +180,13 @@ def region_contacts(voxels: np.ndarray, keys: np.ndarray, *, radius_vox: int = 1
         return RegionContacts.empty()
     if key.min() < 0:
         raise ValueError("keys must be >= 0 (labelled voxels only)")
-    region_keys, surface = np.unique(key, return_counts=True)
-    r = int(radius_vox)
-    lo = vox.min(axis=0) - r
-    dims = vox.max(axis=0) - lo + 1 + r
-    rel = vox - lo
-    lin = (rel[:, 0] * dims[1] + rel[:, 1]) * dims[2] + rel[:, 2]
-    src: list[np.ndarray] = []
-    other: list[np.ndarray] = []
-    for i, j in _neighbour_pairs(lin, key, dims, r):
-        src += [i, j]
-        other += [key[j], key[i]]
-    if not src:
-        z = np.zeros(0, np.int64)
-        return RegionContacts(region_keys, surface, z, z.copy(), z.copy(), z.copy())
-    s = np.concatenate(src)
-    o = np.concatenate(other)
-    span = int(key.max()) + 1
-    # Each (voxel, other region) once: a voxel touching b through several neighbours counts once.
-    touching = np.unique(s * span + o)
-    voxel_of, other_of = touching // span, touching % span
-    pair_codes, counts = np.unique(key[voxel_of] * span + other_of, return_counts=True)
-    owner, against = pair_codes // span, pair_codes % span
-    count_of = dict(zip(zip(owner.tolist(), against.tolist(), strict=True), counts.tolist(), strict=True))
-    lower = owner < against
-    a, b = owner[lower], against[lower]
-    ca = counts[lower]
-    cb = np.array([count_of.get((int(y), int(x)), 0) for x, y in zip(a, b, strict=True)], np.int64)
-    return RegionContacts(region_keys, surface, a, b, ca.astype(np.int64), cb)
+    R = CONTACT_BLOCK_VOXELS
+    block = np.floor_divide(vox, R)
+    local = vox - block * R
+    coords, row = np.unique(block, axis=0, return_inverse=True)
+    kb = np.full((len(coords), R, R, R), -1, np.int32)
+    kb[row.reshape(-1), local[:, 2], local[:, 1], local[:, 0]] = key
+    return block_contacts(coords, kb, radius_vox=radius_vox)
 
 
 @dataclass
