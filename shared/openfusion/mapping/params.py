@@ -170,7 +170,7 @@ class MergeParams(ConfigSection):
         10, ge=0, description="look for regions to merge every this many semantic frames, and at the end (0 = never)"
     )
     merge_min_cos: float = Field(
-        0.9, ge=-1, le=1, description="two touching regions merge only when their embeddings' cosine is at least this"
+        0.85, ge=-1, le=1, description="two touching regions merge only when their embeddings' cosine is at least this"
     )
     merge_min_contact_fraction: float = Field(
         0.05,
