@@ -256,3 +256,19 @@ def test_unmatched_part_of_a_known_region_joins_it_instead_of_starting_a_new_one
         assert len(plan.new_keys) == new, (params, label)
         if new == 0:
             assert sorted(plan.matched) == [(0, 0), (1, 0)] and d.count(0) == 6
+
+
+def test_the_in_process_pipeline_merges_every_n_frames_and_at_the_end() -> None:
+    """map_scene with an encoder that splits every object on frame 0: a pass after the 3rd semantic
+    frame and one at the end; fragments are merged and no voxel keeps a merged-away key."""
+    from openfusion.mapping.pipeline import map_scene
+    from openfusion.sources import open_source
+    from openfusion.testing.encoders import SplittingEncoder
+
+    result = map_scene(open_source("synthetic:frames=4,width=160,height=120"),
+                       region_encoder=SplittingEncoder(split_on=[0]),
+                       volume_params=VolumeParams(initial_block_count=2048), merge_params=MergeParams(merge_every=3))
+    assert result.stats.merge_passes == 2 and result.stats.regions_merged > 0
+    stored = set(np.unique(result.volume.to_arrays()["key"]).tolist()) - {-1}
+    assert stored and stored <= set(result.dictionary.keys.tolist())
+    assert len(result.dictionary) == result.dictionary.next_key - result.stats.regions_merged
