@@ -10,7 +10,7 @@
 | ``…/semantic/update`` | publishes | :class:`~openfusion.wire.schemas.SemanticUpdate` |
 | ``…/semantic/dictionary/delta`` | publishes | :class:`~openfusion.wire.schemas.DictionaryDelta` |
 | ``…/semantic/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot |
-| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions``, ``merge_passes``, ``regions_merged``, ``merge_failures`` |
+| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions``, ``merge_passes``, ``regions_merged``, ``regions_pruned``, ``merge_failures`` |
 
 A slow encoder never builds a queue: the frame subscription keeps only the newest frame and
 counts the ones it replaced. An encoder that reads ground-truth instance images (gt) gets each
@@ -27,7 +27,9 @@ touch, decides in its dictionary which of them are one object, and publishes the
 dictionary delta (``removed_keys`` + ``merged_into``). Geometry relabels the merged keys' voxels
 and its replica follows, as does the query service's; a restarted semantic service recovers the
 merged dictionary from geometry. A pass geometry does not answer is skipped and counted
-(``merge_failures``); mapping goes on.
+(``merge_failures``); mapping goes on. A region without a labelled voxel in two passes in a row
+(seen once, then taken over by other regions; it can never be matched again) is removed in the
+same delta (``merged_into`` -1, ``regions_pruned``).
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ from openfusion.config import ServiceConfig
 from openfusion.encoders import NOISE_PROFILES, REGION_ENCODER_NAMES, make_region_encoder
 from openfusion.frame import resize_nearest
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
-from openfusion.mapping.merging import MergeSchedule, RegionContacts, apply_merges, plan_merges
+from openfusion.mapping.merging import EmptyRegions, MergeSchedule, RegionContacts, apply_merges, plan_merges
 from openfusion.mapping.params import MatchParams, MergeParams
 from openfusion.services.common import ServiceDefinition
 from openfusion.wire.counters import SemanticCounter
@@ -157,6 +159,7 @@ class SemanticService:
         self.match_params = MatchParams.from_section(self.section)
         self.merge_params = MergeParams.from_section(self.section)
         self._merge_schedule = MergeSchedule(self.merge_params)
+        self._empty_regions = EmptyRegions()
         self.switch = SemanticSwitch(self.section.every_k, self.section.max_hz)
         self._frames: Subscriber[RgbdFrame] | None = None
         self._instances: InstanceBuffer | None = InstanceBuffer() if self.encoder.needs_instances else None
@@ -261,11 +264,15 @@ class SemanticService:
             pair_a=reply.pair_a.astype(np.int64), pair_b=reply.pair_b.astype(np.int64),
             contact_a=reply.contact_a.astype(np.int64), contact_b=reply.contact_b.astype(np.int64))
         plan = plan_merges(self.dictionary, contacts, self.merge_params)
+        removed = self._empty_regions.to_remove(self.dictionary, contacts) if self.merge_params.merge_prune_empty else []
+        if plan.merged_into or removed:
+            apply_merges(self.dictionary, plan.merged_into, embedding=self.merge_params.merge_embedding,
+                         removed=removed)
+            self._publish_delta()
         runner.stats.incr(SemanticCounter.MERGE_PASSES)
+        runner.stats.incr(SemanticCounter.REGIONS_PRUNED, len(removed))
         if not plan.merged_into:
             return 0
-        apply_merges(self.dictionary, plan.merged_into, embedding=self.merge_params.merge_embedding)
-        self._publish_delta()
         runner.stats.incr(SemanticCounter.REGIONS_MERGED, len(plan.merged_into))
         runner.stats.set(SemanticCounter.REGIONS, len(self.dictionary))
         runner.stats.set(SemanticCounter.DICTIONARY_VERSION, self.dictionary.version)

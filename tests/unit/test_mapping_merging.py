@@ -172,6 +172,27 @@ def test_replica_resolves_merged_keys_from_a_delta() -> None:
     np.testing.assert_array_equal(replica.resolve_keys(np.array([[0, 1], [-1, 2]])), [[2, 2], [-1, 2]])
 
 
+def test_a_region_without_voxels_in_two_passes_is_removed_and_replicas_follow() -> None:
+    """Region 1 holds no voxel (taken over by others): kept after the first pass (its first update
+    may still be on its way), removed after the second, in the same delta as a merge; a replica
+    drops it too (a removal, not a merge)."""
+    from openfusion.mapping.merging import EmptyRegions, apply_merges
+
+    d = dictionary_with(("wall", 5), ("chair", 1), ("wall", 2))
+    replica = RegionDictionary.from_snapshot(d.snapshot())
+    contacts = region_contacts(*voxels_of((slab(0, 10), 0), (slab(10, 20), 2)))
+    empty = EmptyRegions()
+    assert empty.to_remove(d, contacts) == []
+    removed = empty.to_remove(d, contacts)
+    assert removed == [1]
+    v = d.version
+    apply_merges(d, plan_merges(d, contacts).merged_into, removed=removed)
+    assert d.version == v + 1 and list(d.keys) == [0]
+    delta = d.delta_since(v)
+    replica.apply_delta(delta)
+    assert list(replica.keys) == [0] and RegionDictionary.merges_of(delta) == {2: 0}
+
+
 def test_schedule_runs_every_n_semantic_frames() -> None:
     schedule = MergeSchedule(MergeParams(merge_every=3))
     assert [schedule.due() for _ in range(7)] == [False, False, True, False, False, True, False]
@@ -271,4 +292,5 @@ def test_the_in_process_pipeline_merges_every_n_frames_and_at_the_end() -> None:
     assert result.stats.merge_passes == 2 and result.stats.regions_merged > 0
     stored = set(np.unique(result.volume.to_arrays()["key"]).tolist()) - {-1}
     assert stored and stored <= set(result.dictionary.keys.tolist())
-    assert len(result.dictionary) == result.dictionary.next_key - result.stats.regions_merged
+    assert len(result.dictionary) == (result.dictionary.next_key - result.stats.regions_merged
+                                      - result.stats.regions_pruned)

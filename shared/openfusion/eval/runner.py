@@ -43,7 +43,7 @@ from openfusion.eval.protocol import (
 )
 from openfusion.eval.scenes import SceneSpec, check_scene_inputs, open_scene
 from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume, segment_points
-from openfusion.mapping.merging import MergeSchedule, merge_regions
+from openfusion.mapping.merging import EmptyRegions, MergeSchedule, merge_regions
 from openfusion.mapping.params import MatchParams, MergeParams, VolumeParams
 
 logger = logging.getLogger(__name__)
@@ -168,9 +168,10 @@ def map_scene_for_eval(
     run = MappingRun(volume=volume, dictionary=dictionary)
     merge_p = merge_params if merge_params is not None else MergeParams()
     schedule = MergeSchedule(merge_p)
+    empty = EmptyRegions()
 
     def merge_pass() -> None:  # timed with the semantic step (it is part of it in the services)
-        result = merge_regions(volume, dictionary, merge_p)
+        result = merge_regions(volume, dictionary, merge_p, empty=empty)
         run.merge_passes += 1
         run.regions_merged += result.merged
         run.merge_s += result.total_ms / 1e3

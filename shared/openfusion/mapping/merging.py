@@ -246,11 +246,29 @@ def plan_merges(dictionary: Any, contacts: RegionContacts, params: MergeParams |
     return plan
 
 
+class EmptyRegions:
+    """Regions of the dictionary without a labelled voxel in two passes in a row: dead (a region is
+    matched only through its rendered voxels, so one that lost them all never comes back). Two
+    passes, not one, because in the services a region's first update may still be on its way to
+    geometry when the contacts are computed."""
+
+    def __init__(self) -> None:
+        self._empty_before: set[int] = set()
+
+    def to_remove(self, dictionary: Any, contacts: RegionContacts) -> list[int]:
+        present = set(contacts.keys.tolist())
+        empty_now = {int(k) for k in dictionary.keys.tolist()} - present
+        remove = empty_now & self._empty_before
+        self._empty_before = empty_now - remove
+        return sorted(remove)
+
+
 @dataclass
 class MergeResult:
     """One merge pass: the plan, voxels relabelled and its time in milliseconds."""
 
     plan: MergePlan
+    removed: list[int] = field(default_factory=list)  # empty regions pruned (EmptyRegions)
     voxels_relabelled: int = 0
     contacts_ms: float = 0.0
     total_ms: float = 0.0
@@ -260,27 +278,37 @@ class MergeResult:
         return len(self.plan.merged_into)
 
 
-def apply_merges(dictionary: Any, merged_into: dict[int, int], *, embedding: str = "weighted") -> None:
-    """Merge every ``b`` into ``merged_into[b]`` in the dictionary as one version (one delta)."""
-    if not merged_into:
+def apply_merges(
+    dictionary: Any, merged_into: dict[int, int], *, embedding: str = "weighted", removed: list[int] | None = None
+) -> None:
+    """Merge every ``b`` into ``merged_into[b]`` and remove the ``removed`` regions, in the
+    dictionary as one version (one delta)."""
+    if not merged_into and not removed:
         return
     with dictionary.batch():
         for b, a in sorted(merged_into.items()):
             dictionary.merge(a, b, embedding=embedding)
+        for k in removed or ():
+            if k in dictionary:
+                dictionary.remove(k)
 
 
-def merge_regions(volume: Any, dictionary: Any, params: MergeParams | None = None) -> MergeResult:
+def merge_regions(
+    volume: Any, dictionary: Any, params: MergeParams | None = None, *, empty: EmptyRegions | None = None
+) -> MergeResult:
     """One merge pass on an in-process map: contacts from ``volume``, merges in ``dictionary``,
-    voxels relabelled to the surviving keys."""
+    voxels relabelled to the surviving keys; with ``empty`` (kept across passes) and
+    ``merge_prune_empty``, regions without voxels in two passes in a row are removed."""
     p = params if params is not None else MergeParams()
     t0 = time.perf_counter()
     contacts = volume.region_contacts(radius_vox=p.merge_contact_radius_vox)
     t1 = time.perf_counter()
     plan = plan_merges(dictionary, contacts, p)
-    apply_merges(dictionary, plan.merged_into, embedding=p.merge_embedding)
+    removed = empty.to_remove(dictionary, contacts) if empty is not None and p.merge_prune_empty else []
+    apply_merges(dictionary, plan.merged_into, embedding=p.merge_embedding, removed=removed)
     relabelled = volume.relabel_keys(plan.merged_into) if plan.merged_into else 0
     t2 = time.perf_counter()
-    return MergeResult(plan, relabelled, contacts_ms=(t1 - t0) * 1e3, total_ms=(t2 - t0) * 1e3)
+    return MergeResult(plan, removed, relabelled, contacts_ms=(t1 - t0) * 1e3, total_ms=(t2 - t0) * 1e3)
 
 
 class MergeSchedule:

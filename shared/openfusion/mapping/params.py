@@ -184,6 +184,11 @@ class MergeParams(ConfigSection):
     merge_contact_radius_vox: int = Field(
         1, ge=1, le=3, description="voxels within this many voxels (per axis) of another region's touch it"
     )
+    merge_prune_empty: bool = Field(
+        True,
+        description="remove regions that hold no labelled voxel in two merge passes in a row (seen, then taken over "
+        "by other regions: never rendered again, so never matched again)",
+    )
     merge_embedding: Literal["weighted", "mean", "first"] = Field(
         "weighted",
         description="merged embedding: observation-weighted mean (measured best), plain mean of the two, or the "

@@ -21,7 +21,7 @@ from openfusion.frame import Frame
 from openfusion.mapping.dictionary import RegionDictionary
 from openfusion.mapping.errors import CapacityError
 from openfusion.mapping.mapper import SemanticMapper
-from openfusion.mapping.merging import MergeSchedule, merge_regions
+from openfusion.mapping.merging import EmptyRegions, MergeSchedule, merge_regions
 from openfusion.mapping.params import MatchParams, MergeParams, VolumeParams
 from openfusion.mapping.volume import SemanticVolume
 
@@ -59,6 +59,7 @@ class PipelineStats:
     semantic_step_s: float = 0.0
     merge_passes: int = 0  # region merge passes run (every MergeParams.merge_every semantic frames, and at the end)
     regions_merged: int = 0  # regions folded into another (dictionary entries removed by merges)
+    regions_pruned: int = 0  # regions removed for holding no voxel in two merge passes in a row
     merge_s: float = 0.0
 
     def _rates(self) -> tuple[float | None, float | None]:
@@ -112,12 +113,14 @@ def map_scene(
     mapper = SemanticMapper(volume, dictionary, params=match_params)
     merge_p = merge_params if merge_params is not None else MergeParams()
     schedule = MergeSchedule(merge_p)
+    empty = EmptyRegions()
     stats = PipelineStats()
 
     def merge_pass() -> None:
-        result = merge_regions(volume, dictionary, merge_p)
+        result = merge_regions(volume, dictionary, merge_p, empty=empty)
         stats.merge_passes += 1
         stats.regions_merged += result.merged
+        stats.regions_pruned += len(result.removed)
         stats.merge_s += result.total_ms / 1e3
         if result.merged:
             logger.debug("merged %d regions in %.0f ms: %s", result.merged, result.total_ms, result.plan.groups)

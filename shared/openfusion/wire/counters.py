@@ -73,6 +73,7 @@ class SemanticCounter(StrEnum):
     INSTANCES_EVICTED = "instances_evicted"
     MERGE_PASSES = "merge_passes"  # region merge passes run (every merge_every semantic frames)
     REGIONS_MERGED = "regions_merged"  # regions folded into another by those passes
+    REGIONS_PRUNED = "regions_pruned"  # regions removed for holding no voxel in two passes in a row
     MERGE_FAILURES = "merge_failures"  # passes skipped: geometry did not answer geometry/contacts
 
 
