@@ -168,7 +168,7 @@ def map_scene_for_eval(
     run = MappingRun(volume=volume, dictionary=dictionary)
     merge_p = merge_params if merge_params is not None else MergeParams()
     schedule = MergeSchedule(merge_p)
-    empty = EmptyRegions()
+    empty = EmptyRegions(passes=1)  # updates are written before the next pass
 
     def merge_pass() -> None:  # timed with the semantic step (it is part of it in the services)
         result = merge_regions(volume, dictionary, merge_p, empty=empty)

@@ -247,20 +247,26 @@ def plan_merges(dictionary: Any, contacts: RegionContacts, params: MergeParams |
 
 
 class EmptyRegions:
-    """Regions of the dictionary without a labelled voxel in two passes in a row: dead (a region is
-    matched only through its rendered voxels, so one that lost them all never comes back). Two
-    passes, not one, because in the services a region's first update may still be on its way to
-    geometry when the contacts are computed."""
+    """Regions of the dictionary without a labelled voxel in ``passes`` passes in a row: dead (a
+    region is matched only through its rendered voxels, so one that lost them all never comes
+    back). The services use two passes, because a region's first update may still be on its way to
+    geometry when the contacts are computed; in one process an update is written before the next
+    pass, so one pass is enough."""
 
-    def __init__(self) -> None:
-        self._empty_before: set[int] = set()
+    def __init__(self, *, passes: int = 2) -> None:
+        if passes < 1:
+            raise ValueError(f"passes must be >= 1, got {passes}")
+        self.passes = passes
+        self._empty_for: dict[int, int] = {}
 
     def to_remove(self, dictionary: Any, contacts: RegionContacts) -> list[int]:
         present = set(contacts.keys.tolist())
         empty_now = {int(k) for k in dictionary.keys.tolist()} - present
-        remove = empty_now & self._empty_before
-        self._empty_before = empty_now - remove
-        return sorted(remove)
+        self._empty_for = {k: self._empty_for.get(k, 0) + 1 for k in empty_now}
+        remove = sorted(k for k, n in self._empty_for.items() if n >= self.passes)
+        for k in remove:
+            del self._empty_for[k]
+        return remove
 
 
 @dataclass

@@ -113,7 +113,7 @@ def map_scene(
     mapper = SemanticMapper(volume, dictionary, params=match_params)
     merge_p = merge_params if merge_params is not None else MergeParams()
     schedule = MergeSchedule(merge_p)
-    empty = EmptyRegions()
+    empty = EmptyRegions(passes=1)  # updates are written before the next pass
     stats = PipelineStats()
 
     def merge_pass() -> None:
