@@ -135,6 +135,16 @@ def test_separated_objects_of_one_class_do_not_merge() -> None:
     assert plan_merges(d, region_contacts(*edge)).merged_into == {}
 
 
+def test_a_small_fragment_joins_its_best_neighbour_and_does_not_bridge_two_regions() -> None:
+    """A 2-voxel wall fragment between two walls that barely touch each other (one column of a
+    corner): it joins the wall it touches most, and the two walls stay apart."""
+    d = dictionary_with(("wall", 9), ("wall", 8), ("wall", 1))
+    left, right = slab(0, 20, y0=0, y1=20), slab(20, 40, y0=19, y1=40)  # corner: 4 voxels in contact
+    bit = np.array([[20, 17, 0], [19, 18, 1]])  # touches left a lot, right a little
+    plan = plan_merges(d, region_contacts(*voxels_of((left, 0), (right, 1), (bit, 2))))
+    assert plan.merged_into == {2: 0}
+
+
 def test_merges_are_transitive_and_ignore_unknown_keys() -> None:
     """Fragments a-b-c in a row merge into one (a and c never touch); a region geometry reports but
     the dictionary does not hold (key 7) is left alone."""

@@ -13,10 +13,12 @@ The rule (parameters: :class:`~openfusion.mapping.params.MergeParams`, declared 
    For each touching pair the numbers of voxels of ``a`` touching ``b`` and of ``b`` touching
    ``a`` are counted, with each region's number of labelled voxels.
 2. **Candidates**: a pair is substantial contact when, for the *smaller* region (fewer labelled
-   voxels), at least ``merge_min_contact_voxels`` of its voxels and at least
-   ``merge_min_contact_fraction`` of them touch the other region. The fraction is relative to the
-   smaller region so a small fragment lying against a big one counts as one with it, while a big
-   region touching another along one edge needs that edge to be long enough.
+   voxels), at least ``merge_min_contact_voxels`` of its voxels (all of them when it has fewer)
+   and at least ``merge_min_contact_fraction`` of them touch the other region. The fraction is
+   relative to the smaller region so a small fragment lying against a big one counts as one with
+   it, while a big region touching another along one edge needs that edge to be long enough.
+   Each region joins at most one region larger than itself (the one it touches most), so a small
+   fragment between two big regions does not bridge them.
 3. **Agreement**: the two unit embeddings have cosine ``>= merge_min_cos``. Two objects of the
    same class that do not touch (two chairs apart) never merge; touching objects of different
    classes (a chair at a table) do not agree.
@@ -222,7 +224,9 @@ def plan_merges(dictionary: Any, contacts: RegionContacts, params: MergeParams |
     small_surface = np.where(a_smaller, sa, sb)
     small_contact = np.where(a_smaller, contacts.contact_a, contacts.contact_b)
     frac = small_contact / np.maximum(small_surface, 1)
-    ok = known & (small_contact >= p.merge_min_contact_voxels) & (frac >= p.merge_min_contact_fraction)
+    # A fragment smaller than the voxel floor counts when all of it touches.
+    floor = np.minimum(p.merge_min_contact_voxels, small_surface)
+    ok = known & (small_contact >= np.maximum(floor, 1)) & (frac >= p.merge_min_contact_fraction)
     idx = np.flatnonzero(ok)
     if len(idx) == 0:
         return plan
@@ -230,6 +234,12 @@ def plan_merges(dictionary: Any, contacts: RegionContacts, params: MergeParams |
     eb = np.stack([dictionary.embedding(int(y)) for y in b[idx]])
     agree = np.einsum("ij,ij->i", ea, eb) >= p.merge_min_cos
     idx = idx[agree]
+    # Each region joins at most one region larger than itself (the one it touches most): a small
+    # fragment between two big regions does not bridge them into one group.
+    small_key = np.where(a_smaller, a, b)[idx]
+    best_first = np.lexsort((-small_contact[idx], small_key))
+    _, first = np.unique(small_key[best_first], return_index=True)
+    idx = idx[best_first[first]]
     plan.pairs_accepted = len(idx)
     if len(idx) == 0:
         return plan
