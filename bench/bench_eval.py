@@ -6,6 +6,8 @@ measured in the same run with the gt encoder on synthetic scenes, noise off and 
     python bench/bench_eval.py            # --quick (default): 2 scenes x 2 noise profiles, CI-sized
     python bench/bench_eval.py --full     # 3 scenes, 640x480, 150-frame laps
     python bench/bench_eval.py --out DIR  # also write results.json / results.md per noise profile
+    python bench/bench_eval.py --compare-merging [--merge-embedding weighted,mean,first]
+        # region merging and the matcher's join off (before) vs on (after), same run; no baselines
 
 Prints markdown tables (the ratios are to the region map). Exit 0 always unless it crashes;
 targets are reported, not asserted (use ``openfusion eval --check-targets`` for that).
@@ -23,6 +25,7 @@ from pathlib import Path
 from openfusion.eval.report import render_markdown, write_results
 from openfusion.eval.runner import FULL, QUICK, run_eval
 from openfusion.eval.scenes import parse_scene_specs
+from openfusion.mapping.params import MatchParams, MergeParams
 
 QUICK_SCENES = "synthetic:seed=1,synthetic:seed=2"
 FULL_SCENES = "synthetic:seed=1,synthetic:seed=2,synthetic:seed=3"
@@ -50,6 +53,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--text-encoder", default="minilm", help="minilm (default) or hash")
     parser.add_argument("--out", default=None, help="folder for results.json/results.md per noise profile")
     parser.add_argument("--details", action="store_true", help="print the full results.md of every profile")
+    parser.add_argument("--compare-merging", action="store_true",
+                        help="each profile with region merging + join off (before) and on (after); no baselines")
+    parser.add_argument("--merge-embedding", default="weighted",
+                        help="with --compare-merging: comma-separated merged-embedding rules to compare "
+                             "(weighted, mean, first)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
@@ -57,6 +65,9 @@ def main(argv: list[str] | None = None) -> int:
     base = replace(base, text_encoder=args.text_encoder)
     specs = parse_scene_specs([args.scenes or (FULL_SCENES if args.full else QUICK_SCENES)])
     profiles = [p.strip() for p in args.noise.split(",") if p.strip()]
+
+    if args.compare_merging:
+        return compare_merging(base, specs, profiles, [e.strip() for e in args.merge_embedding.split(",") if e.strip()])
 
     runs = {}
     for noise in profiles:
@@ -96,6 +107,34 @@ def main(argv: list[str] | None = None) -> int:
         start = md.index("## Baselines")
         print(md[start:].replace("## ", f"#### noise {noise}: ", 2).rstrip())
         print()
+    return 0
+
+
+def compare_merging(base, specs, profiles: list[str], embeddings: list[str]) -> int:  # noqa: ANN001
+    """Before (no merging, no join) and after (the defaults; one row per merged-embedding rule), per
+    noise profile, in one run: quality and regions with >= 100 surface points per ground-truth object."""
+    base = replace(base, baselines=False, raw_open3d_baseline=False)
+    variants = [("before (no merge, no join)", MatchParams(join_min_coverage=None), MergeParams(merge_every=0))]
+    variants += [(f"after (merge: {e})", MatchParams(), MergeParams(merge_embedding=e)) for e in embeddings]
+    print(f"### Region merging, before / after ({len(specs)} synthetic scenes, {base.frames} frames at "
+          f"{base.width_px}x{base.height_px}, gt encoder + {base.text_encoder})")
+    print()
+    print("| noise | map | f-mIoU | mAcc | regions >= 100 pts | GT objects | regions per object | merged | "
+          "merge ms/pass | wall (s) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for noise in profiles:
+        for name, match, merge in variants:
+            t0 = time.perf_counter()
+            r = run_eval(specs, replace(base, noise=noise, match=match, merge=merge))
+            wall = time.perf_counter() - t0
+            s = r["summary"]
+            m = s["quality"]["region_map"]["metrics"]
+            reg = s["regions"]
+            passes = sum(sc["regions"]["merge_passes"] for sc in r["scenes"])
+            merge_ms = 1e3 * sum(sc["regions"]["merge_s"] for sc in r["scenes"]) / passes if passes else None
+            print(f"| {noise} | {name} | {_f(m['f_mIoU'])} | {_f(m['mAcc'])} | {reg['regions_100']} | "
+                  f"{reg['gt_objects']} | {_f(reg['regions_100_per_object'], '{:.2f}')} | {reg['regions_merged']} | "
+                  f"{_f(merge_ms, '{:.0f}')} | {wall:.0f} |", flush=True)
     return 0
 
 

@@ -56,6 +56,11 @@ class DictionaryReplica:
                 return False
         return True
 
+    def resolve_keys(self, keys: np.ndarray) -> np.ndarray:
+        """``keys`` with every key this replica saw merged away replaced by its survivor."""
+        with self._lock:
+            return self.dictionary.resolve_keys(keys) if self.dictionary is not None else keys
+
     def snapshot(self) -> DictionarySnapshot | None:
         with self._lock:
             return self.dictionary.snapshot() if self.dictionary is not None else None

@@ -11,6 +11,7 @@
 | ``…/geometry/mesh`` | queryable | MeshRequest → MeshReply |
 | ``…/geometry/regions`` | queryable | RegionSummaryRequest → RegionSummaryReply (per-region bbox + surface point count) |
 | ``…/geometry/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot (what the last checkpoint + deltas hold) |
+| ``…/geometry/contacts`` | queryable | RegionContactsRequest → RegionContactsReply (which regions' voxels touch; the semantic service's merges) |
 | ``…/control/{save,load,reset}`` | queryable (admin) | ControlRequest → ControlReply |
 | ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC) |
 
@@ -83,6 +84,7 @@ from openfusion.mapping import (
     save_map,
 )
 from openfusion.mapping.mapfile import previous_map_path, resolve_map_path
+from openfusion.mapping.merging import block_contacts
 from openfusion.mapping.queries import RegionTable
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
@@ -90,6 +92,7 @@ from openfusion.wire.counters import GeometryCounter
 from openfusion.wire.endpoints import (
     CONTROL,
     DICTIONARY_DELTA,
+    GEOMETRY_CONTACTS,
     GEOMETRY_DICTIONARY,
     GEOMETRY_MESH,
     GEOMETRY_POINTS,
@@ -111,6 +114,8 @@ from openfusion.wire.schemas import (
     MeshRequest,
     PointsReply,
     PointsRequest,
+    RegionContactsReply,
+    RegionContactsRequest,
     RegionSummaryReply,
     RegionSummaryRequest,
     RenderReply,
@@ -432,9 +437,10 @@ class GeometryService:
 
     def on_update(self, msg: SemanticUpdate) -> None:
         check_update(msg)
-        with self._lock:
+        with self._lock:  # resolved and applied under the lock on_delta relabels under: no orphan keys
+            key_map = self.replica.resolve_keys(msg.key_map)  # planned before a merge this replica has seen
             self.volume.apply_update(
-                msg.T_world_cam, msg.intrinsics, msg.key_map, msg.conf_map, observed_depth_m=msg.depth_m
+                msg.T_world_cam, msg.intrinsics, key_map, msg.conf_map, observed_depth_m=msg.depth_m
             )
             self.updates_applied += 1
             self._map_changed()
@@ -447,14 +453,16 @@ class GeometryService:
 
     def on_delta(self, msg: DictionaryDelta) -> None:
         merges = RegionDictionary.merges_of(msg)
-        if not self.replica.apply_delta(msg):
-            self._count(GeometryCounter.DICTIONARY_RESYNCS)
-            self._resync_dictionary()
         with self._lock:
+            applied = self.replica.apply_delta(msg)
             if merges:
-                self.volume.relabel_keys(merges)
+                # Merged keys' voxels take the surviving key, so renders, points and answers follow.
+                self._count(GeometryCounter.VOXELS_RELABELLED, self.volume.relabel_keys(merges))
                 self._map_changed()
             self._dirty = True
+        if not applied:
+            self._count(GeometryCounter.DICTIONARY_RESYNCS)
+            self._resync_dictionary()
 
     def _resync_dictionary(self) -> None:
         if self._runner is None:
@@ -514,6 +522,15 @@ class GeometryService:
                 cached = self._summary = _Summary(version, horizon, table)
         return cached.reply(req.keys)
 
+    def handle_contacts(self, req: RegionContactsRequest) -> RegionContactsReply:
+        with self._lock:
+            version = self.map_version
+            coords, keys = self.volume.labelled_blocks()
+        c = block_contacts(coords, keys, radius_vox=req.radius_vox)  # outside the lock: integration goes on
+        return RegionContactsReply(map_version=version, keys=c.keys.astype(np.int32), surface_voxels=c.surface_voxels,
+                                   pair_a=c.pair_a.astype(np.int32), pair_b=c.pair_b.astype(np.int32),
+                                   contact_a=c.contact_a, contact_b=c.contact_b)
+
     def handle_mesh(self, req: MeshRequest) -> MeshReply:
         with self._lock:
             mesh = self.volume.extract_mesh(keys=req.keys)
@@ -572,6 +589,7 @@ class GeometryService:
         runner.queryable(GEOMETRY_MESH, self.handle_mesh)
         runner.queryable(GEOMETRY_REGIONS, self.handle_regions)
         runner.queryable(GEOMETRY_DICTIONARY, self.handle_dictionary)
+        runner.queryable(GEOMETRY_CONTACTS, self.handle_contacts)
         for action, endpoint in CONTROL.items():
             runner.queryable(endpoint, lambda req, action=action: self.handle_control(req, action=action))
         runner.stats.set(GeometryCounter.FRAMES_INTEGRATED, self.frames_integrated)

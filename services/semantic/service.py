@@ -6,10 +6,11 @@
 | ``…/sensor/instance`` | subscribes when the encoder reads instance images (gt) | :class:`~openfusion.wire.schemas.InstanceFrame` |
 | ``…/geometry/render`` | queries | RenderRequest → RenderReply |
 | ``…/geometry/dictionary`` | queries once on start (recovery) | DictionaryRequest → DictionarySnapshot |
+| ``…/geometry/contacts`` | queries every ``merge_every`` semantic frames | RegionContactsRequest → RegionContactsReply |
 | ``…/semantic/update`` | publishes | :class:`~openfusion.wire.schemas.SemanticUpdate` |
 | ``…/semantic/dictionary/delta`` | publishes | :class:`~openfusion.wire.schemas.DictionaryDelta` |
 | ``…/semantic/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot |
-| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions`` |
+| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions``, ``merge_passes``, ``regions_merged``, ``regions_pruned``, ``merge_failures`` |
 
 A slow encoder never builds a queue: the frame subscription keeps only the newest frame and
 counts the ones it replaced. An encoder that reads ground-truth instance images (gt) gets each
@@ -19,6 +20,16 @@ frame whose instance image has not come within ``instance_wait_s`` is skipped an
 ``every_k = k`` uses every k-th frame (by frame id), ``max_hz`` caps the rate.
 On start the service asks geometry for the dictionary it checkpointed, so a restarted semantic
 service continues with the same keys and embeddings.
+
+Merges (:mod:`openfusion.mapping.merging`, parameters ``merge_*`` of :class:`MergeParams`): every
+``merge_every`` semantic frames the service asks geometry (which owns the voxels) which regions
+touch, decides in its dictionary which of them are one object, and publishes the merges as one
+dictionary delta (``removed_keys`` + ``merged_into``). Geometry relabels the merged keys' voxels
+and its replica follows, as does the query service's; a restarted semantic service recovers the
+merged dictionary from geometry. A pass geometry does not answer is skipped and counted
+(``merge_failures``); mapping goes on. A region without a labelled voxel in two passes in a row
+(seen once, then taken over by other regions; it can never be matched again) is removed in the
+same delta (``merged_into`` -1, ``regions_pruned``).
 """
 
 from __future__ import annotations
@@ -36,13 +47,15 @@ from openfusion.config import ServiceConfig
 from openfusion.encoders import RegionObservation
 from openfusion.frame import Frame, resize_nearest
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
-from openfusion.mapping.params import MatchParams
+from openfusion.mapping.merging import EmptyRegions, MergeSchedule, RegionContacts, apply_merges, plan_merges
+from openfusion.mapping.params import MatchParams, MergeParams
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.encoder.options import EncoderOptions, region_encoder_from_section
 from openfusion.services.semantic.pool import EncoderPool, PoolResult
 from openfusion.wire.counters import ENCODED_BY_PREFIX, PoolCounter, SemanticCounter
 from openfusion.wire.endpoints import (
     DICTIONARY_DELTA,
+    GEOMETRY_CONTACTS,
     GEOMETRY_DICTIONARY,
     GEOMETRY_RENDER,
     SEMANTIC_DICTIONARY,
@@ -56,6 +69,7 @@ from openfusion.wire.schemas import (
     DictionarySnapshot,
     EncodeRequest,
     InstanceFrame,
+    RegionContactsRequest,
     RenderRequest,
     RgbdFrame,
     SemanticUpdate,
@@ -64,10 +78,10 @@ from openfusion.wire.schemas import (
 logger = logging.getLogger(__name__)
 
 
-class SemanticSection(MatchParams, EncoderOptions):
-    """The semantic service's settings: every matching parameter (:class:`MatchParams`, declared
-    there once), the local encoder (:class:`EncoderOptions`, shared with the encoder workers) and
-    the service's own."""
+class SemanticSection(MatchParams, MergeParams, EncoderOptions):
+    """The semantic service's settings: every matching and merging parameter (:class:`MatchParams`,
+    :class:`MergeParams`, declared there once), the local encoder (:class:`EncoderOptions`, shared
+    with the encoder workers) and the service's own."""
 
     encoder_pool: bool = Field(
         False, description="send frames to the encoder pool's workers (openfusion service encoder) instead of "
@@ -117,6 +131,9 @@ class SemanticService:
         self.encoder = encoder if encoder is not None else region_encoder_from_section(self.section)
         self.dictionary = RegionDictionary(self.encoder.embedding_space, self.encoder.dim)
         self.match_params = MatchParams.from_section(self.section)
+        self.merge_params = MergeParams.from_section(self.section)
+        self._merge_schedule = MergeSchedule(self.merge_params)
+        self._empty_regions = EmptyRegions()
         self.switch = SemanticSwitch(self.section.every_k, self.section.max_hz)
         self._frames: Subscriber[RgbdFrame] | None = None
         self._instances: InstanceBuffer | None = InstanceBuffer() if self.encoder.needs_instances else None
@@ -179,10 +196,7 @@ class SemanticService:
         planned = plan_update(obs, rendered, self.dictionary, self.match_params)
         assert self._update_pub is not None and self._delta_pub is not None
         # The delta goes first, so a key never reaches geometry before its dictionary row.
-        delta = self.dictionary.delta_since(self._published_version)
-        if delta is not None:
-            self._delta_pub.put(delta)
-            self._published_version = self.dictionary.version
+        self._publish_delta()
         self._update_pub.put(SemanticUpdate(
             frame_id=frame.frame_id, T_world_cam=frame.T_world_cam, **SemanticUpdate.intrinsics_fields(K_small),
             key_map=planned.key_map, conf_map=planned.conf_map,
@@ -204,6 +218,49 @@ class SemanticService:
         logger.debug("semantic: frame %d: %d regions, %d matched, %d new (dictionary v%d -> v%d)",
                      frame.frame_id, obs.conf_maps.shape[0], len(planned.matched), len(planned.new_keys),
                      prev_version, self.dictionary.version)
+        if self._merge_schedule.due():
+            self.merge_pass(runner)
+
+    def _publish_delta(self) -> None:
+        """Publish what changed in the dictionary since the last delta (nothing when nothing did)."""
+        assert self._delta_pub is not None
+        delta = self.dictionary.delta_since(self._published_version)
+        if delta is not None:
+            self._delta_pub.put(delta)
+            self._published_version = self.dictionary.version
+
+    def merge_pass(self, runner: ServiceRunner) -> int:
+        """Merge the regions that are one object (contacts from geometry, decision here), publish the
+        merges as one delta; returns the number of regions merged away. A pass geometry does not
+        answer is logged, counted in ``merge_failures`` and skipped."""
+        started = time.monotonic()
+        try:
+            reply = runner.call(GEOMETRY_CONTACTS, RegionContactsRequest(radius_vox=self.merge_params.merge_contact_radius_vox),
+                                timeout_s=self.section.render_timeout_s)
+        except QueryError as exc:
+            logger.warning("semantic: merge pass skipped: geometry did not give region contacts (%s)", exc)
+            runner.stats.incr(SemanticCounter.MERGE_FAILURES)
+            return 0
+        contacts = RegionContacts(
+            keys=reply.keys.astype(np.int64), surface_voxels=reply.surface_voxels.astype(np.int64),
+            pair_a=reply.pair_a.astype(np.int64), pair_b=reply.pair_b.astype(np.int64),
+            contact_a=reply.contact_a.astype(np.int64), contact_b=reply.contact_b.astype(np.int64))
+        plan = plan_merges(self.dictionary, contacts, self.merge_params)
+        removed = self._empty_regions.to_remove(self.dictionary, contacts) if self.merge_params.merge_prune_empty else []
+        if plan.merged_into or removed:
+            apply_merges(self.dictionary, plan.merged_into, embedding=self.merge_params.merge_embedding,
+                         removed=removed)
+            self._publish_delta()
+        runner.stats.incr(SemanticCounter.MERGE_PASSES)
+        runner.stats.incr(SemanticCounter.REGIONS_PRUNED, len(removed))
+        if not plan.merged_into:
+            return 0
+        runner.stats.incr(SemanticCounter.REGIONS_MERGED, len(plan.merged_into))
+        runner.stats.set(SemanticCounter.REGIONS, len(self.dictionary))
+        runner.stats.set(SemanticCounter.DICTIONARY_VERSION, self.dictionary.version)
+        logger.info("semantic: merged %d regions into %d (map version %d, %.0f ms): %s", len(plan.merged_into),
+                    len(plan.groups), reply.map_version, (time.monotonic() - started) * 1e3, plan.groups)
+        return len(plan.merged_into)
 
     def setup(self, runner: ServiceRunner) -> None:
         self.recover(runner)
@@ -221,6 +278,8 @@ class SemanticService:
             runner.stats.set(PoolCounter.ENCODER_WORKERS, 0)
         runner.stats.set(SemanticCounter.SEMANTIC_FRAMES, 0)
         runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, -1)  # no frame yet
+        runner.stats.set(SemanticCounter.MERGE_PASSES, 0)
+        runner.stats.set(SemanticCounter.REGIONS_MERGED, 0)
         runner.stats.set(SemanticCounter.REGIONS, len(self.dictionary))
 
     def loop(self, runner: ServiceRunner) -> None:

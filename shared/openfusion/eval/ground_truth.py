@@ -43,6 +43,8 @@ class GroundTruth:
     #: The ground-truth mesh when known (accuracy is then the exact point-to-mesh distance).
     mesh_vertices: np.ndarray | None = None  # (V, 3) float
     mesh_triangles: np.ndarray | None = None  # (T, 3) int
+    #: Per-point object instance id (0 = none) when the source knows objects (synthetic scenes).
+    instance_ids: np.ndarray | None = None  # (N,) int64
 
     def __post_init__(self) -> None:
         p, lab = np.asarray(self.points), np.asarray(self.labels)
@@ -224,6 +226,7 @@ def ground_truth_from_instances(
         source=source,
         mesh_vertices=mesh_vertices,
         mesh_triangles=mesh_triangles,
+        instance_ids=inst,
     )
 
 

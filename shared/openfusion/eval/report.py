@@ -105,6 +105,17 @@ def render_markdown(results: dict) -> str:
     lines += _table(["scene", "f-mIoU", "mAcc", "mIoU", "unlabelled", "points"], rows)
     lines.append("")
 
+    reg = summary.get("regions")
+    if reg:
+        lines += ["## Regions per object", ""]
+        rows = [[s["scene"], str(s["regions"]["regions_100"]), str(s["regions"]["gt_objects"]),
+                 _f(s["regions"]["regions_100_per_object"]), str(s["regions"]["regions_merged"])]
+                for s in scenes if "regions" in s]
+        rows.append(["**all**", str(reg["regions_100"]), str(reg["gt_objects"]),
+                     _f(reg["regions_100_per_object"]), str(reg["regions_merged"])])
+        lines += _table(["scene", "regions (>= 100 points)", "objects seen", "regions per object", "merged"], rows)
+        lines.append("")
+
     if sm:
         lines += ["## Per class (region map, all scenes)", ""]
         cm = summary["quality"]["region_map"]["confusion"]

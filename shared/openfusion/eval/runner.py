@@ -43,7 +43,8 @@ from openfusion.eval.protocol import (
 )
 from openfusion.eval.scenes import SceneSpec, check_scene_inputs, open_scene
 from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume, segment_points
-from openfusion.mapping.params import MatchParams, VolumeParams
+from openfusion.mapping.merging import EmptyRegions, MergeSchedule, merge_regions
+from openfusion.mapping.params import MatchParams, MergeParams, VolumeParams
 
 logger = logging.getLogger(__name__)
 
@@ -70,6 +71,7 @@ class EvalConfig:
     # The map's parameters: the same models (and defaults) as the geometry and semantic services.
     volume: VolumeParams = field(default_factory=VolumeParams)
     match: MatchParams = field(default_factory=MatchParams)
+    merge: MergeParams = field(default_factory=MergeParams)
     semantic_every: int = 1
     exclude_background: bool = False
     background_classes: tuple[str, ...] = DEFAULT_BACKGROUND_CLASSES
@@ -103,9 +105,10 @@ class EvalConfig:
 
     def to_dict(self) -> dict:
         """Plain JSON (results.json): the volume's and matching parameters flattened into the top level."""
-        d = {k: v for k, v in self.__dict__.items() if k not in ("volume", "match")}
+        d = {k: v for k, v in self.__dict__.items() if k not in ("volume", "match", "merge")}
         d.update(self.volume.to_dict())
         d.update(self.match.model_dump())
+        d.update(self.merge.model_dump())
         d["background_classes"] = list(self.background_classes)
         return d
 
@@ -135,6 +138,9 @@ class MappingRun:
     records: list[FrameRecord] = field(default_factory=list)
     record_bytes: int = 0
     raw_integrate_s: float | None = None
+    merge_passes: int = 0
+    regions_merged: int = 0
+    merge_s: float = 0.0
 
 
 def map_scene_for_eval(
@@ -143,6 +149,7 @@ def map_scene_for_eval(
     region_encoder: object,
     volume_params: VolumeParams,
     match_params: MatchParams | None = None,
+    merge_params: MergeParams | None = None,
     semantic_every: int = 1,
     observed: ObservedSurface | None = None,
     record_for_baselines: bool = True,
@@ -159,6 +166,16 @@ def map_scene_for_eval(
     dictionary = RegionDictionary(region_encoder.embedding_space, region_encoder.dim)
     mapper = SemanticMapper(volume, dictionary, params=match_params)
     run = MappingRun(volume=volume, dictionary=dictionary)
+    merge_p = merge_params if merge_params is not None else MergeParams()
+    schedule = MergeSchedule(merge_p)
+    empty = EmptyRegions(passes=1)  # updates are written before the next pass
+
+    def merge_pass() -> None:  # timed with the semantic step (it is part of it in the services)
+        result = merge_regions(volume, dictionary, merge_p, empty=empty)
+        run.merge_passes += 1
+        run.regions_merged += result.merged
+        run.merge_s += result.total_ms / 1e3
+        run.semantic_step_s += result.total_ms / 1e3
     raw = None
     if raw_open3d_baseline:
         p = volume_params
@@ -195,6 +212,8 @@ def map_scene_for_eval(
         run.encode_s += t2 - t1
         run.semantic_step_s += t3 - t2
         run.semantic_frames += 1
+        if schedule.due():
+            merge_pass()
         if record_for_baselines:
             rec = record_frame(
                 obs.conf_maps,
@@ -207,6 +226,8 @@ def map_scene_for_eval(
             run.record_bytes += rec.nbytes
     if run.frames == 0:
         raise ValueError(f"source {getattr(source, 'name', source)!r} produced no frames")
+    if merge_p.merge_every > 0 and run.semantic_frames:
+        merge_pass()
     if raw is not None:
         run.raw_integrate_s = raw.seconds
         del raw  # free its grid before the evaluation allocates
@@ -255,6 +276,29 @@ def _quality(pred: np.ndarray, gt_of_points: np.ndarray, gt: GroundTruth, config
     return {"metrics": m.to_dict(), "confusion": cm.to_dict()}
 
 
+#: A region counts as an answer-sized object when it has at least this many surface points.
+REGION_MIN_POINTS = 100
+
+
+def region_counts(point_keys: np.ndarray, gt: GroundTruth, observed_mask: np.ndarray | None) -> dict:
+    """How many regions the map holds per ground-truth object: ``regions_100`` (regions with at
+    least :data:`REGION_MIN_POINTS` surface points), ``regions_any`` (with any), ``gt_objects``
+    (ground-truth instances with an evaluated class and at least one observed ground-truth
+    point; None when the ground truth has no instances) and the ratio."""
+    keys = np.asarray(point_keys)
+    counts = np.bincount(keys[keys >= 0]) if (keys >= 0).any() else np.zeros(0, np.int64)
+    out: dict = {"regions_100": int((counts >= REGION_MIN_POINTS).sum()), "regions_any": int((counts > 0).sum()),
+                 "gt_objects": None, "regions_100_per_object": None}
+    if gt.instance_ids is not None:
+        seen = gt.labels >= 0
+        if observed_mask is not None:
+            seen &= np.asarray(observed_mask, bool)
+        objects = len(np.unique(gt.instance_ids[seen & (gt.instance_ids > 0)]))
+        out["gt_objects"] = objects
+        out["regions_100_per_object"] = out["regions_100"] / objects if objects else None
+    return out
+
+
 def evaluate_scene(
     spec: SceneSpec,
     config: EvalConfig,
@@ -290,6 +334,7 @@ def evaluate_scene(
         region_encoder=region_encoder,
         volume_params=params,
         match_params=config.match,
+        merge_params=config.merge,
         semantic_every=config.semantic_every,
         observed=observed,
         record_for_baselines=config.baselines,
@@ -407,8 +452,11 @@ def evaluate_scene(
         "semantic_step_ms": 1e3 * run.semantic_step_s / max(run.semantic_frames, 1),
         "encode_ms": 1e3 * run.encode_s / max(run.semantic_frames, 1),
     }
+    regions = region_counts(keys, gt, observed.mask)
+    regions.update(merge_passes=run.merge_passes, regions_merged=run.regions_merged, merge_s=run.merge_s)
     return {
         "scene": spec.name,
+        "regions": regions,
         "ground_truth": {
             "source": gt.source,
             "points": int(len(gt.points)),
@@ -504,8 +552,17 @@ def summarize(scenes: Sequence[dict], config: EvalConfig) -> dict:
     geometry = {
         k: mean(("geometry", k)) for k in ("accuracy_m", "accuracy_vox", "accuracy_median_m", "completeness")
     }
+    objects = [s.get("regions", {}).get("gt_objects") for s in scenes]
+    regions_100 = sum(s.get("regions", {}).get("regions_100", 0) for s in scenes)
+    regions = {
+        "regions_100": regions_100,
+        "gt_objects": sum(objects) if all(o is not None for o in objects) else None,
+        "regions_merged": sum(s.get("regions", {}).get("regions_merged", 0) for s in scenes),
+    }
+    regions["regions_100_per_object"] = regions_100 / regions["gt_objects"] if regions["gt_objects"] else None
     return {
         "scenes": [s["scene"] for s in scenes],
+        "regions": regions,
         "quality": quality,
         "geometry": geometry,
         "speed": {

@@ -83,6 +83,7 @@ class RegionDictionary:
         self._changed_at: dict[int, int] = {}  # key -> version of its last change
         self._removed_at: dict[int, int] = {}  # key -> version it was removed
         self._merges: list[tuple[int, int, int]] = []  # (merged, into, version)
+        self._merged_into: dict[int, int] = {}  # merged key -> key it was merged into (all history)
         self._batch_depth = 0
         self._batch_dirty = False
 
@@ -271,19 +272,29 @@ class RegionDictionary:
         self._changed_at.pop(int(key), None)
         self._removed_at[int(key)] = version
 
-    def merge(self, a: int, b: int) -> int:
-        """Merge region ``b`` into ``a`` (count-weighted mean, counts summed); ``b`` disappears.
+    def merge(self, a: int, b: int, *, embedding: str = "weighted") -> int:
+        """Merge region ``b`` into ``a`` (counts summed); ``b`` disappears.
 
-        Returns ``a``. The caller relabels voxels with ``volume.relabel_keys({b: a})``
-        (``SemanticMapper.merge_regions`` does both).
+        ``embedding``: ``"weighted"`` (default) the count-weighted mean of the two running means,
+        ``"mean"`` their plain mean, ``"first"`` ``a``'s (the alternatives exist to measure the
+        choice; :mod:`openfusion.mapping.merging` says why weighted). Returns ``a``. The caller
+        relabels voxels with ``volume.relabel_keys({b: a})`` (``SemanticMapper.merge_regions``
+        and :func:`openfusion.mapping.merging.merge_regions` do both).
         """
         a, b = int(a), int(b)
         if a == b:
             raise ValueError(f"cannot merge region {a} with itself")
+        if embedding not in ("weighted", "mean", "first"):
+            raise ValueError(f"embedding must be 'weighted', 'mean' or 'first', got {embedding!r}")
         ra, rb = self._row(a), self._row(b)
         version = self._begin_change()
         na, nb = self._counts[ra], self._counts[rb]
-        mean = (self._means[ra] * na + self._means[rb] * nb) / np.float32(na + nb)
+        if embedding == "weighted":
+            mean = (self._means[ra] * na + self._means[rb] * nb) / np.float32(na + nb)
+        elif embedding == "mean":
+            mean = (self._means[ra] + self._means[rb]) / np.float32(2)
+        else:
+            mean = self._means[ra].copy()
         self._means[ra] = mean
         self._units_t[:, ra] = _unit(mean)
         self._counts[ra] = na + nb
@@ -294,7 +305,32 @@ class RegionDictionary:
         self._changed_at.pop(b, None)
         self._removed_at[b] = version
         self._merges.append((b, a, version))
+        self._merged_into[b] = a
         return a
+
+    def survivor_of(self, key: int) -> int | None:
+        """The live key ``key`` ended in: itself when live, the region it was merged into (following
+        later merges) when merged here or in a delta this replica applied, else None."""
+        key = int(key)
+        seen = 0
+        while key not in self._row_of:
+            nxt = self._merged_into.get(key)
+            if nxt is None or seen > len(self._merged_into):
+                return None
+            key, seen = nxt, seen + 1
+        return key
+
+    def resolve_keys(self, keys: np.ndarray) -> np.ndarray:
+        """``keys`` (any shape, int) with every merged-away key replaced by its survivor (others kept)."""
+        arr = np.asarray(keys)
+        if not self._merged_into or arr.size == 0:
+            return arr
+        out = arr.copy()
+        for old in np.unique(arr[np.isin(arr, list(self._merged_into))]):
+            new = self.survivor_of(int(old))
+            if new is not None:
+                out[arr == old] = new
+        return out
 
     # ------------------------------------------------------------------ queries
     def top_k(self, vector: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -419,6 +455,7 @@ class RegionDictionary:
             self._removed_at[int(key)] = to_version
             if into >= 0:
                 self._merges.append((int(key), int(into), to_version))
+                self._merged_into[int(key)] = int(into)
         for i, key in enumerate(keys):
             key = int(key)
             label = delta.labels[i] or None

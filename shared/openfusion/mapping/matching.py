@@ -34,7 +34,7 @@ import functools
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -220,6 +220,41 @@ def _offsets_by_distance(radius_px: float) -> tuple[tuple[int, tuple[tuple[int, 
     return tuple((d2, tuple(groups[d2])) for d2 in sorted(groups))
 
 
+def _joins(
+    winner: np.ndarray,
+    covered: np.ndarray,
+    rendered_keys: np.ndarray,
+    key_of: np.ndarray,
+    pixels_won: np.ndarray,
+    embeddings: np.ndarray,
+    dictionary: RegionDictionary,
+    p: MatchParams,
+) -> list[tuple[int, int]]:
+    """(frame region, key) for frame regions the assignment left unmatched that lie mostly inside
+    one rendered region (``join_min_coverage`` of their pixels) whose embedding agrees with theirs
+    (``join_min_cos``): a part of an object the map already holds as one region (an encoder that
+    split the object, or a map region that merged two segments the encoder keeps apart). The
+    assignment is one-to-one, so without this each such part would start a new region every frame.
+    """
+    if p.join_min_coverage is None:
+        return []
+    out = []
+    for i in np.flatnonzero((key_of < 0) & (pixels_won > 0)):
+        under = rendered_keys[covered & (winner == i)]
+        under = under[under >= 0]
+        if len(under) == 0:
+            continue
+        keys, counts = np.unique(under, return_counts=True)
+        best = int(counts.argmax())
+        key = int(keys[best])
+        if counts[best] < p.join_min_coverage * pixels_won[i] or key not in dictionary:
+            continue
+        v = embeddings[i] / max(float(np.linalg.norm(embeddings[i])), 1e-12)
+        if float(v @ dictionary.embedding(key)) >= p.join_min_cos:
+            out.append((int(i), key))
+    return out
+
+
 @dataclass
 class PlannedUpdate:
     """Per-pixel keys/confidences to fuse, and what happened to each frame region."""
@@ -268,6 +303,11 @@ def plan_update(
         raise ValueError(f"labels has {len(labels)} entries for {n} regions")
     p = params if params is not None else MatchParams()
     h, w = rendered.key_map.shape
+    # A render made before a merge reached its renderer (services) may still show merged-away
+    # keys: they count as the region they were merged into.
+    resolved = dictionary.resolve_keys(rendered.key_map)
+    if resolved is not rendered.key_map:
+        rendered = replace(rendered, key_map=resolved.astype(np.int32, copy=False))
     if n == 0:
         return PlannedUpdate(
             np.full((h, w), -1, np.int32), np.zeros((h, w), np.float32), dictionary_version=dictionary.version
@@ -309,6 +349,10 @@ def plan_update(
             )
             key_of[obs_idx] = obs_keys
             plan.matched.extend(zip(obs_idx, obs_keys, strict=True))
+        for i, key in _joins(winner, covered, rendered.key_map, key_of, pixels_won, embeddings, dictionary, p):
+            dictionary.observe(key, embeddings[i], label=labels[i] if labels is not None else None)
+            key_of[i] = key
+            plan.matched.append((i, key))
         for i in range(n):
             if key_of[i] >= 0:
                 continue

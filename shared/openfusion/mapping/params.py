@@ -7,7 +7,8 @@ semantic service's *is* a ``MatchParams`` plus its own, and the in-process pipel
 evaluation build the same models. So a parameter's default, limits and help text exist in one
 place, and config files (``[geometry] voxel_size_m = 0.02``), ``OPENFUSION_GEOMETRY__VOXEL_SIZE_M``,
 command-line flags (``--voxel-size-m``) and ``openfusion config --show geometry`` all derive from
-these fields. :class:`QueryParams` (how ranked regions are chosen) is the query service's section
+these fields. :class:`MergeParams` (when regions that are one object merge) extends the semantic
+service's section too. :class:`QueryParams` (how ranked regions are chosen) is the query service's section
 base and what ``openfusion query --map-dir`` and the in-process run use, so a saved map and a
 running map leave out the same regions.
 """
@@ -142,10 +143,61 @@ class MatchParams(ConfigSection):
     rendered_conf_weighted: bool = Field(
         True, description="match against the rendered confidences (the paper) instead of the rendered key masks"
     )
+    join_min_coverage: float | None = Field(
+        0.5,
+        ge=0,
+        le=1,
+        description="a frame region the assignment leaves unmatched joins the rendered region covering this share "
+        "of its pixels when their embeddings agree (join_min_cos), instead of starting a new region (none = off)",
+    )
+    join_min_cos: float = Field(0.9, ge=-1, le=1, description="embedding cosine a joining frame region needs")
 
     @classmethod
     def from_section(cls, section: ConfigSection) -> MatchParams:
         """The matching parameters of a config section that extends this model (the semantic service's)."""
+        return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})
+
+
+class MergeParams(ConfigSection):
+    """When two regions are one object and merge (:mod:`openfusion.mapping.merging`): their labelled
+    voxels touch in 3D over a substantial part of the smaller one and their embeddings agree. The
+    semantic service's section extends this model (it decides merges); the in-process pipeline and
+    the evaluation use the same declaration."""
+
+    model_config = ConfigDict(allow_inf_nan=False)
+
+    merge_every: int = Field(
+        10, ge=0, description="look for regions to merge every this many semantic frames, and at the end (0 = never)"
+    )
+    merge_min_cos: float = Field(
+        0.85, ge=-1, le=1, description="two touching regions merge only when their embeddings' cosine is at least this"
+    )
+    merge_min_contact_fraction: float = Field(
+        0.05,
+        ge=0,
+        le=1,
+        description="...and at least this share of the smaller region's labelled voxels lies next to the other's",
+    )
+    merge_min_contact_voxels: int = Field(
+        8, ge=1, description="...and at least this many of its voxels do (a touch of a few voxels is not contact)"
+    )
+    merge_contact_radius_vox: int = Field(
+        1, ge=1, le=3, description="voxels within this many voxels (per axis) of another region's touch it"
+    )
+    merge_prune_empty: bool = Field(
+        True,
+        description="remove regions that hold no labelled voxel in two merge passes in a row (seen, then taken over "
+        "by other regions: never rendered again, so never matched again)",
+    )
+    merge_embedding: Literal["weighted", "mean", "first"] = Field(
+        "weighted",
+        description="merged embedding: observation-weighted mean (measured best), plain mean of the two, or the "
+        "surviving region's",
+    )
+
+    @classmethod
+    def from_section(cls, section: ConfigSection) -> MergeParams:
+        """The merge parameters of a config section that extends this model (the semantic service's)."""
         return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})
 
 

@@ -21,7 +21,8 @@ from openfusion.frame import Frame
 from openfusion.mapping.dictionary import RegionDictionary
 from openfusion.mapping.errors import CapacityError
 from openfusion.mapping.mapper import SemanticMapper
-from openfusion.mapping.params import MatchParams, VolumeParams
+from openfusion.mapping.merging import EmptyRegions, MergeSchedule, merge_regions
+from openfusion.mapping.params import MatchParams, MergeParams, VolumeParams
 from openfusion.mapping.volume import SemanticVolume
 
 logger = logging.getLogger(__name__)
@@ -56,6 +57,10 @@ class PipelineStats:
     integrate_s: float = 0.0
     encode_s: float = 0.0
     semantic_step_s: float = 0.0
+    merge_passes: int = 0  # region merge passes run (every MergeParams.merge_every semantic frames, and at the end)
+    regions_merged: int = 0  # regions folded into another (dictionary entries removed by merges)
+    regions_pruned: int = 0  # regions removed for holding no voxel in two merge passes in a row
+    merge_s: float = 0.0
 
     def _rates(self) -> tuple[float | None, float | None]:
         return reconstruction_rates(frames_integrated=self.frames_integrated, integrate_s=self.integrate_s,
@@ -84,12 +89,17 @@ def map_scene(
     region_encoder: Any,
     volume_params: VolumeParams | None = None,
     match_params: MatchParams | None = None,
+    merge_params: MergeParams | None = None,
     semantic_every: int = 1,
     max_frames: int | None = None,
     on_frame: Callable[[Frame, PipelineStats], None] | None = None,
 ) -> MapResult:
     """Integrate every frame of ``source``; run the semantic step on every ``semantic_every``-th
     frame id (0 = geometry only). Returns the map and its stats.
+
+    Regions that are one object merge (:mod:`openfusion.mapping.merging`, ``merge_params``) every
+    ``merge_every`` semantic frames and once at the end, so the returned (and saved) map holds the
+    merged regions.
 
     One bad frame never ends the run, as in the services: a frame the volume refuses for its
     block budget is skipped (``frames_skipped["capacity_refused"]``), and a frame whose encoder or
@@ -101,7 +111,19 @@ def map_scene(
     volume = SemanticVolume(volume_params or VolumeParams())
     dictionary = RegionDictionary(region_encoder.embedding_space, region_encoder.dim)
     mapper = SemanticMapper(volume, dictionary, params=match_params)
+    merge_p = merge_params if merge_params is not None else MergeParams()
+    schedule = MergeSchedule(merge_p)
+    empty = EmptyRegions(passes=1)  # updates are written before the next pass
     stats = PipelineStats()
+
+    def merge_pass() -> None:
+        result = merge_regions(volume, dictionary, merge_p, empty=empty)
+        stats.merge_passes += 1
+        stats.regions_merged += result.merged
+        stats.regions_pruned += len(result.removed)
+        stats.merge_s += result.total_ms / 1e3
+        if result.merged:
+            logger.debug("merged %d regions in %.0f ms: %s", result.merged, result.total_ms, result.plan.groups)
     refused: dict[str, int] = {}
     for frame in source:
         if max_frames is not None and stats.frames_integrated >= max_frames:
@@ -129,8 +151,12 @@ def map_scene(
                 stats.encode_s += t2 - t1
                 stats.semantic_step_s += t3 - t2
                 stats.semantic_frames += 1
+                if schedule.due():
+                    merge_pass()
         if on_frame is not None:
             on_frame(frame, stats)
+    if merge_p.merge_every > 0 and stats.semantic_frames:
+        merge_pass()
     source_stats = getattr(source, "stats", None)
     if source_stats is not None:
         stats.frames_read = int(source_stats.read)

@@ -273,6 +273,32 @@ class VoxelStorage:
             self.scatter("conf", idx, np.zeros(len(idx), np.float32))
         return changed_total
 
+    def labelled_blocks(self) -> tuple[np.ndarray, np.ndarray]:
+        """(block coordinates (N, 3) int64, keys (N, R, R, R) int32 indexed [z, y, x], -1 = none) of
+        every active block holding at least one labelled voxel (the buffers' own layout)."""
+        coords, buf = self.active_blocks()
+        res = self.params.block_resolution
+        if len(buf) == 0:
+            return np.zeros((0, 3), np.int64), np.zeros((0, res, res, res), np.int32)
+        stored = self.gather_blocks("key", buf)
+        keep = (stored > 0).any(axis=1)
+        keys = stored[keep].astype(np.int32) - 1
+        return coords[keep].astype(np.int64), keys.reshape(-1, res, res, res)
+
+    def labelled_voxels(self) -> tuple[np.ndarray, np.ndarray]:
+        """(integer voxel coordinates (n, 3) int64, keys (n,) int64) of every voxel carrying a key,
+        in the grid's voxel units (block coordinate * resolution + position in the block)."""
+        coords, buf = self.active_blocks()
+        if len(buf) == 0:
+            return np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
+        res = self.params.block_resolution
+        stored = self.gather_blocks("key", buf)
+        block, within = np.nonzero(stored > 0)
+        # Position in the block: flat = (z * res + y) * res + x (see flat_voxel_index).
+        local = np.stack([within % res, (within // res) % res, within // (res * res)], axis=1)
+        voxels = coords[block].astype(np.int64) * res + local
+        return voxels, stored[block, within].astype(np.int64) - 1
+
     # ------------------------------------------------------------------ arrays (map files)
     def to_arrays(self) -> dict[str, np.ndarray]:
         """All active blocks as plain arrays (``key`` holds real keys, -1 = none)."""

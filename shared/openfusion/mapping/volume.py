@@ -351,6 +351,25 @@ class SemanticVolume:
         """
         return self._storage.relabel_keys(mapping)
 
+    @_locked
+    def labelled_voxels(self) -> tuple[np.ndarray, np.ndarray]:
+        """(integer voxel coordinates (n, 3) int64, keys (n,) int64) of every voxel carrying a key."""
+        return self._storage.labelled_voxels()
+
+    @_locked
+    def labelled_blocks(self) -> tuple[np.ndarray, np.ndarray]:
+        """(block coordinates (N, 3), keys (N, R, R, R) [z, y, x], -1 = none) of the blocks holding a key."""
+        return self._storage.labelled_blocks()
+
+    def region_contacts(self, *, radius_vox: int = 1) -> Any:
+        """Which regions' labelled voxels touch, how much, and each region's labelled voxel count
+        (:func:`openfusion.mapping.merging.block_contacts`; what a merge pass decides on). Holds
+        the volume's lock only while copying the labelled blocks out."""
+        from openfusion.mapping.merging import block_contacts
+
+        coords, keys = self.labelled_blocks()
+        return block_contacts(coords, keys, radius_vox=radius_vox)
+
     # ------------------------------------------------------------------ read-out
     @_locked
     def extract_points(

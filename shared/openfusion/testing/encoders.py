@@ -36,6 +36,39 @@ class FlakyEncoder:
         return obs
 
 
+class SplittingEncoder:
+    """The gt encoder (hash text space) that splits every region into a left and a right half (by
+    the median column of its pixels) on the frame ids in ``split_on``: two touching fragments of one
+    object, with the object's embedding, that the map's region merging should join again."""
+
+    def __init__(self, *, split_on: Collection[int] = (0,), **gt_options: Any) -> None:
+        self.inner = make_region_encoder("gt", text_encoder="hash", **gt_options)
+        self.name = "splitting-gt"
+        self.embedding_space, self.dim = self.inner.embedding_space, self.inner.dim
+        self.needs_instances = True
+        self.split_on = set(split_on)
+
+    def output_size(self, height_px: int, width_px: int) -> tuple[int, int]:
+        return self.inner.output_size(height_px, width_px)
+
+    def encode(self, frame: Frame) -> RegionObservation:
+        obs = self.inner.encode(frame)
+        if frame.frame_id not in self.split_on or len(obs.conf_maps) == 0:
+            return obs
+        maps, embeddings, labels = [], [], []
+        cols = np.arange(obs.conf_maps.shape[2])[None, :]
+        for i, conf in enumerate(obs.conf_maps):
+            label = obs.labels[i] if obs.labels is not None else None
+            on = np.nonzero(conf > 0)[1]
+            cut = np.median(on) if len(on) else 0
+            for half in (np.where(cols < cut, conf, 0), np.where(cols >= cut, conf, 0)):
+                if half.any():
+                    maps.append(half.astype(np.float32))
+                    embeddings.append(obs.embeddings[i])
+                    labels.append(label)
+        return RegionObservation(np.stack(maps), np.stack(embeddings), self.embedding_space, labels)
+
+
 class CountingTextEncoder:
     """The hash text encoder, recording the texts of every ``encode`` call (``calls``): what a
     test checks to prove several texts went to the encoder in one call."""

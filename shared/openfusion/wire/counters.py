@@ -62,6 +62,7 @@ class GeometryCounter(StrEnum):
     FRAMES_OUT_OF_ORDER = "frames_out_of_order"  # playback frames dropped: the frame before them is not held
     FRAMES_FAILED = "frames_failed"  # integration raised on the frame (logged, taken as done: never retried)
     FRAMES_GAP = "frames_gap"  # live frames that never reached the map (ids skipped between two frames taken)
+    VOXELS_RELABELLED = "voxels_relabelled"  # voxels whose key a merge delta changed to the surviving key
 
 
 class SemanticCounter(StrEnum):
@@ -80,6 +81,10 @@ class SemanticCounter(StrEnum):
     SKIPPED_NO_RENDER = "skipped_no_render"  # geometry did not answer the render request
     FRAMES_FAILED = "frames_failed"  # the encoder or a step raised on the frame (logged, skipped)
     INSTANCES_EVICTED = "instances_evicted"
+    MERGE_PASSES = "merge_passes"  # region merge passes run (every merge_every semantic frames)
+    REGIONS_MERGED = "regions_merged"  # regions folded into another by those passes
+    REGIONS_PRUNED = "regions_pruned"  # regions removed for holding no voxel in two passes in a row
+    MERGE_FAILURES = "merge_failures"  # passes skipped: geometry did not answer geometry/contacts
 
 
 class EncoderCounter(StrEnum):

@@ -33,6 +33,8 @@ from openfusion.wire.schemas import (
     PointsRequest,
     QueryBatchReply,
     QueryReply,
+    RegionContactsReply,
+    RegionContactsRequest,
     RegionSummaryReply,
     RegionSummaryRequest,
     RenderReply,
@@ -100,6 +102,8 @@ GEOMETRY_MESH = Endpoint(("geometry", "mesh"), MeshRequest, MeshReply, owner="ge
 GEOMETRY_REGIONS = Endpoint(("geometry", "regions"), RegionSummaryRequest, RegionSummaryReply, owner="geometry")
 #: The dictionary geometry checkpoints with the volume (a restarted semantic service recovers it).
 GEOMETRY_DICTIONARY = Endpoint(("geometry", "dictionary"), DictionaryRequest, DictionarySnapshot, owner="geometry")
+#: Which regions' labelled voxels touch, and how much (the semantic service decides merges on it).
+GEOMETRY_CONTACTS = Endpoint(("geometry", "contacts"), RegionContactsRequest, RegionContactsReply, owner="geometry")
 SEMANTIC_DICTIONARY = Endpoint(("semantic", "dictionary"), DictionaryRequest, DictionarySnapshot, owner="semantic")
 QUERY_TEXT = Endpoint(("query", "text"), TextQuery, QueryReply, owner="query")
 #: Several texts in one round trip (embedded in one encoder call): one QueryReply per text, in order.
@@ -113,6 +117,6 @@ CONTROL: dict[str, Endpoint[ControlRequest, ControlReply]] = {
 
 TOPICS: tuple[Topic, ...] = (SENSOR_RGBD, SENSOR_INSTANCE, GEOMETRY_PROGRESS, SEMANTIC_UPDATE, DICTIONARY_DELTA)
 ENDPOINTS: tuple[Endpoint, ...] = (
-    GEOMETRY_RENDER, GEOMETRY_POINTS, GEOMETRY_MESH, GEOMETRY_REGIONS, GEOMETRY_DICTIONARY,
+    GEOMETRY_RENDER, GEOMETRY_POINTS, GEOMETRY_MESH, GEOMETRY_REGIONS, GEOMETRY_DICTIONARY, GEOMETRY_CONTACTS,
     SEMANTIC_DICTIONARY, QUERY_TEXT, QUERY_TEXT_BATCH, QUERY_IMAGE, QUERY_POINT, *CONTROL.values(),
 )

@@ -199,3 +199,48 @@ class MeshReply(Message):
         if self.triangles.size and (self.triangles.min() < 0 or self.triangles.max() >= v):
             raise ValueError(f"triangles index vertices outside 0..{v - 1}")
         return self
+
+
+class RegionContactsRequest(Message):
+    """Ask geometry which regions' labelled voxels touch (what the semantic service decides merges
+    on, :mod:`openfusion.mapping.merging`): voxels within ``radius_vox`` voxels per axis touch."""
+
+    schema_name: ClassVar[str] = "geometry.contacts_request"
+    schema_version: ClassVar[int] = 1
+
+    radius_vox: int = Field(default=1, ge=1, le=3)
+
+
+class RegionContactsReply(Message):
+    """Region adjacency of the map at ``map_version``: every region with labelled voxels and how
+    many (``keys``, ``surface_voxels``), and every touching pair ``pair_a`` < ``pair_b`` with the
+    number of ``a``'s voxels touching ``b`` (``contact_a``) and of ``b``'s touching ``a``
+    (``contact_b``)."""
+
+    schema_name: ClassVar[str] = "geometry.contacts_reply"
+    schema_version: ClassVar[int] = 1
+
+    map_version: int = Field(ge=0)
+    keys: KeyList
+    surface_voxels: ndarray("int64", shape=(None,))
+    pair_a: KeyList
+    pair_b: KeyList
+    contact_a: ndarray("int64", shape=(None,))
+    contact_b: ndarray("int64", shape=(None,))
+
+    @model_validator(mode="after")
+    def _check(self) -> RegionContactsReply:
+        if len(self.surface_voxels) != len(self.keys):
+            raise ValueError(f"keys ({len(self.keys)}) and surface_voxels ({len(self.surface_voxels)}) differ in length")
+        p = len(self.pair_a)
+        if not (len(self.pair_b) == len(self.contact_a) == len(self.contact_b) == p):
+            raise ValueError("pair_a, pair_b, contact_a and contact_b must have the same length")
+        if len(self.keys) and (len(np.unique(self.keys)) != len(self.keys) or int(self.keys.min()) < 0):
+            raise ValueError("keys must be unique and >= 0")
+        if p and (int(self.pair_a.min()) < 0 or bool((self.pair_a >= self.pair_b).any())):
+            raise ValueError("pairs must be 0 <= pair_a < pair_b")
+        for name in ("surface_voxels", "contact_a", "contact_b"):
+            arr = getattr(self, name)
+            if arr.size and int(arr.min()) < 0:
+                raise ValueError(f"{name} must be >= 0")
+        return self
