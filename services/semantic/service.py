@@ -39,6 +39,7 @@ import time
 from typing import Any
 
 import numpy as np
+import zenoh
 from pydantic import Field
 
 from openfusion.bus import Publisher, QueryError, ServiceRunner, Subscriber
@@ -264,8 +265,11 @@ class SemanticService:
 
     def setup(self, runner: ServiceRunner) -> None:
         self.recover(runner)
-        self._update_pub = runner.publisher(SEMANTIC_UPDATE)
-        self._delta_pub = runner.publisher(DICTIONARY_DELTA)
+        # Updates and deltas change the map: they block when a link is congested (a camera's frames
+        # on the same link are what congests it) instead of being dropped, which lost an update
+        # now and then under load (geometry never applied it; nothing resends one).
+        self._update_pub = runner.publisher(SEMANTIC_UPDATE, congestion_control=zenoh.CongestionControl.BLOCK)
+        self._delta_pub = runner.publisher(DICTIONARY_DELTA, congestion_control=zenoh.CongestionControl.BLOCK)
         runner.queryable(SEMANTIC_DICTIONARY, self.handle_snapshot)
         if self._instances is not None:
             runner.subscriber(SENSOR_INSTANCE, self._instances.add, queue_size=8)

@@ -96,7 +96,13 @@ class Env:
                     and sem.counter(SemanticCounter.LAST_FRAME_HANDLED) == frames - 1
                     and geo.counter(GeometryCounter.UPDATES_APPLIED) >= sem.counter(SemanticCounter.SEMANTIC_FRAMES))
 
-        wait_until(settled, timeout_s=START_TIMEOUT_S, interval_s=0.2)
+        try:
+            wait_until(settled, timeout_s=START_TIMEOUT_S, interval_s=0.2)
+        except AssertionError as exc:  # say what was not met: the counters, the drops
+            health = self.health()
+            seen = {name: {**{k: v for k, v in stats.counters.items() if not k.startswith("encoded_by")},
+                           "drops": stats.drops, "errors": stats.errors} for name, stats in health.items()}
+            raise AssertionError(f"{exc}; fused before: {fused}; health: {seen}") from None
 
     def close(self) -> None:
         self.cluster.stop()
