@@ -215,13 +215,16 @@ def nearby_regions(
     i = boxes.row(key)
     if i is None:
         return []
+    # box distances to every region at once (the query service holds thousands); only the few
+    # within reach go through the per-pair relation rules
+    lo, hi = np.asarray(boxes.bbox_min, np.float64), np.asarray(boxes.bbox_max, np.float64)
+    gaps = np.maximum(0.0, np.maximum(lo[i] - hi, lo - hi[i]))
+    dists = np.linalg.norm(gaps, axis=1)
     found = []
-    for j in range(len(boxes.keys)):
+    for j in np.flatnonzero(dists <= within_m).tolist():
         if j == i:
             continue
-        d = box_distance(boxes.bbox_min[i], boxes.bbox_max[i], boxes.bbox_min[j], boxes.bbox_max[j])
-        if d > within_m:
-            continue
+        d = float(dists[j])
         rel = relation_of(boxes.bbox_min[i], boxes.bbox_max[i], boxes.bbox_min[j], boxes.bbox_max[j],
                           up_axis=up_axis)
         if rel is not None:
