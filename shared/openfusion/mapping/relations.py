@@ -220,17 +220,19 @@ def nearby_regions(
     lo, hi = np.asarray(boxes.bbox_min, np.float64), np.asarray(boxes.bbox_max, np.float64)
     gaps = np.maximum(0.0, np.maximum(lo[i] - hi, lo - hi[i]))
     dists = np.linalg.norm(gaps, axis=1)
-    found = []
-    for j in np.flatnonzero(dists <= within_m).tolist():
-        if j == i:
-            continue
-        d = float(dists[j])
+    near = np.flatnonzero(dists <= within_m)
+    near = near[near != i]
+    # nearest first (then by key); the relation rules run only until max_count regions relate
+    order = near[np.lexsort((np.asarray(boxes.keys)[near], dists[near]))]
+    found: list[Nearby] = []
+    for j in order.tolist():
         rel = relation_of(boxes.bbox_min[i], boxes.bbox_max[i], boxes.bbox_min[j], boxes.bbox_max[j],
                           up_axis=up_axis)
         if rel is not None:
-            found.append(Nearby(int(boxes.keys[j]), rel, round(d, 3)))
-    found.sort(key=lambda n: (n.distance_m, n.key))
-    return found[:max_count]
+            found.append(Nearby(int(boxes.keys[j]), rel, round(float(dists[j]), 3)))
+            if len(found) == max_count:
+                break
+    return found
 
 
 @dataclass(frozen=True)
