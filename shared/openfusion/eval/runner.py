@@ -19,7 +19,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from openfusion.encoders import make_region_encoder, make_text_encoder
 from openfusion.eval.baselines import (
@@ -34,6 +33,12 @@ from openfusion.eval.classes import DEFAULT_BACKGROUND_CLASSES
 from openfusion.eval.geometry import ObservedSurface, geometry_metrics, mesh_distances
 from openfusion.eval.ground_truth import GroundTruth
 from openfusion.eval.metrics import ConfusionMatrix, compute_metrics, sum_confusions
+from openfusion.eval.point_labels import (
+    dictionary_arrays,
+    nearest_labelled_fill,
+    region_counts,
+    segment_with_library,
+)
 from openfusion.eval.protocol import (
     class_scores_mask,
     classify_embeddings,
@@ -42,7 +47,7 @@ from openfusion.eval.protocol import (
     labels_from_region_keys,
 )
 from openfusion.eval.scenes import SceneSpec, check_scene_inputs, open_scene
-from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume, segment_points
+from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume
 from openfusion.mapping.merging import EmptyRegions, MergeSchedule, merge_regions
 from openfusion.mapping.params import MatchParams, MergeParams, VolumeParams
 
@@ -234,69 +239,13 @@ def map_scene_for_eval(
     return run
 
 
-def _dictionary_arrays(dictionary: object) -> tuple[np.ndarray, np.ndarray]:
-    """(keys (R,), unit embeddings (R, d)) of every region in the dictionary."""
-    keys = dictionary.keys  # type: ignore[attr-defined]
-    emb = dictionary.unit_embeddings()  # type: ignore[attr-defined]
-    return np.asarray(keys, dtype=np.int64), np.array(emb, dtype=np.float32)
-
-
 # --------------------------------------------------------------------------- one scene
-
-
-def _segment_with_library(
-    volume: object, dictionary: object, class_emb: np.ndarray, allowed: np.ndarray, points: np.ndarray
-) -> np.ndarray | None:
-    """Per-point classes from :func:`openfusion.mapping.segment_points` (what users get), offered
-    only the allowed classes; ``None`` if its point set differs from ``points``."""
-
-    allowed_idx = np.flatnonzero(allowed)
-    seg_points, seg_labels = segment_points(volume, dictionary, class_emb[allowed_idx])
-    if seg_points.shape != points.shape or not np.array_equal(seg_points, points.astype(seg_points.dtype)):
-        logger.warning("segment_points returned another point set than extract_points; labelling locally")
-        return None
-    seg = np.asarray(seg_labels, dtype=np.int64)
-    return np.where(seg >= 0, allowed_idx[np.maximum(seg, 0)], -1)
-
-
-def nearest_labelled_fill(points: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """``labels`` with every -1 replaced by the label of the nearest labelled point."""
-    out = np.asarray(labels).copy()
-    lab = out >= 0
-    if lab.all() or not lab.any():
-        return out
-    _, idx = cKDTree(points[lab]).query(points[~lab], k=1, workers=-1)
-    out[~lab] = out[lab][np.asarray(idx, dtype=np.int64)]
-    return out
 
 
 def _quality(pred: np.ndarray, gt_of_points: np.ndarray, gt: GroundTruth, config: EvalConfig) -> dict:
     cm = confusion_for_points(pred, gt_of_points, gt.class_names)
     m = compute_metrics(cm, exclude_classes=config.excluded_classes, unlabelled=config.unlabelled)
     return {"metrics": m.to_dict(), "confusion": cm.to_dict()}
-
-
-#: A region counts as an answer-sized object when it has at least this many surface points.
-REGION_MIN_POINTS = 100
-
-
-def region_counts(point_keys: np.ndarray, gt: GroundTruth, observed_mask: np.ndarray | None) -> dict:
-    """How many regions the map holds per ground-truth object: ``regions_100`` (regions with at
-    least :data:`REGION_MIN_POINTS` surface points), ``regions_any`` (with any), ``gt_objects``
-    (ground-truth instances with an evaluated class and at least one observed ground-truth
-    point; None when the ground truth has no instances) and the ratio."""
-    keys = np.asarray(point_keys)
-    counts = np.bincount(keys[keys >= 0]) if (keys >= 0).any() else np.zeros(0, np.int64)
-    out: dict = {"regions_100": int((counts >= REGION_MIN_POINTS).sum()), "regions_any": int((counts > 0).sum()),
-                 "gt_objects": None, "regions_100_per_object": None}
-    if gt.instance_ids is not None:
-        seen = gt.labels >= 0
-        if observed_mask is not None:
-            seen &= np.asarray(observed_mask, bool)
-        objects = len(np.unique(gt.instance_ids[seen & (gt.instance_ids > 0)]))
-        out["gt_objects"] = objects
-        out["regions_100_per_object"] = out["regions_100"] / objects if objects else None
-    return out
 
 
 def evaluate_scene(
@@ -348,14 +297,14 @@ def evaluate_scene(
     # ---- protocol: class queries -> per-point labels -> nearest GT label -> confusion
     class_emb = np.asarray(text_encoder.encode(list(gt.class_names)), dtype=np.float32)
     allowed = class_scores_mask(gt.class_names, config.excluded_classes)
-    region_keys, region_emb = _dictionary_arrays(run.dictionary)
+    region_keys, region_emb = dictionary_arrays(run.dictionary)
     gt_of_points, _ = ground_truth_labels_for(points, gt)
 
     def segment_regions() -> np.ndarray:
         region_cls = classify_embeddings(region_emb, class_emb, allowed=allowed)
         return labels_from_region_keys(keys, region_keys, region_cls)
 
-    pred = _segment_with_library(volume, run.dictionary, class_emb, allowed, points)
+    pred = segment_with_library(volume, run.dictionary, class_emb, allowed, points)
     if pred is None:
         pred = segment_regions()
     quality = {"region_map": _quality(pred, gt_of_points, gt, config)}

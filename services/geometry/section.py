@@ -1,0 +1,82 @@
+"""The geometry service's settings (:class:`GeometrySection`, every volume parameter plus the
+service's own) and its cache of region summaries (:class:`SummaryCache`), apart from the service's
+message handling in :mod:`.service`."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from openfusion.config import ServiceConfig
+from openfusion.mapping import VolumeParams
+from openfusion.mapping.queries import RegionTable
+from openfusion.wire.schemas import RegionSummaryReply
+
+logger = logging.getLogger("openfusion.services.geometry.service")
+
+
+class GeometrySection(VolumeParams):
+    """The geometry service's settings: every volume parameter (:class:`VolumeParams`, declared
+    there once) plus the service's own."""
+
+    map_dir: Path | None = Field(None, description="checkpoint folder (the map is saved to MAP_DIR/MAP_ID)")
+    checkpoint_period_s: float = Field(30.0, ge=0, description="seconds between checkpoints (0 = only on control/save)")
+    load_on_start: bool = Field(True, description="load the checkpoint in MAP_DIR/MAP_ID at start when there is one")
+    frame_queue_size: int = Field(
+        64, gt=0, description="frames waiting for integration; when full the oldest is dropped and counted"
+    )
+    max_points_reply: int = Field(500_000, gt=0, description="most surface points or mesh vertices in one reply")
+    max_render_pixels: int = Field(640 * 480, gt=0, description="largest render request (width x height)")
+    regions_min_interval_s: float = Field(
+        0.5, ge=0, description="a changed map's region summaries are recomputed at most this often (unless fresh)"
+    )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _renamed(cls, data: Any) -> Any:
+        # ``initial_blocks`` was this section's name of VolumeParams.initial_block_count.
+        if isinstance(data, dict) and "initial_blocks" in data:
+            data = dict(data)
+            value = data.pop("initial_blocks")
+            data.setdefault("initial_block_count", value)
+            logger.warning("geometry.initial_blocks is deprecated; use geometry.initial_block_count")
+        return data
+
+    def volume_params(self) -> VolumeParams:
+        return VolumeParams.from_section(self)
+
+
+class GeometryConfig(ServiceConfig):
+    geometry: GeometrySection = Field(default_factory=GeometrySection)
+
+
+class SummaryCache:
+    """The region table (:class:`RegionTable`) of one map version: what ``geometry/regions``
+    answers, and what a checkpoint of that version stores without reading the surface again."""
+
+    def __init__(self, map_version: int, key_horizon: int, table: RegionTable) -> None:
+        self.map_version = map_version
+        self.key_horizon = key_horizon
+        self.table = table
+        self.computed_at = time.monotonic()
+
+    def reply(self, keys: list[int] | None) -> RegionSummaryReply:
+        t = self.table
+        sel = slice(None) if keys is None else np.isin(t.keys, np.asarray(keys, np.int64))
+        return RegionSummaryReply(
+            map_version=self.map_version,
+            key_horizon=self.key_horizon,
+            age_s=max(0.0, time.monotonic() - self.computed_at),
+            keys=t.keys[sel],
+            bbox_min=t.bbox_min[sel],
+            bbox_max=t.bbox_max[sel],
+            num_points=t.num_points[sel],
+            centroid=np.asarray(t.centroid[sel], np.float32),
+        )
+
+
