@@ -24,6 +24,7 @@ class DictionaryReplica:
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
+        self._changed = threading.Condition(self._lock)
         self.dictionary: RegionDictionary | None = None
 
     def __len__(self) -> int:
@@ -33,14 +34,30 @@ class DictionaryReplica:
     def embedding_space(self) -> str | None:
         return self.dictionary.embedding_space if self.dictionary is not None else None
 
+    @property
+    def version(self) -> int | None:
+        with self._lock:
+            return self.dictionary.version if self.dictionary is not None else None
+
     def reset(self, dictionary: RegionDictionary | None) -> None:
         with self._lock:
             self.dictionary = dictionary
+            self._changed.notify_all()
 
-    def apply_snapshot(self, msg: DictionarySnapshot) -> None:
+    def apply_snapshot(self, msg: DictionarySnapshot) -> dict[int, int]:
+        """Replace the copy by the snapshot; returns its merge table (``{merged key: survivor}``),
+        which a holder of voxels relabels with (it may have missed the delta of those merges)."""
         dictionary = RegionDictionary.from_snapshot(msg)
         with self._lock:
             self.dictionary = dictionary
+            self._changed.notify_all()
+        return dictionary.merge_table()
+
+    def wait_for_version(self, version: int, timeout_s: float) -> bool:
+        """Block until this copy is at ``version`` or newer (True) or ``timeout_s`` passed (False)."""
+        with self._lock:
+            return self._changed.wait_for(
+                lambda: self.dictionary is not None and self.dictionary.version >= version, timeout=timeout_s)
 
     def apply_delta(self, msg: DictionaryDelta) -> bool:
         """Apply a delta; False when it cannot be applied (no base, a gap, another space): resync."""
@@ -54,6 +71,7 @@ class DictionaryReplica:
             except (StaleVersionError, EmbeddingSpaceError) as exc:
                 logger.info("dictionary replica out of sync (%s); a snapshot is needed", exc)
                 return False
+            self._changed.notify_all()
         return True
 
     def resolve_keys(self, keys: np.ndarray) -> np.ndarray:

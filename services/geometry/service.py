@@ -13,7 +13,9 @@
 | ``…/geometry/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot (what the last checkpoint + deltas hold) |
 | ``…/geometry/contacts`` | queryable | RegionContactsRequest → RegionContactsReply (which regions' voxels touch; the semantic service's merges) |
 | ``…/control/{save,load,reset}`` | queryable (admin) | ControlRequest → ControlReply |
-| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC) |
+| ``…/semantic/merge`` | queries before ``control/save`` and the final save | MergeRequest → MergeReply |
+| ``…/semantic/dictionary`` | queries on a gap in the deltas (resync) | DictionaryRequest → DictionarySnapshot |
+| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC), ``voxels_relabelled``, ``save_merges``, ``save_merge_failures``, ``dictionary_resyncs`` |
 
 Checkpoints go to ``{map_dir}/{map_id}`` every ``checkpoint_period_s`` (when something changed)
 and on ``control/save``; :func:`~openfusion.mapping.save_map` writes them atomically and keeps
@@ -29,6 +31,16 @@ read-only folder) is logged in one line naming the path and reason, counted as
 ``checkpoint_failed``; the map stays in memory, integration goes on, and the periodic loop tries
 again one ``checkpoint_period_s`` later. Every bad message is counted and dropped before it
 reaches the volume; a bad request is answered with ``reply_err`` naming the limit or field.
+
+Merges (the semantic service decides them, :mod:`openfusion.mapping.merging`): a delta's
+``merged_into`` relabels the merged keys' voxels under the lock updates are applied under. A
+save on ``control/save`` (what ``openfusion run`` sends at its end, and ``Client.control("save")``) and the
+final save on shutdown first ask ``semantic/merge`` for a pass and wait until its delta is applied
+(``merge_on_save``, ``merge_on_save_timeout_s``), so a saved map holds objects, not fragments;
+without an answer the map is saved as it is (``save_merge_failures``). Periodic checkpoints do not
+ask (the semantic service merges every ``merge_every`` of its frames anyway). When a delta is lost
+(a gap in versions) the replica resyncs from the semantic service's snapshot, whose merge table
+relabels the voxels of the merges the lost delta carried.
 
 Resume with nothing lost (playback): frames of a playback the bridge can replay carry the
 playback's name and ``prev_frame_id`` (the frame published before them). The service takes such a
@@ -69,7 +81,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from openfusion.bus import Publisher, RequestError, ServiceRunner, Subscriber
+from openfusion.bus import Publisher, QueryError, RequestError, ServiceRunner, Subscriber
 from openfusion.mapping import (
     CapacityError,
     MapFormatError,
@@ -100,6 +112,7 @@ from openfusion.wire.endpoints import (
     GEOMETRY_REGIONS,
     GEOMETRY_RENDER,
     SEMANTIC_DICTIONARY,
+    SEMANTIC_MERGE,
     SEMANTIC_UPDATE,
     SENSOR_RGBD,
 )
@@ -110,6 +123,7 @@ from openfusion.wire.schemas import (
     DictionaryRequest,
     DictionarySnapshot,
     GeometryProgress,
+    MergeRequest,
     MeshReply,
     MeshRequest,
     PointsReply,
@@ -409,7 +423,53 @@ class GeometryService:
             return
         snapshot = self.replica.fetch_snapshot(self._runner, SEMANTIC_DICTIONARY)
         if snapshot is not None:
-            self.replica.apply_snapshot(snapshot)
+            self.apply_snapshot(snapshot)
+
+    def apply_snapshot(self, snapshot: DictionarySnapshot) -> int:
+        """Take the semantic service's snapshot as the dictionary, and relabel the voxels of every
+        key it says was merged away (a lost delta's merges included); returns the voxels relabelled."""
+        with self._lock:
+            merges = self.replica.apply_snapshot(snapshot)
+            relabelled = self.volume.relabel_keys(merges) if merges else 0
+            if relabelled:
+                self._map_changed()
+                self._dirty = True
+        if relabelled:
+            self._count(GeometryCounter.VOXELS_RELABELLED, relabelled)
+            logger.info("geometry: resynced the dictionary (v%d); %d voxels of %d merged keys relabelled",
+                        snapshot.version, relabelled, len(merges))
+        return relabelled
+
+    def merge_before_save(self) -> bool:
+        """Ask the semantic service for a merge pass and wait until its delta is applied here, so
+        the map about to be saved holds objects, not fragments. False (logged and counted; the
+        save goes on) when there is no dictionary, merging on save is off or the semantic service
+        does not answer."""
+        if self._runner is None or not self.section.merge_on_save or self.replica.dictionary is None:
+            return False
+        timeout_s = self.section.merge_on_save_timeout_s
+        try:
+            reply = self._runner.call(SEMANTIC_MERGE, MergeRequest(), timeout_s=timeout_s)
+        except QueryError as exc:
+            logger.info("geometry: saving without a merge pass: the semantic service did not run one (%s)",
+                        exc.reason)
+            self._count(GeometryCounter.SAVE_MERGE_FAILURES)
+            return False
+        if not reply.ok:
+            logger.info("geometry: saving without a merge pass: %s", reply.message)
+            self._count(GeometryCounter.SAVE_MERGE_FAILURES)
+            return False
+        # The pass's delta was published before the reply; it comes on the delta subscription. If
+        # it does not come in time (lost), the snapshot carries the same merges.
+        if not self.replica.wait_for_version(reply.dictionary_version, timeout_s):
+            logger.warning("geometry: the merge delta (v%d) did not come; resyncing the dictionary",
+                           reply.dictionary_version)
+            self._count(GeometryCounter.DICTIONARY_RESYNCS)
+            self._resync_dictionary()
+        self._count(GeometryCounter.SAVE_MERGES)
+        logger.info("geometry: merge pass before saving: %d regions merged, %d pruned (dictionary v%d)",
+                    reply.regions_merged, reply.regions_pruned, reply.dictionary_version)
+        return True
 
     def handle_render(self, req: RenderRequest) -> RenderReply:
         pixels = req.width_px * req.height_px
@@ -494,6 +554,7 @@ class GeometryService:
         if req.action != action:
             raise RequestError("bad_request", f"this key takes action {action!r}, got {req.action!r}")
         if action == "save":
+            self.merge_before_save()
             path = self.save(Path(req.path) if req.path else None)
             return ControlReply(ok=True, message=f"saved to {path}")
         if action == "load":
@@ -568,6 +629,7 @@ class GeometryService:
 
     def close(self) -> None:
         if self._dirty and self.checkpoint_dir is not None:
+            self.merge_before_save()
             with contextlib.suppress(CheckpointFailed):  # logged by save()
                 self.save()
 

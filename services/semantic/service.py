@@ -9,7 +9,8 @@
 | ``…/geometry/contacts`` | queries every ``merge_every`` semantic frames | RegionContactsRequest → RegionContactsReply |
 | ``…/semantic/update`` | publishes | :class:`~openfusion.wire.schemas.SemanticUpdate` |
 | ``…/semantic/dictionary/delta`` | publishes | :class:`~openfusion.wire.schemas.DictionaryDelta` |
-| ``…/semantic/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot |
+| ``…/semantic/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot (with its merge table) |
+| ``…/semantic/merge`` | queryable (geometry asks before it saves) | MergeRequest → MergeReply |
 | ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions``, ``merge_passes``, ``regions_merged``, ``regions_pruned``, ``merge_failures`` |
 
 A slow encoder never builds a queue: the frame subscription keeps only the newest frame and
@@ -29,12 +30,16 @@ and its replica follows, as does the query service's; a restarted semantic servi
 merged dictionary from geometry. A pass geometry does not answer is skipped and counted
 (``merge_failures``); mapping goes on. A region without a labelled voxel in two passes in a row
 (seen once, then taken over by other regions; it can never be matched again) is removed in the
-same delta (``merged_into`` -1, ``regions_pruned``).
+same delta (``merged_into`` -1, ``regions_pruned``). Geometry asks ``semantic/merge`` for a pass
+before it saves a map (``GeometrySection.merge_on_save``), so a saved map is merged; the reply
+names the dictionary version after the pass and is sent after its delta. The dictionary is changed
+under one lock by the frame loop and by that request, so deltas go out in version order.
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from typing import Any
 
@@ -60,6 +65,7 @@ from openfusion.wire.endpoints import (
     GEOMETRY_DICTIONARY,
     GEOMETRY_RENDER,
     SEMANTIC_DICTIONARY,
+    SEMANTIC_MERGE,
     SEMANTIC_UPDATE,
     SENSOR_INSTANCE,
     SENSOR_RGBD,
@@ -70,6 +76,8 @@ from openfusion.wire.schemas import (
     DictionarySnapshot,
     EncodeRequest,
     InstanceFrame,
+    MergeReply,
+    MergeRequest,
     RegionContactsRequest,
     RenderRequest,
     RgbdFrame,
@@ -145,6 +153,9 @@ class SemanticService:
         self._pool: EncoderPool | None = None
         self._last_applied = -1  # the newest frame whose result was applied (pool mode)
         self._last_dispatched = -1  # the newest frame taken for the pool
+        # Held while the dictionary changes and its delta is published: the frame loop and a
+        # merge requested on semantic/merge (another thread) change it.
+        self._dictionary_lock = threading.RLock()
 
     def recover(self, runner: ServiceRunner) -> bool:
         """Take the dictionary geometry checkpointed (same space only). True when recovered."""
@@ -175,7 +186,12 @@ class SemanticService:
         return True
 
     def handle_snapshot(self, _req: DictionaryRequest) -> DictionarySnapshot:
-        return self.dictionary.snapshot()
+        with self._dictionary_lock:
+            return self.dictionary.snapshot()
+
+    def handle_merge(self, runner: ServiceRunner, _req: MergeRequest) -> MergeReply:
+        """A merge pass now (geometry asks before saving); its delta is published before the reply."""
+        return self._merge(runner)
 
     def process(self, runner: ServiceRunner, msg: RgbdFrame, instance: InstanceFrame | None = None) -> None:
         """One semantic step for one frame (called from the loop), with its instance image when
@@ -193,16 +209,17 @@ class SemanticService:
                                                            **RenderRequest.intrinsics_fields(K_small)),
                             timeout_s=self.section.render_timeout_s)
         rendered = RenderedView(key_map=reply.key_map, conf_map=reply.conf_map, depth_m=reply.depth_m)
-        prev_version = self.dictionary.version
-        planned = plan_update(obs, rendered, self.dictionary, self.match_params)
+        depth_m = resize_nearest(frame.depth_m(), (h, w)).astype(np.float32)
         assert self._update_pub is not None and self._delta_pub is not None
-        # The delta goes first, so a key never reaches geometry before its dictionary row.
-        self._publish_delta()
-        self._update_pub.put(SemanticUpdate(
-            frame_id=frame.frame_id, T_world_cam=frame.T_world_cam, **SemanticUpdate.intrinsics_fields(K_small),
-            key_map=planned.key_map, conf_map=planned.conf_map,
-            new_keys=np.array([key for _, key in planned.new_keys], np.int32),
-            depth_m=resize_nearest(frame.depth_m(), (h, w)).astype(np.float32)))
+        with self._dictionary_lock:
+            prev_version = self.dictionary.version
+            planned = plan_update(obs, rendered, self.dictionary, self.match_params)
+            # The delta goes first, so a key never reaches geometry before its dictionary row.
+            self._publish_delta()
+            self._update_pub.put(SemanticUpdate(
+                frame_id=frame.frame_id, T_world_cam=frame.T_world_cam, **SemanticUpdate.intrinsics_fields(K_small),
+                key_map=planned.key_map, conf_map=planned.conf_map,
+                new_keys=np.array([key for _, key in planned.new_keys], np.int32), depth_m=depth_m))
         stats = runner.stats
         stats.record(time.monotonic() - started)
         stats.incr(SemanticCounter.SEMANTIC_FRAMES)
@@ -234,6 +251,9 @@ class SemanticService:
         """Merge the regions that are one object (contacts from geometry, decision here), publish the
         merges as one delta; returns the number of regions merged away. A pass geometry does not
         answer is logged, counted in ``merge_failures`` and skipped."""
+        return self._merge(runner).regions_merged
+
+    def _merge(self, runner: ServiceRunner) -> MergeReply:
         started = time.monotonic()
         try:
             reply = runner.call(GEOMETRY_CONTACTS, RegionContactsRequest(radius_vox=self.merge_params.merge_contact_radius_vox),
@@ -241,27 +261,35 @@ class SemanticService:
         except QueryError as exc:
             logger.warning("semantic: merge pass skipped: geometry did not give region contacts (%s)", exc)
             runner.stats.incr(SemanticCounter.MERGE_FAILURES)
-            return 0
+            with self._dictionary_lock:
+                version = self.dictionary.version
+            return MergeReply(ok=False, regions_merged=0, regions_pruned=0, dictionary_version=version,
+                              message=f"geometry gave no region contacts: {exc.reason}")
         contacts = RegionContacts(
             keys=reply.keys.astype(np.int64), surface_voxels=reply.surface_voxels.astype(np.int64),
             pair_a=reply.pair_a.astype(np.int64), pair_b=reply.pair_b.astype(np.int64),
             contact_a=reply.contact_a.astype(np.int64), contact_b=reply.contact_b.astype(np.int64))
-        plan = plan_merges(self.dictionary, contacts, self.merge_params)
-        removed = self._empty_regions.to_remove(self.dictionary, contacts) if self.merge_params.merge_prune_empty else []
-        if plan.merged_into or removed:
-            apply_merges(self.dictionary, plan.merged_into, embedding=self.merge_params.merge_embedding,
-                         removed=removed)
-            self._publish_delta()
+        with self._dictionary_lock:
+            plan = plan_merges(self.dictionary, contacts, self.merge_params)
+            removed = (self._empty_regions.to_remove(self.dictionary, contacts)
+                       if self.merge_params.merge_prune_empty else [])
+            if plan.merged_into or removed:
+                apply_merges(self.dictionary, plan.merged_into, embedding=self.merge_params.merge_embedding,
+                             removed=removed)
+                self._publish_delta()
+            version, regions = self.dictionary.version, len(self.dictionary)
         runner.stats.incr(SemanticCounter.MERGE_PASSES)
         runner.stats.incr(SemanticCounter.REGIONS_PRUNED, len(removed))
+        done = MergeReply(ok=True, regions_merged=len(plan.merged_into), regions_pruned=len(removed),
+                          dictionary_version=version)
         if not plan.merged_into:
-            return 0
+            return done
         runner.stats.incr(SemanticCounter.REGIONS_MERGED, len(plan.merged_into))
-        runner.stats.set(SemanticCounter.REGIONS, len(self.dictionary))
-        runner.stats.set(SemanticCounter.DICTIONARY_VERSION, self.dictionary.version)
+        runner.stats.set(SemanticCounter.REGIONS, regions)
+        runner.stats.set(SemanticCounter.DICTIONARY_VERSION, version)
         logger.info("semantic: merged %d regions into %d (map version %d, %.0f ms): %s", len(plan.merged_into),
                     len(plan.groups), reply.map_version, (time.monotonic() - started) * 1e3, plan.groups)
-        return len(plan.merged_into)
+        return done
 
     def setup(self, runner: ServiceRunner) -> None:
         self.recover(runner)
@@ -271,6 +299,7 @@ class SemanticService:
         self._update_pub = runner.publisher(SEMANTIC_UPDATE, congestion_control=zenoh.CongestionControl.BLOCK)
         self._delta_pub = runner.publisher(DICTIONARY_DELTA, congestion_control=zenoh.CongestionControl.BLOCK)
         runner.queryable(SEMANTIC_DICTIONARY, self.handle_snapshot)
+        runner.queryable(SEMANTIC_MERGE, lambda req: self.handle_merge(runner, req))
         if self._instances is not None:
             runner.subscriber(SENSOR_INSTANCE, self._instances.add, queue_size=8)
         self._frames = runner.subscriber(SENSOR_RGBD, latest_only=True)

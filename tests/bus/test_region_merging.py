@@ -9,18 +9,23 @@ and geometry's replicas equal the semantic service's dictionary, geometry's voxe
 keys (no merged-away key), and a restarted semantic service recovers the merged dictionary from
 geometry and continues with it (new keys above the old ones; the replicas follow).
 
+A lost merge delta: the replica's next delta leaves a gap, geometry resyncs from the semantic
+service's snapshot, and the snapshot's merge table relabels the voxels the lost delta would have.
+A save (``control/save``) first asks the semantic service for a merge pass and saves the merged
+map; with the semantic service gone the map is saved as it is and the failure counted.
+
 Bad input tried: a contacts request with radius 0 is refused by its schema before geometry sees it
 (``tests/unit/test_messages.py``); here, a merge pass while geometry is gone is counted in
-``merge_failures`` and mapping goes on."""
+``merge_failures`` and mapping goes on; a dropped (never delivered) merge delta."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from openfusion.bus import Publisher, open_session
+from openfusion.bus import Publisher, call, open_session
 from openfusion.config import ServiceConfig
-from openfusion.mapping import RegionDictionary
+from openfusion.mapping import RegionDictionary, load_map
 from openfusion.services.geometry.service import GeometryConfig, GeometryService
 from openfusion.services.query.service import QueryConfig, QueryService
 from openfusion.services.semantic.service import SemanticConfig, SemanticService
@@ -35,8 +40,8 @@ from openfusion.testing.bus import (
 )
 from openfusion.testing.encoders import SplittingEncoder
 from openfusion.wire.counters import GeometryCounter, SemanticCounter
-from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
-from openfusion.wire.schemas import InstanceFrame, RgbdFrame
+from openfusion.wire.endpoints import CONTROL, SENSOR_INSTANCE, SENSOR_RGBD
+from openfusion.wire.schemas import ControlRequest, InstanceFrame, RgbdFrame
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -74,9 +79,10 @@ def _feed(rgbd: Publisher, instances: Publisher, semantic: ServiceThread, frames
 
 
 def _passes_done(semantic: ServiceThread) -> bool:
-    """The merge pass due after the last fused frame has run (it runs right after the frame counts)."""
+    """The merge pass due after the last fused frame has run (it runs right after the frame counts;
+    passes asked for on semantic/merge or by the test come on top)."""
     done = semantic.counter(SemanticCounter.MERGE_PASSES) + semantic.counter(SemanticCounter.MERGE_FAILURES)
-    return done == semantic.counter(SemanticCounter.SEMANTIC_FRAMES) // semantic.app.merge_params.merge_every
+    return done >= semantic.counter(SemanticCounter.SEMANTIC_FRAMES) // semantic.app.merge_params.merge_every
 
 
 def _handled(semantic: ServiceThread) -> float:
@@ -179,3 +185,93 @@ def test_a_merge_pass_without_geometry_is_counted_and_mapping_goes_on() -> None:
         assert service.merge_pass(semantic.runner) == 0
         assert semantic.counter(SemanticCounter.MERGE_FAILURES) == 1
         assert service.dictionary.version == version
+
+
+class _Lost:
+    """Stands in for the delta publisher: what is put here never reaches anyone."""
+
+    def __init__(self) -> None:
+        self.dropped = 0
+
+    def put(self, _msg: object) -> None:
+        self.dropped += 1
+
+
+def _stored_keys(geometry: ServiceThread) -> set[int]:
+    return set(np.unique(geometry.app.volume.to_arrays()["key"]).tolist()) - {-1}
+
+
+def test_a_lost_merge_delta_is_repaired_by_the_resync_and_a_save_merges_first(tmp_path) -> None:  # noqa: ANN001
+    map_id = unique_map_id("merge-save")
+    port = free_port()
+    router = open_session(_config(ServiceConfig, map_id, "", {}, port=port, mode="router"))
+    geo_cfg = _config(GeometryConfig, map_id, "geometry", {"initial_block_count": 2048, "checkpoint_period_s": 0,
+                                                           "merge_on_save_timeout_s": 10}, port=port)
+    # No periodic pass (merge_every far away): only the passes this test asks for happen.
+    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"merge_every": 1000, "recover_timeout_s": 0,
+                                                           "instance_wait_s": 10}, port=port)
+    with ServiceThread(GeometryService(geo_cfg), geo_cfg, "geometry") as geometry:
+        session = open_session(_config(ServiceConfig, map_id, "", {}, port=port))
+        try:
+            keys = geo_cfg.keys
+            rgbd = Publisher(session, SENSOR_RGBD.key(keys), message=RgbdFrame)
+            instances = Publisher(session, SENSOR_INSTANCE.key(keys), message=InstanceFrame)
+            service = SemanticService(sem_cfg, encoder=SplittingEncoder(split_on=[0, 3]))
+            with ServiceThread(service, sem_cfg, "semantic") as semantic:
+                wait_for_services(session, map_id, ["geometry", "semantic"])
+                _feed(rgbd, instances, semantic, FRAMES[:2])
+                _wait_replicas_agree_geometry(service.dictionary, geometry,
+                                              updates=semantic.counter(SemanticCounter.SEMANTIC_FRAMES))
+
+                # A merge pass whose delta is lost on the way.
+                lost, real = _Lost(), service._delta_pub
+                service._delta_pub = lost
+                try:
+                    merged = service.merge_pass(semantic.runner)
+                finally:
+                    service._delta_pub = real
+                assert merged > 0 and lost.dropped == 1
+                gone = _merged_away(service.dictionary)
+                assert _stored_keys(geometry) & gone  # geometry still holds the fragments' keys
+                # The next frame's delta starts after the lost one: geometry resyncs, and the
+                # snapshot's merge table relabels the merged keys' voxels.
+                _feed(rgbd, instances, semantic, FRAMES[2:3])
+                _wait_replicas_agree_geometry(service.dictionary, geometry,
+                                              updates=semantic.counter(SemanticCounter.SEMANTIC_FRAMES))
+                assert geometry.counter(GeometryCounter.DICTIONARY_RESYNCS) >= 1
+                assert geometry.counter(GeometryCounter.VOXELS_RELABELLED) > 0
+                assert not _stored_keys(geometry) & gone
+                assert _merged_away(geometry.app.replica.dictionary) == gone
+
+                # Frame 3 splits every object again; no periodic pass joins the halves.
+                _feed(rgbd, instances, semantic, FRAMES[3:5])
+                passes = semantic.counter(SemanticCounter.MERGE_PASSES)
+                before_save = len(service.dictionary)
+                saved = tmp_path / "saved"
+                reply = call(session, keys, CONTROL["save"], ControlRequest(action="save", path=str(saved)),
+                             timeout_s=60)
+                assert reply.ok
+                assert semantic.counter(SemanticCounter.MERGE_PASSES) == passes + 1  # asked by the save
+                assert geometry.counter(GeometryCounter.SAVE_MERGES) == 1
+                assert len(service.dictionary) < before_save  # the halves were joined before saving
+                loaded = load_map(saved)
+                live = set(service.dictionary.keys.tolist())
+                assert set(loaded.dictionary.keys.tolist()) == live
+                in_file = set(np.unique(loaded.volume.to_arrays()["key"]).tolist()) - {-1}
+                assert in_file and in_file <= live  # no fragment key left in the saved voxels
+
+            # The semantic service is gone: the save goes ahead unmerged, and says so in a counter.
+            reply = call(session, keys, CONTROL["save"], ControlRequest(action="save", path=str(tmp_path / "alone")),
+                         timeout_s=60)
+            assert reply.ok and load_map(tmp_path / "alone").volume.num_blocks > 0
+            assert geometry.counter(GeometryCounter.SAVE_MERGE_FAILURES) == 1
+        finally:
+            session.close()
+            router.close()
+
+
+def _wait_replicas_agree_geometry(semantic: RegionDictionary, geometry: ServiceThread, *, updates: int) -> None:
+    version = semantic.version
+    wait_until(lambda: geometry.app.replica.dictionary is not None
+               and geometry.app.replica.dictionary.version == version)
+    wait_until(lambda: geometry.counter(GeometryCounter.UPDATES_APPLIED) >= updates)

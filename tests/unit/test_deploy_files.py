@@ -405,3 +405,50 @@ def test_compose_commands_parse_with_cli(capsys: pytest.CaptureFixture[str]) -> 
                 f"{where}: `{shlex.join(argv)}` (exit {error.code}): {capsys.readouterr().err.strip()}"
             )
     assert not rejected, "the openfusion CLI rejects:\n" + "\n".join(rejected)
+
+
+# --------------------------------------------------------------------------- prod access control
+
+#: The identity (deploy/zenoh/prod) each service runs as.
+PROD_IDENTITY = {"bridge": "robot-sensor", "geometry": "geometry", "semantic": "gpu-semantic", "query": "query-service"}
+
+
+def _prod_rules_of(identity: str) -> list[dict[str, Any]]:
+    acl = json.loads(zenoh.Config.from_file(ZENOH_DIR / "prod" / "router.json5").get_json("access_control"))
+    rules = {rule["id"]: rule for rule in acl["rules"]}
+    subjects = {s["id"] for s in acl["subjects"] if identity in s["usernames"]}
+    names = [name for p in acl["policies"] if subjects & set(p["subjects"]) for name in p["rules"]]
+    return [rules[name] for name in names]
+
+
+def _allows(identity: str, flow: str, message: str, key: str) -> bool:
+    return any(flow in r["flows"] and message in r["messages"]
+               and any(zenoh.KeyExpr(expr).includes(zenoh.KeyExpr(key)) for expr in r["key_exprs"])
+               for r in _prod_rules_of(identity))
+
+
+def test_prod_acl_lets_every_service_serve_and_publish_its_own_keys() -> None:
+    """Every queryable and topic of openfusion.wire.endpoints (semantic/merge included) can be
+    declared by the identity of the service that owns it; the encoder pool's keys (outside any
+    map) by the semantic box's identity. A key added without its ACL rule fails here, not on a
+    TLS deployment."""
+    from openfusion.wire.endpoints import ENDPOINTS, TOPICS
+    from openfusion.wire.keys import KeySpace, PoolKeys
+
+    keys = KeySpace("openfusion", "lab-1")
+    for endpoint in ENDPOINTS:
+        identity = PROD_IDENTITY[endpoint.owner]
+        assert _allows(identity, "ingress", "declare_queryable", endpoint.key(keys)), (identity, endpoint.path)
+        assert _allows(identity, "ingress", "reply", endpoint.key(keys)), (identity, endpoint.path)
+    for topic in TOPICS:
+        assert _allows(PROD_IDENTITY[topic.publisher], "ingress", "put", topic.key(keys)), topic.path
+    # Geometry asks the semantic service for a merge pass before it saves.
+    assert _allows("geometry", "ingress", "query", "openfusion/lab-1/semantic/merge")
+    assert _allows("gpu-semantic", "egress", "query", "openfusion/lab-1/semantic/merge")
+    pool = PoolKeys("openfusion")
+    for message in ("declare_queryable", "reply", "query"):
+        assert _allows("gpu-semantic", "ingress", message, pool.encode("w1")), message
+        assert _allows("gpu-semantic", "egress", message, pool.info("w1")), message
+    assert _allows("gpu-semantic", "ingress", "liveliness_token", pool.worker("w1"))
+    assert _allows("gpu-semantic", "ingress", "liveliness_query", pool.workers)
+    assert not _allows("query-client", "ingress", "query", "openfusion/lab-1/semantic/merge")

@@ -147,6 +147,25 @@ def test_delta_replica_tracks_the_owner() -> None:
         replica.delta_since(0)  # a replica's history starts at its snapshot
 
 
+def test_a_snapshot_carries_the_merges_to_their_final_survivor() -> None:
+    """A replica that missed the merge deltas and takes a snapshot knows every merge, chains
+    resolved to the live key (b -> a, then a -> d: b ends in d), and resolves old keys with it;
+    a key whose survivor was deleted is left out (its voxels are gone)."""
+    owner = RegionDictionary("s", 3)
+    a, b, c, d = (owner.add(unit(v)) for v in ([1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0]))
+    e, f = owner.add(unit([1, 0, 1])), owner.add(unit([0, 1, 1]))
+    owner.merge(a, b)
+    owner.merge(d, a)
+    owner.merge(e, f)
+    owner.remove(e)
+    snap = owner.snapshot()
+    assert dict(zip(snap.merged_keys.tolist(), snap.merged_into.tolist(), strict=True)) == {a: d, b: d}
+    replica = RegionDictionary.from_snapshot(snap)
+    assert replica.merge_table() == {a: d, b: d}
+    np.testing.assert_array_equal(replica.resolve_keys(np.array([b, a, c, -1])), [d, d, c, -1])
+    assert replica.survivor_of(f) is None and sorted(replica.keys.tolist()) == [c, d]
+
+
 def test_from_snapshot_rejects_inconsistent_arrays() -> None:
     """A snapshot whose arrays disagree is refused by the message itself; one whose keys reach
     past next_key (a bad owner) is refused by the dictionary; neither is half-built."""

@@ -366,9 +366,17 @@ class RegionDictionary:
         return self.keys, (_unit(V) @ self._units_t[:, : self._size]).T
 
     # ------------------------------------------------------------------ deltas / snapshots
+    def merge_table(self) -> dict[int, int]:
+        """``{merged-away key: the live key it ended in}`` for every merge this dictionary knows
+        (keys whose survivor was later deleted are left out: their voxels are gone too)."""
+        table = {old: self.survivor_of(old) for old in self._merged_into}
+        return {old: new for old, new in table.items() if new is not None}
+
     def snapshot(self) -> DictionarySnapshot:
-        """The whole dictionary at its current version (running-mean embeddings, not normalised)."""
+        """The whole dictionary at its current version (running-mean embeddings, not normalised),
+        with its merge table (a replica that missed a merge delta learns the merge from it)."""
         n = self._size
+        merges = self.merge_table()
         return DictionarySnapshot(
             embedding_space=self.embedding_space,
             dim=self.dim,
@@ -378,6 +386,8 @@ class RegionDictionary:
             embeddings=self._means[:n].copy(),
             counts=self._counts[:n].copy(),
             labels=[label or "" for label in self._labels],
+            merged_keys=np.array(sorted(merges), np.int32),
+            merged_into=np.array([merges[k] for k in sorted(merges)], np.int32),
         )
 
     @classmethod
@@ -399,6 +409,7 @@ class RegionDictionary:
         d.version = int(snapshot.version)
         d._history_start = d.version
         d._changed_at = {int(key): d.version for key in keys}
+        d._merged_into = {int(a): int(b) for a, b in zip(snapshot.merged_keys, snapshot.merged_into, strict=True)}
         return d
 
     def delta_since(self, version: int) -> DictionaryDelta | None:

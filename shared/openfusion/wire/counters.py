@@ -62,7 +62,9 @@ class GeometryCounter(StrEnum):
     FRAMES_OUT_OF_ORDER = "frames_out_of_order"  # playback frames dropped: the frame before them is not held
     FRAMES_FAILED = "frames_failed"  # integration raised on the frame (logged, taken as done: never retried)
     FRAMES_GAP = "frames_gap"  # live frames that never reached the map (ids skipped between two frames taken)
-    VOXELS_RELABELLED = "voxels_relabelled"  # voxels whose key a merge delta changed to the surviving key
+    VOXELS_RELABELLED = "voxels_relabelled"  # voxels whose key a merge (delta or resync) changed to the surviving key
+    SAVE_MERGES = "save_merges"  # merge passes the semantic service ran because this service was saving
+    SAVE_MERGE_FAILURES = "save_merge_failures"  # saves that went ahead without one (semantic gone or silent)
 
 
 class SemanticCounter(StrEnum):

@@ -26,6 +26,8 @@ from openfusion.wire.schemas import (
     GeometryProgress,
     ImageQuery,
     InstanceFrame,
+    MergeReply,
+    MergeRequest,
     MeshReply,
     MeshRequest,
     PointQuery,
@@ -105,6 +107,8 @@ GEOMETRY_DICTIONARY = Endpoint(("geometry", "dictionary"), DictionaryRequest, Di
 #: Which regions' labelled voxels touch, and how much (the semantic service decides merges on it).
 GEOMETRY_CONTACTS = Endpoint(("geometry", "contacts"), RegionContactsRequest, RegionContactsReply, owner="geometry")
 SEMANTIC_DICTIONARY = Endpoint(("semantic", "dictionary"), DictionaryRequest, DictionarySnapshot, owner="semantic")
+#: A merge pass now (geometry asks before it saves a map, so a saved map holds objects, not fragments).
+SEMANTIC_MERGE = Endpoint(("semantic", "merge"), MergeRequest, MergeReply, owner="semantic")
 QUERY_TEXT = Endpoint(("query", "text"), TextQuery, QueryReply, owner="query")
 #: Several texts in one round trip (embedded in one encoder call): one QueryReply per text, in order.
 QUERY_TEXT_BATCH = Endpoint(("query", "text_batch"), TextQueryBatch, QueryBatchReply, owner="query")
@@ -118,5 +122,5 @@ CONTROL: dict[str, Endpoint[ControlRequest, ControlReply]] = {
 TOPICS: tuple[Topic, ...] = (SENSOR_RGBD, SENSOR_INSTANCE, GEOMETRY_PROGRESS, SEMANTIC_UPDATE, DICTIONARY_DELTA)
 ENDPOINTS: tuple[Endpoint, ...] = (
     GEOMETRY_RENDER, GEOMETRY_POINTS, GEOMETRY_MESH, GEOMETRY_REGIONS, GEOMETRY_DICTIONARY, GEOMETRY_CONTACTS,
-    SEMANTIC_DICTIONARY, QUERY_TEXT, QUERY_TEXT_BATCH, QUERY_IMAGE, QUERY_POINT, *CONTROL.values(),
+    SEMANTIC_DICTIONARY, SEMANTIC_MERGE, QUERY_TEXT, QUERY_TEXT_BATCH, QUERY_IMAGE, QUERY_POINT, *CONTROL.values(),
 )

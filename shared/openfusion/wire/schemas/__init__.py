@@ -59,11 +59,15 @@ from openfusion.wire.schemas.semantic import (
     DictionaryDelta,
     DictionaryRequest,
     DictionarySnapshot,
+    MergeReply,
+    MergeRequest,
     SemanticUpdate,
 )
 from openfusion.wire.schemas.sensor import InstanceFrame, RgbdFrame
 
 __all__ = [
+    "MergeReply",
+    "MergeRequest",
     "WorkerInfo",
     "WorkerInfoRequest",
     "MAX_BATCH_TEXTS",

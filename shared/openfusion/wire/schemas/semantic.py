@@ -65,10 +65,15 @@ class DictionaryRequest(Message):
 
 class DictionarySnapshot(Message):
     """The whole region dictionary: key -> running-mean embedding (not normalised), observation
-    count, label ("" = none); ``next_key`` is the key the owner allocates next."""
+    count, label ("" = none); ``next_key`` is the key the owner allocates next.
+
+    ``merged_keys`` / ``merged_into`` (version 2): every key merged away so far and the live key it
+    ended in. A replica that resyncs from a snapshot after missing a delta learns the merges it
+    missed from them: geometry relabels those keys' voxels, and updates planned before a merge
+    resolve to the survivor."""
 
     schema_name: ClassVar[str] = "semantic.dictionary"
-    schema_version: ClassVar[int] = 1
+    schema_version: ClassVar[int] = 2
 
     embedding_space: str = Field(min_length=1)
     dim: int = Field(gt=0)
@@ -78,13 +83,44 @@ class DictionarySnapshot(Message):
     embeddings: ndarray("float32", shape=(None, None))
     counts: ndarray("int64", shape=(None,))
     labels: list[str]
+    merged_keys: KeyList = Field(default_factory=lambda: np.zeros(0, np.int32))
+    merged_into: KeyList = Field(default_factory=lambda: np.zeros(0, np.int32))
 
     @model_validator(mode="after")
     def _check(self) -> DictionarySnapshot:
         _check_dictionary_rows(
             dim=self.dim, keys=self.keys, embeddings=self.embeddings, counts=self.counts, labels=self.labels
         )
+        if len(self.merged_into) != len(self.merged_keys):
+            raise ValueError(
+                f"merged_into ({len(self.merged_into)}) must have one entry per merged key ({len(self.merged_keys)})"
+            )
+        if np.isin(self.merged_keys, self.keys).any():
+            raise ValueError("a merged key cannot also be a live key")
+        if len(self.merged_into) and not np.isin(self.merged_into, self.keys).all():
+            raise ValueError("every merged key must end in a live key of the snapshot")
         return self
+
+
+class MergeRequest(Message):
+    """Ask the semantic service for a merge pass now (geometry asks before it saves a map)."""
+
+    schema_name: ClassVar[str] = "semantic.merge_request"
+    schema_version: ClassVar[int] = 1
+
+
+class MergeReply(Message):
+    """What a requested merge pass did; ``dictionary_version`` is the version after it (its delta,
+    when it changed anything, was published before this reply)."""
+
+    schema_name: ClassVar[str] = "semantic.merge_reply"
+    schema_version: ClassVar[int] = 1
+
+    ok: bool  # False: geometry gave no contacts (``message`` says why); nothing changed
+    regions_merged: int = Field(ge=0)
+    regions_pruned: int = Field(ge=0)
+    dictionary_version: int = Field(ge=0)
+    message: str = ""
 
 
 class DictionaryDelta(Message):
