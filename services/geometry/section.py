@@ -33,7 +33,7 @@ class GeometrySection(VolumeParams):
     max_points_reply: int = Field(500_000, gt=0, description="most surface points or mesh vertices in one reply")
     max_render_pixels: int = Field(640 * 480, gt=0, description="largest render request (width x height)")
     merge_on_save: bool = Field(
-        True, description="before control/save and the final save, ask the semantic service for a merge pass"
+        True, description="before a save on control/save, ask the semantic service for a merge pass"
     )
     merge_on_save_timeout_s: float = Field(
         20.0, gt=0, description="how long a save waits for that merge pass (then it saves without it)"

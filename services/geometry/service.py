@@ -34,11 +34,12 @@ reaches the volume; a bad request is answered with ``reply_err`` naming the limi
 
 Merges (the semantic service decides them, :mod:`openfusion.mapping.merging`): a delta's
 ``merged_into`` relabels the merged keys' voxels under the lock updates are applied under. A
-save on ``control/save`` (what ``openfusion run`` sends at its end, and ``Client.control("save")``) and the
-final save on shutdown first ask ``semantic/merge`` for a pass and wait until its delta is applied
-(``merge_on_save``, ``merge_on_save_timeout_s``), so a saved map holds objects, not fragments;
-without an answer the map is saved as it is (``save_merge_failures``). Periodic checkpoints do not
-ask (the semantic service merges every ``merge_every`` of its frames anyway). When a delta is lost
+save on ``control/save`` (what ``openfusion run`` sends at its end, and ``Client.control("save")``)
+first asks ``semantic/merge`` for a pass and waits until its delta is applied (``merge_on_save``,
+``merge_on_save_timeout_s``), so a saved map holds objects, not fragments; without an answer the map
+is saved as it is (``save_merge_failures``). Periodic checkpoints and the last checkpoint on
+shutdown (the bus is closed by then) do not ask: the semantic service merges every
+``merge_every`` of its frames anyway. When a delta is lost
 (a gap in versions) the replica resyncs from the semantic service's snapshot, whose merge table
 relabels the voxels of the merges the lost delta carried.
 
@@ -628,8 +629,8 @@ class GeometryService:
                     runner.stats.add_error()
 
     def close(self) -> None:
+        # The session is closed by now: this last checkpoint is saved without a merge pass.
         if self._dirty and self.checkpoint_dir is not None:
-            self.merge_before_save()
             with contextlib.suppress(CheckpointFailed):  # logged by save()
                 self.save()
 
