@@ -17,8 +17,9 @@
 | ``…/semantic/dictionary`` | queries on a gap in the deltas (resync) | DictionaryRequest → DictionarySnapshot |
 | ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC), ``voxels_relabelled``, ``save_merges``, ``save_merge_failures``, ``dictionary_resyncs`` |
 
-Checkpoints go to ``{map_dir}/{map_id}`` every ``checkpoint_period_s`` (when something changed)
-and on ``control/save``; :func:`~openfusion.mapping.save_map` writes them atomically and keeps
+Checkpoints go to ``{map_dir}/{map_id}`` every ``checkpoint_period_s`` (when something changed;
+without region summaries, which would cost a surface read-out under the lock integration waits
+on), on ``control/save`` and on shutdown (both with summaries); :func:`~openfusion.mapping.save_map` writes them atomically and keeps
 the one before as ``map.ofz.prev.npz``. On start the service loads the newest checkpoint, or the
 previous one when the newest is corrupt or missing (:func:`~openfusion.mapping.load_latest_map`,
 one warning line; both unreadable: the service does not start rather than map over them), so a
@@ -231,7 +232,10 @@ class GeometryService:
             "none" if self.checkpoint_last_frame_id is None else self.checkpoint_last_frame_id,
         )
 
-    def save(self, path: Path | None = None) -> Path:
+    def save(self, path: Path | None = None, *, summary: bool = True) -> Path:
+        """Save the map (atomically) to ``path`` or the checkpoint folder. ``summary=False`` (the
+        periodic checkpoints) leaves out the region summaries, which cost a surface read-out
+        under the lock integration waits on; a save asked for on ``control/save`` stores them."""
         target = path or self.checkpoint_dir
         if target is None:
             raise RequestError(
@@ -258,6 +262,7 @@ class GeometryService:
                         "playback": self.playback,
                     },
                     regions=regions,
+                    summary=summary or regions is not None,
                 )
             except OSError as exc:
                 # Disk full, read-only folder...: save_map left the files as they were and no
@@ -617,7 +622,7 @@ class GeometryService:
                 and time.monotonic() - self._last_checkpoint >= period
             ):
                 try:
-                    self.save()
+                    self.save(summary=False)
                 except CheckpointFailed:  # logged and counted by save(); mapping goes on
                     runner.stats.add_error()
                 except Exception:  # not an OSError: logged with its traceback; tried again one period later
@@ -632,7 +637,7 @@ class GeometryService:
         # The session is closed by now: this last checkpoint is saved without a merge pass.
         if self._dirty and self.checkpoint_dir is not None:
             with contextlib.suppress(CheckpointFailed):  # logged by save()
-                self.save()
+                self.save()  # with summaries: this one is what `query --map-dir` reads after a stop
 
 
 def _has_checkpoint(path: Path) -> bool:

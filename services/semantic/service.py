@@ -104,6 +104,9 @@ class SemanticSection(MatchParams, MergeParams, EncoderOptions):
     )
     max_hz: float | None = Field(None, gt=0, description="at most this many semantic frames per second")
     render_timeout_s: float = Field(5.0, gt=0, description="wait this long for geometry's render of a frame")
+    merge_min_interval_s: float = Field(
+        2.0, ge=0, description="at least this long between two periodic merge passes (a pass costs geometry a "
+        "contacts read-out; with a fast encoder pool merge_every frames come many times a second)")
     instance_wait_s: float = Field(
         0.5, ge=0, le=10, description="gt encoder: wait this long for a frame's instance image, then skip the frame"
     )
@@ -141,7 +144,7 @@ class SemanticService:
         self.dictionary = RegionDictionary(self.encoder.embedding_space, self.encoder.dim)
         self.match_params = MatchParams.from_section(self.section)
         self.merge_params = MergeParams.from_section(self.section)
-        self._merge_schedule = MergeSchedule(self.merge_params)
+        self._merge_schedule = MergeSchedule(self.merge_params, min_interval_s=self.section.merge_min_interval_s)
         self._empty_regions = EmptyRegions()
         self.switch = SemanticSwitch(self.section.every_k, self.section.max_hz)
         self._frames: Subscriber[RgbdFrame] | None = None

@@ -120,7 +120,7 @@ def test_merges_reach_every_replica_and_survive_a_semantic_restart() -> None:
     port = free_port()
     router = open_session(_config(ServiceConfig, map_id, "", {}, port=port, mode="router"))
     geo_cfg = _config(GeometryConfig, map_id, "geometry", {"initial_block_count": 2048}, port=port)
-    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"merge_every": 2, "recover_timeout_s": 30,
+    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"merge_every": 2, "merge_min_interval_s": 0, "recover_timeout_s": 30,
                                                            "instance_wait_s": 10}, port=port)
     query_cfg = _config(QueryConfig, map_id, "query", {"text_encoder": "hash"}, port=port)
     with (

@@ -245,6 +245,17 @@ def test_map_saved_without_summaries_still_loads(mapper: SemanticMapper, tmp_pat
     assert answers(load_map(old).volume, load_map(old).dictionary) == answers(mapper.volume, mapper.dictionary)
 
 
+def test_a_checkpoint_saved_without_summaries_reads_like_an_old_map(mapper: SemanticMapper, tmp_path: Path) -> None:
+    """``save_map(summary=False)`` (geometry's periodic checkpoints) stores no summary member,
+    ``load_map_summary`` answers None and the volume gives the same answers."""
+    path = save_map(tmp_path / "ckpt.npz", mapper.volume, mapper.dictionary, summary=False)
+    with np.load(path) as npz:
+        assert not [n for n in npz.files if n.startswith("summary_")]
+    assert load_map_summary(path) is None
+    loaded = load_map(path)
+    assert answers(loaded.volume, loaded.dictionary) == answers(mapper.volume, mapper.dictionary)
+
+
 def test_corrupt_summaries_are_refused_by_both_readers(mapper: SemanticMapper, tmp_path: Path) -> None:
     """The summary members are checked like every array (the zip's and the header's CRC-32):
     flipped bytes in them fail both ``load_map_summary`` and ``load_map`` (refused whole)."""

@@ -209,6 +209,18 @@ def test_schedule_runs_every_n_semantic_frames() -> None:
     assert not any(MergeSchedule(MergeParams(merge_every=0)).due() for _ in range(5))
 
 
+def test_schedule_keeps_passes_apart_in_time_when_asked() -> None:
+    """The services' schedule (min_interval_s): frames due every 2, passes at least 1 s apart on
+    the given clock; a pass held back comes with the first frame after the interval."""
+    now = [0.0]
+    schedule = MergeSchedule(MergeParams(merge_every=2), min_interval_s=1.0, clock=lambda: now[0])
+    due = []
+    for _ in range(8):  # 0.25 s per semantic frame
+        due.append(schedule.due())
+        now[0] += 0.25
+    assert due == [False, True, False, False, False, True, False, False]
+
+
 # ---------------------------------------------------------------------------- on a real volume
 
 K_FULL = CameraIntrinsics(320, 240, 262.5, 262.5, 159.5, 119.5)

@@ -139,12 +139,15 @@ def save_map(
     *,
     regions: RegionTable | None = None,
     keep_previous: bool = True,
+    summary: bool = True,
 ) -> Path:
     """Write the map atomically; returns the file written. ``meta`` must be JSON-serialisable.
 
     ``regions``: the region summaries of ``volume`` as it is now, when the caller has them;
     by default they are computed here (one surface read-out, about 1.3 s for a furnished room at
-    2 cm on two CPU cores). ``keep_previous``: a file already at the target is kept as its
+    2 cm on two CPU cores). ``summary=False`` stores none (a crash-recovery checkpoint: the
+    surface read-out is most of a save's cost; :func:`load_map_summary` then answers None and
+    readers load the volume, as for a map saved before summaries existed). ``keep_previous``: a file already at the target is kept as its
     ``.prev`` sibling (module docstring: the order of the renames). An ``OSError`` (disk full,
     read-only folder) propagates with the files as they were and no temporary file left."""
     user_meta = dict(meta or {})
@@ -159,11 +162,12 @@ def save_map(
     arrays["dict_keys"] = snap.keys.astype(np.int64)
     arrays["dict_mean_embeddings"] = snap.embeddings.astype(np.float32)
     arrays["dict_counts"] = snap.counts.astype(np.int64)
-    if regions is None:
+    if regions is None and summary:
         surface = volume.extract_points()
         regions = RegionTable.of_points(surface.keys, surface.points)
-    for name in _SUMMARY_ARRAYS:
-        arrays[f"summary_{name}"] = np.ascontiguousarray(getattr(regions, name))
+    if summary and regions is not None:
+        for name in _SUMMARY_ARRAYS:
+            arrays[f"summary_{name}"] = np.ascontiguousarray(getattr(regions, name))
     header = {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,

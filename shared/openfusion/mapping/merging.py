@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import itertools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -328,18 +329,29 @@ def merge_regions(
 
 
 class MergeSchedule:
-    """Every ``merge_every`` semantic frames (0 = never): :meth:`due` after each semantic frame."""
+    """Every ``merge_every`` semantic frames (0 = never): :meth:`due` after each semantic frame.
+    ``min_interval_s`` (the services; 0 in process, so an evaluation does not depend on timing)
+    also keeps two passes that far apart on ``clock``: a pass costs geometry a contacts read-out,
+    and with a fast encoder pool ``merge_every`` frames come many times a second."""
 
-    def __init__(self, params: MergeParams) -> None:
+    def __init__(self, params: MergeParams, *, min_interval_s: float = 0.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.params = params
+        self.min_interval_s = float(min_interval_s)
+        self._clock = clock
         self._since = 0
+        self._last_s: float | None = None
 
     def due(self) -> bool:
         """Count one semantic frame; True when a merge pass is due now."""
         if self.params.merge_every <= 0:
             return False
         self._since += 1
-        if self._since >= self.params.merge_every:
-            self._since = 0
-            return True
-        return False
+        if self._since < self.params.merge_every:
+            return False
+        now = self._clock()
+        if self._last_s is not None and now - self._last_s < self.min_interval_s:
+            return False  # due by frames; comes with the first frame after the interval
+        self._since = 0
+        self._last_s = now
+        return True
