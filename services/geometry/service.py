@@ -78,6 +78,7 @@ import logging
 import threading
 import time
 import uuid
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -88,6 +89,7 @@ from openfusion.mapping import (
     CapacityError,
     MapFormatError,
     RegionDictionary,
+    RenderedView,
     SemanticVolume,
     load_latest_map,
     load_map,
@@ -167,6 +169,10 @@ def check_update(msg: SemanticUpdate) -> None:
         raise ValueError("depth_m must be finite and >= 0")
 
 
+#: Renders kept for the semantic updates that follow them (the pool applies results in frame order).
+RECENT_RENDERS = 2
+
+
 class GeometryService:
     """The geometry service's logic; every handler is a plain method tests call without a bus."""
 
@@ -203,6 +209,7 @@ class GeometryService:
         self.resume = 1
         self.waiting_for_frames = True
         self.integrate_busy_s = 0.0
+        self._recent_renders: OrderedDict[int, RenderedView] = OrderedDict()  # frame id -> render
         if self.section.load_on_start and self.checkpoint_dir is not None and _has_checkpoint(self.checkpoint_dir):
             self._load(self.checkpoint_dir, fallback=True, restore_counts=True)
 
@@ -290,8 +297,9 @@ class GeometryService:
     def _map_changed(self, *, reset_keys: bool = False) -> None:
         """Call with ``self._lock`` held after any change of the volume."""
         self.map_version += 1
-        if reset_keys:
+        if reset_keys:  # a load or reset: another volume, whose ray hits these renders are not
             self._key_horizon = 0
+            self._recent_renders.clear()
 
     def _count(self, name: str, by: float = 1.0) -> None:
         if self._runner is not None:
@@ -399,8 +407,9 @@ class GeometryService:
         check_update(msg)
         with self._lock:  # resolved and applied under the lock on_delta relabels under: no orphan keys
             key_map = self.replica.resolve_keys(msg.key_map)  # planned before a merge this replica has seen
-            self.volume.apply_update(
-                msg.T_world_cam, msg.intrinsics, key_map, msg.conf_map, observed_depth_m=msg.depth_m
+            update = self.volume.apply_update(
+                msg.T_world_cam, msg.intrinsics, key_map, msg.conf_map, observed_depth_m=msg.depth_m,
+                rendered=self._recent_renders.pop(msg.frame_id, None),
             )
             self.updates_applied += 1
             self._map_changed()
@@ -408,6 +417,8 @@ class GeometryService:
                 self._key_horizon = max(self._key_horizon, int(msg.key_map.max()) + 1)
             self._dirty = True
         self._count(GeometryCounter.UPDATES_APPLIED)
+        if update.reused_render:
+            self._count(GeometryCounter.UPDATES_REUSED_RENDER)
         if self._runner is not None:
             self._runner.stats.set(GeometryCounter.LAST_UPDATE_FRAME_ID, msg.frame_id)
 
@@ -486,6 +497,12 @@ class GeometryService:
             )
         with self._lock:
             view = self.volume.render(req.T_world_cam, req.intrinsics)
+            # The semantic service's update for this frame comes next, at the same pose and size:
+            # it writes through these ray hits instead of casting again (the volume checks the
+            # pose, the size and that the grid's buffers have not moved since).
+            self._recent_renders[req.frame_id] = view
+            while len(self._recent_renders) > RECENT_RENDERS:
+                self._recent_renders.popitem(last=False)
         return RenderReply(
             frame_id=req.frame_id, key_map=view.key_map, conf_map=view.conf_map, depth_m=view.depth_m
         )

@@ -150,6 +150,8 @@ def test_merges_reach_every_replica_and_survive_a_semantic_restart() -> None:
                 stored = set(np.unique(geometry.app.volume.to_arrays()["key"]).tolist()) - {-1}
                 assert stored and not stored & gone and stored <= set(first.dictionary.keys.tolist())
                 assert geometry.counter(GeometryCounter.VOXELS_RELABELLED) > 0
+                # Updates wrote through the render of their frame (one ray cast per semantic frame).
+                assert geometry.counter(GeometryCounter.UPDATES_REUSED_RENDER) > 0
                 before_restart = first.dictionary.snapshot()
                 fused_before = semantic.counter(SemanticCounter.SEMANTIC_FRAMES)
 
