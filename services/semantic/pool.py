@@ -4,7 +4,12 @@ Workers announce themselves with a liveliness token on ``{prefix}/@pool/encoder/
 (:class:`openfusion.wire.keys.PoolKeys`); on a new token the pool asks the worker's ``info`` and
 uses it only when it holds the map's embedding space (another space is logged once and counted in
 ``workers_refused``). Dispatch is least-loaded first with at most ``max_in_flight`` requests per
-worker (so one frame is encoded while the next travels). Each request runs on a thread of a small
+worker (so one frame is encoded while the next travels). An idle worker always takes the frame;
+when every worker is busy, a frame waits in line only at the worker expected to be free first
+(the one whose oldest request went out earliest), one frame in line across the pool: a frame
+queued behind a worker that frees up later would be overtaken by a newer frame sent to a worker
+that frees up sooner, and its result, older than one applied, would be dropped as stale
+(measured: with four workers at 250 ms, most second-slot frames were). Each request runs on a thread of a small
 executor (Zenoh's ``get`` blocks); results are queued for the service loop, which applies them in
 frame order (:class:`~openfusion.services.semantic.service.SemanticService`).
 
@@ -22,6 +27,7 @@ from __future__ import annotations
 import collections
 import logging
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -54,6 +60,7 @@ class _Request:
     worker_id: str
     attempt: int  # 1, or 2 when re-sent
     abandoned: bool = False
+    sent_at_s: float = 0.0  # CLOCK_MONOTONIC when dispatched
 
 
 @dataclass
@@ -63,6 +70,30 @@ class PoolResult:
     request: EncodeRequest
     reply: EncodeReply
     worker_id: str
+
+
+@dataclass(frozen=True)
+class WorkerLoad:
+    """What dispatch looks at for one worker."""
+
+    worker_id: str
+    in_flight: int
+    capacity: int  # most requests in flight at once (the pool's and the worker's limit)
+    sent: int
+    oldest_sent_at_s: float  # when its oldest request in flight went out (CLOCK_MONOTONIC)
+
+
+def pick_worker(workers: list[WorkerLoad]) -> str | None:
+    """The worker the next frame goes to: an idle one (fewest sent first); else, while no frame
+    waits in line at any worker, the busy worker with room that should be free first (its oldest
+    request went out earliest); else None (module docstring: why only one frame waits in line)."""
+    idle = [w for w in workers if w.in_flight == 0 and w.capacity > 0]
+    if idle:
+        return min(idle, key=lambda w: (w.sent, w.worker_id)).worker_id
+    if any(w.in_flight > 1 for w in workers):
+        return None  # a frame already waits in line: the next free worker takes the newest frame
+    room = [w for w in workers if w.in_flight < w.capacity]
+    return min(room, key=lambda w: (w.oldest_sent_at_s, w.worker_id)).worker_id if room else None
 
 
 class EncoderPool:
@@ -203,13 +234,14 @@ class EncoderPool:
             return len(self.workers)
 
     def _free_worker(self) -> PoolWorker | None:
-        """(lock held) The least-loaded worker with room, fewest sent first on ties."""
-        free = [
-            w
+        """(lock held) The worker the next frame goes to (:func:`pick_worker`), None when none."""
+        loads = [
+            WorkerLoad(w.worker_id, len(w.in_flight), min(self.max_in_flight, w.info.max_in_flight), w.sent,
+                       min((self._requests[r].sent_at_s for r in w.in_flight if r in self._requests), default=0.0))
             for w in self.workers.values()
-            if len(w.in_flight) < min(self.max_in_flight, w.info.max_in_flight)
         ]
-        return min(free, key=lambda w: (len(w.in_flight), w.sent)) if free else None
+        chosen = pick_worker(loads)
+        return self.workers[chosen] if chosen is not None else None
 
     def has_capacity(self) -> bool:
         with self._cond:
@@ -242,7 +274,7 @@ class EncoderPool:
             return False
         rid = self._next_id
         self._next_id += 1
-        req = _Request(rid, request, worker.worker_id, attempt)
+        req = _Request(rid, request, worker.worker_id, attempt, sent_at_s=time.monotonic())
         self._requests[rid] = req
         worker.in_flight.add(rid)
         worker.sent += 1

@@ -89,9 +89,11 @@ def open_pair(map_id: str) -> tuple[zenoh.Session, zenoh.Session, int]:
     return a, b, port
 
 
-def wait_until(predicate: Callable[[], Any], *, timeout_s: float = 60.0, interval_s: float = 0.05) -> Any:
+def wait_until(predicate: Callable[[], Any], *, timeout_s: float = 60.0, interval_s: float = 0.05,
+               describe: Callable[[], str] | None = None) -> Any:
     """Wait until ``predicate`` returns something truthy (returned); fail after ``timeout_s``
-    (scaled). The state waited for is the event: no test assumes a fixed time is enough."""
+    (scaled), with ``describe()`` (the state waited on) in the message. The state waited for is the
+    event: no test assumes a fixed time is enough."""
     deadline = time.monotonic() + scaled(timeout_s)
     while True:
         value = predicate()
@@ -100,6 +102,7 @@ def wait_until(predicate: Callable[[], Any], *, timeout_s: float = 60.0, interva
         if time.monotonic() > deadline:
             raise AssertionError(
                 f"condition not met within {scaled(timeout_s):g} s: {getattr(predicate, '__name__', predicate)}"
+                + (f"; {describe()}" if describe is not None else "")
             )
         time.sleep(interval_s)
 
