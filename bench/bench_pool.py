@@ -49,6 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=None, help="frames per run (default 240, quick 120)")
     ap.add_argument("--size", default="width=320,height=240", help="synthetic frame size options")
     ap.add_argument("--quality-frames", type=int, default=None, help="frames of the quality pair (default 40, quick 24)")
+    ap.add_argument("--skip-quality", action="store_true", help="only the scaling table")
     args = ap.parse_args(argv)
     from openfusion.encoders import make_text_encoder
     from openfusion.eval.saved_map import synthetic_map_quality
@@ -69,13 +70,16 @@ def main(argv: list[str] | None = None) -> int:
     print(f"## Encoder pool scaling ({frames} frames at {args.rate_hz:g} Hz, {args.size}, encoder "
           f"{args.delay_ms:g} ms per frame, {len(os.sched_getaffinity(0))} cores)\n")
     print("| workers | semantic frames | semantic rate (Hz) | x one worker | / (N x one worker) | frames per worker "
-          "| resent | lost | f-mIoU | mAcc |")
-    print("|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|")
+          "| resent | lost | stale | f-mIoU | mAcc |")
+    print("|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|")
     for n, s, q in rows:
         rate = s["semantic_rate_hz"] or float("nan")
         per = ", ".join(f"{k} {v}" for k, v in sorted(s["frames_encoded_per_worker"].items()))
         print(f"| {n} | {s['semantic_frames']} | {rate:.2f} | {rate / base:.2f} | {rate / (n * base):.2f} | {per} "
-              f"| {s['encoder_frames_resent']} | {s['encoder_frames_lost']} | {q['f_mIoU']:.3f} | {q['mAcc']:.3f} |")
+              f"| {s['encoder_frames_resent']} | {s['encoder_frames_lost']} | {s['encoder_results_stale']} "
+              f"| {q['f_mIoU']:.3f} | {q['mAcc']:.3f} |")
+    if args.skip_quality:
+        return 0
     # the same frames fused by one worker and by the largest pool: the maps must agree
     slow_hz = 0.8 * 1000.0 / args.delay_ms
     qframes = args.quality_frames or (24 if args.quick else 40)

@@ -351,6 +351,12 @@ class EncoderPool:
         with self._cond:
             return len(self._requests) + len(self._resend)
 
+    def older_in_flight(self, frame_id: int) -> bool:
+        """Whether a frame older than ``frame_id`` is still being encoded or waits to go again."""
+        with self._cond:
+            return (any(r.request.frame_id < frame_id for r in self._requests.values() if not r.abandoned)
+                    or any(r.request.frame_id < frame_id for r in self._resend))
+
     def close(self) -> None:
         with self._cond:
             self._closed = True

@@ -38,6 +38,8 @@ under one lock by the frame loop and by that request, so deltas go out in versio
 
 from __future__ import annotations
 
+import heapq
+import itertools
 import logging
 import threading
 import time
@@ -97,6 +99,9 @@ class SemanticSection(MatchParams, MergeParams, EncoderOptions):
         "encoding them here"
     )
     local_encoder: bool = Field(True, description="with encoder_pool: encode here while no worker is alive")
+    pool_reorder_wait_s: float = Field(
+        1.0, ge=0, description="with encoder_pool: a result waits at most this long for older frames still in "
+        "flight, so results apply in frame order without dropping the older ones")
     pool_timeout_s: float = Field(30.0, gt=0, description="with encoder_pool: a worker that has not answered a frame "
                                   "within this many seconds is taken for dead")
     every_k: int = Field(
@@ -155,6 +160,10 @@ class SemanticService:
         self._frames_without_instance = 0
         self._pool: EncoderPool | None = None
         self._last_applied = -1  # the newest frame whose result was applied (pool mode)
+        # Results waiting for older frames still in flight: (frame id, arrival order, arrived at, result).
+        self._held: list[tuple[int, int, float, PoolResult]] = []
+        self._arrivals = itertools.count()
+        self._waited: set[int] = set()  # arrival numbers of held results already counted as held
         self._last_dispatched = -1  # the newest frame taken for the pool
         # Held while the dictionary changes and its delta is published: the frame loop and a
         # merge requested on semantic/merge (another thread) change it.
@@ -356,8 +365,9 @@ class SemanticService:
 
     def _loop_pool(self, runner: ServiceRunner, pool: EncoderPool) -> None:
         """Frames go to the pool's workers, at most ``max_in_flight`` per worker, the newest frame
-        whenever one has room; results are applied in frame order (an older result than one
-        applied is dropped and counted); with no worker alive the local encoder (if configured)
+        whenever one has room; results are applied in frame order: a result whose older frames
+        are still in flight waits for them up to ``pool_reorder_wait_s`` (``results_held``), and
+        an older result than one applied is dropped and counted (``results_stale``); with no worker alive the local encoder (if configured)
         takes the frames, else they are skipped and health says ``no_encoder``."""
         assert self._frames is not None
         stats = runner.stats
@@ -373,8 +383,10 @@ class SemanticService:
         """One turn of :meth:`_loop_pool`: apply results, re-send, then dispatch or encode one frame."""
         assert self._frames is not None
         stats = runner.stats
+        now = time.monotonic()
         for result in pool.take_results():
-            self._apply_pool_result(runner, result)
+            heapq.heappush(self._held, (result.request.frame_id, next(self._arrivals), now, result))
+        self._release_results(runner, pool)
         pool.pump_resends(self._last_applied)
         alive = pool.alive
         stats.set(PoolCounter.NO_ENCODER, int(alive == 0 and not self.section.local_encoder))
@@ -408,6 +420,22 @@ class SemanticService:
         if not pool.submit(request):  # the worker with room died in between: try it again later
             stats.incr(SemanticCounter.FRAMES_FAILED)
             stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
+
+    def _release_results(self, runner: ServiceRunner, pool: EncoderPool) -> None:
+        """Apply held results oldest first; one whose older frames are still in flight waits for
+        them up to ``pool_reorder_wait_s`` (a result that comes after a newer one was applied is
+        dropped as stale by :meth:`_apply_pool_result`)."""
+        while self._held:
+            frame_id, order, arrived, result = self._held[0]
+            if (pool.older_in_flight(frame_id)
+                    and time.monotonic() - arrived < self.section.pool_reorder_wait_s):
+                if order not in self._waited:
+                    self._waited.add(order)
+                    runner.stats.incr(PoolCounter.RESULTS_HELD)
+                return
+            heapq.heappop(self._held)
+            self._waited.discard(order)
+            self._apply_pool_result(runner, result)
 
     def _pool_request(self, runner: ServiceRunner, msg: RgbdFrame) -> EncodeRequest | None:
         """The encode request of a frame the switch accepts (joined with its instance image when the

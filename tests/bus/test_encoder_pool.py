@@ -10,6 +10,7 @@ another embedding space is refused (health counts it; a request sent to it direc
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator
 from contextlib import ExitStack
 
@@ -48,12 +49,13 @@ def _encoder() -> FlakyEncoder:
 class Map:
     """Geometry + a semantic service in pool mode (no local encoder) for one map id."""
 
-    def __init__(self, stack: ExitStack, port: int, *, listen: bool) -> None:
+    def __init__(self, stack: ExitStack, port: int, *, listen: bool, **semantic_values: object) -> None:
         self.map_id = unique_map_id("pool")
         ports = {"listen": [port]} if listen else {"connect": [port]}
         geo = _config(GeometryConfig, self.map_id, "geometry", {"initial_block_count": 1024}, **ports)
         sem = _config(SemanticConfig, self.map_id, "semantic", {"recover_timeout_s": 0, "instance_wait_s": 10,
-                                                               "encoder_pool": True, "local_encoder": False},
+                                                               "encoder_pool": True, "local_encoder": False,
+                                                               **semantic_values},
                       connect=[port])
         self.geometry = stack.enter_context(ServiceThread(GeometryService(geo), geo, "geometry"))
         self.semantic = stack.enter_context(ServiceThread(SemanticService(sem, encoder=_encoder()), sem, "semantic"))
@@ -76,6 +78,20 @@ class Map:
 def _worker(stack: ExitStack, port: int, worker_id: str, encoder: FlakyEncoder) -> ServiceThread:
     cfg = _config(EncoderConfig, unique_map_id("workers"), "encoder", {"worker_id": worker_id}, connect=[port])
     return stack.enter_context(ServiceThread(EncoderWorker(cfg, encoder=encoder), cfg, f"encoder-{worker_id}"))
+
+
+class GatedEncoder(FlakyEncoder):
+    """Holds the frame ids in ``gate_on`` until :attr:`release` is set (a slow worker, on cue)."""
+
+    def __init__(self, gate_on: set[int]) -> None:
+        super().__init__(empty_on=(), fail_on=())
+        self.gate_on = gate_on
+        self.release = threading.Event()
+
+    def encode(self, frame):  # noqa: ANN001, ANN201
+        if frame.frame_id in self.gate_on:
+            self.release.wait(timeout=120)
+        return super().encode(frame)
 
 
 @pytest.fixture
@@ -152,3 +168,32 @@ def test_frames_spread_over_workers_and_results_apply_in_frame_order(rig) -> Non
     assert fused >= 1 and a.semantic.counter(SemanticCounter.LAST_FRAME_ID) == FRAMES[-1].frame_id
     assert fused + stale == a.semantic.counter(PoolCounter.FRAMES_DISPATCHED)
     assert w1.counter("frames_encoded") + w2.counter("frames_encoded") == a.semantic.counter(PoolCounter.FRAMES_DISPATCHED)
+
+
+def test_a_result_waits_for_an_older_frame_in_flight_instead_of_dropping_it() -> None:
+    """Frame 0 goes to a worker that holds it; frame 1 goes to the other worker and comes back
+    first. Its result waits (``results_held``) until frame 0's arrives, then both are applied in
+    frame order: nothing is dropped as stale."""
+    port = free_port()
+    with ExitStack() as stack:
+        a = Map(stack, port, listen=True, pool_reorder_wait_s=120)
+        session = open_session(loopback_config(a.map_id, connect=[port]))
+        stack.callback(session.close)
+        wait_for_services(session, a.map_id, ["geometry", "semantic"])
+        gated = [GatedEncoder({0}), GatedEncoder({0})]
+        _worker(stack, port, "w1", gated[0])
+        _worker(stack, port, "w2", gated[1])
+        wait_until(lambda: a.semantic.counter(PoolCounter.ENCODER_WORKERS) == 2, timeout_s=60)
+        rgbd, instances = a.publishers(session)
+        for frame in FRAMES[:2]:
+            instances.put(InstanceFrame.from_frame(frame))
+            rgbd.put(RgbdFrame.from_frame(frame, with_instance=False))
+            wait_until(lambda f=frame: a.semantic.counter(PoolCounter.FRAMES_DISPATCHED) == f.frame_id + 1,
+                       timeout_s=60, describe=lambda: f"semantic {dict(a.semantic.stats.counters)}")
+        wait_until(lambda: a.semantic.counter(PoolCounter.RESULTS_HELD) == 1, timeout_s=60)
+        assert a.fused() == 0  # frame 1 is encoded but waits for frame 0
+        for encoder in gated:
+            encoder.release.set()
+        wait_until(lambda: a.fused() == 2, timeout_s=60, describe=lambda: f"semantic {dict(a.semantic.stats.counters)}")
+        assert a.semantic.counter(PoolCounter.RESULTS_STALE) == 0
+        assert a.semantic.counter(SemanticCounter.LAST_FRAME_ID) == 1

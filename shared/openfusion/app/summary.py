@@ -77,6 +77,8 @@ class RunSummary(BaseModel):
     #: newer frame's result had been applied before they could go again)
     encoder_frames_resent: int = 0
     encoder_frames_lost: int = 0
+    #: encoded frames whose result came after a newer frame's was applied (dropped: wasted work)
+    encoder_results_stale: int = 0
     #: semantic frames per second of mapping time (first to last fused frame): with encoder workers
     #: the semantic service waits on them, so its busy time no longer bounds its rate
     semantic_rate_hz: float | None = None
@@ -129,6 +131,7 @@ class RunSummary(BaseModel):
             encoder_workers=encoder_workers,
             encoder_frames_resent=int(c("semantic", PoolCounter.FRAMES_RESENT)),
             encoder_frames_lost=int(c("semantic", PoolCounter.FRAMES_LOST)),
+            encoder_results_stale=int(c("semantic", PoolCounter.RESULTS_STALE)),
             frames_encoded_per_worker={k.removeprefix(ENCODED_BY_PREFIX): int(v) for k, v in
                                        (stats["semantic"].counters.items() if "semantic" in stats else [])
                                        if k.startswith(ENCODED_BY_PREFIX)},

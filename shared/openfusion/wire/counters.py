@@ -105,6 +105,7 @@ class PoolCounter(StrEnum):
     FRAMES_RESENT = "frames_resent"  # sent again after their worker died
     FRAMES_LOST = "frames_lost"  # their worker died twice, or they were too old to send again
     RESULTS_STALE = "results_stale"  # came back after a newer frame's result was applied
+    RESULTS_HELD = "results_held"  # waited for an older frame still in flight before being applied
     NO_ENCODER = "no_encoder"  # 1 while no worker is alive and there is no local encoder
     LOCAL_FRAMES = "local_frames"  # encoded by the local encoder (no worker alive)
 
