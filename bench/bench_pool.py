@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
         rate = s["semantic_rate_hz"] or float("nan")
         per = ", ".join(f"{k} {v}" for k, v in sorted(s["frames_encoded_per_worker"].items()))
         print(f"| {n} | {s['semantic_frames']} | {rate:.2f} | {rate / base:.2f} | {rate / (n * base):.2f} | {per} "
-              f"| {s['encoder_frames_resent']} | {s['encoder_frames_lost']} | {s['encoder_results_stale']} "
+              f"| {s['encoder_frames_resent']} | {s['encoder_frames_lost']} | {s.get('encoder_results_stale', 'n/a')} "
               f"| {q['f_mIoU']:.3f} | {q['mAcc']:.3f} |")
     if args.skip_quality:
         return 0
