@@ -73,3 +73,43 @@ HELD_OUT: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("train", ()), ("tiger", ()), ("iceberg", ()), ("bulldozer", ()), ("a blue racing bike", ()),
     ("a flock of sheep", ()), ("the sun", ()), ("octopus", ()), ("lightning", ()), ("tennis racket", ()),
 )
+
+#: Written after HELD_OUT's results had been seen (so HELD_OUT had informed earlier choices), from
+#: scratch and committed before any measurement on it; never used to choose anything. The ``match``
+#: target is judged on this list, with HELD_OUT as a second figure.
+HELD_OUT_2: tuple[tuple[str, tuple[str, ...]], ...] = (
+    # class names, other forms
+    ("a wall", ("wall",)), ("floors", ("floor",)), ("ceilings", ("ceiling",)), ("doors", ("door",)),
+    ("a window", ("window",)), ("pictures", ("picture",)), ("beds", ("bed",)), ("a pillow", ("pillow",)),
+    ("sofas", ("sofa",)), ("bookshelves", ("bookshelf",)), ("a cabinet", ("cabinet",)),
+    ("desks", ("desk", "table")), ("monitors", ("monitor",)), ("an office chair", ("office chair", "chair")),
+    ("tables", ("table", "desk")), ("a chair", ("chair", "office chair")), ("lamps", ("lamp",)),
+    ("a plant", ("plant",)), ("trash cans", ("trash can",)),
+    # synonyms
+    ("couches", ("sofa",)), ("divan", ("sofa",)), ("bed frame", ("bed",)), ("double bed", ("bed",)),
+    ("throw pillow", ("pillow", "sofa")), ("book rack", ("bookshelf",)), ("shelving", ("bookshelf", "cabinet")),
+    ("chest of drawers", ("cabinet",)), ("dresser", ("cabinet",)), ("filing cabinet", ("cabinet",)),
+    ("office desk", ("desk", "table")), ("computer desk", ("desk", "table")), ("lcd screen", ("monitor",)),
+    ("computer display", ("monitor",)), ("task chair", ("office chair", "chair")),
+    ("rolling chair", ("office chair", "chair")), ("kitchen table", ("table", "desk")),
+    ("dining chair", ("chair", "office chair")), ("desk lamp", ("lamp",)), ("lampshade", ("lamp",)),
+    ("indoor plant", ("plant",)), ("flower pot", ("plant",)), ("waste bin", ("trash can",)),
+    ("garbage bin", ("trash can",)), ("recycling bin", ("trash can",)), ("framed photo", ("picture",)),
+    ("wall art", ("picture",)), ("windowpane", ("window",)), ("front door", ("door",)),
+    ("flooring", ("floor",)), ("recliner", SEAT),
+    # paraphrases
+    ("a place to sit down", SEAT), ("something to lie on", ("bed", "sofa")),
+    ("where I can put my laptop", ("desk", "table")), ("where to put the garbage", ("trash can",)),
+    ("something that lights the room", ("lamp",)), ("a shelf full of books", ("bookshelf",)),
+    ("a painting hanging on the wall", ("picture",)), ("a place to store things", ("cabinet", "bookshelf")),
+    ("the computer screen on the desk", ("monitor",)), ("where I can look outside", ("window",)),
+    ("the way out of the room", ("door",)), ("a cushion to rest my head on", ("pillow",)),
+    ("a chair with wheels", ("office chair", "chair")), ("a leafy plant", ("plant",)),
+    # unrelated
+    ("camel", ()), ("tsunami", ()), ("blueberry", ()), ("bus", ()), ("dolphin", ()), ("burrito", ()),
+    ("drum kit", ()), ("canyon", ()), ("volleyball", ()), ("scooter", ()), ("flamingo", ()),
+    ("thunderstorm", ()), ("rocket", ()), ("avalanche", ()), ("mango", ()), ("cello", ()), ("canoe", ()),
+    ("alligator", ()), ("lasagna", ()), ("jungle", ()), ("ambulance", ()), ("gorilla", ()), ("asteroid", ()),
+    ("excavator", ()), ("a yellow school bus", ()), ("a pack of wolves", ()), ("the stars", ()),
+    ("jellyfish", ()), ("baseball bat", ()), ("bathtub", ()), ("refrigerator", ()),
+)
