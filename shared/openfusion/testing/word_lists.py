@@ -42,6 +42,36 @@ CALIBRATION: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("spaceship", ()), ("tornado", ()), ("pineapple", ()), ("violin", ()), ("submarine", ()),
     ("dinosaur", ()), ("sandwich", ()), ("river", ()), ("helicopter", ()), ("lion", ()), ("glacier", ()),
     ("tractor", ()), ("a red sports car", ()), ("a herd of cows", ()), ("the moon", ()),
+    # added later (written before any measurement with them), to choose on a larger list
+    # class names, other forms
+    ("the door", ("door",)), ("the window", ("window",)), ("a picture", ("picture",)), ("the bed", ("bed",)),
+    ("the pillow", ("pillow",)), ("the sofa", ("sofa",)), ("a bookshelf", ("bookshelf",)),
+    ("the cabinet", ("cabinet",)), ("a desk", ("desk", "table")), ("the monitor", ("monitor",)),
+    ("the chair", ("chair", "office chair")), ("the lamp", ("lamp",)), ("the plant", ("plant",)),
+    ("the trash can", ("trash can",)), ("the wall", ("wall",)), ("a ceiling", ("ceiling",)),
+    # synonyms
+    ("sectional sofa", ("sofa",)), ("futon", ("sofa", "bed")), ("bunk bed", ("bed",)), ("pillowcase", ("pillow",)),
+    ("library shelf", ("bookshelf",)), ("storage cabinet", ("cabinet",)), ("sideboard", ("cabinet",)),
+    ("study desk", ("desk", "table")), ("desktop monitor", ("monitor",)), ("flat screen", ("monitor",)),
+    ("computer chair", ("office chair", "chair")), ("gaming chair", ("office chair", "chair")),
+    ("side table", ("table", "desk")), ("wooden chair", ("chair", "office chair")), ("table lamp", ("lamp",)),
+    ("light fixture", ("lamp",)), ("fern", ("plant",)), ("potted fern", ("plant",)),
+    ("waste container", ("trash can",)), ("litter bin", ("trash can",)), ("photograph", ("picture",)),
+    ("framed art", ("picture",)), ("window glass", ("window",)), ("bedroom door", ("door",)),
+    ("floorboards", ("floor",)), ("wooden floor", ("floor",)), ("drywall", ("wall",)),
+    ("ceiling of the room", ("ceiling",)),
+    # paraphrases
+    ("something soft for sleeping", ("pillow", "bed")), ("a place to lie down", ("bed", "sofa")),
+    ("a table to write on", ("desk", "table")), ("where the trash goes", ("trash can",)),
+    ("a light to read by", ("lamp",)), ("a flower in a pot", ("plant",)),
+    ("the thing I open to leave the room", ("door",)), ("the glass that lets light in", ("window",)),
+    ("a cupboard to store clothes", ("cabinet",)), ("a comfy seat for two people", ("sofa",)),
+    ("a display for a computer", ("monitor",)), ("the surface I walk on", ("floor",)),
+    # unrelated
+    ("horse", ()), ("kiwi fruit", ()), ("snowman", ()), ("bridge", ()), ("castle", ()), ("trombone", ()),
+    ("parrot", ()), ("sushi", ()), ("skyscraper", ()), ("motorboat", ()), ("cheetah", ()), ("cloud", ()),
+    ("pyramid", ()), ("donut", ()), ("harp", ()), ("kite", ()), ("fire truck", ()),
+    ("a field of sunflowers", ()), ("a stormy sea", ()), ("washing machine", ()), ("shower", ()), ("oven", ()),
 )
 
 #: Written after CALIBRATION and never used to choose anything: the list the figures are measured on.
