@@ -69,20 +69,52 @@ class Space:
                               query_category_vectors=self.vectors(list(cal.query_categories)))
 
 
+def margin_matrix(space: Space, cal: SpaceCalibration, queries: np.ndarray | None = None):  # noqa: ANN201
+    """(cosines, margins) of each CALIBRATION query against each category: relevancy >= the
+    threshold of margin m exactly when the margin >= m (``relevancy`` is a sigmoid of it)."""
+    q = _unit(space.vectors([t for t, _ in CALIBRATION]) if queries is None else queries)
+    r, n = _unit(space.vectors(CATS)), _unit(space.vectors(list(cal.negatives)))
+    bar = np.broadcast_to((n @ r.T).max(0)[None, :], (len(q), len(r)))
+    if cal.query_categories:
+        bar = np.maximum(bar, (q @ _unit(space.vectors(list(cal.query_categories))).T).max(1)[:, None])
+    return q @ r.T, q @ r.T - bar
+
+
+def sweep(cosines: np.ndarray, margins: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Precision and recall on CALIBRATION for every margin of ``grid`` at once, scored as
+    :func:`evaluate_match` scores (the first region by cosine whose margin reaches the threshold):
+    along each query's cosine order the running maximum of the margins says where the first
+    match is for any threshold (hand-written because evaluating 480 thresholds one by one takes
+    minutes on a busy machine)."""
+    correct = np.zeros(len(grid))
+    reported = np.zeros(len(grid))
+    positives = 0
+    for i, (_text, wanted) in enumerate(CALIBRATION):
+        order = np.argsort(-cosines[i], kind="stable")
+        running = np.maximum.accumulate(margins[i, order])
+        first = np.searchsorted(running, grid, side="left")  # index into order; len(order): no match
+        found = first < len(order)
+        reported += found
+        right = np.array([CATS[order[j]] in wanted for j in range(len(order))] + [False])
+        correct += right[first]
+        positives += bool(wanted)
+    precision = np.where(reported > 0, correct / np.maximum(reported, 1), 1.0)
+    return precision, correct / positives
+
+
 def calibrate(space: Space, cal: SpaceCalibration, queries: np.ndarray | None = None):  # noqa: ANN201
     """(margin, figures on CALIBRATION) by the rule of the module docstring."""
-    results = []
-    for m in MARGINS:
-        f = space.figures(CALIBRATION, replace(cal, threshold=_margin_to_threshold(m, cal.temperature)), queries)
-        results.append((float(m), f))
-    ok = [(m, f) for m, f in results if f.precision >= CHOOSE_AT_PRECISION]
-    if not ok:
-        m, f = max(results, key=lambda t: (t[1].precision, t[1].recall))
-        return m, f
-    best = max(f.recall for _, f in ok)
-    tied = [m for m, f in ok if f.recall == best]
-    middle = tied[len(tied) // 2]
-    return middle, dict(results)[middle]
+    precision, recall = sweep(*margin_matrix(space, cal, queries), MARGINS)
+    ok = precision >= CHOOSE_AT_PRECISION
+    if not ok.any():
+        i = max(range(len(MARGINS)), key=lambda k: (precision[k], recall[k]))
+    else:
+        tied = np.flatnonzero(ok & (recall == recall[ok].max()))
+        i = int(tied[len(tied) // 2])
+    m = float(MARGINS[i])
+    figures = space.figures(CALIBRATION, replace(cal, threshold=_margin_to_threshold(m, cal.temperature)), queries)
+    assert abs(figures.recall - recall[i]) < 1e-9, "sweep and evaluate_match disagree"
+    return m, figures
 
 
 def alternatives(space: Space, stored: SpaceCalibration) -> None:
@@ -92,9 +124,16 @@ def alternatives(space: Space, stored: SpaceCalibration) -> None:
     def templated(template_sets: list[str], items: list[str]) -> np.ndarray:
         return _unit(np.stack([_unit(space.vectors([tp.format(t) for tp in template_sets])).mean(0) for t in items]))
 
+    def show(label: str, precision: np.ndarray, recall: np.ndarray) -> None:
+        ok = precision >= CHOOSE_AT_PRECISION
+        if not ok.any():
+            print(f"    {label:<52} no margin reaches precision {CHOOSE_AT_PRECISION}")
+            return
+        i = int(np.flatnonzero(ok & (recall == recall[ok].max()))[0])
+        print(f"    {label:<52} margin {MARGINS[i]:+.4f}  cal P {precision[i]:.3f} R {recall[i]:.3f}")
+
     def row(label: str, cal: SpaceCalibration, queries: np.ndarray | None = None) -> None:
-        m, f = calibrate(space, cal, queries)
-        print(f"    {label:<52} margin {m:+.4f}  cal P {f.precision:.3f} R {f.recall:.3f}")
+        show(label, *sweep(*margin_matrix(space, cal, queries), MARGINS))
 
     plain = replace(stored, query_categories=())
     row("plain LERF (4 negatives)", plain)
@@ -107,34 +146,19 @@ def alternatives(space: Space, stored: SpaceCalibration) -> None:
                                                             "there is a {} here."])):
         row("plain LERF, " + label, plain, templated(tmpl, texts))
         row("chosen, " + label, stored, templated(tmpl, texts))
-    # a genericness term (CSLS-like) and a per-map normalisation, as margins: the query's best
-    # cosine to a negative, or the mean cosine over the scene's regions, taken off the margin
-    q, r = _unit(space.vectors(texts)), _unit(space.vectors(CATS))
-    n = _unit(space.vectors(list(stored.negatives)))
+    # a genericness term (CSLS-like) and a per-map normalisation, taken off plain LERF's margin:
+    # the query's best cosine to a negative phrase, or its mean cosine over the scene's regions
+    cosines, margins = margin_matrix(space, plain)
+    q, n = _unit(space.vectors(texts)), _unit(space.vectors(list(stored.negatives)))
     for label, shift in (("plain LERF - 0.5 * max_i q.n_i", 0.5 * (q @ n.T).max(1)),
-                         ("plain LERF - 0.5 * mean_r q.r (map)", 0.5 * (q @ r.T).mean(1))):
-        # equivalent to shifting each query's margin: move the query vector's score by the shift
-        margins = q @ r.T - (n @ r.T).max(0)[None, :] - shift[:, None]
-        best = (0.0, 0.0, 0.0)
-        for m in np.unique(np.round(margins, 4)):
-            rel = (margins >= m)
-            reported = correct = 0
-            for i, (_text, wanted) in enumerate(CALIBRATION):
-                order = np.argsort(-(q @ r.T)[i], kind="stable")
-                first = next((CATS[j] for j in order if rel[i, j]), None)
-                reported += first is not None
-                correct += first is not None and first in wanted
-            pos = sum(bool(w) for _, w in CALIBRATION)
-            p, rc = (correct / reported if reported else 1.0), correct / pos
-            if p >= CHOOSE_AT_PRECISION and rc > best[2]:
-                best = (float(m), p, rc)
-        print(f"    {label:<52} margin {best[0]:+.4f}  cal P {best[1]:.3f} R {best[2]:.3f}")
+                         ("plain LERF - 0.5 * mean_r q.r (map)", 0.5 * cosines.mean(1))):
+        show(label, *sweep(cosines, margins - shift[:, None], MARGINS))
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--encoders", default="minilm,hash")
-    parser.add_argument("--quick", action="store_true", help="(bench/run_all.py) the same run: it takes seconds")
+    parser.add_argument("--quick", action="store_true", help="(bench/run_all.py) the same run: about a minute of CPU")
     parser.add_argument("--full", action="store_true", help="(bench/run_all.py) the same run")
     parser.add_argument("--alternatives", action="store_true", help="other formulations (calibration list only)")
     parser.add_argument("--failures", action="store_true", help="list the held-out queries answered wrongly")
