@@ -19,7 +19,7 @@ from openfusion.bus import QueryError, RequestError, open_session
 from openfusion.client import OpenFusionClient
 from openfusion.encoders import make_text_encoder
 from openfusion.mapping import RegionDictionary
-from openfusion.mapping.relevancy import DEFAULT_NEGATIVES
+from openfusion.mapping.relevancy import DEFAULT_NEGATIVES, DEFAULT_QUERY_CATEGORIES
 from openfusion.services.query.service import QueryConfig, QueryService, RegionSummaries
 from openfusion.testing.bus import ServiceThread, free_port, loopback_config, unique_map_id, wait_for_services
 from openfusion.testing.encoders import CountingTextEncoder
@@ -54,7 +54,8 @@ def _summaries() -> RegionSummaries:
 def _service(config: QueryConfig | None = None, *, with_map: bool = True) -> QueryService:
     config = config or QueryConfig(map_id="unit")
     service = QueryService(config, text_encoder=CountingTextEncoder())
-    assert service.text_encoder.calls == [list(DEFAULT_NEGATIVES)]  # relevancy's negatives, once at start
+    # relevancy's negatives and query categories, once at start
+    assert service.text_encoder.calls == [[*DEFAULT_NEGATIVES, *DEFAULT_QUERY_CATEGORIES]]
     service.text_encoder.calls.clear()
     if with_map:
         dictionary = RegionDictionary(TEXT.embedding_space, TEXT.dim)

@@ -14,7 +14,7 @@ import pytest
 
 from openfusion.encoders import make_text_encoder
 from openfusion.mapping import load_map, query_regions, save_map
-from openfusion.mapping.relevancy import DEFAULT_NEGATIVES
+from openfusion.mapping.relevancy import DEFAULT_NEGATIVES, DEFAULT_QUERY_CATEGORIES
 from openfusion.testing.bus import subprocess_env
 from openfusion.testing.maps import (
     SyntheticMapSpec,
@@ -159,7 +159,8 @@ def test_several_texts_of_a_saved_map_are_embedded_in_one_encoder_call(maps, min
     monkeypatch.setattr(query_cmd, "_text_encoder_for", counting)
     monkeypatch.setenv("OPENFUSION_CACHE", str(minilm_onnx_cache))
     assert cli.main(["query", "--map-dir", str(maps["new"]), "chair", "lamp", "table", "--json"]) == 0
-    assert calls == [["chair", "lamp", "table", *DEFAULT_NEGATIVES]]  # relevancy's negative phrases too
+    # relevancy's negative phrases and query categories too
+    assert calls == [["chair", "lamp", "table", *DEFAULT_NEGATIVES, *DEFAULT_QUERY_CATEGORIES]]
     assert [o["query"] for o in json.loads(capsys.readouterr().out)] == ["chair", "lamp", "table"]
 
 

@@ -14,13 +14,14 @@ text alone prints it::
       key      7  score 1.000  chair     831 points  bbox [2.68, 3.069, 0.041] .. [3.242, 3.56, 0.886]  relevancy 1.00 match
                   near: on floor (key 2), next to table (key 6, 0.04 m)
 
-``score`` is the cosine, ``relevancy`` the LERF relevancy in [0, 1] and ``match`` says the
-relevancy reaches the embedding space's calibrated threshold (:mod:`openfusion.mapping.relevancy`);
+``score`` is the cosine, ``relevancy`` the LERF relevancy in [0, 1] (with query-side contrast
+categories) and ``match`` says the relevancy reaches the embedding space's calibrated threshold
+(:mod:`openfusion.mapping.relevancy`);
 the second line names up to three nearby regions with the hit's relation to each (``on``,
 ``under``, ``above``, ``next to``; :mod:`openfusion.mapping.relations`). A text none of whose
 regions is a match prints one line instead, and the command still exits 0::
 
-    no match for "zebra" (closest: plant, relevancy 0.52)
+    no match for "zebra" (closest: plant, relevancy 0.09)
 
 A text of the form "X on/under/above/next to Y" ("the chair next to the table", "cup on the
 desk") ranks the X regions that stand in the relation to the best Y matches first; the header says
@@ -261,9 +262,10 @@ one line naming the PLY of --out; --verbose adds log lines and the libraries' ou
     'chair' in minilm-l6-v2:
       key      7  score 1.000  chair       831 points  bbox [..] .. [..]  relevancy 1.00 match
                   near: on floor (key 2), next to table (key 6, 0.04 m)
-    no match for "zebra" (closest: plant, relevancy 0.52)
+    no match for "zebra" (closest: plant, relevancy 0.09)
   score: cosine; relevancy: [0, 1] against the phrases "object", "things", "stuff",
-  "texture"; match: relevancy reaches the embedding space's calibrated threshold. A TEXT
+  "texture" and, query side, the categories "animal", "vehicle", "food", "building",
+  "landscape"; match: relevancy reaches the embedding space's calibrated threshold. A TEXT
   without any match prints the "no match" line (exit status 0).
   "X on|under|above|next to Y" (also: on top of, underneath, beneath, below, over, beside,
   near, by), e.g. "the chair next to the table": X regions in that relation to the best Y

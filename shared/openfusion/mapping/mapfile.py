@@ -5,9 +5,10 @@ Format (``FORMAT_VERSION`` 1): an uncompressed ``.npz`` (zip of ``.npy`` arrays,
 - ``format`` (the string ``openfusion-z-map``), ``format_version`` (int),
 - ``meta_json``: JSON with the volume parameters, the dictionary's embedding space, dimension,
   version, next key and labels, the caller's ``meta``, the relevancy calibration of the space
-  (``relevancy``: temperature, threshold, negatives; :mod:`openfusion.mapping.relevancy`; absent
-  in files saved before it, which then use the library's table), and shape/dtype/CRC-32 of
-  every array,
+  (``relevancy``: method, temperature, threshold, negatives, query categories;
+  :mod:`openfusion.mapping.relevancy`; absent in files saved before it, and without ``method`` in
+  files saved before the query categories: both then use the library's table, the latter with a
+  logged reason), and shape/dtype/CRC-32 of every array,
 - ``volume_block_coords`` (N, 3) int32, ``volume_tsdf`` / ``volume_weight`` / ``volume_conf``
   (N, r, r, r) float32, ``volume_color`` (N, r, r, r, 3) float32, ``volume_key`` (N, r, r, r)
   int32 (-1 = none),

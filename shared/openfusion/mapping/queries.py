@@ -293,7 +293,7 @@ def answer_texts(
     summaries, or the table of the volume's surface), as the query service answers it
     (:func:`openfusion.mapping.answers.answer_text`: relevancy, match, centroid, nearby regions,
     "X next to Y" queries): every text (and the parts of relation queries, and the negative
-    phrases of relevancy) embedded in ONE call of ``encoder``. ``calibration``: the map's (its file records one); default: the library's for
+    phrases and categories of relevancy) embedded in ONE call of ``encoder``. ``calibration``: the map's (its file records one); default: the library's for
     the dictionary's space. Returns (results, the answer with its relation query) per text."""
     from openfusion.mapping.answers import answer_text, texts_to_embed
     from openfusion.mapping.relevancy import RelevancyScorer, calibration_for
@@ -302,8 +302,8 @@ def answer_texts(
     least = default_min_region_points() if min_points is None else max(1, int(min_points))
     calibration = calibration or calibration_for(dictionary.embedding_space)
     wanted = texts_to_embed(texts)
-    negatives = list(calibration.negatives)
-    embedded = np.asarray(encoder.encode(wanted + negatives), np.float32)  # one call: texts, parts, negatives
+    phrases = calibration.phrases  # negatives, then query categories
+    embedded = np.asarray(encoder.encode(wanted + phrases), np.float32)  # one call: texts, parts, phrases
     vectors = dict(zip(wanted, embedded[: len(wanted)], strict=True))
     scorer = RelevancyScorer.of_vectors(calibration, embedded[len(wanted):])
 

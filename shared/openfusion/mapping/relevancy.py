@@ -1,42 +1,72 @@
-"""Relevancy in [0, 1] and a calibrated ``match`` for ranked regions (the LERF formulation).
+"""Relevancy in [0, 1] and a calibrated ``match`` for ranked regions (the LERF formulation,
+with contrast categories on the query side).
 
 A raw cosine ``score`` has a scale that depends on the text encoder ("zebra" answers the plant
 with 0.41 in MiniLM), so no fixed score threshold means "this is what you asked for". Following
-LERF (Kerr et al. 2023), each region's relevancy to a query is measured against canonical
-negative phrases: for each negative ``n``, a softmax over the pair (query·region, n·region)
-gives the query's probability; the relevancy is the minimum over the negatives::
+LERF (Kerr et al. 2023), each region's relevancy to a query is a minimum of pairwise softmaxes
+(cosines of unit vectors, temperature ``T``):
 
-    relevancy(q, r) = min_i exp(q·r / T) / (exp(q·r / T) + exp(n_i·r / T))
-                    = sigmoid((q·r - max_i n_i·r) / T)
+- region side (LERF's): for each canonical negative phrase ``n_i`` ("object", "things", "stuff",
+  "texture"), the softmax over the pair (q·r, n_i·r): does the query describe the region better
+  than a phrase that describes anything?
+- query side (contrast categories ``c_j``, "animal", "vehicle", "food", "building",
+  "landscape"): the softmax over the pair (q·r, q·c_j): is the region closer to the query than a
+  broad category that is no part of a furnished room is? "car" is closer to "vehicle" than to any
+  region of the room, "houseplant" is closer to the plant than to any of the categories;
 
-(cosines of unit vectors). It is 0.5 exactly when the query is as close to the region as the
-closest negative phrase, above 0.5 when the query beats every negative.
+and the relevancy is the minimum over all of them::
+
+    relevancy(q, r) = min( min_i exp(q·r/T) / (exp(q·r/T) + exp(n_i·r/T)),
+                           min_j exp(q·r/T) / (exp(q·r/T) + exp(q·c_j/T)) )
+                    = sigmoid((q·r - max(max_i n_i·r, max_j q·c_j)) / T)
+
+It stays in [0, 1]; it is 0.5 exactly when the query is as close to the region as the closest
+negative phrase is (or the query as close to a category as to the region), above 0.5 when the
+query beats them all. Cost per query: one dot product per region, negative and category.
+Everything is computed from embeddings: the negatives and categories are embedded once per space.
+
+Why the query side: on the calibration list the region-side negatives alone leave unrelated
+words ("car", "banana", "castle") above synonyms the text model embeds weakly ("houseplant",
+"painting"), so the best threshold for precision 0.95 sits at the edge where precision falls on
+other words. The categories push unrelated words down without moving the synonyms: at precision
+>= 0.97 on the calibration list, recall rises from 0.86 to 0.92 (MiniLM;
+``bench/bench_relevancy.py --alternatives``). Measured there too and not kept: query prompt
+templates ("a photo of a {}.", ensembles of 2 and 4 templates) 0.90-0.91 alone, 0.93 on top of the
+categories with four encoder calls per query (one query more); three more categories ("weather",
+"musical instrument", "something") no gain, so the smaller set stays; a query-genericness term
+(CSLS-like: the query's best cosine to a negative taken off the margin) 0.90; a per-query
+normalisation over the map's regions 0.89; larger region-side negative sets (a greedy search over
+42 phrases) no gain. The five categories are the out-of-room ones among the candidate phrases of
+that earlier search.
+
+The query-side comparison is text against text, so it is on the region's scale only where the
+regions are text embeddings too (the gt encoder's MiniLM and hash spaces). An image space (CLIP)
+compares text with images on another scale: its calibration must measure its own categories or
+none; the uncalibrated :data:`FALLBACK` uses none (plain LERF at 0.5).
 
 Temperature ``T``: LERF applies no temperature to CLIP cosines (``T = 1``), which squeezes every
 relevancy into about [0.4, 0.6] and makes the number hard to read. We keep the formulation and
-choose ``T`` per embedding space so that relevancy spreads over [0, 1]: MiniLM's margins
-(query·region minus the best negative) run from about -0.1 (unrelated) to +0.5 (the class name
-itself), so ``T = 0.05`` maps a margin of +0.2 (a synonym) to 0.98 and 0 to 0.5. ``T`` does not
-change which regions match (a threshold on relevancy is a threshold on the margin); it only sets
-how the number reads.
+choose ``T`` per embedding space so that relevancy spreads over [0, 1]: MiniLM's margins run from
+about -0.2 (unrelated) to +0.5 (the class name itself), so ``T = 0.05`` maps a margin of +0.2 (a
+synonym) to 0.98 and 0 to 0.5. ``T`` does not change which regions match (a threshold on
+relevancy is a threshold on the margin); it only sets how the number reads.
 
-``match``: relevancy at or above a threshold calibrated per embedding space on the word lists of
-:mod:`openfusion.testing.word_lists` (``CALIBRATION``; precision and recall reported on the
-``HELD_OUT`` list, see ``bench/bench_relevancy.py`` and docs/CLI.md). The calibrations live in
-:data:`CALIBRATIONS`, keyed by embedding-space id; :func:`save_map` records the one of the map's
-space in the map file's header, and a saved map answers with the calibration it was saved with.
-A space without a calibration gets :data:`FALLBACK` (``match`` = the query beats every negative,
+``match``: relevancy at or above a threshold calibrated per embedding space on the
+``CALIBRATION`` word list of :mod:`openfusion.testing.word_lists` (the margin with the highest
+recall at precision >= 0.97, the middle of the margins that reach it: 0.02 of precision kept in
+hand for words it was not chosen on); precision and recall are reported on the held-out lists
+``HELD_OUT_2`` and ``HELD_OUT`` (``bench/bench_relevancy.py``, docs/CLI.md). The calibrations live
+in :data:`CALIBRATIONS`, keyed by embedding-space id; ``save_map`` records the one of the map's
+space in the map file's header, and a saved map answers with the calibration it was saved with
+when it was made for this :data:`METHOD`; one saved for another method (older maps: plain LERF,
+no ``method`` field) is ignored with a logged reason and the library's table answers. A space
+without a calibration gets :data:`FALLBACK` (``match`` = the query beats every negative,
 relevancy 0.5), and says so in :attr:`SpaceCalibration.calibrated`.
-
-Negatives: LERF's "object", "things", "stuff", "texture". Larger sets (generic words such as
-"something", "an item"; broad out-of-room categories such as "animal", "vehicle", "food",
-"landscape") and a greedy search over 42 candidate phrases did not raise recall at precision 0.95
-on the calibration list for MiniLM, so the LERF set stays (measured by ``bench/bench_relevancy.py
---search``).
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -44,8 +74,17 @@ from typing import Any, Protocol
 
 import numpy as np
 
-#: LERF's canonical negative phrases.
+logger = logging.getLogger(__name__)
+
+#: The relevancy formula this library computes (module docstring); a saved calibration names it.
+METHOD = "lerf+query-categories-v2"
+#: What a saved calibration without a ``method`` field was made for (maps saved before v2).
+LEGACY_METHOD = "lerf-v1"
+
+#: LERF's canonical negative phrases (region side).
 DEFAULT_NEGATIVES: tuple[str, ...] = ("object", "things", "stuff", "texture")
+#: Contrast categories (query side): broad kinds of things that are no part of a furnished room.
+DEFAULT_QUERY_CATEGORIES: tuple[str, ...] = ("animal", "vehicle", "food", "building", "landscape")
 
 
 class _Encoder(Protocol):
@@ -62,8 +101,10 @@ class SpaceCalibration:
     temperature: float
     threshold: float  # relevancy at or above it is a match
     negatives: tuple[str, ...] = DEFAULT_NEGATIVES
+    query_categories: tuple[str, ...] = ()  # query-side contrast categories (none: plain LERF)
     calibrated: bool = True  # False: FALLBACK values for a space nobody calibrated
     note: str = ""
+    method: str = METHOD
 
     @property
     def margin(self) -> float:
@@ -71,18 +112,26 @@ class SpaceCalibration:
         t = min(max(self.threshold, 1e-9), 1 - 1e-9)
         return self.temperature * math.log(t / (1 - t))
 
+    @property
+    def phrases(self) -> list[str]:
+        """Every phrase to embed: the negatives, then the query categories
+        (:meth:`RelevancyScorer.of_vectors` takes their vectors in this order)."""
+        return [*self.negatives, *self.query_categories]
+
     def to_dict(self) -> dict[str, Any]:
-        return {"embedding_space": self.embedding_space, "temperature": self.temperature,
-                "threshold": self.threshold, "negatives": list(self.negatives), "calibrated": self.calibrated}
+        return {"method": self.method, "embedding_space": self.embedding_space, "temperature": self.temperature,
+                "threshold": self.threshold, "negatives": list(self.negatives),
+                "query_categories": list(self.query_categories), "calibrated": self.calibrated}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> SpaceCalibration:
         temperature, threshold = float(data["temperature"]), float(data["threshold"])
         negatives = tuple(str(n) for n in data.get("negatives", DEFAULT_NEGATIVES))
+        categories = tuple(str(c) for c in data.get("query_categories", ()))
         if not temperature > 0 or not 0.0 <= threshold <= 1.0 or not negatives:
             raise ValueError(f"bad relevancy calibration {data!r}")
-        return cls(str(data["embedding_space"]), temperature, threshold, negatives,
-                   bool(data.get("calibrated", True)))
+        return cls(str(data["embedding_space"]), temperature, threshold, negatives, categories,
+                   bool(data.get("calibrated", True)), method=str(data.get("method", LEGACY_METHOD)))
 
 
 def _threshold_for_margin(margin: float, temperature: float) -> float:
@@ -90,38 +139,47 @@ def _threshold_for_margin(margin: float, temperature: float) -> float:
 
 
 #: Calibrations by embedding-space id (``bench/bench_relevancy.py`` measures them; the figures are
-#: in docs/CLI.md). MiniLM: the margin 0.0725 gives the highest recall at precision >= 0.95 on the
-#: calibration list. Hash trigrams are not semantic: the best threshold (margin 0.34, precision
-#: 0.96 and recall 0.57 on the calibration list) keeps near-exact words only (the query shares
-#: most trigrams with the region's text); its margins run over [-0.2, 0.9], hence T = 0.1.
+#: in docs/CLI.md). Margins: the highest recall at precision >= 0.97 on the calibration list, the
+#: middle of the margins that reach it. MiniLM: margin 0.0725. Hash trigrams are not
+#: semantic: the threshold keeps near-exact words only (the query shares most trigrams with the
+#: region's text); its margins run over [-0.2, 0.9], hence T = 0.1.
 CALIBRATIONS: dict[str, SpaceCalibration] = {
     "minilm-l6-v2": SpaceCalibration(
-        "minilm-l6-v2", 0.05, _threshold_for_margin(0.0725, 0.05),
-        note="margin 0.0725 over the best of the LERF negatives"),
+        "minilm-l6-v2", 0.05, _threshold_for_margin(0.0725, 0.05), DEFAULT_NEGATIVES, DEFAULT_QUERY_CATEGORIES,
+        note="margin 0.0725 over the LERF negatives and the query categories"),
     "hash-trigram-256": SpaceCalibration(
-        "hash-trigram-256", 0.1, _threshold_for_margin(0.34, 0.1),
+        "hash-trigram-256", 0.1, _threshold_for_margin(0.30, 0.1), DEFAULT_NEGATIVES, DEFAULT_QUERY_CATEGORIES,
         note="lexical: near-exact words only"),
 }
 
-#: A space without calibration: the query must beat every negative phrase (LERF's 0.5).
+#: A space without calibration: the query must beat every negative phrase (LERF's 0.5); no query
+#: categories (text-to-text cosines need not be on the scale of text-to-region ones there).
 FALLBACK = SpaceCalibration("", 0.05, 0.5, calibrated=False, note="uncalibrated space")
 
 
 def calibration_for(space: str, saved: dict[str, Any] | None = None) -> SpaceCalibration:
-    """The calibration of ``space``: ``saved`` (a map file's record) when it names that space,
-    else the library's table, else :data:`FALLBACK` for that space."""
+    """The calibration of ``space``: ``saved`` (a map file's record) when it names that space and
+    this library's :data:`METHOD`, else the library's table, else :data:`FALLBACK` for that space.
+    A saved record that is ignored is logged with the reason."""
     if saved:
         try:
             cal = SpaceCalibration.from_dict(saved)
-        except (KeyError, TypeError, ValueError):
+        except (KeyError, TypeError, ValueError) as exc:
+            logger.warning("ignoring the saved relevancy calibration: unreadable (%s)", exc)
             cal = None
-        if cal is not None and cal.embedding_space == space:
+        if cal is not None and cal.embedding_space != space:
+            logger.warning("ignoring the saved relevancy calibration: it is for space %r, not %r",
+                           cal.embedding_space, space)
+        elif cal is not None and cal.method != METHOD:
+            logger.info("ignoring the saved relevancy calibration: it was made for method %r, this library "
+                        "computes %r (the library's calibration of %r answers)", cal.method, METHOD, space)
+        elif cal is not None:
             return cal
     known = CALIBRATIONS.get(space)
     if known is not None:
         return known
-    return SpaceCalibration(space, FALLBACK.temperature, FALLBACK.threshold, FALLBACK.negatives, calibrated=False,
-                            note=FALLBACK.note)
+    return SpaceCalibration(space, FALLBACK.temperature, FALLBACK.threshold, FALLBACK.negatives,
+                            FALLBACK.query_categories, calibrated=False, note=FALLBACK.note)
 
 
 def _unit_rows(a: np.ndarray) -> np.ndarray:
@@ -133,42 +191,58 @@ def _unit_rows(a: np.ndarray) -> np.ndarray:
 
 
 def relevancy(
-    query_vectors: np.ndarray, region_embeddings: np.ndarray, negative_vectors: np.ndarray, *, temperature: float
+    query_vectors: np.ndarray,
+    region_embeddings: np.ndarray,
+    negative_vectors: np.ndarray,
+    *,
+    temperature: float,
+    query_category_vectors: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(q, r) relevancy of each query against each region (module docstring): the minimum over
-    the negatives of the pairwise softmax, i.e. ``sigmoid((q·r - max_i n_i·r) / T)``. Vectors
-    are normalised here; an empty region set gives a (q, 0) array."""
+    """(q, r) relevancy of each query against each region (module docstring): the minimum of
+    the pairwise softmaxes against the negatives (region side) and the ``query_category_vectors``
+    (query side; None or empty: plain LERF), i.e.
+    ``sigmoid((q·r - max(max_i n_i·r, max_j q·c_j)) / T)``. Vectors are normalised here; an
+    empty region set gives a (q, 0) array."""
     if temperature <= 0:
         raise ValueError(f"temperature must be positive, got {temperature}")
     Q, R, N = _unit_rows(query_vectors), _unit_rows(region_embeddings), _unit_rows(negative_vectors)
     if R.shape[0] == 0 or np.asarray(region_embeddings).size == 0:
         return np.zeros((Q.shape[0], 0), np.float64)
-    if len(N) == 0:
+    if len(N) == 0 or np.asarray(negative_vectors).size == 0:
         raise ValueError("at least one negative phrase is needed")
-    margin = Q @ R.T - (N @ R.T).max(axis=0)[None, :]
+    bar = np.broadcast_to((N @ R.T).max(axis=0)[None, :], (Q.shape[0], R.shape[0]))
+    if query_category_vectors is not None and np.asarray(query_category_vectors).size:
+        bar = np.maximum(bar, (Q @ _unit_rows(query_category_vectors).T).max(axis=1)[:, None])
+    margin = Q @ R.T - bar
     return 1.0 / (1.0 + np.exp(-margin / float(temperature)))
 
 
 class RelevancyScorer:
-    """Relevancy and ``match`` for one text encoder's space: the negatives embedded once."""
+    """Relevancy and ``match`` for one text encoder's space: negatives and categories embedded once."""
 
     def __init__(self, encoder: _Encoder, calibration: SpaceCalibration | None = None) -> None:
-        self.calibration = calibration or calibration_for(encoder.embedding_space)
-        self._negatives = np.asarray(encoder.encode(list(self.calibration.negatives)), np.float32)
+        calibration = calibration or calibration_for(encoder.embedding_space)
+        self._set(calibration, np.asarray(encoder.encode(calibration.phrases), np.float32))
+
+    def _set(self, calibration: SpaceCalibration, phrase_vectors: np.ndarray) -> None:
+        if len(phrase_vectors) != len(calibration.phrases):
+            raise ValueError(f"{len(calibration.phrases)} phrases but {len(phrase_vectors)} vectors")
+        self.calibration = calibration
+        self._negatives = phrase_vectors[: len(calibration.negatives)]
+        self._categories = phrase_vectors[len(calibration.negatives):]
 
     @classmethod
-    def of_vectors(cls, calibration: SpaceCalibration, negative_vectors: np.ndarray) -> RelevancyScorer:
-        """A scorer from negatives the caller embedded (with its query texts, in one encoder call)."""
+    def of_vectors(cls, calibration: SpaceCalibration, phrase_vectors: np.ndarray) -> RelevancyScorer:
+        """A scorer from the vectors of ``calibration.phrases`` (negatives, then query
+        categories) the caller embedded (with its query texts, in one encoder call)."""
         scorer = object.__new__(cls)
-        scorer.calibration = calibration
-        scorer._negatives = np.asarray(negative_vectors, np.float32)
-        if len(scorer._negatives) != len(calibration.negatives):
-            raise ValueError(f"{len(calibration.negatives)} negative phrases but {len(scorer._negatives)} vectors")
+        scorer._set(calibration, np.asarray(phrase_vectors, np.float32))
         return scorer
 
     def relevancy(self, query_vectors: np.ndarray, region_embeddings: np.ndarray) -> np.ndarray:
-        """(q, r) relevancy (:func:`relevancy`) with this space's negatives and temperature."""
-        return relevancy(query_vectors, region_embeddings, self._negatives, temperature=self.calibration.temperature)
+        """(q, r) relevancy (:func:`relevancy`) with this space's negatives, categories and temperature."""
+        return relevancy(query_vectors, region_embeddings, self._negatives, temperature=self.calibration.temperature,
+                         query_category_vectors=self._categories)
 
     def is_match(self, relevancy_values: np.ndarray | float) -> np.ndarray:
         return np.asarray(relevancy_values) >= self.calibration.threshold
@@ -196,16 +270,19 @@ def evaluate_match(
     *,
     temperature: float,
     threshold: float,
+    query_category_vectors: np.ndarray | None = None,
 ) -> MatchFigures:
     """Precision and recall of ``match`` as a user meets it: each query ranks the scene's
     categories by cosine (one region per category, embedded as the gt encoder embeds regions);
     the query's answer is the first ranked region that is a match, or "no match".
+    ``query_category_vectors``: the calibration's query-side categories (:func:`relevancy`).
 
     precision = answers whose first match is one of the query's categories / queries answered
     with a match (a match for "zebra" counts against it); recall = those right answers /
     queries that name something in the scene."""
     scores = _unit_rows(query_vectors) @ _unit_rows(category_vectors).T
-    rel = relevancy(query_vectors, category_vectors, negative_vectors, temperature=temperature)
+    rel = relevancy(query_vectors, category_vectors, negative_vectors, temperature=temperature,
+                    query_category_vectors=query_category_vectors)
     reported = correct = positives = 0
     failures: list[tuple[str, str | None]] = []
     for i, (text, wanted) in enumerate(word_list):
