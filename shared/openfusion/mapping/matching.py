@@ -23,7 +23,8 @@ Per-pixel confidence of the planned update (contested pixels and mask edges coun
     pixel (a mask dilated over its neighbour, both at full confidence) the frame says nothing
     about which object the pixel belongs to, so the update fuses nothing there instead of
     weakening the neighbour's voxels; a pixel only one region claims keeps that region's
-    confidence. That confidence is then scaled by ``min(1, (d + 1) / (mask_edge_px + 1))``, where ``d`` is the Euclidean distance in
+    confidence (measured in docs/EVAL.md "Standard noise after merging"). That confidence is then
+    scaled by ``min(1, (d + 1) / (mask_edge_px + 1))``, where ``d`` is the Euclidean distance in
     pixels from the pixel to the nearest *edge pixel* (a pixel whose winning region, or "none",
     differs from one of its 4 neighbours inside the image; edge pixels have d = 0). With the
     default ``mask_edge_px = 2`` the two pixel rows on each side of a region border weigh 1/3 and
