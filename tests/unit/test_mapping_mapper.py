@@ -202,3 +202,48 @@ def test_query_leaves_out_regions_without_surface_points(mapped) -> None:
     assert len(results) == 3 and empty not in [r.key for r in results]
     assert all(r.num_points > 0 for r in results)
     assert [r.key for r in query_regions(dictionary, None, query, top_k=3)] == list(ranked)
+
+
+def test_dilated_mask_does_not_eat_its_neighbour() -> None:
+    """An encoder mask a few pixels too large (the chair's, dilated by 2 output pixels over the wall
+    and floor around it, both regions at full confidence there) must not relabel the neighbours:
+    with ``contested_margin`` (default) the pixels two regions claim fuse nothing, so the voxels
+    around the chair keep their key at full confidence; with the earlier rule
+    (``contested_margin=False``) the same view weakens them. Then the chair's key is rendered
+    no wider than before (user-visible: "chair" would otherwise answer a halo of wall and floor)."""
+    from openfusion.encoders.masks import dilate_soft
+
+    scene = scene_two_objects()
+    T = POSES[0]
+    frame = scene.make_frame(T, K_FULL, frame_id=0)
+    clean = observation_from_instances(frame.instance, frame.instance_categories, out_size=OBS_HW, dim=DIM)
+    chair = clean.labels.index("chair")
+    order = [chair] + [i for i in range(len(clean.labels)) if i != chair]  # the chair first: it wins ties
+    clean = type(clean)(
+        clean.conf_maps[order], clean.embeddings[order], clean.embedding_space, [clean.labels[i] for i in order]
+    )
+    chair = 0
+    dilated_maps = clean.conf_maps.copy()
+    dilated_maps[chair] = dilate_soft(clean.conf_maps[chair], 2)
+    dilated = type(clean)(dilated_maps, clean.embeddings, clean.embedding_space, clean.labels)
+    halo = (dilated_maps[chair] > 0) & (clean.conf_maps[chair] == 0)
+    assert halo.sum() > 50
+    weakened, voxels_weakened = {}, {}
+    for margin in (True, False):
+        volume = SemanticVolume(VolumeParams())
+        mapper = SemanticMapper(volume, RegionDictionary(SPACE, DIM), params=MatchParams(contested_margin=margin))
+        volume.integrate(frame)
+        for _ in range(4):  # established: every region seen four times
+            mapper.step(clean, T, K_FULL, depth_m=frame.depth_m())
+        before = volume.render(T, K_FULL.scaled(OBS_HW[1], OBS_HW[0]))
+        mapper.step(dilated, T, K_FULL, depth_m=frame.depth_m())
+        after = volume.render(T, K_FULL.scaled(OBS_HW[1], OBS_HW[0]))
+        assert mapper.last_plan.matched and not mapper.last_plan.new_keys
+        ring = halo & (before.key_map >= 0)
+        assert (after.key_map[ring] == before.key_map[ring]).all()  # one view never flips an established voxel
+        weakened[margin] = float((before.conf_map[ring] - after.conf_map[ring]).clip(0).sum())
+        voxels_weakened[margin] = mapper.last_update.voxels_weakened
+    assert weakened[True] == 0.0
+    assert weakened[False] > 0.05 * halo.sum()
+    # Voxels reached through the 8 corners of a hit next to the halo may still be touched (a few).
+    assert voxels_weakened[True] <= 0.02 * voxels_weakened[False] and voxels_weakened[False] > 100

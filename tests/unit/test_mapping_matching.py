@@ -148,11 +148,12 @@ def test_plan_update_matches_existing_and_adds_new_regions() -> None:
     assert d.label(new_key) == "table" and d.count(new_key) == 1
     assert (plan.key_map[:, :20] == k_old).all() and (plan.key_map[:, 25:] == new_key).all()
     assert (plan.key_map[:, 20:25] == -1).all()
-    # The region's confidence, times the mask-edge weight 1/3, 2/3, 1 at 0, 1, >= 2 pixels from
-    # its border with the uncovered columns 20:25 (the image border is no edge).
-    np.testing.assert_allclose(plan.conf_map[:, 25], 0.7 / 3, atol=1e-6)
-    np.testing.assert_allclose(plan.conf_map[:, 26], 0.7 * 2 / 3, atol=1e-6)
-    np.testing.assert_allclose(plan.conf_map[:, 27:], 0.7, atol=1e-6)
+    # The region's margin over the runner-up (region 2 claims the same pixels at 0.3: 0.7 - 0.3),
+    # times the mask-edge weight 1/3, 2/3, 1 at 0, 1, >= 2 pixels from its border with the
+    # uncovered columns 20:25 (the image border is no edge).
+    np.testing.assert_allclose(plan.conf_map[:, 25], 0.4 / 3, atol=1e-6)
+    np.testing.assert_allclose(plan.conf_map[:, 26], 0.4 * 2 / 3, atol=1e-6)
+    np.testing.assert_allclose(plan.conf_map[:, 27:], 0.4, atol=1e-6)
     np.testing.assert_allclose(plan.conf_map[:, 18:20], [[0.9 * 2 / 3, 0.9 / 3]] * H, atol=1e-6)
 
 
@@ -225,3 +226,27 @@ def test_plan_update_mask_edge_option() -> None:
     np.testing.assert_allclose(plan.conf_map[:, :16], 0.8, atol=1e-6)
     with pytest.raises(ValueError, match="mask_edge_px"):
         MatchParams(mask_edge_px=float("nan"))
+
+
+def test_plan_update_contested_pixels_fuse_nothing() -> None:
+    """Where two frame regions claim a pixel, the planned confidence is the winner's margin over the
+    runner-up: a mask dilated over its neighbour (both at 1.0 there) writes nothing on the
+    neighbour, a soft border writes its margin, and uncontested pixels keep their confidence.
+    ``contested_margin=False`` plans the winner's own confidence everywhere (the earlier rule)."""
+    conf = np.zeros((2, H, W), np.float32)
+    conf[0][:, :24] = 1.0  # region 0, dilated 4 columns over region 1
+    conf[1][:, 20:] = 1.0
+    conf[0][:, 30] = 0.7  # a soft pixel column inside region 1: region 0 at 0.7, region 1 at 1.0
+    obs = SimpleObservation(conf, np.eye(2, dtype=np.float32), "s")
+    empty = rendered_from(np.full((H, W), -1), np.zeros((H, W)))
+    plan = plan_update(obs, empty, RegionDictionary("s", 2), MatchParams(mask_edge_px=0))
+    assert MatchParams().contested_margin
+    np.testing.assert_allclose(plan.conf_map[:, :20], 1.0)
+    np.testing.assert_allclose(plan.conf_map[:, 20:24], 0.0)  # both at 1.0: nothing to fuse
+    np.testing.assert_allclose(plan.conf_map[:, 30], 0.3, atol=1e-6)
+    np.testing.assert_allclose(plan.conf_map[:, 24:30], 1.0)
+    plan = plan_update(
+        obs, empty, RegionDictionary("s", 2), MatchParams(mask_edge_px=0, contested_margin=False)
+    )
+    np.testing.assert_allclose(plan.conf_map[:, :30], 1.0)
+    np.testing.assert_allclose(plan.conf_map[:, 30], 1.0)

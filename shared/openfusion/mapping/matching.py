@@ -16,8 +16,14 @@ Assignment
     ``scipy.optimize.linear_sum_assignment`` (a Jonker-Volgenant solver) maximises the total soft
     IoU; assigned pairs below ``min_iou`` (default 0.10) are dropped, so those regions count as new.
 
-Per-pixel confidence of the planned update (mask edges count less)
-    Each pixel takes the frame region with the highest confidence there. Its confidence is then
+Per-pixel confidence of the planned update (contested pixels and mask edges count less)
+    Each pixel takes the frame region with the highest confidence there. With
+    ``MatchParams.contested_margin`` (default) its confidence is that region's *margin* over the
+    runner-up there (best minus second-best confidence): where two frame regions both claim a
+    pixel (a mask dilated over its neighbour, both at full confidence) the frame says nothing
+    about which object the pixel belongs to, so the update fuses nothing there instead of
+    weakening the neighbour's voxels; a pixel only one region claims keeps that region's
+    confidence (measured in docs/EVAL.md "Standard noise after merging"). That confidence is then
     scaled by ``min(1, (d + 1) / (mask_edge_px + 1))``, where ``d`` is the Euclidean distance in
     pixels from the pixel to the nearest *edge pixel* (a pixel whose winning region, or "none",
     differs from one of its 4 neighbours inside the image; edge pixels have d = 0). With the
@@ -288,7 +294,8 @@ def plan_update(
     the paper). Matching compares the frame's soft maps with the rendered confidences (or with the
     rendered key masks, ``rendered_conf_weighted=False``).
 
-    A pixel's planned confidence is its region's confidence there times the mask-edge weight
+    A pixel's planned confidence is its region's confidence there (minus the runner-up's with
+    ``contested_margin``) times the mask-edge weight
     ``min(1, (d + 1) / (mask_edge_px + 1))``, d = distance in pixels to the nearest border between
     winning regions (see the module docstring; 0 turns the weighting off).
     """
@@ -365,8 +372,10 @@ def plan_update(
     pixel_keys = key_of[winner]
     use = covered & (pixel_keys >= 0)
     pixel_conf = best_conf
+    if p.contested_margin and n > 1:
+        pixel_conf = best_conf - np.partition(conf_maps, n - 2, axis=0)[n - 2]
     if p.mask_edge_px > 0:
-        pixel_conf = best_conf * mask_edge_weights(np.where(covered, winner, -1), p.mask_edge_px)
+        pixel_conf = pixel_conf * mask_edge_weights(np.where(covered, winner, -1), p.mask_edge_px)
     plan.key_map[use] = pixel_keys[use]
     plan.conf_map[use] = pixel_conf[use]
     plan.dictionary_version = dictionary.version

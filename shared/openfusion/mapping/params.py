@@ -140,6 +140,11 @@ class MatchParams(ConfigSection):
     mask_edge_px: float = Field(
         2.0, ge=0, description="planned confidences fall off within this many pixels of a region border (0 = off)"
     )
+    contested_margin: bool = Field(
+        True,
+        description="a pixel's planned confidence is its best region's minus the runner-up's there (pixels two "
+        "frame regions both claim fuse nothing)",
+    )
     rendered_conf_weighted: bool = Field(
         True, description="match against the rendered confidences (the paper) instead of the rendered key masks"
     )
