@@ -42,7 +42,7 @@ from openfusion.encoders.base import DEFAULT_DENSE_INPUT_LONG_SIDE_PX
 from openfusion.encoders.clip_export import export_clip_to_onnx
 from openfusion.encoders.clip_regions import DEFAULT_CLIP_MODEL
 from openfusion.encoders.graph_segmentation import GraphSegmentationProposer
-from openfusion.encoders.masks import area_downsample_labels
+from openfusion.encoders.masks import area_downsample_labels, label_ids
 from openfusion.frame import Frame
 from openfusion.testing.images import grid_boxes, make_box_frame
 from openfusion.testing.models import (
@@ -202,8 +202,8 @@ class GroundTruthProposer:
     name = "ground-truth masks"
 
     def propose(self, frame: Frame, out_hw: tuple[int, int]) -> np.ndarray:
-        ids = np.unique(frame.instance)
-        return area_downsample_labels(frame.instance, ids[ids > 0], out_hw).astype(np.float32)
+        ids = label_ids(frame.instance)
+        return area_downsample_labels(frame.instance, ids[ids > 0], out_hw)
 
 
 def frames_with_regions(count: int, n_frames: int) -> list[Frame]:
