@@ -14,7 +14,8 @@ frames, several rounds, and each figure is a median (the machine may be shared).
 masks (the frames' ground truth, so the region count is exact; graph-segmentation proposals, ~7 ms,
 are left out of both, and the ground-truth masks' own ~5 ms is in both). ``--json FILE`` writes
 those rows with the keys encoder, backend, model, regions, ms_per_frame (medians).
-``--dense-sizes 320,384,448`` adds clip-dense at those input sizes: ms per frame and the cosine of
+``--profile`` adds where clip-dense's time goes (masks, resize + normalise, tower, pooling, the
+whole call). ``--dense-sizes 320,384,448`` adds clip-dense at those input sizes: ms per frame and the cosine of
 each region's embedding against the one at the largest size.
 
     HF_HUB_OFFLINE=1 .venv/bin/python bench/bench_encoders.py --quick
@@ -96,6 +97,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="rounds over the frames for --models (default 3, quick 1; medians over all)")
     ap.add_argument("--dense-long-side", type=int, default=None,
                     help=f"clip-dense input, px on the longer side (default {DEFAULT_DENSE_INPUT_LONG_SIDE_PX})")
+    ap.add_argument("--profile", action="store_true",
+                    help="also print where clip-dense's time goes per frame: masks, resize + normalise, tower, "
+                    "pooling, and the whole encode call (medians)")
     ap.add_argument("--dense-sizes", default=None,
                     help="also time clip-dense at these input sizes (px, comma-separated, e.g. 320,384,448) and "
                     "compare its region embeddings with the largest")
@@ -294,6 +298,7 @@ def real_size_models(args: argparse.Namespace, device: str, work: Path) -> int:
     print("|---|---|---:|---:|---:|---:|")
     agreement: list[str] = []
     size_rows: list[str] = []
+    profile_rows: list[str] = []
     sizes = [int(v) for v in args.dense_sizes.split(",")] if args.dense_sizes else []
     for preset in models:
         probe = frames_with_regions(30, 1)[0]
@@ -315,6 +320,8 @@ def real_size_models(args: argparse.Namespace, device: str, work: Path) -> int:
                                  "ms_per_frame": round(ms[label], 2)})
                 print(f"| {preset} | {backend} | {count} | {ms['clip-regions']:.0f} | {ms['clip-dense']:.0f} "
                       f"| {ms['clip-regions'] / ms['clip-dense']:.1f} |", flush=True)
+            if args.profile:
+                profile_rows += dense_profile(preset, backend, dense, counts, n, rounds)
             if sizes:
                 size_rows += dense_sizes(preset, name, dev, dense_backend, backend, sizes, n, rounds, work)
         if "torch-fp32" in probe_emb and "onnx-int8" in probe_emb:
@@ -323,6 +330,13 @@ def real_size_models(args: argparse.Namespace, device: str, work: Path) -> int:
                              f"cosine min {cos.min():.4f}, mean {cos.mean():.4f}")
     for line in agreement:
         print(f"\n{line}")
+    if profile_rows:
+        print("\n## Where clip-dense's time goes (ms per frame, medians of each stage timed alone, then the "
+              "whole encode call)\n")
+        print("| model | backend | regions | masks | resize + normalise | tower | pooling | sum | encode |")
+        print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
+        for line in profile_rows:
+            print(line)
     if size_rows:
         print(f"\n## clip-dense input size (30 regions; cosine of each region's embedding against the "
               f"{max(sizes)} px one, same frames)\n")
@@ -333,6 +347,42 @@ def real_size_models(args: argparse.Namespace, device: str, work: Path) -> int:
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=1) + "\n", encoding="utf-8")
     return 0
+
+
+def dense_profile(preset: str, backend: str, dense, counts: list[int], n: int, rounds: int) -> list[str]:  # noqa: ANN001
+    """Table rows: each stage of clip-dense's encode timed alone (medians), against the whole call."""
+    from openfusion.encoders.clip_dense import dense_input_size, pool_region_features, preprocess_dense
+
+    spec = dense.clip.crop_spec
+    out = []
+    for count in counts:
+        frames = frames_with_regions(count, n)
+        size_hw = dense_input_size(480, 640, patch_px=dense.patch_px, long_side_px=dense.input_long_side_px)
+        out_hw = dense.output_size(480, 640)
+        runner = dense._runner(size_hw)
+        stages: dict[str, list[float]] = {k: [] for k in ("masks", "pre", "tower", "pool", "encode")}
+        for _ in range(rounds):
+            for f in frames:
+                t0 = time.perf_counter()
+                masks = dense.proposer.propose(f, out_hw)
+                t1 = time.perf_counter()
+                pixels = preprocess_dense(f.color, size_hw, spec.mean, spec.std)
+                t2 = time.perf_counter()
+                feats = np.asarray(runner(pixels), np.float32).reshape(size_hw[0] // dense.patch_px,
+                                                                        size_hw[1] // dense.patch_px, -1)
+                t3 = time.perf_counter()
+                pool_region_features(masks, feats)
+                t4 = time.perf_counter()
+                dense.encode(f)
+                t5 = time.perf_counter()
+                for k, a, b in (("masks", t0, t1), ("pre", t1, t2), ("tower", t2, t3), ("pool", t3, t4),
+                                ("encode", t4, t5)):
+                    stages[k].append(1e3 * (b - a))
+        med = {k: float(np.median(v)) for k, v in stages.items()}
+        parts = sum(med[k] for k in ("masks", "pre", "tower", "pool"))
+        out.append(f"| {preset} | {backend} | {count} | {med['masks']:.1f} | {med['pre']:.1f} | {med['tower']:.1f} "
+                   f"| {med['pool']:.1f} | {parts:.1f} | {med['encode']:.1f} |")
+    return out
 
 
 def dense_sizes(preset: str, name: str, dev: str, dense_backend: str, backend: str, sizes: list[int], n: int,
