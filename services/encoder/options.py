@@ -40,6 +40,11 @@ class EncoderOptions(ConfigSection):
         description="clip-dense: the frame's longer side at the tower's input, px (rounded to whole "
         "patches; fewer px is faster and coarser)",
     )
+    encoder_onnx_spinning: bool = Field(
+        True,
+        description="clip-dense onnx backends: onnxruntime's idle threads busy-wait (faster when the "
+        "encoder has the cores to itself; turn off beside other busy services on a small machine)",
+    )
 
     @field_validator("encoder")
     @classmethod
@@ -77,6 +82,7 @@ def region_encoder_from_section(section: EncoderOptions) -> Any:
         if section.encoder == "clip-dense":
             opts["backend"] = section.encoder_backend
             opts["input_long_side_px"] = section.dense_input_long_side_px
+            opts["onnx_spinning"] = section.encoder_onnx_spinning
     encoder = make_region_encoder(section.encoder, **opts)
     if section.encoder_delay_ms > 0:
         from openfusion.encoders.delayed import DelayedRegionEncoder

@@ -180,8 +180,13 @@ def test_pooling_products_run_on_one_blas_thread(monkeypatch):
     assert blas_threads() == before
 
 
-def test_onnx_session_does_not_busy_wait(clip_dir, tmp_path):
-    enc = make_region_encoder("clip-dense", model=str(clip_dir), device="cpu", backend="onnx-int8",
-                              input_long_side_px=64, cache_dir=tmp_path)
-    options = enc._runner((48, 64)).session.get_session_options()
-    assert options.get_session_config_entry("session.intra_op.allow_spinning") == "0"
+def test_onnx_spinning_is_a_setting(clip_dir, tmp_path):
+    """onnxruntime's busy-waiting: on by default (its own default, as clip-regions' crop embedder),
+    off with semantic.encoder_onnx_spinning=false."""
+    for spinning, want in ((True, "1"), (False, "0")):
+        enc = region_encoder_from_section(SemanticSection(
+            encoder="clip-dense", model_path=str(clip_dir), device="cpu", encoder_backend="onnx-int8",
+            dense_input_long_side_px=64, encoder_onnx_spinning=spinning))
+        enc.cache_dir = tmp_path
+        options = enc._runner((48, 64)).session.get_session_options()
+        assert options.get_session_config_entry("session.intra_op.allow_spinning") == want

@@ -276,7 +276,7 @@ class _TorchDense:
 
 
 class _OnnxDense:
-    def __init__(self, path: Path, device: str) -> None:
+    def __init__(self, path: Path, device: str, *, spinning: bool = True) -> None:
         import onnxruntime as ort
 
         from openfusion.encoders.device import onnx_providers
@@ -288,10 +288,11 @@ class _OnnxDense:
         options.log_severity_level = 3
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL  # one chain of blocks: nothing to overlap
-        # No busy-waiting between runs: with spinning on, the int8 pass took 1.5-2x longer on a
-        # loaded 2-core machine (its idle workers spin against the pooling, the proposer and
-        # other processes), and a machine shared with the geometry service keeps its cores.
-        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        # Idle workers busy-wait between operators (onnxruntime's default, as the crop embedder of
+        # clip-regions): 50 against 54-71 ms per int8 frame on a 2-core machine with only niced
+        # neighbours, but 1.4x slower when other processes of the same priority want the cores
+        # (spinning=False, e.g. beside the geometry service). docs/ENCODERS.md has the figures.
+        options.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
         self.session = ort.InferenceSession(str(path), sess_options=options, providers=providers)
         self.path = path
 
@@ -303,7 +304,8 @@ class ClipDenseRegionEncoder(RegionEncoder, ImageQueryEncoder):
     """Proposals (graph segmentation, or an ONNX mask proposer) + per-region means of dense CLIP
     patch features from one pass over the frame; name ``clip-dense``. Options as ``clip-regions``
     (``model``: hub name or ``save_pretrained`` folder; ``device``) plus ``backend``,
-    ``input_long_side_px``, ``dense_mode``, ``cache_dir``."""
+    ``input_long_side_px``, ``dense_mode``, ``cache_dir``, ``onnx_spinning`` (onnxruntime's idle
+    workers busy-wait: faster alone on a machine, slower beside other busy processes)."""
 
     def __init__(
         self,
@@ -318,6 +320,7 @@ class ClipDenseRegionEncoder(RegionEncoder, ImageQueryEncoder):
         input_long_side_px: int = DEFAULT_INPUT_LONG_SIDE_PX,
         dense_mode: str = "value",
         cache_dir: str | Path | None = None,
+        onnx_spinning: bool = True,
     ) -> None:
         super().__init__(output_scale=output_scale)
         backend = str(backend).strip().lower()
@@ -334,6 +337,7 @@ class ClipDenseRegionEncoder(RegionEncoder, ImageQueryEncoder):
         self.dense_mode = dense_mode
         self.input_long_side_px = int(input_long_side_px)
         self.cache_dir = cache_dir
+        self.onnx_spinning = bool(onnx_spinning)
         self.patch_px = int(self.clip.model.config.vision_config.patch_size)
         proposer = make_proposer(mask_model_path, proposer_options, device=self.clip.device)
         self.proposer = proposer
@@ -350,7 +354,8 @@ class ClipDenseRegionEncoder(RegionEncoder, ImageQueryEncoder):
                 else:
                     path = export_dense_onnx(self.clip, self.model_name, size_hw, dense_mode=self.dense_mode,
                                              int8=self.backend == "onnx-int8", cache_dir=self.cache_dir)
-                    runner = _OnnxDense(path, "cpu" if self.backend == "onnx-int8" else self.clip.device)
+                    runner = _OnnxDense(path, "cpu" if self.backend == "onnx-int8" else self.clip.device,
+                                        spinning=self.onnx_spinning)
                 self._runners[size_hw] = runner
             return runner
 
