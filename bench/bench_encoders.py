@@ -9,8 +9,9 @@ its weights are in the local Hugging Face cache.
 Real-size models (``--models``, random weights of the released sizes, built in memory): ms per
 640x480 frame of ``clip-regions`` (one tower pass per region crop) and ``clip-dense`` (one pass over
 the frame) at 10, 30 and 60 regions, per backend (torch-fp32, onnx-int8; cuda-fp16 on a GPU), with
-the ratio regions / dense measured in the same run: the two encoders are timed in turns on the same
-frames, several rounds, and each figure is a median (the machine may be shared). Both get the same
+the ratio regions / dense measured in the same run: the two encoders are timed in turns (a round of
+all frames each, order alternating) on the same frames, and each figure is a median (the machine
+may be shared). Both get the same
 masks (the frames' ground truth, so the region count is exact; graph-segmentation proposals, ~7 ms,
 are left out of both, and the ground-truth masks' own ~5 ms is in both). ``--json FILE`` writes
 those rows with the keys encoder, backend, model, regions, ms_per_frame (medians).
@@ -258,16 +259,18 @@ def _regions_encoder(model: str, backend: str, device: str, work: Path):  # noqa
 
 
 def interleaved_ms(encoders: dict[str, object], frames: list[Frame], rounds: int) -> dict[str, float]:
-    """Median ms per frame of each encoder, timed in turns on the same frames (one warm-up call
-    each; the order alternates every round), so that a burst of load on a shared machine hits
-    all of them alike."""
-    for enc in encoders.values():
-        enc.encode(frames[0])  # type: ignore[attr-defined]
+    """Median ms per frame of each encoder, timed in turns on the same frames, so that a burst of
+    load on a shared machine hits all of them alike: every round times each encoder over all the
+    frames after one untimed call (the order alternates every round). Turns are per round, not per
+    frame: two onnxruntime sessions in one process each keep idle threads spinning for a while
+    after a run, and alternating frame by frame added ~30 ms to every 50 ms clip-dense frame, a
+    cost no deployment has (one encoder per process)."""
     samples: dict[str, list[float]] = {label: [] for label in encoders}
     order = list(encoders.items())
     for r in range(rounds):
-        for f in frames:
-            for label, enc in order if r % 2 == 0 else order[::-1]:
+        for label, enc in order if r % 2 == 0 else order[::-1]:
+            enc.encode(frames[0])  # type: ignore[attr-defined]
+            for f in frames:
                 t0 = time.perf_counter()
                 enc.encode(f)  # type: ignore[attr-defined]
                 samples[label].append(time.perf_counter() - t0)
