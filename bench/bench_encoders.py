@@ -28,9 +28,11 @@ each region's embedding against the one at the largest size.
 from __future__ import annotations
 
 import argparse
+import atexit
 import logging
 import os
 import platform
+import shutil
 import sys
 import tempfile
 import time
@@ -111,6 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     device = select_device(args.device)
     text_name = args.text or ("hash" if args.quick else "minilm")
     work = Path(tempfile.mkdtemp(prefix="bench_encoders_"))
+    atexit.register(shutil.rmtree, work, True)  # real-size exports take ~1 GB
     if args.skip_small:
         return real_size_models(args, device, work)
     frames = make_frames(n)
