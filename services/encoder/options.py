@@ -10,7 +10,7 @@ from pydantic import Field, ValidationInfo, field_validator
 
 from openfusion.config import ConfigSection
 from openfusion.encoders import NOISE_PROFILES, REGION_ENCODER_NAMES, make_region_encoder
-from openfusion.encoders.base import CLIP_DENSE_BACKENDS
+from openfusion.encoders.base import CLIP_DENSE_BACKENDS, DEFAULT_DENSE_INPUT_LONG_SIDE_PX
 
 
 class EncoderOptions(ConfigSection):
@@ -33,6 +33,18 @@ class EncoderOptions(ConfigSection):
         "encoder in tests and benches",
     )
     encoder_backend: str = Field("torch", description="clip-dense backend: torch, onnx or onnx-int8")
+    dense_input_long_side_px: int = Field(
+        DEFAULT_DENSE_INPUT_LONG_SIDE_PX,
+        ge=16,
+        le=4096,
+        description="clip-dense: the frame's longer side at the tower's input, px (rounded to whole "
+        "patches; fewer px is faster and coarser)",
+    )
+    encoder_onnx_spinning: bool = Field(
+        True,
+        description="clip-dense onnx backends: onnxruntime's idle threads busy-wait (faster when the "
+        "encoder has the cores to itself; turn off beside other busy services on a small machine)",
+    )
 
     @field_validator("encoder")
     @classmethod
@@ -69,6 +81,8 @@ def region_encoder_from_section(section: EncoderOptions) -> Any:
             opts["model_path" if section.encoder == "onnx" else "model"] = section.model_path
         if section.encoder == "clip-dense":
             opts["backend"] = section.encoder_backend
+            opts["input_long_side_px"] = section.dense_input_long_side_px
+            opts["onnx_spinning"] = section.encoder_onnx_spinning
     encoder = make_region_encoder(section.encoder, **opts)
     if section.encoder_delay_ms > 0:
         from openfusion.encoders.delayed import DelayedRegionEncoder

@@ -133,3 +133,60 @@ def test_encoder_delay_wraps_any_encoder(monkeypatch):
     assert slept == [0.25]
     np.testing.assert_array_equal(obs.conf_maps, enc.inner.encode(frame).conf_maps)
     assert not isinstance(region_encoder_from_section(SemanticSection(encoder="gt")), DelayedRegionEncoder)
+
+
+def test_input_size_is_a_setting_of_the_section(clip_dir, monkeypatch):
+    """semantic.dense_input_long_side_px reaches the encoder: the tower sees that many px on the
+    frame's longer side (rounded to patches). Bad input tried: a size below 16 px."""
+    enc = region_encoder_from_section(SemanticSection(encoder="clip-dense", model_path=str(clip_dir), device="cpu",
+                                                      dense_input_long_side_px=96))
+    assert enc.input_long_side_px == 96
+    seen = []
+    runner = enc._runner((72, 96))
+    monkeypatch.setitem(enc._runners, (72, 96), lambda px: seen.append(px.shape) or runner(px))
+    obs = enc.encode(_frame(1, 2))
+    assert seen == [(1, 3, 72, 96)] and obs.num_regions == 3
+    assert SemanticSection(encoder="clip-dense").dense_input_long_side_px == 448  # the measured default
+    with pytest.raises(ValueError, match="dense_input_long_side_px"):
+        SemanticSection(encoder="clip-dense", dense_input_long_side_px=8)
+
+
+def test_pooling_products_run_on_one_blas_thread(monkeypatch):
+    """The pooling's small products must not wake BLAS's worker threads (they busy-wait afterwards
+    and slow the next tower pass); the limit is lifted again after."""
+    import contextlib
+
+    from threadpoolctl import threadpool_info
+
+    from openfusion.encoders import clip_dense
+    from openfusion.encoders.device import single_thread_blas
+
+    def blas_threads() -> set[int]:
+        return {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
+
+    before = blas_threads()
+    inside = []
+
+    @contextlib.contextmanager
+    def watched():
+        with single_thread_blas():
+            inside.append(blas_threads())
+            yield
+
+    monkeypatch.setattr(clip_dense, "single_thread_blas", watched)
+    rng = np.random.default_rng(3)
+    pool_region_features(rng.random((4, 30, 40)).astype(np.float32), rng.normal(size=(5, 7, 12)).astype(np.float32))
+    assert inside == [{1}]
+    assert blas_threads() == before
+
+
+def test_onnx_spinning_is_a_setting(clip_dir, tmp_path):
+    """onnxruntime's busy-waiting: on by default (its own default, as clip-regions' crop embedder),
+    off with semantic.encoder_onnx_spinning=false."""
+    for spinning, want in ((True, "1"), (False, "0")):
+        enc = region_encoder_from_section(SemanticSection(
+            encoder="clip-dense", model_path=str(clip_dir), device="cpu", encoder_backend="onnx-int8",
+            dense_input_long_side_px=64, encoder_onnx_spinning=spinning))
+        enc.cache_dir = tmp_path
+        options = enc._runner((48, 64)).session.get_session_options()
+        assert options.get_session_config_entry("session.intra_op.allow_spinning") == want

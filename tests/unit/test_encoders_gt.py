@@ -16,7 +16,7 @@ from openfusion.encoders import (
     select_device,
 )
 from openfusion.encoders.gt import GroundTruthRegionEncoder
-from openfusion.encoders.masks import area_downsample_labels
+from openfusion.encoders.masks import area_downsample_labels, label_ids
 from openfusion.encoders.noise import apply_region_noise, perturb_embeddings
 from openfusion.encoders.text_hash import HashTextEncoder
 from openfusion.testing.images import PixelRect, grid_boxes, make_box_frame
@@ -79,6 +79,30 @@ def test_area_downsample_handles_non_integer_ratio():
     np.testing.assert_allclose(conf.sum(axis=0), 1.0, atol=1e-6)
     with pytest.raises(EncoderError, match="output size"):
         area_downsample_labels(labels, np.array([1]), (200, 30))
+
+
+@pytest.mark.parametrize("dtype", [np.int32, np.uint16, np.int64])
+def test_area_downsample_equals_counting_pixels_per_cell(dtype):
+    """Against the definition (the share of each cell's pixels carrying the id), for compact ids
+    (lookup table), ids spread over a wide range (binary search), negative labels, an id absent
+    from the image and ids in any order; ``label_ids`` agrees with ``np.unique``."""
+    rng = np.random.default_rng(5)
+    for spread in (1, 3_000_000):
+        labels = rng.integers(0 if dtype == np.uint16 else -2, 6, (37, 51)).astype(np.int64)
+        labels = (labels * (spread if dtype == np.int64 else 1)).astype(dtype)
+        present = np.unique(labels)
+        np.testing.assert_array_equal(label_ids(labels), present)
+        ids = np.array([present[3], present[0], int(present[-1]) + spread + 1, present[-1]], np.int64)
+        conf = area_downsample_labels(labels, ids, (10, 17))
+        rows = np.minimum(((np.arange(37) + 0.5) * 10 / 37).astype(int), 9)
+        cols = np.minimum(((np.arange(51) + 0.5) * 17 / 51).astype(int), 16)
+        want = np.zeros((4, 10, 17))
+        per_cell = np.zeros((10, 17))
+        np.add.at(per_cell, (rows[:, None], cols[None, :]), 1.0)
+        for k, i in enumerate(ids):
+            np.add.at(want[k], (rows[:, None], cols[None, :]), (labels == i).astype(float))
+        np.testing.assert_allclose(conf, want / per_cell, rtol=1e-6)
+        assert not conf[2].any()
 
 
 def test_frame_without_ground_truth_is_a_clear_error(text):

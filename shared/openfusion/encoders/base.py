@@ -25,6 +25,9 @@ DEFAULT_OUTPUT_SCALE = 0.25
 
 #: Backends of the ``clip-dense`` region encoder (:mod:`openfusion.encoders.clip_dense`).
 CLIP_DENSE_BACKENDS = ("torch", "onnx", "onnx-int8")
+#: Default longer side of the ``clip-dense`` tower's input: 448 px (480x640 -> 320x448, 10x14 patches
+#: of 32 px). 384 px is 23 % fewer tokens but moved region embeddings too far (docs/ENCODERS.md).
+DEFAULT_DENSE_INPUT_LONG_SIDE_PX = 448
 
 #: Embeddings whose L2 norm is below this are treated as invalid (cannot be normalised).
 MIN_EMBEDDING_NORM = 1e-8

@@ -39,6 +39,7 @@ Exports are cached in ``$OPENFUSION_CACHE`` (default ``~/.cache/openfusion``) un
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import logging
 import os
@@ -52,6 +53,7 @@ from PIL import Image
 
 from openfusion.encoders.base import (
     CLIP_DENSE_BACKENDS,
+    DEFAULT_DENSE_INPUT_LONG_SIDE_PX,
     DEFAULT_OUTPUT_SCALE,
     MIN_EMBEDDING_NORM,
     EncoderConfigError,
@@ -63,14 +65,14 @@ from openfusion.encoders.base import (
 )
 from openfusion.encoders.clip_regions import DEFAULT_CLIP_MODEL, LoadedClip, _features, load_clip
 from openfusion.encoders.crops import preprocess_image
+from openfusion.encoders.device import single_thread_blas
 from openfusion.encoders.proposers import make_proposer
 from openfusion.frame import Frame
 
 logger = logging.getLogger(__name__)
 
 DENSE_MODES = ("value", "value-residual")
-#: Default longer side of the tower's input: 448 px (480x640 -> 320x448 for /32 and /16 patches).
-DEFAULT_INPUT_LONG_SIDE_PX = 448
+DEFAULT_INPUT_LONG_SIDE_PX = DEFAULT_DENSE_INPUT_LONG_SIDE_PX
 
 
 def dense_input_size(height_px: int, width_px: int, *, patch_px: int, long_side_px: int) -> tuple[int, int]:
@@ -102,9 +104,11 @@ def preprocess_dense(rgb: np.ndarray, size_hw: tuple[int, int], mean: tuple, std
     return out
 
 
+@functools.lru_cache(maxsize=32)
 def bilinear_matrix(out_len: int, in_len: int) -> np.ndarray:
-    """(out_len, in_len) weights of 1-D bilinear resampling, half-pixel centres (``align_corners=False``,
-    as torch's ``interpolate``), clamped at the borders; each row sums to 1."""
+    """(out_len, in_len) float32 weights of 1-D bilinear resampling, half-pixel centres
+    (``align_corners=False``, as torch's ``interpolate``), clamped at the borders; each row sums to 1.
+    Computed once per size pair (cached, read-only)."""
     src = (np.arange(out_len, dtype=np.float64) + 0.5) * (in_len / out_len) - 0.5
     src = np.clip(src, 0.0, in_len - 1)
     i0 = np.floor(src).astype(np.int64)
@@ -114,7 +118,9 @@ def bilinear_matrix(out_len: int, in_len: int) -> np.ndarray:
     rows = np.arange(out_len)
     np.add.at(m, (rows, i0), 1.0 - frac)
     np.add.at(m, (rows, i1), frac)
-    return m
+    out = m.astype(np.float32)
+    out.flags.writeable = False
+    return out
 
 
 def pool_region_features(conf_maps: np.ndarray, patch_features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -123,17 +129,23 @@ def pool_region_features(conf_maps: np.ndarray, patch_features: np.ndarray) -> t
     ``conf_maps`` (n, h, w) in [0, 1]; ``patch_features`` (gh, gw, d). Returns (embeddings (n, d)
     unit norm, ok (n,) bool): a region whose mask is empty or whose pooled feature has no norm
     is not ok (its row is zero).
+
+    The three products run on one BLAS thread: they take about a millisecond, and OpenBLAS's
+    worker threads, once woken for them, busy-wait afterwards and halve the speed of the next
+    tower pass on a 2-core machine (measured: the int8 frame went from 53 to 103 ms between 10
+    and 30 regions, the tower alone staying at 42 ms).
     """
     n, h, w = conf_maps.shape
     gh, gw, d = patch_features.shape
     if n == 0:
         return np.zeros((0, d), np.float32), np.zeros(0, bool)
-    a_h = bilinear_matrix(h, gh).astype(np.float32)
-    a_w = bilinear_matrix(w, gw).astype(np.float32)
-    # (n, h, w) -> (n, gh, gw): A_h^T m A_w for every mask at once
-    on_grid = np.matmul(a_h.T, np.matmul(conf_maps.astype(np.float32, copy=False), a_w))
-    mass = on_grid.reshape(n, -1).sum(axis=1)
-    pooled = on_grid.reshape(n, -1) @ patch_features.reshape(gh * gw, d).astype(np.float32, copy=False)
+    a_h = bilinear_matrix(h, gh)
+    a_w = bilinear_matrix(w, gw)
+    with single_thread_blas():
+        # (n, h, w) -> (n, gh, gw): A_h^T m A_w for every mask at once
+        on_grid = np.matmul(a_h.T, np.matmul(conf_maps.astype(np.float32, copy=False), a_w)).reshape(n, gh * gw)
+        pooled = on_grid @ patch_features.reshape(gh * gw, d).astype(np.float32, copy=False)
+    mass = on_grid.sum(axis=1)
     norms = np.linalg.norm(pooled, axis=1)
     ok = (mass > MIN_EMBEDDING_NORM) & np.isfinite(norms) & (norms > MIN_EMBEDDING_NORM)
     out = np.zeros((n, d), np.float32)
@@ -264,7 +276,7 @@ class _TorchDense:
 
 
 class _OnnxDense:
-    def __init__(self, path: Path, device: str) -> None:
+    def __init__(self, path: Path, device: str, *, spinning: bool = True) -> None:
         import onnxruntime as ort
 
         from openfusion.encoders.device import onnx_providers
@@ -274,6 +286,13 @@ class _OnnxDense:
             providers = ["TensorrtExecutionProvider", *providers]
         options = ort.SessionOptions()
         options.log_severity_level = 3
+        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL  # one chain of blocks: nothing to overlap
+        # Idle workers busy-wait between operators (onnxruntime's default, as the crop embedder of
+        # clip-regions): 50 against 54-71 ms per int8 frame on a 2-core machine with only niced
+        # neighbours, but 1.4x slower when other processes of the same priority want the cores
+        # (spinning=False, e.g. beside the geometry service). docs/ENCODERS.md has the figures.
+        options.add_session_config_entry("session.intra_op.allow_spinning", "1" if spinning else "0")
         self.session = ort.InferenceSession(str(path), sess_options=options, providers=providers)
         self.path = path
 
@@ -285,7 +304,8 @@ class ClipDenseRegionEncoder(RegionEncoder, ImageQueryEncoder):
     """Proposals (graph segmentation, or an ONNX mask proposer) + per-region means of dense CLIP
     patch features from one pass over the frame; name ``clip-dense``. Options as ``clip-regions``
     (``model``: hub name or ``save_pretrained`` folder; ``device``) plus ``backend``,
-    ``input_long_side_px``, ``dense_mode``, ``cache_dir``."""
+    ``input_long_side_px``, ``dense_mode``, ``cache_dir``, ``onnx_spinning`` (onnxruntime's idle
+    workers busy-wait: faster alone on a machine, slower beside other busy processes)."""
 
     def __init__(
         self,
@@ -300,6 +320,7 @@ class ClipDenseRegionEncoder(RegionEncoder, ImageQueryEncoder):
         input_long_side_px: int = DEFAULT_INPUT_LONG_SIDE_PX,
         dense_mode: str = "value",
         cache_dir: str | Path | None = None,
+        onnx_spinning: bool = True,
     ) -> None:
         super().__init__(output_scale=output_scale)
         backend = str(backend).strip().lower()
@@ -316,6 +337,7 @@ class ClipDenseRegionEncoder(RegionEncoder, ImageQueryEncoder):
         self.dense_mode = dense_mode
         self.input_long_side_px = int(input_long_side_px)
         self.cache_dir = cache_dir
+        self.onnx_spinning = bool(onnx_spinning)
         self.patch_px = int(self.clip.model.config.vision_config.patch_size)
         proposer = make_proposer(mask_model_path, proposer_options, device=self.clip.device)
         self.proposer = proposer
@@ -332,7 +354,8 @@ class ClipDenseRegionEncoder(RegionEncoder, ImageQueryEncoder):
                 else:
                     path = export_dense_onnx(self.clip, self.model_name, size_hw, dense_mode=self.dense_mode,
                                              int8=self.backend == "onnx-int8", cache_dir=self.cache_dir)
-                    runner = _OnnxDense(path, "cpu" if self.backend == "onnx-int8" else self.clip.device)
+                    runner = _OnnxDense(path, "cpu" if self.backend == "onnx-int8" else self.clip.device,
+                                        spinning=self.onnx_spinning)
                 self._runners[size_hw] = runner
             return runner
 
@@ -362,10 +385,11 @@ class ClipDenseRegionEncoder(RegionEncoder, ImageQueryEncoder):
             self.stats["dropped_zero_embedding"] += int((~ok).sum())
             logger.warning("frame %s: %d region(s) with an empty mask or zero pooled feature dropped",
                            frame.frame_id, int((~ok).sum()))
+            masks, emb = masks[ok], emb[ok]
         self.stats["regions"] += int(ok.sum())
         return RegionObservation(
-            conf_maps=np.ascontiguousarray(masks[ok], dtype=np.float32),
-            embeddings=np.ascontiguousarray(emb[ok], dtype=np.float32),
+            conf_maps=np.ascontiguousarray(masks, dtype=np.float32),
+            embeddings=np.ascontiguousarray(emb, dtype=np.float32),
             embedding_space=self.embedding_space,
             labels=None,
         )

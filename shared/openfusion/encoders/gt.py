@@ -21,7 +21,7 @@ from openfusion.encoders.base import (
     RegionObservation,
     TextEncoder,
 )
-from openfusion.encoders.masks import area_downsample_labels
+from openfusion.encoders.masks import area_downsample_labels, label_ids
 from openfusion.encoders.noise import NoiseProfile, NoiseReport, apply_region_noise, get_noise_profile
 from openfusion.frame import Frame
 
@@ -95,7 +95,7 @@ class GroundTruthRegionEncoder(RegionEncoder):
         H, W = instance.shape
         out_hw = self.output_size(H, W)
 
-        ids = np.unique(instance)
+        ids = label_ids(instance)
         ids = ids[ids > 0]
         categories = frame.instance_categories or {}
         known = np.array([int(i) in categories for i in ids], bool) if ids.size else np.zeros(0, bool)
