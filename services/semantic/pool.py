@@ -4,12 +4,13 @@ Workers announce themselves with a liveliness token on ``{prefix}/@pool/encoder/
 (:class:`openfusion.wire.keys.PoolKeys`); on a new token the pool asks the worker's ``info`` and
 uses it only when it holds the map's embedding space (another space is logged once and counted in
 ``workers_refused``). Dispatch is least-loaded first with at most ``max_in_flight`` requests per
-worker (so one frame is encoded while the next travels). An idle worker always takes the frame;
-when every worker is busy, a frame waits in line only at the worker expected to be free first
-(the one whose oldest request went out earliest), one frame in line across the pool: a frame
-queued behind a worker that frees up later would be overtaken by a newer frame sent to a worker
-that frees up sooner, and its result, older than one applied, would be dropped as stale
-(measured: with four workers at 250 ms, most second-slot frames were). Each request runs on a thread of a small
+worker (so one frame is encoded while the next travels). Of the workers with room, the frame
+goes to the one that should finish it first: each worker's time per frame is measured (from its
+answers, queueing left out) and the pool knows when each should be done with what it holds, so
+the frame goes where ``max(now, free at) + time per frame`` is least (an idle worker of the same
+speed before a busy one). Frames then come back in the order they went out: a frame queued
+behind a worker that frees up later would be overtaken by a newer frame on a worker that frees up
+sooner, and its result, older than one applied, would be dropped as stale (wasted work). Each request runs on a thread of a small
 executor (Zenoh's ``get`` blocks); results are queued for the service loop, which applies them in
 frame order (:class:`~openfusion.services.semantic.service.SemanticService`).
 
@@ -51,6 +52,9 @@ class PoolWorker:
     in_flight: set[int] = field(default_factory=set)  # request ids
     sent: int = 0
     encoded: int = 0
+    frame_s: float | None = None  # measured time per frame (moving average), None before its first answer
+    free_at_s: float = 0.0  # CLOCK_MONOTONIC when it should be done with what it holds
+    last_done_s: float = 0.0  # when its last answer came
 
 
 @dataclass
@@ -72,6 +76,10 @@ class PoolResult:
     worker_id: str
 
 
+#: Weight of the newest answer in a worker's time per frame (exponential moving average).
+FRAME_TIME_WEIGHT = 0.3
+
+
 @dataclass(frozen=True)
 class WorkerLoad:
     """What dispatch looks at for one worker."""
@@ -80,20 +88,24 @@ class WorkerLoad:
     in_flight: int
     capacity: int  # most requests in flight at once (the pool's and the worker's limit)
     sent: int
-    oldest_sent_at_s: float  # when its oldest request in flight went out (CLOCK_MONOTONIC)
+    free_at_s: float  # when it should be done with what it holds (CLOCK_MONOTONIC)
+    frame_s: float | None  # its time per frame, None before it answered once
 
 
-def pick_worker(workers: list[WorkerLoad]) -> str | None:
-    """The worker the next frame goes to: an idle one (fewest sent first); else, while no frame
-    waits in line at any worker, the busy worker with room that should be free first (its oldest
-    request went out earliest); else None (module docstring: why only one frame waits in line)."""
-    idle = [w for w in workers if w.in_flight == 0 and w.capacity > 0]
-    if idle:
-        return min(idle, key=lambda w: (w.sent, w.worker_id)).worker_id
-    if any(w.in_flight > 1 for w in workers):
-        return None  # a frame already waits in line: the next free worker takes the newest frame
+def pick_worker(workers: list[WorkerLoad], now_s: float) -> str | None:
+    """The worker with room that should finish the next frame first (``max(now, free at) + time
+    per frame``; a worker not measured yet counts with the median of those that are), fewest sent
+    on ties; None when no worker has room (module docstring)."""
+    known = sorted(w.frame_s for w in workers if w.frame_s is not None)
+    typical = known[len(known) // 2] if known else 0.0
     room = [w for w in workers if w.in_flight < w.capacity]
-    return min(room, key=lambda w: (w.oldest_sent_at_s, w.worker_id)).worker_id if room else None
+    if not room:
+        return None
+
+    def finish(w: WorkerLoad) -> float:
+        return max(now_s, w.free_at_s if w.in_flight else now_s) + (w.frame_s if w.frame_s is not None else typical)
+
+    return min(room, key=lambda w: (finish(w), w.in_flight, w.sent, w.worker_id)).worker_id
 
 
 class EncoderPool:
@@ -237,10 +249,10 @@ class EncoderPool:
         """(lock held) The worker the next frame goes to (:func:`pick_worker`), None when none."""
         loads = [
             WorkerLoad(w.worker_id, len(w.in_flight), min(self.max_in_flight, w.info.max_in_flight), w.sent,
-                       min((self._requests[r].sent_at_s for r in w.in_flight if r in self._requests), default=0.0))
+                       w.free_at_s, w.frame_s)
             for w in self.workers.values()
         ]
-        chosen = pick_worker(loads)
+        chosen = pick_worker(loads, time.monotonic())
         return self.workers[chosen] if chosen is not None else None
 
     def has_capacity(self) -> bool:
@@ -274,8 +286,11 @@ class EncoderPool:
             return False
         rid = self._next_id
         self._next_id += 1
-        req = _Request(rid, request, worker.worker_id, attempt, sent_at_s=time.monotonic())
+        now = time.monotonic()
+        req = _Request(rid, request, worker.worker_id, attempt, sent_at_s=now)
         self._requests[rid] = req
+        start = max(now, worker.free_at_s) if worker.in_flight else now
+        worker.free_at_s = start + (worker.frame_s or 0.0)
         worker.in_flight.add(rid)
         worker.sent += 1
         self.stats.incr(PoolCounter.FRAMES_DISPATCHED)
@@ -300,6 +315,14 @@ class EncoderPool:
             worker = self.workers.get(req.worker_id)
             if worker is not None:
                 worker.in_flight.discard(req.request_id)
+                if error is None:
+                    # Its time for this frame, queueing behind its previous frame left out.
+                    now = time.monotonic()
+                    took = now - max(req.sent_at_s, worker.last_done_s)
+                    worker.frame_s = took if worker.frame_s is None else (
+                        (1 - FRAME_TIME_WEIGHT) * worker.frame_s + FRAME_TIME_WEIGHT * took)
+                    worker.last_done_s = now
+                    worker.free_at_s = now + worker.frame_s * len(worker.in_flight)
             if req.abandoned or self._requests.pop(req.request_id, None) is None:
                 return  # its worker was declared gone; the frame was already sent elsewhere or counted
             if error is None and reply is not None:
