@@ -32,6 +32,7 @@ from openfusion.wire.schemas import RgbdFrame  # noqa: E402
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--full", action="store_true", help="the default size (bench/run_all.py --full passes it)")
     args = parser.parse_args()
     n = 30 if args.quick else 120
     tmp = Path(tempfile.mkdtemp(prefix="bench-bridge-"))

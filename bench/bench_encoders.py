@@ -85,6 +85,7 @@ def time_frames(fn: Callable[[Frame], int], frames: list[Frame], warmup: int) ->
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="CI-sized run (few frames, hashed text encoder)")
+    ap.add_argument("--full", action="store_true", help="the default size (bench/run_all.py --full passes it)")
     ap.add_argument("--frames", type=int, default=None, help="timed frames per backend (default 40, quick 6)")
     ap.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"])
     ap.add_argument("--text", default=None, choices=["minilm", "hash"], help="text encoder of the gt backend")

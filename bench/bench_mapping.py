@@ -228,6 +228,7 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--quick", action="store_true", help="CI-sized run")
+    parser.add_argument("--full", action="store_true", help="the default size (bench/run_all.py --full passes it)")
     parser.add_argument("--frames", type=int, default=None, help="frames of the room scan")
     args = parser.parse_args()
     n_frames = args.frames or (24 if args.quick else 90)

@@ -175,6 +175,7 @@ def labelled_map(frames: list, dictionary: RegionDictionary, path: Path) -> int:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="CI size")
+    parser.add_argument("--full", action="store_true", help="the default size (bench/run_all.py --full passes it)")
     parser.add_argument("--neighbour", action="store_true",
                         help="run one busy-loop process beside the services while 3D-Rec is measured")
     args = parser.parse_args()

@@ -46,3 +46,13 @@ def test_unknown_only_name_is_refused(tmp_path: Path) -> None:
     run_all = _load_run_all()
     with pytest.raises(SystemExit, match="unknown benchmark"):
         run_all.main(["--only", "evl", "--out", "-"], bench_dir=tmp_path)
+
+
+def test_every_bench_script_takes_the_size_flags_run_all_passes() -> None:
+    """run_all passes --quick or --full to every bench script; a script that does not declare one
+    fails under it with an argparse error (bench_bridge, _encoders, _mapping and _services did)."""
+    scripts = sorted((ROOT / "bench").glob("bench_*.py"))
+    assert scripts
+    missing = [p.name for p in scripts
+               if not all(f'add_argument("{flag}"' in p.read_text() for flag in ("--quick", "--full"))]
+    assert not missing, f"bench scripts without --quick or --full: {missing}"
