@@ -259,6 +259,12 @@ class EncoderPool:
         with self._cond:
             return self._free_worker() is not None
 
+    def wait_for_capacity(self, timeout_s: float) -> bool:
+        """Block until a worker has room (True) or ``timeout_s`` passed (False)."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._closed or self._free_worker() is not None, timeout=timeout_s) \
+                and not self._closed
+
     def submit(self, request: EncodeRequest) -> bool:
         """Send ``request`` to the least-loaded worker; False when no worker has room."""
         with self._cond:

@@ -368,25 +368,47 @@ class SemanticService:
         whenever one has room; results are applied in frame order: a result whose older frames
         are still in flight waits for them up to ``pool_reorder_wait_s`` (``results_held``), and
         an older result than one applied is dropped and counted (``results_stale``); with no worker alive the local encoder (if configured)
-        takes the frames, else they are skipped and health says ``no_encoder``."""
+        takes the frames, else they are skipped and health says ``no_encoder``.
+
+        Results are applied on a thread of their own (:meth:`_apply_loop`): applying one asks
+        geometry for a render, and while this loop waited on it no worker got a new frame (with
+        four workers on two cores, about a third of their time went idle that way)."""
         assert self._frames is not None
         stats = runner.stats
+        applier = threading.Thread(target=self._apply_loop, args=(runner, pool), name="semantic-apply", daemon=True)
+        applier.start()
+        try:
+            while not runner.stopping:
+                try:
+                    self._pool_step(runner, pool)
+                except Exception:  # one frame's or result's failure never ends the service: logged, counted
+                    logger.exception("semantic: a step of the encoder pool loop failed; going on")
+                    stats.incr(SemanticCounter.FRAMES_FAILED)
+                    stats.add_error()
+        finally:
+            applier.join(timeout=max(self.section.render_timeout_s, 1.0) + 1.0)
+
+    def _apply_loop(self, runner: ServiceRunner, pool: EncoderPool) -> None:
+        """Apply the pool's results in frame order as they come (the thread :meth:`_loop_pool` starts)."""
         while not runner.stopping:
             try:
-                self._pool_step(runner, pool)
-            except Exception:  # one frame's or result's failure never ends the service: logged, counted
-                logger.exception("semantic: a step of the encoder pool loop failed; going on")
-                stats.incr(SemanticCounter.FRAMES_FAILED)
-                stats.add_error()
+                self._apply_step(runner, pool)
+            except Exception:  # one result's failure never ends the service: logged, counted
+                logger.exception("semantic: applying the encoder pool's results failed; going on")
+                runner.stats.incr(SemanticCounter.FRAMES_FAILED)
+                runner.stats.add_error()
 
-    def _pool_step(self, runner: ServiceRunner, pool: EncoderPool) -> None:
-        """One turn of :meth:`_loop_pool`: apply results, re-send, then dispatch or encode one frame."""
-        assert self._frames is not None
-        stats = runner.stats
+    def _apply_step(self, runner: ServiceRunner, pool: EncoderPool) -> None:
         now = time.monotonic()
         for result in pool.take_results():
             heapq.heappush(self._held, (result.request.frame_id, next(self._arrivals), now, result))
         self._release_results(runner, pool)
+        pool.wait(0.2)  # a result, a worker change, or the reorder wait's next check
+
+    def _pool_step(self, runner: ServiceRunner, pool: EncoderPool) -> None:
+        """One turn of :meth:`_loop_pool`: re-send, then dispatch or encode one frame."""
+        assert self._frames is not None
+        stats = runner.stats
         pool.pump_resends(self._last_applied)
         alive = pool.alive
         stats.set(PoolCounter.NO_ENCODER, int(alive == 0 and not self.section.local_encoder))
@@ -400,13 +422,10 @@ class SemanticService:
                 finally:
                     stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
             return
-        if not pool.has_capacity():
-            pool.wait(0.2)
+        if not pool.wait_for_capacity(0.2):
             return
         msg = self._frames.recv(timeout_s=0.05)
         if msg is None:
-            if pool.in_flight():
-                pool.wait(0.05)
             return
         if msg.frame_id < self._last_dispatched:  # frame ids started again: a new playback
             logger.info("semantic: frame ids restarted (%d after %d): a new playback", msg.frame_id,
