@@ -24,7 +24,7 @@ SOURCE_ROOTS = {"openfusion": ROOT / "shared" / "openfusion", "openfusion.servic
 #: Lowest first. A module may import modules of its own layer (same package) or of lower layers.
 LAYERS: list[tuple[str, ...]] = [
     ("openfusion", "openfusion.errors"),
-    ("openfusion.frame", "openfusion.poses"),
+    ("openfusion.frame", "openfusion.poses", "openfusion.blas"),
     ("openfusion.wire",),
     ("openfusion.config",),
     ("openfusion.bus",),

@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
+from openfusion.blas import single_thread_blas
 from openfusion.encoders.base import (
     CLIP_DENSE_BACKENDS,
     DEFAULT_DENSE_INPUT_LONG_SIDE_PX,
@@ -65,7 +66,6 @@ from openfusion.encoders.base import (
 )
 from openfusion.encoders.clip_regions import DEFAULT_CLIP_MODEL, LoadedClip, _features, load_clip
 from openfusion.encoders.crops import preprocess_image
-from openfusion.encoders.device import single_thread_blas
 from openfusion.encoders.proposers import make_proposer
 from openfusion.frame import Frame
 

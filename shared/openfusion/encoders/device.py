@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import contextlib
 import logging
-from typing import Any
 
 logger = logging.getLogger(__name__)
 
@@ -77,26 +75,3 @@ def onnx_providers(device: str) -> list[str]:
     return ["CPUExecutionProvider"]
 
 
-_blas_controller: Any = None
-_blas_controller_failed = False
-
-
-def single_thread_blas() -> contextlib.AbstractContextManager[Any]:
-    """A context in which numpy's BLAS uses one thread (``threadpoolctl``; a no-op without it).
-
-    For small products next to a model run: OpenBLAS wakes its worker threads for them, and they
-    then busy-wait for a while, competing with the model's own threads on a small machine.
-    (``openfusion.mapping.dictionary`` keeps its own copy: the map core sits below encoders.)
-    """
-    global _blas_controller, _blas_controller_failed
-    if _blas_controller is None and not _blas_controller_failed:
-        try:
-            from threadpoolctl import ThreadpoolController
-
-            _blas_controller = ThreadpoolController()
-        except ImportError:
-            _blas_controller_failed = True
-            logger.debug("threadpoolctl not installed; BLAS keeps its default threads")
-    if _blas_controller is None:
-        return contextlib.nullcontext()
-    return _blas_controller.limit(limits=1, user_api="blas")

@@ -19,38 +19,14 @@ from __future__ import annotations
 import contextlib
 import logging
 from collections.abc import Iterator
-from typing import Any
 
 import numpy as np
 
+from openfusion.blas import single_thread_blas
 from openfusion.mapping.errors import EmbeddingSpaceError, StaleVersionError
 from openfusion.wire.schemas import DictionaryDelta, DictionarySnapshot
 
 logger = logging.getLogger(__name__)
-
-_blas_controller: Any = None
-_blas_controller_failed = False
-
-
-def _single_thread_blas() -> contextlib.AbstractContextManager[Any]:
-    """Run the ranking product on one BLAS thread when ``threadpoolctl`` is available.
-
-    A 10,000 x 512 gemv is memory-bound; OpenBLAS's threaded version took 8-16 ms (p50) on a
-    loaded 2-core machine against about 1 ms single-threaded (bench/bench_mapping.py).
-    """
-    global _blas_controller, _blas_controller_failed
-    if _blas_controller is None and not _blas_controller_failed:
-        try:
-            from threadpoolctl import ThreadpoolController
-
-            _blas_controller = ThreadpoolController()
-        except ImportError:
-            _blas_controller_failed = True
-            logger.debug("threadpoolctl not installed; ranking uses BLAS's default threads")
-    if _blas_controller is None:
-        return contextlib.nullcontext()
-    return _blas_controller.limit(limits=1, user_api="blas")
-
 
 def _unit(v: np.ndarray) -> np.ndarray:
     norm = np.linalg.norm(v, axis=-1, keepdims=True)
@@ -342,7 +318,7 @@ class RegionDictionary:
         n = self._size
         if n == 0:
             return np.zeros(0, np.int64), np.zeros(0, np.float32)
-        with _single_thread_blas():
+        with single_thread_blas():
             scores = v @ self._units_t[:, :n]
         k = min(int(k), n)
         if k < n:
