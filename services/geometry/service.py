@@ -33,16 +33,7 @@ read-only folder) is logged in one line naming the path and reason, counted as
 again one ``checkpoint_period_s`` later. Every bad message is counted and dropped before it
 reaches the volume; a bad request is answered with ``reply_err`` naming the limit or field.
 
-Merges (the semantic service decides them, :mod:`openfusion.mapping.merging`): a delta's
-``merged_into`` relabels the merged keys' voxels under the lock updates are applied under. A
-save on ``control/save`` (what ``openfusion run`` sends at its end, and ``Client.control("save")``)
-first asks ``semantic/merge`` for a pass and waits until its delta is applied (``merge_on_save``,
-``merge_on_save_timeout_s``), so a saved map holds objects, not fragments; without an answer the map
-is saved as it is (``save_merge_failures``). Periodic checkpoints and the last checkpoint on
-shutdown (the bus is closed by then) do not ask: the semantic service merges every
-``merge_every`` of its frames anyway. When a delta is lost
-(a gap in versions) the replica resyncs from the semantic service's snapshot, whose merge table
-relabels the voxels of the merges the lost delta carried.
+Merges, the dictionary replica and its resync: :mod:`.dictionary_follower`.
 
 Resume with nothing lost (playback): frames of a playback the bridge can replay carry the
 playback's name and ``prev_frame_id`` (the frame published before them). The service takes such a
@@ -84,7 +75,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from openfusion.bus import Publisher, QueryError, RequestError, ServiceRunner, Subscriber
+from openfusion.bus import Publisher, RequestError, ServiceRunner, Subscriber
 from openfusion.mapping import (
     CapacityError,
     MapFormatError,
@@ -100,6 +91,7 @@ from openfusion.mapping.merging import block_contacts
 from openfusion.mapping.queries import RegionTable
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
+from openfusion.services.geometry.dictionary_follower import DictionaryFollower
 from openfusion.services.geometry.section import GeometryConfig, SummaryCache
 from openfusion.services.geometry.section import (
     GeometrySection as GeometrySection,  # re-exported: the config's section
@@ -115,19 +107,15 @@ from openfusion.wire.endpoints import (
     GEOMETRY_PROGRESS,
     GEOMETRY_REGIONS,
     GEOMETRY_RENDER,
-    SEMANTIC_DICTIONARY,
-    SEMANTIC_MERGE,
     SEMANTIC_UPDATE,
     SENSOR_RGBD,
 )
 from openfusion.wire.schemas import (
     ControlReply,
     ControlRequest,
-    DictionaryDelta,
     DictionaryRequest,
     DictionarySnapshot,
     GeometryProgress,
-    MergeRequest,
     MeshReply,
     MeshRequest,
     PointsReply,
@@ -173,7 +161,7 @@ def check_update(msg: SemanticUpdate) -> None:
 RECENT_RENDERS = 2
 
 
-class GeometryService:
+class GeometryService(DictionaryFollower):
     """The geometry service's logic; every handler is a plain method tests call without a bus."""
 
     def __init__(self, config: GeometryConfig) -> None:
@@ -421,72 +409,6 @@ class GeometryService:
             self._count(GeometryCounter.UPDATES_REUSED_RENDER)
         if self._runner is not None:
             self._runner.stats.set(GeometryCounter.LAST_UPDATE_FRAME_ID, msg.frame_id)
-
-    def on_delta(self, msg: DictionaryDelta) -> None:
-        merges = RegionDictionary.merges_of(msg)
-        with self._lock:
-            applied = self.replica.apply_delta(msg)
-            if merges:
-                # Merged keys' voxels take the surviving key, so renders, points and answers follow.
-                self._count(GeometryCounter.VOXELS_RELABELLED, self.volume.relabel_keys(merges))
-                self._map_changed()
-            self._dirty = True
-        if not applied:
-            self._count(GeometryCounter.DICTIONARY_RESYNCS)
-            self._resync_dictionary()
-
-    def _resync_dictionary(self) -> None:
-        if self._runner is None:
-            return
-        snapshot = self.replica.fetch_snapshot(self._runner, SEMANTIC_DICTIONARY)
-        if snapshot is not None:
-            self.apply_snapshot(snapshot)
-
-    def apply_snapshot(self, snapshot: DictionarySnapshot) -> int:
-        """Take the semantic service's snapshot as the dictionary, and relabel the voxels of every
-        key it says was merged away (a lost delta's merges included); returns the voxels relabelled."""
-        with self._lock:
-            merges = self.replica.apply_snapshot(snapshot)
-            relabelled = self.volume.relabel_keys(merges) if merges else 0
-            if relabelled:
-                self._map_changed()
-                self._dirty = True
-        if relabelled:
-            self._count(GeometryCounter.VOXELS_RELABELLED, relabelled)
-            logger.info("geometry: resynced the dictionary (v%d); %d voxels of %d merged keys relabelled",
-                        snapshot.version, relabelled, len(merges))
-        return relabelled
-
-    def merge_before_save(self) -> bool:
-        """Ask the semantic service for a merge pass and wait until its delta is applied here, so
-        the map about to be saved holds objects, not fragments. False (logged and counted; the
-        save goes on) when there is no dictionary, merging on save is off or the semantic service
-        does not answer."""
-        if self._runner is None or not self.section.merge_on_save or self.replica.dictionary is None:
-            return False
-        timeout_s = self.section.merge_on_save_timeout_s
-        try:
-            reply = self._runner.call(SEMANTIC_MERGE, MergeRequest(), timeout_s=timeout_s)
-        except QueryError as exc:
-            logger.info("geometry: saving without a merge pass: the semantic service did not run one (%s)",
-                        exc.reason)
-            self._count(GeometryCounter.SAVE_MERGE_FAILURES)
-            return False
-        if not reply.ok:
-            logger.info("geometry: saving without a merge pass: %s", reply.message)
-            self._count(GeometryCounter.SAVE_MERGE_FAILURES)
-            return False
-        # The pass's delta was published before the reply; it comes on the delta subscription. If
-        # it does not come in time (lost), the snapshot carries the same merges.
-        if not self.replica.wait_for_version(reply.dictionary_version, timeout_s):
-            logger.warning("geometry: the merge delta (v%d) did not come; resyncing the dictionary",
-                           reply.dictionary_version)
-            self._count(GeometryCounter.DICTIONARY_RESYNCS)
-            self._resync_dictionary()
-        self._count(GeometryCounter.SAVE_MERGES)
-        logger.info("geometry: merge pass before saving: %d regions merged, %d pruned (dictionary v%d)",
-                    reply.regions_merged, reply.regions_pruned, reply.dictionary_version)
-        return True
 
     def handle_render(self, req: RenderRequest) -> RenderReply:
         pixels = req.width_px * req.height_px

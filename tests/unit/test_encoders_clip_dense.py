@@ -158,8 +158,8 @@ def test_pooling_products_run_on_one_blas_thread(monkeypatch):
 
     from threadpoolctl import threadpool_info
 
-    from openfusion.encoders import clip_dense
     from openfusion.blas import single_thread_blas
+    from openfusion.encoders import clip_dense
 
     def blas_threads() -> set[int]:
         return {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"}
