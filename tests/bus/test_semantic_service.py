@@ -55,6 +55,9 @@ def test_semantic_service_counts_failed_and_empty_frames_and_keeps_going() -> No
             instances = Publisher(session, SENSOR_INSTANCE.key(keys), message=InstanceFrame)
             # Both services' tokens are declared after their subscribers: once seen, frames reach both.
             wait_for_services(session, map_id, ["geometry", "semantic"])
+            # ...and once this session's fresh publishers know them (a put before that can go
+            # nowhere: frame 0 never reached the semantic service once in CI).
+            wait_until(lambda: rgbd.has_subscribers and instances.has_subscribers, timeout_s=60)
             for frame in frames:
                 done_before = semantic.counter(SemanticCounter.SEMANTIC_FRAMES) + semantic.counter(
                     SemanticCounter.FRAMES_FAILED)
