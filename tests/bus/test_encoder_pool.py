@@ -26,6 +26,7 @@ from openfusion.testing.bus import (
     ServiceThread,
     free_port,
     loopback_config,
+    send_until_handled,
     unique_map_id,
     wait_for_services,
     wait_until,
@@ -76,14 +77,8 @@ class Map:
             wait_until(lambda pub=pub: pub.has_subscribers, timeout_s=60)
         if not self.warmed:
             warm_up = dataclasses.replace(FRAMES[0], frame_id=WARM_UP_ID)
-            for _attempt in range(10):
-                pubs[0].put(RgbdFrame.from_frame(warm_up, with_instance=False))
-                try:
-                    wait_until(lambda: self.semantic.counter(SemanticCounter.LAST_FRAME_HANDLED) == WARM_UP_ID,
-                               timeout_s=10)
-                    break
-                except AssertionError:
-                    continue
+            send_until_handled(lambda: pubs[0].put(RgbdFrame.from_frame(warm_up, with_instance=False)),
+                               lambda: self.semantic.counter(SemanticCounter.LAST_FRAME_HANDLED) == WARM_UP_ID)
             assert self.semantic.counter(PoolCounter.FRAMES_DISPATCHED) == 0
             self.warmed = True
         return pubs

@@ -107,6 +107,24 @@ def wait_until(predicate: Callable[[], Any], *, timeout_s: float = 60.0, interva
         time.sleep(interval_s)
 
 
+def send_until_handled(send: Callable[[], Any], handled: Callable[[], Any], *, attempts: int = 10,
+                       timeout_s: float = 10.0) -> None:
+    """Call ``send()`` until ``handled()`` holds, waiting ``timeout_s`` after each try.
+
+    A put from a session that joined a moment ago can go nowhere even once its publisher matches
+    a subscriber: in peer mode the subscriber seen may be another peer's (geometry's), and the
+    direct link to a peer learnt by gossip (the semantic service) comes a little later. Tests
+    send a first frame with this, then count from there."""
+    for _attempt in range(attempts):
+        send()
+        try:
+            wait_until(handled, timeout_s=timeout_s)
+            return
+        except AssertionError:
+            continue
+    raise AssertionError(f"not handled after {attempts} sends: {getattr(handled, '__name__', handled)}")
+
+
 def processes_mentioning(text: str) -> list[str]:
     """Command lines of the processes on this machine that contain ``text``
     (Linux ``/proc``): what a test checks to prove no process of a run outlived it."""
