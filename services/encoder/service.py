@@ -31,7 +31,7 @@ from pydantic import Field, field_validator
 from openfusion.bus import RequestError, ServiceRunner
 from openfusion.config import ServiceConfig
 from openfusion.services.common import ServiceDefinition
-from openfusion.services.encoder.options import EncoderOptions, region_encoder_from_section
+from openfusion.services.encoder.options import EncoderOptions, region_encoder_from_section, warm_up_encoder
 from openfusion.wire.counters import EncoderCounter
 from openfusion.wire.keys import PoolKeys, segment_error
 from openfusion.wire.schemas import EncodeReply, EncodeRequest, WorkerInfo, WorkerInfoRequest
@@ -121,6 +121,7 @@ class EncoderWorker:
 
     def setup(self, runner: ServiceRunner) -> None:
         self._runner = runner
+        warm_up_encoder(self.encoder, f"encoder worker {self.worker_id}")  # before anyone sends it a frame
         runner.queryable_at(self.pool.info(self.worker_id), WorkerInfoRequest, WorkerInfo, self.handle_info)
         runner.queryable_at(
             self.pool.encode(self.worker_id),

@@ -58,7 +58,7 @@ from openfusion.mapping import RegionDictionary, RenderedView, plan_update
 from openfusion.mapping.merging import EmptyRegions, MergeSchedule, RegionContacts, apply_merges, plan_merges
 from openfusion.mapping.params import MatchParams, MergeParams
 from openfusion.services.common import ServiceDefinition
-from openfusion.services.encoder.options import EncoderOptions, region_encoder_from_section
+from openfusion.services.encoder.options import EncoderOptions, region_encoder_from_section, warm_up_encoder
 from openfusion.services.semantic.pool import EncoderPool, PoolResult
 from openfusion.wire.counters import ENCODED_BY_PREFIX, PoolCounter, SemanticCounter
 from openfusion.wire.endpoints import (
@@ -304,6 +304,8 @@ class SemanticService:
         return done
 
     def setup(self, runner: ServiceRunner) -> None:
+        if not self.section.encoder_pool or self.section.local_encoder:
+            warm_up_encoder(self.encoder, "semantic")
         self.recover(runner)
         # Updates and deltas change the map: they block when a link is congested (a camera's frames
         # on the same link are what congests it) instead of being dropped, which lost an update

@@ -190,3 +190,19 @@ def test_onnx_spinning_is_a_setting(clip_dir, tmp_path):
         enc.cache_dir = tmp_path
         options = enc._runner((48, 64)).session.get_session_options()
         assert options.get_session_config_entry("session.intra_op.allow_spinning") == want
+
+
+def test_warm_up_builds_the_onnx_session_of_a_640x480_frame_before_the_first_frame(clip_dir, tmp_path):
+    """The onnx backends export and load the tower per input size on first use (seconds for a
+    real model): ``warm_up`` does it for the usual 640x480 camera, so that frame size's first
+    frame reuses the session and a worker announces itself only when it is ready."""
+    enc = make_region_encoder("clip-dense", model=str(clip_dir), device="cpu", backend="onnx",
+                              input_long_side_px=64, cache_dir=tmp_path)
+    assert enc._runners == {}
+    enc.warm_up(["chair"])
+    assert len(enc._runners) == 1
+    runner = next(iter(enc._runners.values()))
+    frame = make_box_frame(grid_boxes(height_px=480, width_px=640, rows=2, cols=2, categories=["x"], gap_px=8),
+                           height_px=480, width_px=640)
+    assert len(enc.encode(frame).embeddings) > 0
+    assert list(enc._runners.values()) == [runner]  # the same session, nothing exported again

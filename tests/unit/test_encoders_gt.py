@@ -293,3 +293,34 @@ def test_device_selection_is_cpu_without_a_gpu():
         select_device("tpu")
     with pytest.raises(ValueError, match="select_device"):
         onnx_providers("gpu")
+
+
+class _CountingHash(HashTextEncoder):
+    """The hash text encoder, recording the texts of each ``encode`` call."""
+
+    def __init__(self) -> None:
+        super().__init__(dim=64)
+        self.calls: list[list[str]] = []
+
+    def encode(self, texts: list[str]) -> np.ndarray:
+        self.calls.append(list(texts))
+        return super().encode(texts)
+
+
+def test_warm_up_embeds_the_vocabulary_so_the_first_frames_cost_no_text_encoding() -> None:
+    """Each category a frame showed first used to cost a text-model call inside that frame's
+    encode (1 to 3 s per encoder worker at the start of a run); after ``warm_up`` a frame of
+    those categories calls the text model no more, through the delay wrapper too."""
+    from openfusion.encoders.delayed import DelayedRegionEncoder
+
+    text = _CountingHash()
+    encoder = DelayedRegionEncoder(GroundTruthRegionEncoder(text), delay_ms=0)
+    encoder.warm_up(CATEGORIES + ["table"])
+    assert text.calls == [sorted(set(CATEGORIES))]  # one call, each name once
+    obs = encoder.encode(_grid_frame())
+    assert len(obs.labels) == 12 and set(obs.labels) <= set(CATEGORIES)
+    assert len(text.calls) == 1  # nothing left to embed
+
+    fresh = _CountingHash()
+    GroundTruthRegionEncoder(fresh).warm_up()  # no vocabulary: the text model's first call still happens
+    assert len(fresh.calls) == 1

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import abc
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -121,6 +122,14 @@ class RegionEncoder(abc.ABC):
     @abc.abstractmethod
     def encode(self, frame: Frame) -> RegionObservation:
         """Regions of ``frame`` at :meth:`output_size` of its image size."""
+
+    def warm_up(self, vocabulary: Sequence[str] = ()) -> None:
+        """Do the first call's one-off work now (lazy model start-up, caches), so the first
+        frames cost what later ones do. A service calls it before it announces itself: an encoder
+        worker whose first frames took seconds was sent frames as if it were fast. ``vocabulary``:
+        category names it may meet (the gt encoder embeds them now; others ignore them). The
+        default does nothing."""
+        return None
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(name={self.name!r}, space={self.embedding_space!r}, dim={self.dim})"

@@ -45,6 +45,7 @@ import logging
 import os
 import re
 import threading
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -370,6 +371,11 @@ class ClipDenseRegionEncoder(RegionEncoder, ImageQueryEncoder):
         if feats.shape != (gh * gw, self.dim):
             raise EncoderError(f"dense tower returned {feats.shape}, expected ({gh * gw}, {self.dim})")
         return feats.reshape(gh, gw, self.dim)
+
+    def warm_up(self, vocabulary: Sequence[str] = ()) -> None:
+        """One tower pass over a blank 640x480 frame (the usual camera size): builds the runner of
+        that input size (the onnx session or the torch graph's first run)."""
+        self.patch_features(np.zeros((480, 640, 3), np.uint8))
 
     def encode(self, frame: Frame) -> RegionObservation:
         check_rgb(frame.color)

@@ -9,6 +9,7 @@ benches use it to give every worker the same known cost.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from typing import Any
 
 from openfusion.encoders.base import RegionEncoder, RegionObservation
@@ -34,6 +35,9 @@ class DelayedRegionEncoder(RegionEncoder):
 
     def output_size(self, height_px: int, width_px: int) -> tuple[int, int]:
         return self.inner.output_size(height_px, width_px)
+
+    def warm_up(self, vocabulary: Sequence[str] = ()) -> None:
+        self.inner.warm_up(vocabulary)  # no delay: the delay models a frame's cost
 
     def encode(self, frame: Frame) -> RegionObservation:
         obs = self.inner.encode(frame)

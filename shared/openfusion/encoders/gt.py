@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -75,6 +76,15 @@ class GroundTruthRegionEncoder(RegionEncoder):
             if not categories:
                 return np.zeros((0, self.dim), np.float32)
             return np.stack([self._embedding_cache[c] for c in categories]).astype(np.float32)
+
+    def warm_up(self, vocabulary: Sequence[str] = ()) -> None:
+        """Embed ``vocabulary`` now (the text model's first call included: about a second for
+        MiniLM), so a frame that shows one of those categories first costs no text encoding."""
+        names = sorted({str(v) for v in vocabulary})
+        if names:
+            self.category_embeddings(names)
+        else:
+            self.text_encoder.encode(["object"])
 
     def _rng_for(self, frame_id: int) -> np.random.Generator:
         fid = int(frame_id)
