@@ -13,6 +13,7 @@ from pydantic import Field, ValidationInfo, field_validator
 from openfusion.config import ConfigSection
 from openfusion.encoders import NOISE_PROFILES, REGION_ENCODER_NAMES, make_region_encoder
 from openfusion.encoders.base import CLIP_DENSE_BACKENDS, DEFAULT_DENSE_INPUT_LONG_SIDE_PX
+from openfusion.encoders.identity import EncoderIdentity, region_encoder_identity
 from openfusion.sources.synthetic_categories import CATEGORIES
 
 logger = logging.getLogger(__name__)
@@ -76,24 +77,34 @@ class EncoderOptions(ConfigSection):
         return value
 
 
+def _encoder_options(section: EncoderOptions) -> dict[str, Any]:
+    """The keyword options of ``make_region_encoder(section.encoder, ...)`` a section describes."""
+    if section.encoder == "gt":
+        return {"noise": section.noise, "seed": section.seed}
+    opts: dict[str, Any] = {"device": section.device}
+    if section.model_path:
+        opts["model_path" if section.encoder == "onnx" else "model"] = section.model_path
+    if section.encoder == "clip-dense":
+        opts["backend"] = section.encoder_backend
+        opts["input_long_side_px"] = section.dense_input_long_side_px
+        opts["onnx_spinning"] = section.encoder_onnx_spinning
+    return opts
+
+
 def region_encoder_from_section(section: EncoderOptions) -> Any:
     """The region encoder a section describes (semantic service, encoder worker, in-process run)."""
-    if section.encoder == "gt":
-        opts: dict[str, Any] = {"noise": section.noise, "seed": section.seed}
-    else:
-        opts = {"device": section.device}
-        if section.model_path:
-            opts["model_path" if section.encoder == "onnx" else "model"] = section.model_path
-        if section.encoder == "clip-dense":
-            opts["backend"] = section.encoder_backend
-            opts["input_long_side_px"] = section.dense_input_long_side_px
-            opts["onnx_spinning"] = section.encoder_onnx_spinning
-    encoder = make_region_encoder(section.encoder, **opts)
+    encoder = make_region_encoder(section.encoder, **_encoder_options(section))
     if section.encoder_delay_ms > 0:
         from openfusion.encoders.delayed import DelayedRegionEncoder
 
         encoder = DelayedRegionEncoder(encoder, section.encoder_delay_ms)
     return encoder
+
+
+def encoder_identity_from_section(section: EncoderOptions) -> EncoderIdentity | None:
+    """The embedding space and size of the encoder a section describes, without its weights
+    (:mod:`openfusion.encoders.identity`); None where only the model can say (``onnx``)."""
+    return region_encoder_identity(section.encoder, **_encoder_options(section))
 
 
 def warm_up_encoder(encoder: Any, service: str) -> None:

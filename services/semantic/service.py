@@ -58,7 +58,12 @@ from openfusion.mapping import RegionDictionary, RenderedView, plan_update
 from openfusion.mapping.merging import EmptyRegions, MergeSchedule, RegionContacts, apply_merges, plan_merges
 from openfusion.mapping.params import MatchParams, MergeParams
 from openfusion.services.common import ServiceDefinition
-from openfusion.services.encoder.options import EncoderOptions, region_encoder_from_section, warm_up_encoder
+from openfusion.services.encoder.options import (
+    EncoderOptions,
+    encoder_identity_from_section,
+    region_encoder_from_section,
+    warm_up_encoder,
+)
 from openfusion.services.semantic.pool import EncoderPool, PoolResult
 from openfusion.wire.counters import ENCODED_BY_PREFIX, PoolCounter, SemanticCounter
 from openfusion.wire.endpoints import (
@@ -145,6 +150,12 @@ class SemanticService:
     def __init__(self, config: SemanticConfig, *, encoder: Any = None) -> None:
         self.config = config
         self.section = config.semantic
+        if encoder is None and self.section.encoder_pool and not self.section.local_encoder:
+            # Only the pool's workers encode: the map's space and size are all this service needs.
+            encoder = encoder_identity_from_section(self.section)
+            if encoder is not None:
+                logger.info("semantic: no local encoder (the pool encodes); map space %s, %d-d",
+                            encoder.embedding_space, encoder.dim)
         self.encoder = encoder if encoder is not None else region_encoder_from_section(self.section)
         self.dictionary = RegionDictionary(self.encoder.embedding_space, self.encoder.dim)
         self.match_params = MatchParams.from_section(self.section)
