@@ -27,7 +27,7 @@ from openfusion.mapping.relevancy import (
     relevancy,
 )
 from openfusion.sources.synthetic import CATEGORIES
-from openfusion.testing.word_lists import CALIBRATION, HELD_OUT, HELD_OUT_2
+from openfusion.testing.word_lists import CALIBRATION, HELD_OUT, HELD_OUT_2, HELD_OUT_3
 
 
 def test_relevancy_is_the_minimum_over_negatives_of_the_pairwise_softmax() -> None:
@@ -93,6 +93,20 @@ def test_calibrations_are_per_space_and_a_saved_one_wins_only_for_its_space_and_
               "negatives": list(DEFAULT_NEGATIVES), "calibrated": True}
     assert calibration_for("minilm-l6-v2", legacy) is minilm
     assert "made for method 'lerf-v1'" in caplog.text
+
+
+def test_the_word_lists_are_disjoint_and_name_only_scene_categories() -> None:
+    """A held-out list judges only texts nothing was chosen on: no text (case and spacing
+    ignored) is in two lists or twice in one, and every category named is one of the scene's."""
+    lists = {"CALIBRATION": CALIBRATION, "HELD_OUT": HELD_OUT, "HELD_OUT_2": HELD_OUT_2, "HELD_OUT_3": HELD_OUT_3}
+    seen: dict[str, str] = {}
+    for name, word_list in lists.items():
+        for text, wanted in word_list:
+            key = " ".join(text.lower().split())
+            assert key not in seen, f"{text!r} of {name} is in {seen[key]} too"
+            seen[key] = name
+            assert set(wanted) <= set(CATEGORIES), (name, text, wanted)
+    assert sum(map(len, lists.values())) == len(seen)
 
 
 def test_the_scorer_needs_one_vector_per_phrase() -> None:

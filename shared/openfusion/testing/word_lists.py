@@ -147,3 +147,65 @@ HELD_OUT_2: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("excavator", ()), ("a yellow school bus", ()), ("a pack of wolves", ()), ("the stars", ()),
     ("jellyfish", ()), ("baseball bat", ()), ("bathtub", ()), ("refrigerator", ()),
 )
+
+#: Written after HELD_OUT_2's results had been seen, from scratch and committed before any
+#: measurement on it (no method has been scored on it while it was written); never used to choose
+#: anything. The ``match`` target is judged on this list. Its unrelated texts include household
+#: things the synthetic room does not have ("a bathtub", "the refrigerator", "stairs", "curtains",
+#: "a television"), some naming a category's part or neighbour ("wall clock", "ceiling fan",
+#: "a traffic light"): they must not match.
+HELD_OUT_3: tuple[tuple[str, tuple[str, ...]], ...] = (
+    # class names, other forms
+    ("the walls", ("wall",)), ("a floor", ("floor",)), ("the doors", ("door",)), ("the windows", ("window",)),
+    ("the picture", ("picture",)), ("the beds", ("bed",)), ("the pillows", ("pillow",)), ("some pillows", ("pillow",)),
+    ("the couch", ("sofa",)), ("the bookshelves", ("bookshelf",)), ("the cabinets", ("cabinet",)),
+    ("my desk", ("desk", "table")), ("the monitors", ("monitor",)), ("the office chair", ("office chair", "chair")),
+    ("office chairs", ("office chair", "chair")), ("the table", ("table", "desk")), ("this chair", ("chair", "office chair")),
+    ("that lamp", ("lamp",)), ("the plants", ("plant",)), ("a trash can", ("trash can",)),
+    # synonyms
+    ("sleeper sofa", ("sofa",)), ("chesterfield", ("sofa",)), ("leather couch", ("sofa",)),
+    ("two-seater sofa", ("sofa",)), ("king size bed", ("bed",)), ("single bed", ("bed",)), ("bedstead", ("bed",)),
+    ("bed pillow", ("pillow", "bed")), ("feather pillow", ("pillow",)), ("book shelf", ("bookshelf",)),
+    ("wall shelf", ("bookshelf", "cabinet")), ("cupboards", ("cabinet",)), ("closet", ("cabinet",)),
+    ("kitchen cabinet", ("cabinet",)), ("storage unit", ("cabinet", "bookshelf")), ("drawers", ("cabinet",)),
+    ("writing table", ("desk", "table")), ("work desk", ("desk", "table")), ("standing desk", ("desk", "table")),
+    ("led monitor", ("monitor",)), ("pc monitor", ("monitor",)), ("display screen", ("monitor",)),
+    ("widescreen monitor", ("monitor",)), ("ergonomic chair", ("office chair", "chair")),
+    ("executive chair", ("office chair", "chair")), ("swivel seat", ("office chair", "chair")),
+    ("end table", ("table", "desk")), ("round table", ("table", "desk")), ("wooden table", ("table", "desk")),
+    ("kitchen chair", ("chair", "office chair")), ("folding chair", ("chair", "office chair")),
+    ("plastic chair", ("chair", "office chair")), ("bedside lamp", ("lamp",)), ("standing lamp", ("lamp",)),
+    ("lamp light", ("lamp",)), ("succulent", ("plant",)), ("cactus", ("plant",)), ("ficus", ("plant",)),
+    ("potted palm", ("plant",)), ("bonsai", ("plant",)), ("house plant", ("plant",)), ("trashcan", ("trash can",)),
+    ("bin", ("trash can",)), ("wastebasket", ("trash can",)), ("garbage", ("trash can",)),
+    ("trash bin", ("trash can",)), ("wastepaper basket", ("trash can",)), ("art print", ("picture",)),
+    ("canvas painting", ("picture",)), ("portrait", ("picture",)), ("family photo", ("picture",)),
+    ("picture frame", ("picture",)), ("window pane", ("window",)), ("window frame", ("window",)),
+    ("door frame", ("door",)), ("wooden door", ("door",)), ("exit door", ("door",)), ("ground", ("floor",)),
+    ("floor tiles", ("floor",)), ("parquet", ("floor",)), ("hardwood floor", ("floor",)),
+    ("painted wall", ("wall",)), ("plaster wall", ("wall",)), ("ceiling panels", ("ceiling",)),
+    # paraphrases
+    ("something to rest on", (*SEAT, "bed")), ("a place to keep my clothes", ("cabinet",)),
+    ("a seat at the desk", ("office chair", "chair")), ("a place to eat dinner", ("table", "desk")),
+    ("the screen I look at while working", ("monitor",)), ("something to throw trash in", ("trash can",)),
+    ("a light for the desk", ("lamp",)), ("the thing above my head", ("ceiling",)),
+    ("what I stand on", ("floor",)), ("the glass in the wall", ("window",)),
+    ("a place to lay my head", ("pillow", "bed")), ("where I put my books", ("bookshelf",)),
+    ("something green that grows", ("plant",)), ("a place to nap", ("bed", "sofa")),
+    ("where I can store files", ("cabinet",)), ("the opening to the next room", ("door",)),
+    ("something to lean back on", SEAT), ("a table for the computer", ("desk", "table")),
+    ("a photo hanging up", ("picture",)), ("the wall that holds the door", ("wall", "door")),
+    # unrelated: household things the room does not have
+    ("a bathtub", ()), ("the refrigerator", ()), ("stairs", ()), ("a toilet", ()), ("kitchen sink", ()),
+    ("microwave oven", ()), ("a fireplace", ()), ("a mirror", ()), ("wall clock", ()), ("a rug", ()),
+    ("curtains", ()), ("a television", ()), ("a laptop", ()), ("a keyboard", ()), ("a printer", ()),
+    ("a piano", ()), ("a ceiling fan", ()), ("a vase", ()), ("a coat hanger", ()), ("dishwasher", ()),
+    # unrelated: elsewhere
+    ("owl", ()), ("hippopotamus", ()), ("squirrel", ()), ("shark", ()), ("butterfly", ()), ("pancake", ()),
+    ("cucumber", ()), ("taco", ()), ("cheese", ()), ("cherry", ()), ("tram", ()), ("yacht", ()),
+    ("hot air balloon", ()), ("jet ski", ()), ("snowflake", ()), ("beach", ()), ("cliff", ()), ("swamp", ()),
+    ("meteor", ()), ("accordion", ()), ("flute", ()), ("banjo", ()), ("football", ()), ("golf club", ()),
+    ("skateboard", ()), ("a pair of sneakers", ()), ("an umbrella", ()), ("a wristwatch", ()),
+    ("a traffic light", ()), ("a lighthouse", ()), ("a herd of elephants", ()), ("democracy", ()),
+    ("pepperoni pizza", ()),
+)
