@@ -73,7 +73,7 @@ def test_calibrations_are_per_space_and_a_saved_one_wins_only_for_its_space_and_
     assert minilm is CALIBRATIONS["minilm-l6-v2"] and minilm.calibrated and minilm.negatives == DEFAULT_NEGATIVES
     assert minilm.query_categories == DEFAULT_QUERY_CATEGORIES and minilm.method == METHOD
     assert minilm.phrases == [*DEFAULT_NEGATIVES, *DEFAULT_QUERY_CATEGORIES]
-    assert 0.5 < minilm.threshold < 1 and minilm.margin == pytest.approx(0.0725, abs=1e-3)
+    assert 0.5 < minilm.threshold < 1 and minilm.margin == pytest.approx(0.04, abs=1e-3)
     other = calibration_for("clip-vit-b-32")  # uncalibrated: plain LERF at 0.5, no text-to-text categories
     assert not other.calibrated and other.threshold == 0.5 and other.embedding_space == "clip-vit-b-32"
     assert other.query_categories == ()
@@ -93,6 +93,11 @@ def test_calibrations_are_per_space_and_a_saved_one_wins_only_for_its_space_and_
               "negatives": list(DEFAULT_NEGATIVES), "calibrated": True}
     assert calibration_for("minilm-l6-v2", legacy) is minilm
     assert "made for method 'lerf-v1'" in caplog.text
+    # a record of v2 (five categories, margin 0.0725): another method, ignored the same way
+    caplog.clear()
+    v2 = {**legacy, "method": "lerf+query-categories-v2", "query_categories": list(DEFAULT_QUERY_CATEGORIES[:5])}
+    assert calibration_for("minilm-l6-v2", v2) is minilm
+    assert "made for method 'lerf+query-categories-v2'" in caplog.text
 
 
 def test_the_word_lists_are_disjoint_and_name_only_scene_categories() -> None:
@@ -111,7 +116,7 @@ def test_the_word_lists_are_disjoint_and_name_only_scene_categories() -> None:
 
 def test_the_scorer_needs_one_vector_per_phrase() -> None:
     cal = CALIBRATIONS["minilm-l6-v2"]
-    with pytest.raises(ValueError, match="9 phrases but 4 vectors"):
+    with pytest.raises(ValueError, match="10 phrases but 4 vectors"):
         RelevancyScorer.of_vectors(cal, np.ones((4, 8)))
 
 
