@@ -1,7 +1,8 @@
 """Relevancy (LERF: minimum of pairwise softmaxes against the negative phrases, region side, and
 the contrast categories, query side) and ``match`` (openfusion.mapping.relevancy): the math, the
 calibration table and its record in map files, and precision/recall of ``match`` on the word
-lists (openfusion.testing.word_lists: chosen on CALIBRATION, measured on HELD_OUT_2 and HELD_OUT)
+lists (openfusion.testing.word_lists: chosen on CALIBRATION, HELD_OUT and HELD_OUT_2 pooled,
+judged on HELD_OUT_3)
 in the MiniLM and hash spaces. The figures asserted are those docs/CLI.md reports
 (``bench/bench_relevancy.py``).
 
@@ -27,7 +28,7 @@ from openfusion.mapping.relevancy import (
     relevancy,
 )
 from openfusion.sources.synthetic import CATEGORIES
-from openfusion.testing.word_lists import CALIBRATION, HELD_OUT, HELD_OUT_2
+from openfusion.testing.word_lists import CALIBRATION, HELD_OUT, HELD_OUT_2, HELD_OUT_3
 
 
 def test_relevancy_is_the_minimum_over_negatives_of_the_pairwise_softmax() -> None:
@@ -73,7 +74,7 @@ def test_calibrations_are_per_space_and_a_saved_one_wins_only_for_its_space_and_
     assert minilm is CALIBRATIONS["minilm-l6-v2"] and minilm.calibrated and minilm.negatives == DEFAULT_NEGATIVES
     assert minilm.query_categories == DEFAULT_QUERY_CATEGORIES and minilm.method == METHOD
     assert minilm.phrases == [*DEFAULT_NEGATIVES, *DEFAULT_QUERY_CATEGORIES]
-    assert 0.5 < minilm.threshold < 1 and minilm.margin == pytest.approx(0.0725, abs=1e-3)
+    assert 0.5 < minilm.threshold < 1 and minilm.margin == pytest.approx(0.04, abs=1e-3)
     other = calibration_for("clip-vit-b-32")  # uncalibrated: plain LERF at 0.5, no text-to-text categories
     assert not other.calibrated and other.threshold == 0.5 and other.embedding_space == "clip-vit-b-32"
     assert other.query_categories == ()
@@ -93,11 +94,30 @@ def test_calibrations_are_per_space_and_a_saved_one_wins_only_for_its_space_and_
               "negatives": list(DEFAULT_NEGATIVES), "calibrated": True}
     assert calibration_for("minilm-l6-v2", legacy) is minilm
     assert "made for method 'lerf-v1'" in caplog.text
+    # a record of v2 (five categories, margin 0.0725): another method, ignored the same way
+    caplog.clear()
+    v2 = {**legacy, "method": "lerf+query-categories-v2", "query_categories": list(DEFAULT_QUERY_CATEGORIES[:5])}
+    assert calibration_for("minilm-l6-v2", v2) is minilm
+    assert "made for method 'lerf+query-categories-v2'" in caplog.text
+
+
+def test_the_word_lists_are_disjoint_and_name_only_scene_categories() -> None:
+    """A held-out list judges only texts nothing was chosen on: no text (case and spacing
+    ignored) is in two lists or twice in one, and every category named is one of the scene's."""
+    lists = {"CALIBRATION": CALIBRATION, "HELD_OUT": HELD_OUT, "HELD_OUT_2": HELD_OUT_2, "HELD_OUT_3": HELD_OUT_3}
+    seen: dict[str, str] = {}
+    for name, word_list in lists.items():
+        for text, wanted in word_list:
+            key = " ".join(text.lower().split())
+            assert key not in seen, f"{text!r} of {name} is in {seen[key]} too"
+            seen[key] = name
+            assert set(wanted) <= set(CATEGORIES), (name, text, wanted)
+    assert sum(map(len, lists.values())) == len(seen)
 
 
 def test_the_scorer_needs_one_vector_per_phrase() -> None:
     cal = CALIBRATIONS["minilm-l6-v2"]
-    with pytest.raises(ValueError, match="9 phrases but 4 vectors"):
+    with pytest.raises(ValueError, match="10 phrases but 4 vectors"):
         RelevancyScorer.of_vectors(cal, np.ones((4, 8)))
 
 
@@ -111,29 +131,33 @@ def _figures(encoder_name: str, word_list):  # noqa: ANN001, ANN202
 
 
 def test_match_on_the_minilm_word_lists() -> None:
-    """Calibration list: precision 0.979, recall 0.920 (the threshold: best recall at precision
-    >= 0.97). HELD_OUT_2 (written before any measurement on it, the list the target is judged
-    on): precision 0.934, recall 0.891; HELD_OUT: 0.976 / 0.872 (docs/CLI.md; the issue's targets
-    are 0.95 / 0.90: not reached on HELD_OUT_2, see the docs for the misses)."""
-    cal = _figures("minilm", CALIBRATION)
-    assert cal.precision >= 0.97 and cal.recall >= 0.92, cal.failures
-    held2 = _figures("minilm", HELD_OUT_2)
-    assert held2.precision >= 0.93 and held2.recall >= 0.89, held2.failures
-    held = _figures("minilm", HELD_OUT)
-    assert held.precision >= 0.97 and held.recall >= 0.87, held.failures
+    """HELD_OUT_3 (written and committed before any measurement on it, the judged list):
+    precision 0.810, recall 0.817 -- the issue's targets (0.95 / 0.90) are missed (docs/CLI.md
+    says why). The development lists pooled, which chose the threshold (best recall at precision
+    >= 0.96): 0.965 / 0.915."""
+    judged = _figures("minilm", HELD_OUT_3)
+    assert judged.precision == pytest.approx(0.810, abs=0.01) and judged.recall == pytest.approx(0.817, abs=0.01)
+    dev = _figures("minilm", CALIBRATION + HELD_OUT + HELD_OUT_2)
+    assert dev.precision == pytest.approx(0.965, abs=0.01) and dev.recall == pytest.approx(0.915, abs=0.01)
+    failures = dict(judged.failures) | dict(dev.failures)
     # unrelated words: no match, also those the LERF negatives alone let through ("car" -> plant)
-    assert "kangaroo" not in dict(held.failures) and "camel" not in dict(held2.failures)
-    assert "car" not in dict(cal.failures) and "zebra" not in dict(cal.failures)
+    # and the one "appliance" took off ("refrigerator" -> cabinet)
+    for text in ("zebra", "car", "kangaroo", "camel", "refrigerator", "owl", "democracy"):
+        assert text not in failures, (text, failures.get(text))
+    # paraphrases and synonyms find a region they name
+    for text in ("something to sit on", "couch", "a place to sleep", "something green that grows"):
+        assert text not in failures, (text, failures.get(text))
 
 
 def test_match_on_the_hash_word_lists() -> None:
-    """The lexical space matches near-exact words only: HELD_OUT_2 precision 0.921, recall 0.547;
-    HELD_OUT 0.929 / 0.553."""
-    held2 = _figures("hash", HELD_OUT_2)
-    assert held2.precision >= 0.92 and held2.recall >= 0.54
-    held = _figures("hash", HELD_OUT)
-    assert held.precision >= 0.92 and held.recall >= 0.55
-    assert "somewhere to sit" in dict(held.failures)  # no meaning in trigrams
+    """The lexical space matches near-exact words only: HELD_OUT_3 precision 0.942, recall 0.471;
+    the development lists pooled 0.967 / 0.559."""
+    judged = _figures("hash", HELD_OUT_3)
+    assert judged.precision == pytest.approx(0.942, abs=0.01) and judged.recall == pytest.approx(0.471, abs=0.01)
+    dev = _figures("hash", CALIBRATION + HELD_OUT + HELD_OUT_2)
+    assert dev.precision == pytest.approx(0.967, abs=0.01) and dev.recall == pytest.approx(0.559, abs=0.01)
+    assert "something to rest on" in dict(judged.failures)  # no meaning in trigrams
+    assert "zebra" not in dict(dev.failures)
 
 
 def test_the_scorer_embeds_the_negatives_once_and_matches_at_the_threshold() -> None:

@@ -265,7 +265,7 @@ one line naming the PLY of --out; --verbose adds log lines and the libraries' ou
     no match for "zebra" (closest: plant, relevancy 0.09)
   score: cosine; relevancy: [0, 1] against the phrases "object", "things", "stuff",
   "texture" and, query side, the categories "animal", "vehicle", "food", "building",
-  "landscape"; match: relevancy reaches the embedding space's calibrated threshold. A TEXT
+  "landscape", "appliance"; match: relevancy reaches the embedding space's calibrated threshold. A TEXT
   without any match prints the "no match" line (exit status 0).
   "X on|under|above|next to Y" (also: on top of, underneath, beneath, below, over, beside,
   near, by), e.g. "the chair next to the table": X regions in that relation to the best Y
