@@ -217,3 +217,64 @@ HELD_OUT_3: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("a traffic light", ()), ("a lighthouse", ()), ("a herd of elephants", ()), ("democracy", ()),
     ("pepperoni pizza", ()),
 )
+
+#: Written after HELD_OUT_3's results had been seen, from scratch and committed before any
+#: measurement on it and before the household vocabulary of v4 was written; never used to choose
+#: anything. v4 is judged on this list. Its unrelated texts include about 30 household things the
+#: synthetic room does not have, many next to one of its categories ("window blinds", "a light
+#: switch", "a desk fan", "a laundry basket", "a blanket"): they must not match.
+HELD_OUT_4: tuple[tuple[str, tuple[str, ...]], ...] = (
+    # class names, other forms
+    ("this wall", ("wall",)), ("the floors", ("floor",)), ("the ceilings", ("ceiling",)), ("that door", ("door",)),
+    ("this window", ("window",)), ("some pictures", ("picture",)), ("my bed", ("bed",)), ("that pillow", ("pillow",)),
+    ("this sofa", ("sofa",)), ("that bookshelf", ("bookshelf",)), ("this cabinet", ("cabinet",)),
+    ("that desk", ("desk", "table")), ("this monitor", ("monitor",)), ("my office chair", ("office chair", "chair")),
+    ("that table", ("table", "desk")), ("those chairs", ("chair", "office chair")), ("this lamp", ("lamp",)),
+    ("my plant", ("plant",)), ("that trash can", ("trash can",)), ("the trash cans", ("trash can",)),
+    # synonyms
+    ("davenport", ("sofa",)), ("corner sofa", ("sofa",)), ("velvet couch", ("sofa",)), ("queen bed", ("bed",)),
+    ("twin bed", ("bed",)), ("cot", ("bed",)), ("platform bed", ("bed",)), ("bolster", ("pillow",)),
+    ("sleeping pillow", ("pillow",)), ("decorative pillow", ("pillow", "sofa")), ("bookcases", ("bookshelf",)),
+    ("wooden bookshelf", ("bookshelf",)), ("tall bookcase", ("bookshelf",)), ("storage cupboard", ("cabinet",)),
+    ("cabinetry", ("cabinet",)), ("file cabinet", ("cabinet",)), ("armoire", ("cabinet",)),
+    ("locker", ("cabinet",)), ("corner desk", ("desk", "table")), ("student desk", ("desk", "table")),
+    ("display monitor", ("monitor",)), ("lcd monitor", ("monitor",)), ("flat panel display", ("monitor",)),
+    ("second screen", ("monitor",)), ("revolving chair", ("office chair", "chair")),
+    ("mesh desk chair", ("office chair", "chair")), ("side chair", ("chair", "office chair")), ("bar stool", SEAT),
+    ("upholstered chair", SEAT), ("rocking chair", ("chair", "office chair")),
+    ("dinner table", ("table", "desk")), ("glass table", ("table", "desk")), ("nightstand", ("table", "cabinet")),
+    ("reading lamp", ("lamp",)), ("night lamp", ("lamp",)), ("pendant lamp", ("lamp",)), ("monstera", ("plant",)),
+    ("pot plant", ("plant",)), ("spider plant", ("plant",)), ("greenery", ("plant",)), ("foliage", ("plant",)),
+    ("garbage pail", ("trash can",)), ("waste can", ("trash can",)), ("trash receptacle", ("trash can",)),
+    ("framed painting", ("picture",)), ("wall hanging", ("picture",)), ("photo print", ("picture",)),
+    ("glass pane", ("window",)), ("casement window", ("window",)), ("interior door", ("door",)),
+    ("sliding door", ("door",)), ("hinged door", ("door",)), ("tiled floor", ("floor",)),
+    ("laminate flooring", ("floor",)), ("concrete floor", ("floor",)), ("partition wall", ("wall",)),
+    ("brick wall", ("wall",)), ("plaster ceiling", ("ceiling",)), ("overhead ceiling", ("ceiling",)),
+    # paraphrases
+    ("a place to do my homework", ("desk", "table")), ("art that hangs on a wall", ("picture",)),
+    ("where I sleep at night", ("bed",)), ("a spot to sit and read", SEAT), ("what is overhead", ("ceiling",)),
+    ("where the light comes through", ("window",)), ("something that brightens a dark corner", ("lamp",)),
+    ("a box for waste", ("trash can",)), ("a container for rubbish", ("trash can",)),
+    ("a living thing in a pot", ("plant",)), ("the furniture where I keep dishes", ("cabinet",)),
+    ("a place to stack books", ("bookshelf",)), ("somewhere to relax with friends", ("sofa",)),
+    ("a seat that spins", ("office chair", "chair")), ("the screen showing my code", ("monitor",)),
+    ("the surface where I eat", ("table", "desk")), ("what I walk through to enter", ("door",)),
+    ("the side of the room", ("wall",)), ("the bottom of the room", ("floor",)),
+    ("a soft thing on the bed", ("pillow", "bed")),
+    # unrelated: household things the room does not have
+    ("a blender", ()), ("a toaster", ()), ("an electric kettle", ()), ("a frying pan", ()), ("a coffee maker", ()),
+    ("a vacuum cleaner", ()), ("an ironing board", ()), ("a bath towel", ()), ("a shower curtain", ()),
+    ("a doormat", ()), ("window blinds", ()), ("a radiator", ()), ("a smoke detector", ()), ("a light switch", ()),
+    ("a doorbell", ()), ("a shoe rack", ()), ("a calendar", ()), ("a loudspeaker", ()), ("a game console", ()),
+    ("a wifi router", ()), ("a desk fan", ()), ("a space heater", ()), ("an air conditioner", ()),
+    ("a laundry basket", ()), ("a blanket", ()), ("a candle", ()), ("a hair dryer", ()), ("a tablet computer", ()),
+    ("a projector", ()),
+    # unrelated: elsewhere
+    ("raccoon", ()), ("walrus", ()), ("peacock", ()), ("lobster", ()), ("hedgehog", ()), ("croissant", ()),
+    ("broccoli", ()), ("dumplings", ()), ("popcorn", ()), ("lemon", ()), ("ferry", ()), ("pickup truck", ()),
+    ("glider", ()), ("snowmobile", ()), ("comet", ()), ("oasis", ()), ("geyser", ()), ("prairie", ()),
+    ("clarinet", ()), ("bagpipes", ()), ("tuba", ()), ("hockey stick", ()), ("bowling ball", ()),
+    ("a pair of skis", ()), ("a bicycle helmet", ()), ("a parking meter", ()), ("a windmill", ()), ("freedom", ()),
+    ("a flock of pigeons", ()),
+)
