@@ -36,7 +36,7 @@ from openfusion.mapping.relevancy import (
     evaluate_match,
 )
 from openfusion.sources.synthetic import CATEGORIES
-from openfusion.testing.word_lists import CALIBRATION, HELD_OUT, HELD_OUT_2, HELD_OUT_3
+from openfusion.testing.word_lists import CALIBRATION, HELD_OUT, HELD_OUT_2, HELD_OUT_3, HELD_OUT_4
 
 CHOOSE_AT_PRECISION = 0.96
 #: The development lists (chosen on) and the judged one, in the order of the table's columns.
@@ -205,7 +205,7 @@ def main() -> None:
     parser.add_argument("--alternatives", action="store_true", help="other formulations (development lists only)")
     parser.add_argument("--failures", action="store_true", help="list the judged list's queries answered wrongly")
     args = parser.parse_args()
-    print(f"judged: HELD_OUT_3 ({len(HELD_OUT_3)} queries); development: " +
+    print(f"judged: HELD_OUT_3 ({len(HELD_OUT_3)} queries), then HELD_OUT_4 ({len(HELD_OUT_4)}); development: " +
           ", ".join(f"{name} ({len(wl)})" for name, wl in DEVELOPMENT.items()) +
           f"; {len(CATEGORIES)} categories; threshold: best recall at pooled development precision >= "
           f"{CHOOSE_AT_PRECISION}")
@@ -225,12 +225,14 @@ def main() -> None:
             stored_m = f"{cal.margin:>+7.4f}" if cal is stored else f"{'':>7}"
             cv_p, cv_r = cross_validated(space, cal)
             judged = space.figures(HELD_OUT_3, cal)
+            judged_4 = space.figures(HELD_OUT_4, cal)
             dev = "  ".join(_pr(space.figures(wl, cal)) for wl in (DEV_POOL, *DEVELOPMENT.values()))
             print(f"{space.encoder.embedding_space:<18} {method:<20} {cal.temperature:>5.2f} {margin:>+7.4f} "
-                  f"{stored_m}  {_pr(judged)}  {cv_p:>6.3f} {cv_r:>6.3f}  {dev}{known}")
+                  f"{stored_m}  {_pr(judged)}  {_pr(judged_4)}  {cv_p:>6.3f} {cv_r:>6.3f}  {dev}{known}")
             if args.failures and cal is stored:
-                for text, first in judged.failures:
-                    print(f"    HELD_OUT_3 wrong: {text!r} -> {first or 'no match'}")
+                for list_name, figures in (("HELD_OUT_3", judged), ("HELD_OUT_4", judged_4)):
+                    for text, first in figures.failures:
+                        print(f"    {list_name} wrong: {text!r} -> {first or 'no match'}")
         if args.alternatives:
             alternatives(space, stored)
 
