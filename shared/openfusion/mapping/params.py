@@ -140,6 +140,20 @@ class MatchParams(ConfigSection):
     mask_edge_px: float = Field(
         2.0, ge=0, description="planned confidences fall off within this many pixels of a region border (0 = off)"
     )
+    depth_cut_rel: float = Field(
+        0.05,
+        ge=0,
+        description="depth-edge cut: rendered neighbours whose depths differ by more than this share of the nearer "
+        "lie on different surfaces; a pixel within mask_edge_px of its region's border that such an edge (or a "
+        "crease, crease_rel) cuts off from the region's interior fuses nothing where the map holds another region "
+        "(a mask spilled over an occlusion edge or around a corner); 0 = off",
+    )
+    crease_rel: float = Field(
+        0.01,
+        ge=0,
+        description="depth-edge cut: also a crease where the rendered inverse depth's slope changes across a pixel "
+        "pair by more than this share of the inverse depth (planes have linear inverse depth); 0 = jumps only",
+    )
     contested_margin: bool = Field(
         True,
         description="a pixel's planned confidence is its best region's minus the runner-up's there (pixels two "
