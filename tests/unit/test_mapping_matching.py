@@ -301,3 +301,29 @@ def test_plan_update_depth_cut_keeps_new_and_own_surface() -> None:
     rendered.key_map[:, 21] = 0
     plan = plan_update(obs, rendered, d)
     assert (plan.conf_map[:, 20:22] > 0).all() and (plan.key_map[:, 20:22] == 0).all()
+
+
+def test_plan_update_splits_a_mask_of_two_map_objects() -> None:
+    """One frame region over two map regions of different objects (a mask that merged them) matches
+    the larger; the part over the other, which no frame region matched, fuses that region's own key
+    instead of weakening it. Off (``split_min_share=None``), or when the two map regions' embeddings
+    agree (one object in two fragments, left to the merge pass), the whole mask fuses the matched key."""
+    conf = np.ones((1, H, W), np.float32)
+    key_map = np.where(np.arange(W)[None, :] < 24, 0, 1).repeat(H, axis=0).astype(np.int32)
+    rendered = RenderedView(key_map, np.ones((H, W), np.float32), np.ones((H, W), np.float32))
+
+    def plan_with(second: np.ndarray, params: MatchParams | None = None):  # noqa: ANN202
+        d = RegionDictionary("s", 2)
+        d.add(np.array([1, 0], np.float32))
+        d.add(second)
+        obs = SimpleObservation(conf, np.array([[1, 0]], np.float32), "s")
+        return plan_update(obs, rendered, d, params)
+
+    assert MatchParams().split_min_share is not None
+    plan = plan_with(np.array([0, 1], np.float32))
+    assert plan.matched == [(0, 0)] and not plan.new_keys
+    np.testing.assert_array_equal(plan.key_map, key_map)
+    plan = plan_with(np.array([0, 1], np.float32), MatchParams(split_min_share=None))
+    np.testing.assert_array_equal(plan.key_map, 0)
+    plan = plan_with(unit(np.array([1, 0.1], np.float32)))
+    np.testing.assert_array_equal(plan.key_map, 0)

@@ -44,6 +44,12 @@ Depth-edge cut (``MatchParams.depth_cut_rel``, ``crease_rel``)
     masks mostly follow depth edges, so this keeps most of the spill of the former off its
     neighbour's voxels (measured in docs/EVAL.md "Standard noise: depth-edge cut"). It uses the
     rendered depth only, which the semantic service receives with every render.
+
+Split along the map (``MatchParams.split_min_share``)
+    A frame region that merged two objects (under-segmentation) is assigned to one of the two map
+    regions; the other map region is then unmatched although it lies inside the frame region.
+    Where it covers most of such a map region, over a substantial share of itself, and the two map
+    regions' embeddings disagree, those pixels fuse the unmatched region's own key (:func:`_splits`).
 """
 
 from __future__ import annotations
@@ -333,6 +339,42 @@ def _joins(
     return out
 
 
+def _splits(
+    winner: np.ndarray,
+    covered: np.ndarray,
+    rendered_keys: np.ndarray,
+    key_of: np.ndarray,
+    pixels_won: np.ndarray,
+    dictionary: RegionDictionary,
+    p: MatchParams,
+) -> list[tuple[int, int]]:
+    """(frame region, rendered key) pairs where one frame region holds two map objects: a map region
+    no frame region took this frame lies mostly (``split_min_cover`` of its rendered pixels) inside
+    the frame region, over at least ``split_min_share`` of the frame region's pixels, and its
+    embedding disagrees with the key the frame region took (cosine below ``split_max_cos``). The
+    one-to-one assignment gives a mask that merged two objects to one of them; the other's pixels
+    then fuse their own map key instead of weakening it (the embedding is observed by the matched
+    key only). A fragment of the same object (embeddings agree) is left to the merge pass.
+    """
+    on = covered & (rendered_keys >= 0)
+    if not on.any():
+        return []
+    matched = set(int(k) for k in key_of[key_of >= 0])
+    rk, r_area = np.unique(rendered_keys[rendered_keys >= 0], return_counts=True)
+    area_of = dict(zip(rk.tolist(), r_area.tolist(), strict=True))
+    pairs, counts = np.unique(np.stack([winner[on], rendered_keys[on]]), axis=1, return_counts=True)
+    out = []
+    for (i, key), o in zip(pairs.T.tolist(), counts.tolist(), strict=True):
+        own = int(key_of[i])
+        if key == own or key in matched or own < 0 or key not in dictionary:
+            continue
+        if o < p.split_min_cover * area_of[key] or o < p.split_min_share * pixels_won[i]:
+            continue
+        if float(dictionary.embedding(own) @ dictionary.embedding(key)) < p.split_max_cos:
+            out.append((int(i), int(key)))
+    return out
+
+
 @dataclass
 class PlannedUpdate:
     """Per-pixel keys/confidences to fuse, and what happened to each frame region."""
@@ -444,6 +486,10 @@ def plan_update(
             key_of[i] = key
             plan.new_keys.append((i, key))
     pixel_keys = key_of[winner]
+    if p.split_min_share is not None:
+        for i, key in _splits(winner, covered, rendered.key_map, key_of, pixels_won, dictionary, p):
+            part = covered & (winner == i) & (rendered.key_map == key)
+            pixel_keys = np.where(part, key, pixel_keys)
     use = covered & (pixel_keys >= 0)
     pixel_conf = best_conf
     if p.contested_margin and n > 1:
