@@ -250,3 +250,80 @@ def test_plan_update_contested_pixels_fuse_nothing() -> None:
     )
     np.testing.assert_allclose(plan.conf_map[:, :30], 1.0)
     np.testing.assert_allclose(plan.conf_map[:, 30], 1.0)
+
+
+def _dilated_over_an_edge(depth_m: np.ndarray) -> tuple[SimpleObservation, RenderedView, RegionDictionary]:
+    """Region 0 (map key 0, columns < 20) dilated 2 columns over region 1 (map key 1), which is eroded."""
+    conf = np.zeros((2, H, W), np.float32)
+    conf[0][:, :22] = 1.0
+    conf[1][:, 22:] = 1.0
+    d = RegionDictionary("s", 2)
+    d.add(np.array([1, 0], np.float32))
+    d.add(np.array([0, 1], np.float32))
+    key_map = np.where(np.arange(W)[None, :] < 20, 0, 1).repeat(H, axis=0)
+    rendered = RenderedView(key_map.astype(np.int32), np.ones((H, W), np.float32), depth_m.astype(np.float32))
+    return SimpleObservation(conf, np.eye(2, dtype=np.float32), "s"), rendered, d
+
+
+def test_plan_update_depth_cut_spill_fuses_nothing() -> None:
+    """A mask dilated over an occlusion edge (depth jump) or around a crease (the inverse depth's slope
+    changes) fuses nothing on the far side where the map holds another region; with the cut off
+    (``depth_cut_rel=0`` / ``crease_rel=0``) the spill is fused with the mask's key."""
+    jump = np.where(np.arange(W)[None, :] < 20, 1.0, 3.0).repeat(H, axis=0)
+    obs, rendered, d = _dilated_over_an_edge(jump)
+    assert MatchParams().depth_cut_rel > 0 and MatchParams().crease_rel > 0
+    plan = plan_update(obs, rendered, d)
+    assert plan.matched == [(0, 0), (1, 1)]
+    np.testing.assert_array_equal(plan.conf_map[:, 20:22], 0.0)
+    assert (plan.conf_map[:, 18:20] > 0).all() and (plan.key_map[:, :20] == 0).all()
+    obs, rendered, d = _dilated_over_an_edge(jump)
+    plan = plan_update(obs, rendered, d, MatchParams(depth_cut_rel=0))
+    assert (plan.conf_map[:, 20:22] > 0).all() and (plan.key_map[:, 20:22] == 0).all()
+
+    # A corner (a wall meeting another wall): depth continuous, inverse depth linear on each side.
+    col = np.arange(W, dtype=np.float64)
+    inv = np.where(col < 20, 0.5 + 0.01 * col, 0.7 - 0.01 * (col - 20))
+    crease = (1.0 / inv)[None, :].repeat(H, axis=0)
+    obs, rendered, d = _dilated_over_an_edge(crease)
+    plan = plan_update(obs, rendered, d)
+    np.testing.assert_array_equal(plan.conf_map[:, 20:22], 0.0)
+    obs, rendered, d = _dilated_over_an_edge(crease)
+    plan = plan_update(obs, rendered, d, MatchParams(crease_rel=0))
+    assert (plan.conf_map[:, 20:22] > 0).all()
+
+
+def test_plan_update_depth_cut_keeps_new_and_own_surface() -> None:
+    """Cut-off border pixels still fuse where the map shows no region yet or already this region's key
+    (noise-free masks on a first view lose nothing)."""
+    jump = np.where(np.arange(W)[None, :] < 20, 1.0, 3.0).repeat(H, axis=0)
+    obs, rendered, d = _dilated_over_an_edge(jump)
+    rendered.key_map[:, 20] = -1
+    rendered.key_map[:, 21] = 0
+    plan = plan_update(obs, rendered, d)
+    assert (plan.conf_map[:, 20:22] > 0).all() and (plan.key_map[:, 20:22] == 0).all()
+
+
+def test_plan_update_splits_a_mask_of_two_map_objects() -> None:
+    """One frame region over two map regions of different objects (a mask that merged them) matches
+    the larger; the part over the other, which no frame region matched, fuses that region's own key
+    instead of weakening it. Off (``split_min_share=None``), or when the two map regions' embeddings
+    agree (one object in two fragments, left to the merge pass), the whole mask fuses the matched key."""
+    conf = np.ones((1, H, W), np.float32)
+    key_map = np.where(np.arange(W)[None, :] < 24, 0, 1).repeat(H, axis=0).astype(np.int32)
+    rendered = RenderedView(key_map, np.ones((H, W), np.float32), np.ones((H, W), np.float32))
+
+    def plan_with(second: np.ndarray, params: MatchParams | None = None):  # noqa: ANN202
+        d = RegionDictionary("s", 2)
+        d.add(np.array([1, 0], np.float32))
+        d.add(second)
+        obs = SimpleObservation(conf, np.array([[1, 0]], np.float32), "s")
+        return plan_update(obs, rendered, d, params)
+
+    assert MatchParams().split_min_share is not None
+    plan = plan_with(np.array([0, 1], np.float32))
+    assert plan.matched == [(0, 0)] and not plan.new_keys
+    np.testing.assert_array_equal(plan.key_map, key_map)
+    plan = plan_with(np.array([0, 1], np.float32), MatchParams(split_min_share=None))
+    np.testing.assert_array_equal(plan.key_map, 0)
+    plan = plan_with(unit(np.array([1, 0.1], np.float32)))
+    np.testing.assert_array_equal(plan.key_map, 0)

@@ -32,6 +32,24 @@ Per-pixel confidence of the planned update (contested pixels and mask edges coun
     segmenter's masks are commonly a pixel or two too large or too small there, and a dilated
     mask's border pixels lie on the neighbouring object), so a voxel near an object border gets
     most of its evidence from the views in which it lies well inside its own object's mask.
+
+Depth-edge cut (``MatchParams.depth_cut_rel``, ``crease_rel``)
+    A mask dilated over an object's outline puts its spill on another surface: behind an occlusion
+    edge (a jump in the rendered depth) or around a corner (a crease: the rendered inverse depth,
+    linear in the pixel coordinates on a plane, changes slope). A pixel of that border band which its
+    region's interior cannot reach within ``mask_edge_px`` + 1 steps through 4-neighbours of the same
+    region without crossing such an edge (:func:`depth_cut_spill`) fuses nothing, where the map
+    already renders another region there; on a new surface, or one the map gives this region's key,
+    it fuses as before. The noise model's dilation does not know about surfaces, a real segmenter's
+    masks mostly follow depth edges, so this keeps most of the spill of the former off its
+    neighbour's voxels (measured in docs/EVAL.md "Standard noise: depth-edge cut"). It uses the
+    rendered depth only, which the semantic service receives with every render.
+
+Split along the map (``MatchParams.split_min_share``)
+    A frame region that merged two objects (under-segmentation) is assigned to one of the two map
+    regions; the other map region is then unmatched although it lies inside the frame region.
+    Where it covers most of such a map region, over a substantial share of itself, and the two map
+    regions' embeddings disagree, those pixels fuse the unmatched region's own key (:func:`_splits`).
 """
 
 from __future__ import annotations
@@ -213,6 +231,66 @@ def mask_edge_weights(labels: np.ndarray, mask_edge_px: float) -> np.ndarray:
     return weight
 
 
+def depth_jumps(depth_m: np.ndarray, rel: float, crease_rel: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Neighbour pairs on different surfaces: ``(across (h, w-1), down (h-1, w))`` bool, True where two
+    4-neighbours' depths differ by more than ``rel`` times the nearer one, or one has no depth.
+    With ``crease_rel`` also where the inverse depth's slope on one side of the pair differs from the
+    slope on the other side by more than that share of the inverse depth (a crease: on a plane the
+    inverse depth is linear in the pixel coordinates)."""
+    z = np.asarray(depth_m, np.float32)
+
+    def jump(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        near = np.minimum(a, b)
+        return (near <= 0) | (np.abs(a - b) > rel * near)
+
+    across, down = jump(z[:, 1:], z[:, :-1]), jump(z[1:, :], z[:-1, :])
+    if crease_rel > 0:
+        iz = np.where(z > 0, 1.0 / np.maximum(z, 1e-6), 0.0).astype(np.float32)
+        for cut, v in ((across, iz), (down.T, iz.T)):  # down.T is a view: written in place
+            if v.shape[1] < 4:
+                continue
+            slope = v[:, 1:] - v[:, :-1]  # slope[x] between x and x+1
+            bend = np.abs(slope[:, 2:] - slope[:, :-2])  # around pair (x+1, x+2): slopes x and x+2
+            ref = 0.5 * (v[:, 1:-2] + v[:, 2:-1])
+            cut[:, 1:-1] |= bend > crease_rel * ref
+    return across, down
+
+
+def depth_cut_spill(
+    labels: np.ndarray,
+    band: np.ndarray,
+    depth_m: np.ndarray,
+    rel: float,
+    crease_rel: float,
+    reach_px: float,
+) -> np.ndarray:
+    """Pixels (bool (h, w)) of a label image's border ``band`` that are cut off from their label's
+    interior by a depth edge: each label spreads from its pixels outside the band to 4-neighbours of
+    the same label for ``ceil(reach_px) + 1`` steps, never across a pair of pixels
+    :func:`depth_jumps` separates; band pixels it does not reach lie on another surface than the
+    mask's body (a mask dilated over an occlusion edge or around a corner), or on a thin part of
+    the mask far from its body. A label without interior (all band) is left alone.
+    """
+    labels = np.asarray(labels)
+    across, down = depth_jumps(depth_m, rel, crease_rel)
+    lab = labels >= 0
+    link_x = (labels[:, 1:] == labels[:, :-1]) & ~across & lab[:, 1:]
+    link_y = (labels[1:, :] == labels[:-1, :]) & ~down & lab[1:, :]
+    interior = lab & ~band
+    reached = interior.copy()
+    if lab.any():  # labels with no interior pixel: nothing to cut them off from
+        has_inside = np.bincount(labels[interior], minlength=int(labels.max()) + 1) > 0
+        reached |= lab & ~has_inside[np.where(lab, labels, 0)]
+    for _ in range(math.ceil(reach_px) + 1):
+        grow = reached.copy()
+        grow[:, 1:] |= reached[:, :-1] & link_x
+        grow[:, :-1] |= reached[:, 1:] & link_x
+        grow[1:, :] |= reached[:-1, :] & link_y
+        grow[:-1, :] |= reached[1:, :] & link_y
+        reached = grow
+    return lab & band & ~reached
+
+
 @functools.lru_cache(maxsize=8)
 def _offsets_by_distance(radius_px: float) -> tuple[tuple[int, tuple[tuple[int, int], ...]], ...]:
     """Pixel offsets (dy, dx) with 0 < distance < radius_px, grouped by squared distance, nearest first."""
@@ -261,6 +339,42 @@ def _joins(
     return out
 
 
+def _splits(
+    winner: np.ndarray,
+    covered: np.ndarray,
+    rendered_keys: np.ndarray,
+    key_of: np.ndarray,
+    pixels_won: np.ndarray,
+    dictionary: RegionDictionary,
+    p: MatchParams,
+) -> list[tuple[int, int]]:
+    """(frame region, rendered key) pairs where one frame region holds two map objects: a map region
+    no frame region took this frame lies mostly (``split_min_cover`` of its rendered pixels) inside
+    the frame region, over at least ``split_min_share`` of the frame region's pixels, and its
+    embedding disagrees with the key the frame region took (cosine below ``split_max_cos``). The
+    one-to-one assignment gives a mask that merged two objects to one of them; the other's pixels
+    then fuse their own map key instead of weakening it (the embedding is observed by the matched
+    key only). A fragment of the same object (embeddings agree) is left to the merge pass.
+    """
+    on = covered & (rendered_keys >= 0)
+    if not on.any():
+        return []
+    matched = set(int(k) for k in key_of[key_of >= 0])
+    rk, r_area = np.unique(rendered_keys[rendered_keys >= 0], return_counts=True)
+    area_of = dict(zip(rk.tolist(), r_area.tolist(), strict=True))
+    pairs, counts = np.unique(np.stack([winner[on], rendered_keys[on]]), axis=1, return_counts=True)
+    out = []
+    for (i, key), o in zip(pairs.T.tolist(), counts.tolist(), strict=True):
+        own = int(key_of[i])
+        if key == own or key in matched or own < 0 or key not in dictionary:
+            continue
+        if o < p.split_min_cover * area_of[key] or o < p.split_min_share * pixels_won[i]:
+            continue
+        if float(dictionary.embedding(own) @ dictionary.embedding(key)) < p.split_max_cos:
+            out.append((int(i), int(key)))
+    return out
+
+
 @dataclass
 class PlannedUpdate:
     """Per-pixel keys/confidences to fuse, and what happened to each frame region."""
@@ -297,7 +411,9 @@ def plan_update(
     A pixel's planned confidence is its region's confidence there (minus the runner-up's with
     ``contested_margin``) times the mask-edge weight
     ``min(1, (d + 1) / (mask_edge_px + 1))``, d = distance in pixels to the nearest border between
-    winning regions (see the module docstring; 0 turns the weighting off).
+    winning regions (see the module docstring; 0 turns the weighting off). Border pixels cut off from
+    their region's interior by a depth edge of the rendered view fuse nothing where the map shows
+    another region (``depth_cut_rel``, ``crease_rel``; the module docstring).
     """
     conf_maps = _check_conf_maps(obs.conf_maps, rendered.key_map.shape)
     embeddings = np.asarray(obs.embeddings, np.float32)
@@ -370,12 +486,26 @@ def plan_update(
             key_of[i] = key
             plan.new_keys.append((i, key))
     pixel_keys = key_of[winner]
+    if p.split_min_share is not None:
+        for i, key in _splits(winner, covered, rendered.key_map, key_of, pixels_won, dictionary, p):
+            part = covered & (winner == i) & (rendered.key_map == key)
+            pixel_keys = np.where(part, key, pixel_keys)
     use = covered & (pixel_keys >= 0)
     pixel_conf = best_conf
     if p.contested_margin and n > 1:
         pixel_conf = best_conf - np.partition(conf_maps, n - 2, axis=0)[n - 2]
+    labels_px = np.where(covered, winner, -1)
     if p.mask_edge_px > 0:
-        pixel_conf = pixel_conf * mask_edge_weights(np.where(covered, winner, -1), p.mask_edge_px)
+        edge_w = mask_edge_weights(labels_px, p.mask_edge_px)
+        pixel_conf = pixel_conf * edge_w
+        if p.depth_cut_rel > 0:
+            spill = depth_cut_spill(
+                labels_px, edge_w < 1, rendered.depth_m, p.depth_cut_rel, p.crease_rel, p.mask_edge_px
+            )
+            # Only where the map already holds another region: a new surface, or one the map labels
+            # as this region, takes the pixel as before (noise-free masks lose nothing).
+            spill &= (rendered.key_map >= 0) & (rendered.key_map != pixel_keys)
+            pixel_conf = np.where(spill, np.float32(0), pixel_conf)
     plan.key_map[use] = pixel_keys[use]
     plan.conf_map[use] = pixel_conf[use]
     plan.dictionary_version = dictionary.version

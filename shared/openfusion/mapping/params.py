@@ -140,6 +140,35 @@ class MatchParams(ConfigSection):
     mask_edge_px: float = Field(
         2.0, ge=0, description="planned confidences fall off within this many pixels of a region border (0 = off)"
     )
+    depth_cut_rel: float = Field(
+        0.05,
+        ge=0,
+        description="depth-edge cut: rendered neighbours whose depths differ by more than this share of the nearer "
+        "lie on different surfaces; a pixel within mask_edge_px of its region's border that such an edge (or a "
+        "crease, crease_rel) cuts off from the region's interior fuses nothing where the map holds another region "
+        "(a mask spilled over an occlusion edge or around a corner); 0 = off",
+    )
+    crease_rel: float = Field(
+        0.01,
+        ge=0,
+        description="depth-edge cut: also a crease where the rendered inverse depth's slope changes across a pixel "
+        "pair by more than this share of the inverse depth (planes have linear inverse depth); 0 = jumps only",
+    )
+    split_min_share: float | None = Field(
+        0.15,
+        ge=0,
+        le=1,
+        description="split a frame region along the map: where it covers most (split_min_cover) of a map region no "
+        "frame region matched, over at least this share of its own pixels, and that region's embedding disagrees "
+        "with the key it matched (cosine below split_max_cos), those pixels fuse that region's key (a mask that "
+        "merged two objects); none = off",
+    )
+    split_min_cover: float = Field(
+        0.5, ge=0, le=1, description="split: share of the unmatched map region's rendered pixels the frame region covers"
+    )
+    split_max_cos: float = Field(
+        0.85, ge=-1, le=1, description="split: the two map regions' embeddings must agree less than this (other objects)"
+    )
     contested_margin: bool = Field(
         True,
         description="a pixel's planned confidence is its best region's minus the runner-up's there (pixels two "
