@@ -255,10 +255,6 @@ class EncoderPool:
         chosen = pick_worker(loads, time.monotonic())
         return self.workers[chosen] if chosen is not None else None
 
-    def has_capacity(self) -> bool:
-        with self._cond:
-            return self._free_worker() is not None
-
     def wait_for_capacity(self, timeout_s: float) -> bool:
         """Block until a worker has room (True) or ``timeout_s`` passed (False)."""
         with self._cond:

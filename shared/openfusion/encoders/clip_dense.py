@@ -73,7 +73,6 @@ from openfusion.frame import Frame
 logger = logging.getLogger(__name__)
 
 DENSE_MODES = ("value", "value-residual")
-DEFAULT_INPUT_LONG_SIDE_PX = DEFAULT_DENSE_INPUT_LONG_SIDE_PX
 
 
 def dense_input_size(height_px: int, width_px: int, *, patch_px: int, long_side_px: int) -> tuple[int, int]:
@@ -318,7 +317,7 @@ class ClipDenseRegionEncoder(RegionEncoder, ImageQueryEncoder):
         mask_model_path: str | Path | None = None,
         proposer_options: dict[str, Any] | None = None,
         backend: str = "torch",
-        input_long_side_px: int = DEFAULT_INPUT_LONG_SIDE_PX,
+        input_long_side_px: int = DEFAULT_DENSE_INPUT_LONG_SIDE_PX,
         dense_mode: str = "value",
         cache_dir: str | Path | None = None,
         onnx_spinning: bool = True,

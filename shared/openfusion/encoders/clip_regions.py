@@ -91,6 +91,17 @@ def _resolve_space(model: str, folder: Path | None, config: Any, embedding_space
     )
 
 
+def clip_source(model: str) -> tuple[Path | None, str]:
+    """(local folder or None, what ``from_pretrained`` reads) of a CLIP model given as a hub name
+    or a ``save_pretrained`` folder; anything else is a clear :class:`EncoderConfigError`."""
+    folder = Path(model).expanduser()
+    if folder.is_dir():
+        return folder, str(folder)
+    if "/" not in str(model) or str(model).startswith((".", "/", "~")):
+        raise EncoderConfigError(f"CLIP weights {model!r}: no such folder, and not a hub name like {DEFAULT_CLIP_MODEL}")
+    return None, str(model)
+
+
 def load_clip(model: str = DEFAULT_CLIP_MODEL, *, device: str = "auto", embedding_space: str | None = None) -> LoadedClip:
     """Load (once per process) CLIP weights + tokenizer by hub name or local folder."""
     dev = select_device(device)
@@ -102,11 +113,7 @@ def load_clip(model: str = DEFAULT_CLIP_MODEL, *, device: str = "auto", embeddin
         import torch
         from transformers import CLIPModel, CLIPTokenizer
 
-        folder = Path(model).expanduser()
-        is_local = folder.is_dir()
-        if not is_local and ("/" not in str(model) or str(model).startswith((".", "/", "~"))):
-            raise EncoderConfigError(f"CLIP weights {model!r}: no such folder, and not a hub name like {DEFAULT_CLIP_MODEL}")
-        source = str(folder) if is_local else str(model)
+        folder, source = clip_source(model)
         t0 = time.perf_counter()
         try:
             clip = CLIPModel.from_pretrained(source, attn_implementation="eager", dtype=torch.float32)
@@ -117,10 +124,10 @@ def load_clip(model: str = DEFAULT_CLIP_MODEL, *, device: str = "auto", embeddin
                 "local Hugging Face cache or a local folder (save_pretrained of model + tokenizer)."
             ) from exc
         clip = clip.eval().to(dev)
-        space = _resolve_space(str(model), folder if is_local else None, clip.config, embedding_space)
+        space = _resolve_space(str(model), folder, clip.config, embedding_space)
         dim = int(clip.config.projection_dim)
         mean, std = CLIP_MEAN, CLIP_STD
-        pre = folder / "preprocessor_config.json" if is_local else None
+        pre = folder / "preprocessor_config.json" if folder is not None else None
         if pre is not None and pre.is_file():
             cfg = json.loads(pre.read_text(encoding="utf-8"))
             mean = tuple(cfg.get("image_mean", mean))  # type: ignore[assignment]

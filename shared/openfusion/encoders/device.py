@@ -73,5 +73,3 @@ def onnx_providers(device: str) -> list[str]:
             ", ".join(available),
         )
     return ["CPUExecutionProvider"]
-
-

@@ -14,7 +14,6 @@ metadata inside the model file, so it returns None and the caller builds the enc
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from openfusion.encoders.base import (
@@ -75,20 +74,17 @@ def _gt_identity(options: dict[str, Any]) -> EncoderIdentity | None:
 def _clip_identity(name: str, options: dict[str, Any]) -> EncoderIdentity:
     from transformers import CLIPConfig
 
-    from openfusion.encoders.clip_regions import DEFAULT_CLIP_MODEL, _resolve_space
+    from openfusion.encoders.clip_regions import DEFAULT_CLIP_MODEL, _resolve_space, clip_source
 
     model = str(options.get("model") or DEFAULT_CLIP_MODEL)
-    folder = Path(model).expanduser()
-    is_local = folder.is_dir()
-    if not is_local and ("/" not in model or model.startswith((".", "/", "~"))):
-        raise EncoderConfigError(f"CLIP weights {model!r}: no such folder, and not a hub name like {DEFAULT_CLIP_MODEL}")
+    folder, source = clip_source(model)
     try:
-        config = CLIPConfig.from_pretrained(str(folder) if is_local else model)
+        config = CLIPConfig.from_pretrained(source)
     except OSError as exc:
         raise EncoderConfigError(
             f"cannot read the CLIP config of {model!r}: {exc}. Without internet the model must be in the local "
             "Hugging Face cache or a local folder (save_pretrained of model + tokenizer)."
         ) from exc
-    space = _resolve_space(model, folder if is_local else None, config, options.get("embedding_space"))
+    space = _resolve_space(model, folder, config, options.get("embedding_space"))
     scale = float(options.get("output_scale", DEFAULT_OUTPUT_SCALE))
     return EncoderIdentity(name, space, int(config.projection_dim), needs_instances=False, output_scale=scale)

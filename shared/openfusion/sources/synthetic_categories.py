@@ -8,7 +8,7 @@ in ``openfusion.sources.synthetic`` (which needs Open3D), so a process that only
 from __future__ import annotations
 
 # Base colors per category (RGB 0..1); instances jitter around them.
-_PALETTE: dict[str, tuple[float, float, float]] = {
+PALETTE: dict[str, tuple[float, float, float]] = {
     "wall": (0.86, 0.84, 0.78),
     "floor": (0.62, 0.45, 0.30),
     "ceiling": (0.93, 0.93, 0.92),
@@ -30,5 +30,5 @@ _PALETTE: dict[str, tuple[float, float, float]] = {
     "trash can": (0.35, 0.40, 0.45),
 }
 
-CATEGORIES: tuple[str, ...] = tuple(_PALETTE)
+CATEGORIES: tuple[str, ...] = tuple(PALETTE)
 """Every raw category the synthetic world can contain (walls/floor/ceiling included)."""

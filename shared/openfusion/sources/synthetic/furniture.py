@@ -18,7 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 
-from openfusion.sources.synthetic_categories import _PALETTE, CATEGORIES  # noqa: F401 (re-exported)
+from openfusion.sources.synthetic_categories import CATEGORIES  # noqa: F401 (re-exported)
+from openfusion.sources.synthetic_categories import PALETTE as _PALETTE
 
 
 @dataclass
