@@ -1,21 +1,22 @@
 #!/usr/bin/env python3
-"""Calibrate ``match`` per embedding space and measure its precision and recall on held-out words.
+"""Calibrate ``match`` per embedding space and measure its precision and recall on the word lists.
 
 For each text encoder (``minilm``, ``hash``): the synthetic scene's categories are embedded as
 the gt encoder embeds regions (the category name). The threshold margin is chosen on the
-development lists of ``openfusion.testing.word_lists`` pooled (``CALIBRATION``, ``HELD_OUT``,
-``HELD_OUT_2``: all seen before, none judges): the highest recall at precision >= 0.96 (0.01 kept
-in hand for the target 0.95), the middle of the margins that reach it (when none reaches 0.96:
-the highest precision, then recall). ``cv P/R``: leave one development list out, choose on the
-other two, measure on it; the three left-out lists counted together. Precision and recall are
-judged on ``HELD_OUT_3`` (written and committed before any measurement on it), with the stored
-calibration (:func:`openfusion.mapping.relevancy.evaluate_match`); each development list is
-shown too (in-sample). Each space gets three rows measured in the same run, each calibrated by
-the same rule: the library's method (LERF negatives and six query categories, v3), the five
-categories of v2, and plain LERF (no query categories). The calibrated margin of the library's
-method must equal the one stored in ``openfusion.mapping.relevancy.CALIBRATIONS``.
-``--alternatives`` prints the development figures of the other formulations measured while
-choosing (prompt templates, more categories, a genericness term, a per-map normalisation).
+development lists of ``openfusion.testing.word_lists`` pooled (:data:`DEVELOPMENT`: all five
+lists, all seen, none judges): the highest recall at precision >= 0.96 (0.01 kept in hand for
+the target 0.95), the middle of the margins that reach it (when none reaches 0.96: the highest
+precision, then recall). ``cv P/R``: leave one development list out, choose on the others,
+measure on it; the left-out lists counted together. Then each list's figures (in sample), and
+those of :data:`JUDGED` lists (written after the method was chosen; none at present): a new list
+is one line in either dict. Each space gets rows measured in the same run: the library's method
+(v5: LERF negatives, six query categories and the head rule), v3 (no head rule) and plain LERF
+calibrated by the same rule, and v3 with the threshold it shipped with (chosen on the first three
+lists). The calibrated margin of the library's method must equal the one stored in
+``openfusion.mapping.relevancy.CALIBRATIONS``. ``--alternatives`` prints the development figures
+(pooled and left out) of the head rule's variants and vocabulary contrasts, then those of the
+formulations measured while v3 was chosen (prompt templates, more categories, a genericness term,
+a per-map normalisation).
 
     HF_HUB_OFFLINE=1 .venv/bin/python bench/bench_relevancy.py
     HF_HUB_OFFLINE=1 .venv/bin/python bench/bench_relevancy.py --failures --alternatives
@@ -29,21 +30,37 @@ from dataclasses import replace
 import numpy as np
 
 from openfusion.encoders import make_text_encoder
+from openfusion.eval.classes import NYU40_CLASSES
+from openfusion.mapping.query_head import query_head
 from openfusion.mapping.relevancy import (
     CALIBRATIONS,
     SpaceCalibration,
     calibration_for,
     evaluate_match,
+    margins,
+    relevancy_texts,
+    text_margins,
 )
 from openfusion.sources.synthetic import CATEGORIES
 from openfusion.testing.word_lists import CALIBRATION, HELD_OUT, HELD_OUT_2, HELD_OUT_3, HELD_OUT_4
 
 CHOOSE_AT_PRECISION = 0.96
-#: The development lists (chosen on) and the judged one, in the order of the table's columns.
-DEVELOPMENT = {"CALIBRATION": CALIBRATION, "HELD_OUT": HELD_OUT, "HELD_OUT_2": HELD_OUT_2}
-DEV_POOL = CALIBRATION + HELD_OUT + HELD_OUT_2
+#: The development lists (pooled, they choose; each is left out once in ``cv``), in the order of
+#: the table's columns. A new list is one more line here.
+DEVELOPMENT: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {
+    "CALIBRATION": CALIBRATION,
+    "HELD_OUT": HELD_OUT,
+    "HELD_OUT_2": HELD_OUT_2,
+    "HELD_OUT_3": HELD_OUT_3,
+    "HELD_OUT_4": HELD_OUT_4,
+}
+#: Judged lists (written after the method was chosen, never chosen on): none at present.
+JUDGED: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {}
+DEV_POOL = tuple(q for wl in DEVELOPMENT.values() for q in wl)
 MARGINS = np.round(np.arange(-0.3, 0.9, 0.0025), 4)
 CATS = list(CATEGORIES)
+#: v3 as it was shipped: chosen on the first three lists (margins per space).
+V3_SHIPPED_MARGIN = {"minilm-l6-v2": 0.04, "hash-trigram-256": 0.3275}
 
 
 def _margin_to_threshold(margin: float, temperature: float) -> float:
@@ -68,22 +85,32 @@ class Space:
             self._cache.update(zip(missing, np.asarray(self.encoder.encode(missing), np.float64), strict=True))
         return np.stack([self._cache[t] for t in texts]) if texts else np.zeros((0, self.encoder.dim))
 
+    def parts(self, word_list) -> dict[str, np.ndarray]:  # noqa: ANN001
+        """The vectors of every text's head-rule parts (core noun phrase, head word)."""
+        texts = [p for t, _ in word_list for p in relevancy_texts(t)]
+        return dict(zip(texts, self.vectors(texts), strict=True))
+
     def figures(self, word_list, cal: SpaceCalibration, queries: np.ndarray | None = None):  # noqa: ANN001, ANN201
         q = self.vectors([t for t, _ in word_list]) if queries is None else queries
         return evaluate_match(word_list, q, CATS, self.vectors(CATS), self.vectors(list(cal.negatives)),
                               temperature=cal.temperature, threshold=cal.threshold,
-                              query_category_vectors=self.vectors(list(cal.query_categories)))
+                              query_category_vectors=self.vectors(list(cal.query_categories)),
+                              head_name_cos=cal.head_name_cos, part_vectors=self.parts(word_list))
 
 
 def margin_matrix(space: Space, cal: SpaceCalibration, word_list=DEV_POOL, queries=None):  # noqa: ANN001, ANN201
     """(cosines, margins) of each query of ``word_list`` against each category: relevancy >= the
-    threshold of margin m exactly when the margin >= m (``relevancy`` is a sigmoid of it)."""
-    q = _unit(space.vectors([t for t, _ in word_list]) if queries is None else queries)
-    r, n = _unit(space.vectors(CATS)), _unit(space.vectors(list(cal.negatives)))
-    bar = np.broadcast_to((n @ r.T).max(0)[None, :], (len(q), len(r)))
-    if cal.query_categories:
-        bar = np.maximum(bar, (q @ _unit(space.vectors(list(cal.query_categories))).T).max(1)[:, None])
-    return q @ r.T, q @ r.T - bar
+    threshold of margin m exactly when the margin >= m (``relevancy`` is a sigmoid of it). With
+    ``queries`` (other vectors for the texts): no head rule."""
+    texts = [t for t, _ in word_list]
+    q = _unit(space.vectors(texts) if queries is None else queries)
+    r, n = space.vectors(CATS), space.vectors(list(cal.negatives))
+    c = space.vectors(list(cal.query_categories)) if cal.query_categories else None
+    m = margins(q, r, n, c)
+    if cal.head_name_cos is not None and queries is None:
+        vectors = space.parts(word_list) | dict(zip(texts, q, strict=True))
+        m = np.stack([text_margins(t, vectors, r, n, c, head_name_cos=cal.head_name_cos) for t in texts])
+    return q @ _unit(r).T, m
 
 
 def counts(cosines: np.ndarray, margins: np.ndarray, grid: np.ndarray, word_list=DEV_POOL):  # noqa: ANN001, ANN201
@@ -131,23 +158,92 @@ def calibrate(space: Space, cal: SpaceCalibration) -> float:
     return m
 
 
-def cross_validated(space: Space, cal: SpaceCalibration) -> tuple[float, float]:
-    """Leave one development list out, choose on the other two, count on it; (precision, recall)
-    of the three left-out lists together."""
-    per_list = {name: counts(*margin_matrix(space, cal, wl), MARGINS, wl) for name, wl in DEVELOPMENT.items()}
+def _pooled_and_cv(matrix) -> tuple[int, tuple[float, float], tuple[float, float], dict]:  # noqa: ANN001
+    """``matrix(word_list)`` -> (cosines, margins): the margin index chosen on the development
+    lists pooled, its (precision, recall) there, the leave-one-list-out (precision, recall)
+    (choose on the other lists, count on the one left out; the left-out lists counted together)
+    and each list's counts."""
+    per_list = {name: counts(*matrix(wl), MARGINS, wl) for name, wl in DEVELOPMENT.items()}
+    correct, reported, pos = (sum(c[k] for c in per_list.values()) for k in range(3))
+    precision = np.where(reported > 0, correct / np.maximum(reported, 1), 1.0)
+    i = _choose(precision, correct / pos)
     right = answered = positives = 0
     for left_out in DEVELOPMENT:
         rest = [c for name, c in per_list.items() if name != left_out]
-        correct, reported, pos = (sum(c[k] for c in rest) for k in range(3))
-        i = _choose(np.where(reported > 0, correct / np.maximum(reported, 1), 1.0), correct / pos)
-        right += per_list[left_out][0][i]
-        answered += per_list[left_out][1][i]
+        c, r, p = (sum(x[k] for x in rest) for k in range(3))
+        j = _choose(np.where(r > 0, c / np.maximum(r, 1), 1.0), c / p)
+        right += per_list[left_out][0][j]
+        answered += per_list[left_out][1][j]
         positives += per_list[left_out][2]
-    return right / max(answered, 1), right / positives
+    return i, (precision[i], correct[i] / pos), (right / max(answered, 1), right / positives), per_list
+
+
+def cross_validated(space: Space, cal: SpaceCalibration) -> tuple[float, float]:
+    """Leave one development list out, choose on the others, count on it; (precision, recall)
+    of the left-out lists together."""
+    return _pooled_and_cv(lambda wl: margin_matrix(space, cal, wl))[2]
+
+
+def variant_matrix(space: Space, cal: SpaceCalibration, word_list, *, name_cos: float = 2.0,  # noqa: ANN001, ANN201
+                   cut: str = "core", compound: bool = True, delta: float = 0.0, vocab=None):  # noqa: ANN001
+    """(cosines, margins) of a variant of the head rule (``alternatives``): ``cut`` "core" (v5:
+    a post-modified text scores as its core), "min" (min of the text and its core), "none" (the
+    text); ``compound``: the head word's margin (plus ``delta``) caps a core of several words
+    except where cos(core, region) >= ``name_cos``; ``vocab`` (tau, qv): NYU40 class names as
+    query-side contrasts where cos(name, region) < tau and cos(query, name) >= qv."""
+    texts = [t for t, _ in word_list]
+    r, n = space.vectors(CATS), space.vectors(list(cal.negatives))
+    c = space.vectors(list(cal.query_categories))
+
+    def of(t: str) -> np.ndarray:
+        return margins(space.vectors([t]), r, n, c)[0]
+
+    rows = []
+    for t in texts:
+        m, h = of(t), query_head(t)
+        if h is not None:
+            if h.cut and cut != "none":
+                m = of(h.core) if cut == "core" else np.minimum(m, of(h.core))
+            if compound and h.head != h.core:
+                near = (_unit(space.vectors([h.core])) @ _unit(r).T)[0] >= name_cos
+                m = np.where(near, m, np.minimum(m, of(h.head) + delta))
+        rows.append(m)
+    m = np.stack(rows)
+    q = _unit(space.vectors(texts))
+    if vocab is not None:
+        tau, qv_min = vocab
+        v = _unit(space.vectors([w for w in NYU40_CLASSES if not w.startswith("other")]))
+        qv, vr = q @ v.T, v @ _unit(r).T
+        bar = np.where((vr[None] < tau) & (qv[:, :, None] >= qv_min), qv[:, :, None], -9.0).max(1)
+        m = np.minimum(m, q @ _unit(r).T - bar)
+    return q @ _unit(r).T, m
 
 
 def alternatives(space: Space, stored: SpaceCalibration) -> None:
-    """Development figures (pooled; the threshold rule of the module docstring) of other formulations."""
+    """Development figures (pooled, and leave one list out; the threshold rule of the module
+    docstring) of other formulations: the head rule's variants, then those measured for v3."""
+    def show_matrix(label: str, matrix) -> None:  # noqa: ANN001
+        i, (p, r), (cp, cr), _ = _pooled_and_cv(matrix)
+        print(f"    {label:<58} margin {MARGINS[i]:+.4f}  dev P {p:.3f} R {r:.3f}  cv P {cp:.3f} R {cr:.3f}")
+
+    v3 = replace(stored, head_name_cos=None)
+    show_matrix("v3: no head rule", lambda wl: margin_matrix(space, v3, wl))
+    show_matrix(f"v5 (library): head rule, name cosine {stored.head_name_cos}", lambda wl: margin_matrix(space, stored, wl))
+    for label, kw in (("no name exception", {}), ("name cosine 0.6", {"name_cos": 0.6}),
+                      ("name cosine 0.8", {"name_cos": 0.8}),
+                      ("post-modified: min(text, core)", {"name_cos": 0.7, "cut": "min"}),
+                      ("post-modifier only (no compound rule)", {"compound": False}),
+                      ("compound rule only (no post-modifier cut)", {"name_cos": 0.7, "cut": "none"}),
+                      ("head word + 0.05 slack", {"name_cos": 0.7, "delta": 0.05}),
+                      ("+ NYU40 contrasts tau 0.4, qv 0.7", {"name_cos": 0.7, "vocab": (0.4, 0.7)}),
+                      ("+ NYU40 contrasts tau 0.5, qv 0.6", {"name_cos": 0.7, "vocab": (0.5, 0.6)}),
+                      ("+ NYU40 contrasts tau 0.6, qv 0.8", {"name_cos": 0.7, "vocab": (0.6, 0.8)})):
+        show_matrix("v5 variant: " + label, lambda wl, kw=kw: variant_matrix(space, stored, wl, **kw))
+    v3_alternatives(space, v3)
+
+
+def v3_alternatives(space: Space, stored: SpaceCalibration) -> None:
+    """Pooled development figures of the formulations measured while v3 was chosen (no head rule)."""
     texts = [t for t, _ in DEV_POOL]
 
     def templated(template_sets: list[str], items: list[str]) -> np.ndarray:
@@ -197,41 +293,51 @@ def _pr(figures) -> str:  # noqa: ANN001
     return f"{figures.precision:>6.3f} {figures.recall:>6.3f}"
 
 
+def _short(name: str) -> str:
+    return {"CALIBRATION": "cal", "HELD_OUT": "ho1"}.get(name, name.lower().replace("held_out_", "ho"))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--encoders", default="minilm,hash")
     parser.add_argument("--quick", action="store_true", help="(bench/run_all.py) the same run: about a minute of CPU")
     parser.add_argument("--full", action="store_true", help="(bench/run_all.py) the same run")
     parser.add_argument("--alternatives", action="store_true", help="other formulations (development lists only)")
-    parser.add_argument("--failures", action="store_true", help="list the judged list's queries answered wrongly")
+    parser.add_argument("--failures", action="store_true", help="list the queries the library's method answers wrongly")
     args = parser.parse_args()
-    print(f"judged: HELD_OUT_3 ({len(HELD_OUT_3)} queries), then HELD_OUT_4 ({len(HELD_OUT_4)}); development: " +
-          ", ".join(f"{name} ({len(wl)})" for name, wl in DEVELOPMENT.items()) +
+    columns = {**DEVELOPMENT, **JUDGED}
+    print("development: " + ", ".join(f"{name} ({len(wl)})" for name, wl in DEVELOPMENT.items()) +
+          "; judged: " + (", ".join(f"{name} ({len(wl)})" for name, wl in JUDGED.items()) or "none") +
           f"; {len(CATEGORIES)} categories; threshold: best recall at pooled development precision >= "
           f"{CHOOSE_AT_PRECISION}")
-    print(f"{'space':<18} {'method':<20} {'T':>5} {'margin':>7} {'stored':>7}  {'ho3 P':>6} {'ho3 R':>6}  "
-          f"{'cv P':>6} {'cv R':>6}  {'dev P':>6} {'dev R':>6}  {'cal P':>6} {'cal R':>6}  {'ho1 P':>6} {'ho1 R':>6}  "
-          f"{'ho2 P':>6} {'ho2 R':>6}")
+    print(f"{'space':<18} {'method':<22} {'T':>5} {'margin':>7} {'stored':>7}  {'cv P':>6} {'cv R':>6}  "
+          f"{'dev P':>6} {'dev R':>6}  " + "  ".join(f"{_short(n) + ' P':>6} {_short(n) + ' R':>6}" for n in columns))
     for name in args.encoders.split(","):
         space = Space(name)
         stored = calibration_for(space.encoder.embedding_space)
-        v2 = replace(stored, query_categories=tuple(c for c in stored.query_categories if c != "appliance"))
-        rows = (("v3 (library)", stored), ("v2: 5 categories", v2), ("plain LERF", replace(stored, query_categories=())))
-        for method, cal in rows:
-            margin = calibrate(space, cal)
-            if cal is not stored:
-                cal = replace(cal, threshold=_margin_to_threshold(margin, cal.temperature))
+        v3 = replace(stored, head_name_cos=None)
+        shipped = V3_SHIPPED_MARGIN.get(space.encoder.embedding_space)
+        rows: list[tuple[str, SpaceCalibration, bool]] = [
+            ("v5 (library)", stored, True), ("v3, re-chosen", v3, True), ("plain LERF", replace(v3, query_categories=()), True)]
+        if shipped is not None:
+            rows.append(("v3 as shipped", replace(v3, threshold=_margin_to_threshold(shipped, v3.temperature)), False))
+        for method, cal, choose in rows:
+            if choose:
+                margin = calibrate(space, cal)
+                if cal is not stored:
+                    cal = replace(cal, threshold=_margin_to_threshold(margin, cal.temperature))
+                cv = "{:>6.3f} {:>6.3f}".format(*cross_validated(space, cal))
+            else:
+                margin, cv = cal.margin, f"{'-':>6} {'-':>6}"
             known = "" if space.encoder.embedding_space in CALIBRATIONS else " (not in CALIBRATIONS)"
             stored_m = f"{cal.margin:>+7.4f}" if cal is stored else f"{'':>7}"
-            cv_p, cv_r = cross_validated(space, cal)
-            judged = space.figures(HELD_OUT_3, cal)
-            judged_4 = space.figures(HELD_OUT_4, cal)
-            dev = "  ".join(_pr(space.figures(wl, cal)) for wl in (DEV_POOL, *DEVELOPMENT.values()))
-            print(f"{space.encoder.embedding_space:<18} {method:<20} {cal.temperature:>5.2f} {margin:>+7.4f} "
-                  f"{stored_m}  {_pr(judged)}  {_pr(judged_4)}  {cv_p:>6.3f} {cv_r:>6.3f}  {dev}{known}")
+            figures = {n: space.figures(wl, cal) for n, wl in columns.items()}
+            lists = "  ".join(_pr(f) for f in (space.figures(DEV_POOL, cal), *figures.values()))
+            print(f"{space.encoder.embedding_space:<18} {method:<22} {cal.temperature:>5.2f} {margin:>+7.4f} "
+                  f"{stored_m}  {cv}  {lists}{known}")
             if args.failures and cal is stored:
-                for list_name, figures in (("HELD_OUT_3", judged), ("HELD_OUT_4", judged_4)):
-                    for text, first in figures.failures:
+                for list_name, f in figures.items():
+                    for text, first in f.failures:
                         print(f"    {list_name} wrong: {text!r} -> {first or 'no match'}")
         if args.alternatives:
             alternatives(space, stored)

@@ -77,6 +77,10 @@ def test_the_up_axis_is_a_parameter() -> None:
         ("something to sit on", None),
         ("chair", None),
         ("on the table", None),
+        # a generic X names no thing to find: a plain query ("the thing above my head": the ceiling)
+        ("the thing above my head", None),
+        ("something on the table", None),
+        ("stuff under the bed", None),
     ],
 )
 def test_parse_relation_query(text: str, parsed: RelationQuery | None) -> None:
@@ -144,3 +148,24 @@ def test_the_chair_next_to_the_table_answers_that_chair_first(encoder_name: str)
         assert hit.match and 0.0 <= hit.relevancy <= 1.0
         np.testing.assert_allclose(hit.centroid, (np.array(named[hit.key][0]) + named[hit.key][1]) / 2, atol=1e-6)
         assert (floor, "on") in {(n.key, n.relation) for n in hit.nearby}
+
+
+def test_a_relation_query_whose_anchor_matches_nothing_is_a_plain_query() -> None:
+    """"the chair next to the zebra": no region matches "zebra", so no anchor stands for it and
+    the text is answered as a plain query (no relation, no anchors), the chair first; with an
+    anchor that matches, the same shape of text stays a relation query."""
+    text = make_text_encoder("hash")
+    d = RegionDictionary(text.embedding_space, text.dim)
+    chair = d.add(text.encode(["chair"])[0], label="chair")
+    table = d.add(text.encode(["table"])[0], label="table")
+    named = {chair: NEAR_CHAIR, table: TABLE}
+    keys = np.array(sorted(named), np.int32)
+    lo = np.array([named[k][0] for k in keys], np.float32)
+    hi = np.array([named[k][1] for k in keys], np.float32)
+    table_ = RegionTable(keys, np.full(len(keys), 500, np.int64), (lo + hi) / 2, lo, hi)
+    (zebra, zebra_answer), (next_to, next_to_answer) = answer_texts(
+        d, table_, ["the chair next to the zebra", "the chair next to the table"], text, top_k=2)
+    assert zebra_answer.relation is None and zebra_answer.anchors == []
+    assert zebra[0].key == chair and zebra[0].relation is None
+    assert next_to_answer.relation == RelationQuery("chair", "next to", "table") and next_to_answer.anchors == [table]
+    assert next_to[0].key == chair and next_to[0].relation.key == table

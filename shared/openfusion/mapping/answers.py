@@ -10,12 +10,13 @@ every path answers alike:
 - "X REL Y" (:func:`~openfusion.mapping.relations.parse_relation_query`): X candidates ranked by
   the relation to the best Y matches (:func:`~openfusion.mapping.relations.rank_by_relation`);
   each X hit that stands in the relation names its anchor; ``score``, ``relevancy`` and ``match``
-  are those of X;
+  are those of X; when no region matches Y the text is answered as a plain query;
 - every hit: up to three nearby regions with the hit's relation to each
   (:func:`~openfusion.mapping.relations.nearby_regions`).
 
-:func:`texts_to_embed` lists what to embed for a list of texts (the texts, then the X and Y of
-relation queries), so a caller embeds everything in one encoder call.
+:func:`texts_to_embed` lists what to embed for a list of texts (the texts, the X and Y of
+relation queries, and the core noun phrase and head word of each for relevancy's head rule), so a
+caller embeds everything in one encoder call.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from openfusion.mapping.relations import (
     parse_relation_query,
     rank_by_relation,
 )
-from openfusion.mapping.relevancy import RelevancyScorer
+from openfusion.mapping.relevancy import RelevancyScorer, relevancy_texts
 
 #: Best Y matches a relation query measures X candidates against.
 MAX_ANCHORS = 3
@@ -69,21 +70,26 @@ class TextAnswer:
 
 
 def texts_to_embed(texts: Sequence[str]) -> list[str]:
-    """Every text, then the X and Y of each relation query; each once, in first-seen order."""
+    """Every text, then the X and Y of each relation query, then what the head rule of relevancy
+    embeds for each of them (:func:`~openfusion.mapping.relevancy.relevancy_texts`); each once,
+    in first-seen order."""
     wanted = list(texts)
     for text in texts:
         rq = parse_relation_query(text)
         if rq is not None:
             wanted += [rq.target, rq.anchor]
+    for text in list(wanted):
+        wanted += relevancy_texts(text)
     return list(dict.fromkeys(wanted))
 
 
 def _scored(
-    ranked: list[tuple[int, float]], vector: np.ndarray, embeddings: Embeddings, scorer: RelevancyScorer
+    ranked: list[tuple[int, float]], text: str, vectors: Mapping[str, np.ndarray], embeddings: Embeddings,
+    scorer: RelevancyScorer,
 ) -> list[RankedRegion]:
     if not ranked:
         return []
-    rel = scorer.relevancy(vector, embeddings([k for k, _ in ranked]))[0]
+    rel = scorer.text_relevancy(text, vectors, embeddings([k for k, _ in ranked]))
     return [RankedRegion(int(k), float(s), round(float(r), 4), bool(scorer.is_match(r)))
             for (k, s), r in zip(ranked, rel, strict=True)]
 
@@ -102,16 +108,20 @@ def answer_text(
     """The answer to ``text`` (module docstring). ``vectors``: the embedding of every text of
     :func:`texts_to_embed`; ``rank(vector, n)``: up to ``n`` (key, cosine) best first, regions
     that are no answers already left out; ``boxes``: every answerable region's box (None: no
-    relations, no nearby)."""
+    relations, no nearby). A relation query whose Y matches no region is answered as a plain
+    query (the whole text): "the thing above my head" names no region "my head" to be above."""
     rq = parse_relation_query(text) if boxes is not None else None
+    anchors: list[int] = []
+    if rq is not None:
+        ys = _scored(rank(vectors[rq.anchor], MAX_ANCHORS), rq.anchor, vectors, embeddings, scorer)
+        anchors = [y.key for y in ys if y.match]
+        if not anchors:
+            rq = None
     if rq is None:
-        regions = _scored(rank(vectors[text], top_k), vectors[text], embeddings, scorer)
-        anchors: list[int] = []
+        regions = _scored(rank(vectors[text], top_k), text, vectors, embeddings, scorer)
     else:
-        candidates = _scored(rank(vectors[rq.target], top_k + RELATION_CANDIDATES), vectors[rq.target], embeddings,
+        candidates = _scored(rank(vectors[rq.target], top_k + RELATION_CANDIDATES), rq.target, vectors, embeddings,
                              scorer)
-        ys = _scored(rank(vectors[rq.anchor], MAX_ANCHORS), vectors[rq.anchor], embeddings, scorer)
-        anchors = [y.key for y in ys if y.match] or [y.key for y in ys[:1]]
         by_key = {c.key: c for c in candidates}
         order = rank_by_relation([(c.key, c.relevancy, c.match) for c in candidates], anchors, boxes, rq.relation,
                                  up_axis=up_axis)

@@ -5,7 +5,7 @@ Format (``FORMAT_VERSION`` 1): an uncompressed ``.npz`` (zip of ``.npy`` arrays,
 - ``format`` (the string ``openfusion-z-map``), ``format_version`` (int),
 - ``meta_json``: JSON with the volume parameters, the dictionary's embedding space, dimension,
   version, next key and labels, the caller's ``meta``, the relevancy calibration of the space
-  (``relevancy``: method, temperature, threshold, negatives, query categories;
+  (``relevancy``: method, temperature, threshold, negatives, query categories, head rule;
   :mod:`openfusion.mapping.relevancy`; absent in files saved before it, and without ``method`` in
   files saved before the query categories: both then use the library's table, the latter with a
   logged reason), and shape/dtype/CRC-32 of every array,

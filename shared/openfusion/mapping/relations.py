@@ -24,7 +24,10 @@ with another convention sets it.
 Relation queries (:func:`parse_relation_query`): ``[the|a|an] X REL [the|a|an] Y`` where REL is
 one of ``on``, ``on top of``, ``under``, ``underneath``, ``beneath``, ``below``, ``above``,
 ``over``, ``next to``, ``beside``, ``near``, ``by`` (the first relation word with text on both
-sides splits the query; "something to sit on" has nothing after "on" and stays a plain query).
+sides splits the query; "something to sit on" has nothing after "on" and stays a plain query, and
+so does a text whose X is a generic word, "the thing above my head"; the answer path
+(:func:`openfusion.mapping.answers.answer_text`) also answers one whose Y matches no region as
+a plain query).
 :func:`rank_by_relation` orders the X candidates: first those that match X and stand in the
 relation to one of the best Y matches, then the other X matches, then the rest; within each,
 by X relevancy, then distance to the anchor, then key.
@@ -57,6 +60,9 @@ NEARBY_M = 1.0
 MAX_NEARBY = 3
 
 UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
+#: Subjects that name no kind of thing: "X REL Y" with one of these as X is a plain query.
+GENERIC_SUBJECTS = frozenset(
+    "thing things something anything one stuff object objects item items place spot somewhere".split())
 
 _SYNONYMS = {
     "on": "on", "on top of": "on", "under": "under", "underneath": "under", "beneath": "under",
@@ -83,12 +89,13 @@ class RelationQuery:
 
 def parse_relation_query(text: str) -> RelationQuery | None:
     """"the chair next to the table" -> RelationQuery("chair", "next to", "table"); None when
-    ``text`` is not of that form (module docstring)."""
+    ``text`` is not of that form, or when X is a generic word (:data:`GENERIC_SUBJECTS`: "the
+    thing above my head" describes a place, not a thing near "my head"; module docstring)."""
     m = _PATTERN.match(text)
     if m is None:
         return None
     target, anchor = m.group("target").strip(), m.group("anchor").strip()
-    if not target or not anchor:
+    if not target or not anchor or target.lower() in GENERIC_SUBJECTS:
         return None
     return RelationQuery(target, _SYNONYMS[m.group("rel").lower()], anchor)
 

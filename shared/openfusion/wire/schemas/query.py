@@ -99,7 +99,8 @@ class NearbyRegion(Record):
 
 class RelationQueryInfo(Record):
     """How a query of the form "X REL Y" was read: X (``target``), the relation, Y (``anchor``),
-    and the regions taken as Y (the best Y matches, or the closest one when none matches)."""
+    and the regions taken as Y (the best Y matches; a text whose Y matches no region is answered as
+    a plain query, without this record)."""
 
     target: str
     relation: Relation

@@ -1,0 +1,71 @@
+"""The head of a query text: the noun a region must be, for "wall clock", "a seat at the desk".
+
+A text encoder embeds a phrase as a blend of its words, so "wall clock" lands next to the wall
+and "a seat at the desk" next to the desk. Relevancy (:mod:`openfusion.mapping.relevancy`) asks
+the head word to describe the region too. This module finds it with a few hand-written,
+deterministic patterns: no parser with an English model can be installed offline (spaCy's and
+NLTK's models download from GitHub), and English noun phrases in object queries are regular
+enough for these rules:
+
+1. lower-case, drop a trailing ``.?!`` and leading determiners ("the", "a", "my", "this", ...);
+2. a text that starts with a generic or question word ("something to sit on", "a place to
+   sleep", "where I put my books", "the thing above my head") has no noun head: None;
+3. cut a post-modifier: from the first preposition, relative pronoun or subject pronoun after
+   the first word ("a seat | at the desk", "art | that hangs on a wall", "the screen | I look
+   at"), or from an ``-ing`` / ``-ed`` word followed by one of them ("a painting | hanging on the
+   wall");
+4. the rest is the core noun phrase; its last word is the head ("wall clock" -> "clock",
+   "a green plant" -> "plant").
+
+:func:`query_head` returns (core, head), or None when there is nothing to check: a generic
+text, or a core of one word with nothing cut (the head is the text itself).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+_DETERMINERS = frozenset(
+    "the a an this that these those my your our his her their its some any".split())
+#: Words that start a text with no noun head (it describes a use or a place, not a thing).
+_GENERIC = frozenset(
+    "something somewhere someplace anything anywhere thing things place spot stuff object objects one "
+    "where what which who how way".split())
+#: Head words that name no kind of thing ("a soft thing on the bed"): nothing to check.
+_VAGUE_HEADS = frozenset("thing things one ones stuff object objects item items piece kind sort type furniture".split())
+#: Words that start a post-modifier (prepositions, relative and subject pronouns).
+_POST = frozenset(
+    "at for on in with from that which where who whose to by near under above over below beneath "
+    "beside behind inside into onto of up full i you we he she they while when".split())
+_TOKEN = re.compile(r"[a-z0-9][a-z0-9'\-]*")
+
+
+@dataclass(frozen=True)
+class QueryHead:
+    """The core noun phrase of a query (determiners and post-modifier dropped) and its head word."""
+
+    core: str
+    head: str
+    cut: bool  # a post-modifier was dropped
+
+
+def query_head(text: str) -> QueryHead | None:
+    """The core noun phrase and head word of ``text`` (module docstring); None when the text has
+    no noun head or is one word (nothing to check)."""
+    words = _TOKEN.findall(text.lower())
+    while words and words[0] in _DETERMINERS:
+        words = words[1:]
+    if not words or words[0] in _GENERIC:
+        return None
+    cut = len(words)
+    for i in range(1, len(words)):
+        w = words[i]
+        participle = len(w) > 5 and w.endswith(("ing", "ed")) and w not in _VAGUE_HEADS
+        if w in _POST or (participle and i + 1 < len(words) and words[i + 1] in _POST | _DETERMINERS):
+            cut = i
+            break
+    core = words[:cut]
+    if (len(core) == 1 and cut == len(words)) or core[-1] in _VAGUE_HEADS:
+        return None
+    return QueryHead(" ".join(core), core[-1], cut < len(words))

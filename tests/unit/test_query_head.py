@@ -1,0 +1,44 @@
+"""The head of a query text (openfusion.mapping.query_head): the hand-written noun-phrase
+patterns relevancy's head rule uses (determiners, generic openings, post-modifiers, compounds)."""
+
+from __future__ import annotations
+
+import pytest
+
+from openfusion.mapping.query_head import QueryHead, query_head
+
+
+@pytest.mark.parametrize(
+    ("text", "want"),
+    [
+        # noun compounds: the last word is the head
+        ("wall clock", QueryHead("wall clock", "clock", False)),
+        ("a ceiling fan", QueryHead("ceiling fan", "fan", False)),
+        ("a desk fan", QueryHead("desk fan", "fan", False)),
+        ("window blinds", QueryHead("window blinds", "blinds", False)),
+        ("The Trash Can.", QueryHead("trash can", "can", False)),
+        ("two-seater sofa", QueryHead("two-seater sofa", "sofa", False)),
+        # post-modifiers: prepositional phrases, relative clauses, participles, subject pronouns
+        ("a seat at the desk", QueryHead("seat", "seat", True)),
+        ("a light for the desk", QueryHead("light", "light", True)),
+        ("art that hangs on a wall", QueryHead("art", "art", True)),
+        ("a green plant in a pot", QueryHead("green plant", "plant", True)),
+        ("a painting hanging on the wall", QueryHead("painting", "painting", True)),
+        ("the screen I look at while working", QueryHead("screen", "screen", True)),
+        ("the screen showing my code", QueryHead("screen", "screen", True)),
+        ("a shelf full of books", QueryHead("shelf", "shelf", True)),
+        # no noun head: uses and places, generic or vague heads
+        ("something to sit on", None),
+        ("a place to sleep", None),
+        ("where I put my books", None),
+        ("the thing above my head", None),
+        ("a soft thing on the bed", None),
+        ("the furniture where I keep dishes", None),
+        # one word: the text is its own head
+        ("chair", None),
+        ("the couch", None),
+        ("", None),
+    ],
+)
+def test_query_head(text: str, want: QueryHead | None) -> None:
+    assert query_head(text) == want
