@@ -239,6 +239,25 @@ def alternatives(space: Space, stored: SpaceCalibration) -> None:
                       ("+ NYU40 contrasts tau 0.5, qv 0.6", {"name_cos": 0.7, "vocab": (0.5, 0.6)}),
                       ("+ NYU40 contrasts tau 0.6, qv 0.8", {"name_cos": 0.7, "vocab": (0.6, 0.8)})):
         show_matrix("v5 variant: " + label, lambda wl, kw=kw: variant_matrix(space, stored, wl, **kw))
+    # a region's hubness (how close the household vocabulary sits to it: the mean cosine of its 10
+    # nearest NYU40 names after the nearest, often its own) taken off its margins, centred
+    r, n, c = space.vectors(CATS), space.vectors(list(stored.negatives)), space.vectors(list(stored.query_categories))
+    v = _unit(space.vectors([w for w in NYU40_CLASSES if not w.startswith("other")]))
+    hub = np.sort(v @ _unit(r).T, axis=0)[-11:-1].mean(0)
+    for lam in (0.25, 1.0):
+        show_matrix(f"v5 - {lam} * region hubness (NYU40)", lambda wl, lam=lam: (
+            lambda cm: (cm[0], cm[1] - lam * (hub - hub.mean())[None]))(margin_matrix(space, stored, wl)))
+
+    def templated(wl, template: str):  # noqa: ANN001, ANN202
+        texts = [t for t, _ in wl]
+        every = list(dict.fromkeys(x for t in texts for x in [t, *relevancy_texts(t)]))
+        vectors = dict(zip(every, space.vectors([template.format(x) for x in every]), strict=True))
+        q = _unit(np.stack([vectors[t] for t in texts]))
+        return q @ _unit(r).T, np.stack([text_margins(t, vectors, r, n, c, head_name_cos=stored.head_name_cos)
+                                         for t in texts])
+
+    for template in ("a photo of a {}.", "a {} in a room."):
+        show_matrix(f"v5, text, core and head as {template!r}", lambda wl, t=template: templated(wl, t))
     v3_alternatives(space, v3)
 
 

@@ -15,10 +15,14 @@ enough for these rules:
    at"), or from an ``-ing`` / ``-ed`` word followed by one of them ("a painting | hanging on the
    wall");
 4. the rest is the core noun phrase; its last word is the head ("wall clock" -> "clock",
-   "a green plant" -> "plant").
+   "a green plant" -> "plant");
+5. a vague head ("thing", "item", "furniture": a word for any object of a room, "a soft thing
+   on the bed") leaves the text whole: None.
 
-:func:`query_head` returns (core, head), or None when there is nothing to check: a generic
-text, or a core of one word with nothing cut (the head is the text itself).
+:func:`query_head` returns (core, head, whether a post-modifier was cut), or None when there is
+nothing to check: a generic text, a vague head, or a core of one word with nothing cut (the head
+is the text itself). The rules are English-only and approximate ("chest of drawers" -> "chest");
+``tests/unit/test_query_head.py`` lists what they do.
 """
 
 from __future__ import annotations
