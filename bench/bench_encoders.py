@@ -331,10 +331,11 @@ def real_size_models(args: argparse.Namespace, device: str, work: Path) -> int:
                 profile_rows += dense_profile(preset, backend, dense, counts, n, rounds)
             if sizes:
                 size_rows += dense_sizes(preset, name, dev, dense_backend, backend, sizes, n, rounds, work)
-        if "torch-fp32" in probe_emb and "onnx-int8" in probe_emb:
-            cos = np.sum(probe_emb["torch-fp32"] * probe_emb["onnx-int8"], axis=1)
-            agreement.append(f"{preset}: clip-dense region embeddings, onnx-int8 vs torch-fp32 on 30 regions: "
-                             f"cosine min {cos.min():.4f}, mean {cos.mean():.4f}")
+        for other in ("onnx-int8", "cuda-fp16"):
+            if "torch-fp32" in probe_emb and other in probe_emb:
+                cos = np.sum(probe_emb["torch-fp32"] * probe_emb[other], axis=1)
+                agreement.append(f"{preset}: clip-dense region embeddings, {other} vs torch-fp32 on 30 regions: "
+                                 f"cosine min {cos.min():.4f}, mean {cos.mean():.4f}")
     for line in agreement:
         print(f"\n{line}")
     if profile_rows:

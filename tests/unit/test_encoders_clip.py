@@ -137,3 +137,32 @@ def test_export_script_cli(clip_dir, tmp_path, capsys):
     assert {p.name for p in (tmp_path / "out").iterdir()} >= {"clip_image.onnx", "clip_text.onnx", "tokenizer.json"}
     assert module.main([str(tmp_path / "missing"), str(tmp_path / "out2")]) == 1
     assert "export failed" in capsys.readouterr().err
+
+
+def test_warm_up_runs_proposer_and_embedder_once_and_changes_no_answer(clip_dir, frame):
+    """A worker warms up before it announces itself: the embedder sees one full batch of crops
+    (the batch shape frames use), the proposer one frame, and the encoder's answers and counters
+    are those of an encoder that never warmed up."""
+    cold = make_region_encoder("clip-regions", model=str(clip_dir), device="cpu")
+    enc = make_region_encoder("clip-regions", model=str(clip_dir), device="cpu")
+    batches: list[tuple[int, ...]] = []
+    proposals: list[tuple[int, int]] = []
+    embed, propose = enc.embedder.embed_crops, enc.proposer.propose
+
+    def counting_embed(crops):
+        batches.append(crops.shape)
+        return embed(crops)
+
+    def counting_propose(f, out_hw):
+        proposals.append(f.color.shape[:2])
+        return propose(f, out_hw)
+
+    enc.embedder.embed_crops, enc.proposer.propose = counting_embed, counting_propose
+    enc.warm_up(["chair"])
+    size = enc.embedder.crop_spec.size
+    assert batches == [(enc.batch_size, 3, size, size)] and proposals == [(480, 640)]
+    assert enc.stats == {"frames": 0, "regions": 0, "dropped_zero_embedding": 0}
+    warm, plain = enc.encode(frame), cold.encode(frame)
+    np.testing.assert_allclose(warm.embeddings, plain.embeddings, atol=1e-6)
+    np.testing.assert_array_equal(warm.conf_maps, plain.conf_maps)
+    assert enc.stats == cold.stats

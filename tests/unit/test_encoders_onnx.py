@@ -176,3 +176,30 @@ def test_extra_model_input_is_refused(tmp_path):
     set_onnx_metadata(p, {"kind": "crop-embedder", "embedding_space": "s", "dim": 192, "crop_size": 8, "mean": "0,0,0", "std": "1,1,1"})
     with pytest.raises(EncoderContractError, match=r"input\(s\) 'scale' are not part of the contract"):
         make_region_encoder("onnx", model_path=p)
+
+
+def test_warm_up_runs_the_model_once_on_a_640x480_frame_and_changes_no_answer(models, frame):
+    """onnxruntime allocates its arenas on the first run; ``warm_up`` makes that run on a blank
+    camera-size frame before a worker announces itself, counts nothing, and the answers after it are
+    those of an encoder that never warmed up."""
+    cold = make_region_encoder("onnx", model_path=models["region"], device="cpu")
+    enc = make_region_encoder("onnx", model_path=models["region"], device="cpu")
+    runs: list[tuple[int, ...]] = []
+    session = enc.model.session
+
+    class CountingSession:
+        def run(self, names, feeds):
+            runs.append(feeds["image"].shape)
+            return session.run(names, feeds)
+
+        def __getattr__(self, name):
+            return getattr(session, name)
+
+    enc.model.session = CountingSession()
+    enc.warm_up(["chair"])
+    assert len(runs) == 1 and runs[0][0] == 1
+    assert enc.stats == {"frames": 0, "regions": 0, "dropped_invalid": 0}
+    warm, plain = enc.encode(frame), cold.encode(frame)
+    np.testing.assert_array_equal(warm.conf_maps, plain.conf_maps)
+    np.testing.assert_array_equal(warm.embeddings, plain.embeddings)
+    assert enc.stats == cold.stats

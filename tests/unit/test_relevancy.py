@@ -35,7 +35,14 @@ from openfusion.mapping.relevancy import (
     text_margins,
 )
 from openfusion.sources.synthetic import CATEGORIES
-from openfusion.testing.word_lists import CALIBRATION, HELD_OUT, HELD_OUT_2, HELD_OUT_3, HELD_OUT_4
+from openfusion.testing.word_lists import (
+    CALIBRATION,
+    HELD_OUT,
+    HELD_OUT_2,
+    HELD_OUT_3,
+    HELD_OUT_4,
+    HELD_OUT_5,
+)
 
 
 def test_relevancy_is_the_minimum_over_negatives_of_the_pairwise_softmax() -> None:
@@ -168,7 +175,7 @@ def test_the_word_lists_are_disjoint_and_name_only_scene_categories() -> None:
     """A held-out list judges only texts nothing was chosen on: no text (case and spacing
     ignored) is in two lists or twice in one, and every category named is one of the scene's."""
     lists = {"CALIBRATION": CALIBRATION, "HELD_OUT": HELD_OUT, "HELD_OUT_2": HELD_OUT_2, "HELD_OUT_3": HELD_OUT_3,
-             "HELD_OUT_4": HELD_OUT_4}
+             "HELD_OUT_4": HELD_OUT_4, "HELD_OUT_5": HELD_OUT_5}
     seen: dict[str, str] = {}
     for name, word_list in lists.items():
         for text, wanted in word_list:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from openfusion.errors import OpenFusionError, UserError
-from openfusion.frame import Frame
+from openfusion.frame import CameraIntrinsics, Frame
 
 logger = logging.getLogger(__name__)
 
@@ -98,6 +98,15 @@ class RegionObservation:
         return cls(
             np.zeros((0, h, w), np.float32), np.zeros((0, dim), np.float32), embedding_space, labels=[]
         )
+
+
+def blank_frame(height_px: int = 480, width_px: int = 640) -> Frame:
+    """A mid-grey frame with flat 1 m depth at the usual camera size: what a warm-up encodes (its
+    result is thrown away; it only makes the model's first run, whatever the weights)."""
+    intrinsics = CameraIntrinsics(width_px, height_px, 0.8 * width_px, 0.8 * width_px, width_px / 2, height_px / 2)
+    return Frame(frame_id=-1, stamp_ns=0, color=np.full((height_px, width_px, 3), 128, np.uint8),
+                 depth=np.ones((height_px, width_px), np.float32), depth_scale=1.0, intrinsics=intrinsics,
+                 T_world_cam=np.eye(4))
 
 
 class RegionEncoder(abc.ABC):

@@ -39,6 +39,7 @@ Exports are cached in ``$OPENFUSION_CACHE`` (default ``~/.cache/openfusion``) un
 
 from __future__ import annotations
 
+import copy
 import functools
 import hashlib
 import logging
@@ -263,7 +264,9 @@ class _TorchDense:
         self.half = clip.device == "cuda"
         self.tower = _dense_tower(clip.model, dense_mode)
         if self.half:
-            self.tower = self.tower.half()
+            # an fp16 copy: the loaded CLIP is shared (cached per process) with the text encoder and
+            # clip-regions, which run it in fp32; halving it in place would break them
+            self.tower = copy.deepcopy(self.tower).half()
         self._torch = torch
 
     def __call__(self, pixels: np.ndarray) -> np.ndarray:

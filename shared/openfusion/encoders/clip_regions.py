@@ -116,7 +116,10 @@ def load_clip(model: str = DEFAULT_CLIP_MODEL, *, device: str = "auto", embeddin
         folder, source = clip_source(model)
         t0 = time.perf_counter()
         try:
-            clip = CLIPModel.from_pretrained(source, attn_implementation="eager", dtype=torch.float32)
+            # eager attention on CPU: the ONNX export traces this model, and the int8 path is the
+            # CPU's fast one; on CUDA scaled-dot-product attention (fused kernels, fp16 in clip-dense).
+            attention = "sdpa" if dev == "cuda" else "eager"
+            clip = CLIPModel.from_pretrained(source, attn_implementation=attention, dtype=torch.float32)
             tokenizer = CLIPTokenizer.from_pretrained(source)
         except OSError as exc:
             raise EncoderConfigError(

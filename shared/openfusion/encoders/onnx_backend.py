@@ -12,6 +12,7 @@ Use :func:`make_onnx_region_encoder` (registry name ``onnx``) to get the right o
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,7 @@ from openfusion.encoders.base import (
     RegionEncoder,
     RegionObservation,
     TextEncoder,
+    blank_frame,
     check_rgb,
     check_texts,
     normalize_rows,
@@ -90,6 +92,11 @@ class OnnxRegionEncoder(RegionEncoder):
         self.logits = model.meta_str("conf_maps_are", "probability") == "logits"
         self.min_peak_conf = float(min_peak_conf)
         self.stats: dict[str, int] = {"frames": 0, "regions": 0, "dropped_invalid": 0}
+
+    def warm_up(self, vocabulary: Sequence[str] = ()) -> None:
+        """One run of the model on a blank 640x480 frame (onnxruntime's first run allocates its
+        memory arenas); the result is thrown away and nothing is counted in ``stats``."""
+        self.model.session.run(None, _image_input(self.model, blank_frame()))
 
     def encode(self, frame: Frame) -> RegionObservation:
         out_hw = self.output_size(*frame.color.shape[:2])

@@ -9,6 +9,7 @@ to (n, d) embeddings (normalised here).
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from typing import Protocol
 
 import numpy as np
@@ -20,6 +21,7 @@ from openfusion.encoders.base import (
     ImageQueryEncoder,
     RegionEncoder,
     RegionObservation,
+    blank_frame,
     check_rgb,
 )
 from openfusion.encoders.crops import CropSpec, preprocess_image, region_crops
@@ -82,6 +84,14 @@ class ProposalRegionEncoder(RegionEncoder, ImageQueryEncoder):
         if emb.shape != (crops.shape[0], self.dim):
             raise EncoderError(f"embedder returned {emb.shape}, expected ({crops.shape[0]}, {self.dim})")
         return emb
+
+    def warm_up(self, vocabulary: Sequence[str] = ()) -> None:
+        """The proposer once on a blank 640x480 frame and the embedder once on a full batch of
+        blank crops (the torch graph's or the onnx session's first run, at the batch size frames
+        use); nothing is counted in ``stats``."""
+        self.proposer.propose(blank_frame(), self.output_size(480, 640))
+        s = int(self.embedder.crop_spec.size)
+        self._embed(np.zeros((self.batch_size, 3, s, s), np.float32))
 
     def encode(self, frame: Frame) -> RegionObservation:
         check_rgb(frame.color)
