@@ -359,3 +359,84 @@ HELD_OUT_5: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("boxing gloves", ()), ("gravity", ()), ("nostalgia", ()), ("justice", ()), ("table tennis", ()),
     ("monitor lizard", ()), ("cabinet minister", ()), ("chair lift", ()),
 )
+
+
+#: Written blind on 2026-11-26 (no model run; no result, benchmark, test, doc or relevancy code
+#: seen; only this file, for the format and to keep the texts disjoint) and committed before any
+#: measurement on it. 163 texts: 103 positives (20 class names in other forms, 46 synonyms and
+#: specific kinds over all 19 categories, 37 paraphrases) and 60 unrelated (30 household / office
+#: things the room lacks, 14 of them "<room category> <other thing>" compounds such as "wall safe";
+#: 30 from elsewhere, 6 of them idioms or compounds built on a room category: "bedrock", "pillow
+#: lava", "table mountain", "power plant", "debt ceiling", "window of opportunity"). Parts count as
+#: the object ("doorknob" -> door).
+HELD_OUT_6: tuple[tuple[str, tuple[str, ...]], ...] = (
+    # class names, other forms (articles, determiners, possessives, position / size adjectives)
+    ("the left wall", ("wall",)), ("the back wall", ("wall",)), ("the entire floor", ("floor",)),
+    ("the room's ceiling", ("ceiling",)), ("the door on the right", ("door",)), ("the big window", ("window",)),
+    ("the small picture", ("picture",)), ("your bed", ("bed",)), ("a couple of pillows", ("pillow",)),
+    ("our sofa", ("sofa",)), ("the tall bookshelf", ("bookshelf",)), ("the corner cabinet", ("cabinet",)),
+    ("her desk", ("desk", "table")), ("the left monitor", ("monitor",)),
+    ("his office chair", ("office chair", "chair")), ("the nearest table", ("table", "desk")),
+    ("any chair", ("chair", "office chair")), ("the lamp over there", ("lamp",)), ("the little plant", ("plant",)),
+    ("our trash can", ("trash can",)),
+    # synonyms and specific kinds (all 19 categories)
+    ("interior wall", ("wall",)), ("dividing wall", ("wall",)),
+    ("floor surface", ("floor",)),
+    ("drop ceiling", ("ceiling",)), ("vaulted ceiling", ("ceiling",)),
+    ("doorknob", ("door",)), ("door handle", ("door",)), ("swing door", ("door",)),
+    ("windowsill", ("window",)), ("bay window", ("window",)),
+    ("photo", ("picture",)), ("landscape painting", ("picture",)), ("framed picture", ("picture",)),
+    ("headboard", ("bed",)), ("four-poster bed", ("bed",)),
+    ("body pillow", ("pillow",)), ("throw cushion", ("pillow", "sofa")), ("sofa cushion", ("pillow", "sofa")),
+    ("living room couch", ("sofa",)), ("chaise longue", SEAT),
+    ("shelf", ("bookshelf", "cabinet")), ("book shelving", ("bookshelf",)),
+    ("utility cabinet", ("cabinet",)), ("cabinet drawer", ("cabinet",)),
+    ("work table", ("desk", "table")), ("drafting table", ("desk", "table")), ("executive desk", ("desk", "table")),
+    ("gaming monitor", ("monitor",)), ("desktop display", ("monitor",)), ("monitor screen", ("monitor",)),
+    ("office swivel chair", ("office chair", "chair")), ("drafting chair", ("office chair", "chair")),
+    ("console table", ("table", "desk")), ("breakfast table", ("table", "desk")), ("tabletop", ("table", "desk")),
+    ("stacking chair", ("chair", "office chair")), ("chair back", ("chair", "office chair")),
+    ("desk light", ("lamp",)), ("uplighter", ("lamp",)), ("light bulb", ("lamp",)),
+    ("pothos", ("plant",)), ("aloe vera", ("plant",)), ("fiddle-leaf fig", ("plant",)),
+    ("rubbish can", ("trash can",)), ("refuse bin", ("trash can",)), ("trash basket", ("trash can",)),
+    # paraphrases: function, place or appearance
+    ("what separates this room from the next one", ("wall",)), ("the boundary of the room on every side", ("wall",)),
+    ("where a dropped pen would land", ("floor",)), ("the part of the room I'd mop", ("floor",)),
+    ("what is right above us", ("ceiling",)), ("the highest surface in the room", ("ceiling",)),
+    ("the entrance to this room", ("door",)), ("what I close for some privacy", ("door",)),
+    ("where daylight enters the room", ("window",)), ("the thing I look through to see the street", ("window",)),
+    ("something framed to look at", ("picture",)), ("the art on display", ("picture",)),
+    ("the furniture with a mattress and duvet", ("bed",)), ("the thing I make every morning", ("bed",)),
+    ("the thing I fluff up before sleeping", ("pillow",)), ("something soft to hug", ("pillow",)),
+    ("a long upholstered seat with cushions", ("sofa",)),
+    ("furniture that holds books", ("bookshelf",)), ("where I'd look for something to read", ("bookshelf",)),
+    ("furniture with doors to hide clutter", ("cabinet",)),
+    ("where the spare office supplies are stored", ("cabinet", "bookshelf")),
+    ("where I do my office work", ("desk", "table")), ("where the keyboard and mouse go", ("desk", "table")),
+    ("what I stare at all day at work", ("monitor",)), ("the screen connected to my computer", ("monitor",)),
+    ("the chair with wheels and armrests", ("office chair", "chair")),
+    ("a seat whose height I can adjust", ("office chair", "chair")),
+    ("something to put a plate on", ("table", "desk")), ("a flat surface on four legs", ("table", "desk")),
+    ("somewhere for a guest to sit", SEAT), ("a single seat with four legs", ("chair", "office chair")),
+    ("what I turn on to read at night", ("lamp",)), ("the thing that lights up my desk", ("lamp",)),
+    ("something with green leaves", ("plant",)), ("something that needs sunlight and water", ("plant",)),
+    ("where used tissues go", ("trash can",)), ("the thing I empty every week", ("trash can",)),
+    # unrelated: household / office things the room does not have ("<room category> <other thing>" first)
+    ("wall safe", ()), ("wall charger", ()), ("wall mirror", ()), ("floor rug", ()), ("floor mop", ()),
+    ("floor plan", ()), ("doorstop", ()), ("window envelope", ()), ("bed tray", ()), ("desk phone", ()),
+    ("table runner", ()), ("table saw", ()), ("lamp post", ()), ("chair mat", ()),
+    ("a flat-screen TV", ()), ("a bulletin board", ()), ("a dartboard", ()), ("a mop bucket", ()), ("a bookend", ()),
+    ("a power strip", ()), ("a webcam", ()), ("a hole punch", ()), ("a pair of headphones", ()),
+    ("a paperweight", ()), ("an extension cord", ()), ("a cardboard box", ()), ("a globe", ()),
+    ("a sewing machine", ()), ("a water cooler", ()), ("an umbrella stand", ()),
+    # unrelated: elsewhere (animals, food, vehicles, nature, instruments, sport, abstract)
+    ("armadillo", ()), ("chameleon", ()), ("woodpecker", ()), ("bison", ()), ("a swarm of bees", ()),
+    ("guacamole", ()), ("cinnamon roll", ()), ("paella", ()), ("grapefruit", ()),
+    ("hovercraft", ()), ("steamroller", ()), ("rickshaw", ()),
+    ("mangrove", ()), ("tundra", ()), ("ocean floor", ()),
+    ("mandolin", ()), ("didgeridoo", ()), ("cymbals", ()),
+    ("a javelin", ()), ("pole vault", ()), ("a shuttlecock", ()),
+    ("curiosity", ()), ("inflation", ()), ("friendship", ()),
+    ("bedrock", ()), ("pillow lava", ()), ("table mountain", ()), ("power plant", ()), ("debt ceiling", ()),
+    ("window of opportunity", ()),
+)
