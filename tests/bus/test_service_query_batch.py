@@ -19,6 +19,7 @@ from openfusion.bus import QueryError, RequestError, open_session
 from openfusion.client import OpenFusionClient
 from openfusion.encoders import make_text_encoder
 from openfusion.mapping import RegionDictionary
+from openfusion.mapping.answers import texts_to_embed
 from openfusion.mapping.relevancy import DEFAULT_NEGATIVES, DEFAULT_QUERY_CATEGORIES
 from openfusion.services.query.service import QueryConfig, QueryService, RegionSummaries
 from openfusion.testing.bus import ServiceThread, free_port, loopback_config, unique_map_id, wait_for_services
@@ -166,8 +167,10 @@ def test_the_client_asks_several_texts_in_one_round_trip_per_64() -> None:
             many = [NAMES[i % len(NAMES)] for i in range(70)]
             encoder.calls.clear()
             replies = client.query_texts(many, top_k=1)
-            # one encoder call per request of 64, each text embedded once
-            assert encoder.calls == [list(dict.fromkeys(many[:64])), list(dict.fromkeys(many[64:]))]
+            # one encoder call per request of 64, each text embedded once (with the head words the
+            # relevancy's head rule needs: "office chair" brings "chair")
+            assert encoder.calls == [texts_to_embed(many[:64]), texts_to_embed(many[64:])]
+            assert encoder.calls[1] == ["table", "lamp", "sofa", "plant", "bookshelf", "office chair", "chair"]
             assert [r.query for r in replies] == many
             assert all(r.regions[0].label == n for n, r in zip(many, replies, strict=True) if n != "lamp")
             assert client.query_texts([]) == []

@@ -27,6 +27,10 @@ from openfusion.mapping.query_head import QueryHead, query_head
         ("the screen I look at while working", QueryHead("screen", "screen", True)),
         ("the screen showing my code", QueryHead("screen", "screen", True)),
         ("a shelf full of books", QueryHead("shelf", "shelf", True)),
+        # quantities take the thing after "of": dropped like a determiner, the rest stands for the text
+        ("a couple of pillows", QueryHead("pillows", "pillows", True)),
+        ("a stack of books on the desk", QueryHead("books", "books", True)),
+        ("a couple", None),
         # no noun head: uses and places, generic or vague heads
         ("something to sit on", None),
         ("a place to sleep", None),

@@ -116,12 +116,17 @@ def test_calibrations_are_per_space_and_a_saved_one_wins_only_for_its_space_and_
     v2 = {**legacy, "method": "lerf+query-categories-v2", "query_categories": list(DEFAULT_QUERY_CATEGORIES[:5])}
     assert calibration_for("minilm-l6-v2", v2) is minilm
     assert "made for method 'lerf+query-categories-v2'" in caplog.text
-    # a map saved under v3 (six categories, margin 0.04, no head rule): ignored, v5's table answers
+    # a map saved under v3 (six categories, margin 0.04, no head rule): ignored, v6's table answers
     caplog.clear()
     v3 = {**v2, "method": "lerf+query-categories-v3", "threshold": 0.69,
           "query_categories": list(DEFAULT_QUERY_CATEGORIES)}
     assert calibration_for("minilm-l6-v2", v3) is minilm and minilm.head_name_cos is not None
     assert "made for method 'lerf+query-categories-v3'" in caplog.text
+    # a map saved under v5 (the head rule with name cosine 0.7): ignored the same way
+    caplog.clear()
+    v5 = {**minilm.to_dict(), "method": "lerf+query-categories+head-v5", "head_name_cos": 0.7}
+    assert calibration_for("minilm-l6-v2", v5) is minilm and minilm.head_name_cos == 0.8
+    assert "made for method 'lerf+query-categories+head-v5'" in caplog.text
 
 
 def _scene(encoder_name: str, texts: list[str]):  # noqa: ANN202
@@ -142,12 +147,14 @@ def _first_match(scorer: RelevancyScorer, cats: list[str], regions: np.ndarray, 
 def test_the_head_rule_asks_the_head_word_to_describe_the_region() -> None:
     """MiniLM embeds "wall clock" next to the wall and "a seat at the desk" next to the desk; with
     the head rule the clock matches nothing and the seat is a chair; a core that is nearly a
-    region's own name keeps it ("trash can", whose head "can" alone is no bin); texts with no noun
-    head are scored whole."""
+    region's own name keeps it ("trash can", whose head "can" alone is no bin; v6: cosine 0.8, so
+    "door key" and "cabinet minister", within 0.7 of the door and the cabinet, no longer match);
+    "a couple of" is dropped like a determiner; texts with no noun head are scored whole."""
     cases = {"wall clock": None, "a ceiling fan": None, "a desk fan": None, "window blinds": None,
              "a seat at the desk": "chair", "a light for the desk": "lamp", "wall shelf": "bookshelf",
              "trash can": "trash can", "office chair": "office chair", "the trash cans": "trash can",
-             "something to sit on": "sofa", "a place to sleep": "bed", "couch": "sofa", "zebra": None}
+             "something to sit on": "sofa", "a place to sleep": "bed", "couch": "sofa", "zebra": None,
+             "door key": None, "cabinet minister": None, "a couple of pillows": "pillow"}
     scorer, cats, regions, vectors = _scene("minilm", list(cases))
     got = {text: _first_match(scorer, cats, regions, vectors, text) for text in cases}
     assert got == cases
@@ -214,24 +221,28 @@ def _figures_at(encoder_name: str, word_list, precision: float, recall: float): 
     return figures
 
 
-DEV_POOL = CALIBRATION + HELD_OUT + HELD_OUT_2 + HELD_OUT_3 + HELD_OUT_4
+DEV_POOL = CALIBRATION + HELD_OUT + HELD_OUT_2 + HELD_OUT_3 + HELD_OUT_4 + HELD_OUT_5
 
 
 def test_match_on_the_minilm_word_lists() -> None:
-    """v5 on the five development lists, which chose its threshold (best recall at pooled
-    precision >= 0.96): pooled 0.966 / 0.763, each list in sample as below (docs/CLI.md; v3 with
-    its threshold re-chosen on the same lists: 0.963 / 0.700). Leaving one list out (the bench):
-    v5 0.961 / 0.766, v3 0.957 / 0.703. The issue's targets (0.95 / 0.90) are missed."""
-    dev = _figures_at("minilm", DEV_POOL, 0.966, 0.763)
-    for word_list, p, r in ((CALIBRATION, 0.989, 0.870), (HELD_OUT, 0.971, 0.702), (HELD_OUT_2, 0.980, 0.766),
-                            (HELD_OUT_3, 0.975, 0.750), (HELD_OUT_4, 0.920, 0.697)):
+    """v6 on the six development lists, which chose its threshold (best recall at pooled
+    precision >= 0.96): pooled 0.972 / 0.724, each list in sample as below (docs/CLI.md; v3 with
+    its threshold re-chosen on the same lists: 0.962 / 0.534; leaving one list out, the bench:
+    v6 0.959 / 0.728, v3 0.943 / 0.545). Judged on HELD_OUT_6, written blind and committed before
+    v6 was measured on it: 0.853 / 0.563 (with "a couple of" dropped, found on that list, 0.855 /
+    0.573); v3 as shipped before 0.701 / 0.728 on it. The issue's targets (0.95 / 0.90) are missed."""
+    dev = _figures_at("minilm", DEV_POOL, 0.972, 0.724)
+    for word_list, p, r in ((CALIBRATION, 0.989, 0.870), (HELD_OUT, 0.971, 0.702), (HELD_OUT_2, 1.000, 0.750),
+                            (HELD_OUT_3, 0.974, 0.712), (HELD_OUT_4, 0.932, 0.697), (HELD_OUT_5, 0.970, 0.619),
+                            (HELD_OUT_6, 0.855, 0.573)):
         _figures_at("minilm", word_list, p, r)
     failures = dict(dev.failures)
     # unrelated words: no match, also those the LERF negatives alone let through ("car" -> plant),
     # the one "appliance" took off ("refrigerator" -> cabinet) and the compounds the head rule
-    # takes off ("wall clock" -> wall, "a ceiling fan" -> ceiling)
+    # takes off ("wall clock" -> wall, "a ceiling fan" -> ceiling, "door key" -> door)
     for text in ("zebra", "car", "kangaroo", "camel", "refrigerator", "owl", "democracy", "wall clock",
-                 "a ceiling fan", "a desk fan", "window blinds", "curtains", "a laptop"):
+                 "a ceiling fan", "a desk fan", "window blinds", "curtains", "a laptop", "door key",
+                 "cabinet minister", "pillow fight"):
         assert text not in failures, (text, failures.get(text))
     # paraphrases and synonyms find a region they name, the head rule's among them
     for text in ("something to sit on", "couch", "a place to sleep", "a seat at the desk", "a light for the desk",
@@ -240,11 +251,13 @@ def test_match_on_the_minilm_word_lists() -> None:
 
 
 def test_match_on_the_hash_word_lists() -> None:
-    """The lexical space matches near-exact words only: pooled 0.963 / 0.510 (v3 re-chosen
-    0.961 / 0.473), each list as below; "chair" still matches a region named "wooden chair"."""
-    dev = _figures_at("hash", DEV_POOL, 0.963, 0.510)
-    for word_list, p, r in ((CALIBRATION, 1.000, 0.590), (HELD_OUT, 0.929, 0.553), (HELD_OUT_2, 1.000, 0.516),
-                            (HELD_OUT_3, 0.958, 0.442), (HELD_OUT_4, 0.922, 0.475)):
+    """The lexical space matches near-exact words only: pooled 0.966 / 0.487 (v3 re-chosen
+    0.972 / 0.135), each list as below, HELD_OUT_6 judged (0.837 / 0.398; 0.840 / 0.408 with
+    "a couple of" dropped); "chair" still matches a region named "wooden chair"."""
+    dev = _figures_at("hash", DEV_POOL, 0.966, 0.487)
+    for word_list, p, r in ((CALIBRATION, 0.983, 0.590), (HELD_OUT, 0.929, 0.553), (HELD_OUT_2, 1.000, 0.500),
+                            (HELD_OUT_3, 0.979, 0.442), (HELD_OUT_4, 0.906, 0.485), (HELD_OUT_5, 1.000, 0.400),
+                            (HELD_OUT_6, 0.840, 0.408)):
         _figures_at("hash", word_list, p, r)
     assert "something to rest on" in dict(dev.failures)  # no meaning in trigrams
     assert "zebra" not in dict(dev.failures)

@@ -7,7 +7,8 @@ deterministic patterns: no parser with an English model can be installed offline
 NLTK's models download from GitHub), and English noun phrases in object queries are regular
 enough for these rules:
 
-1. lower-case, drop a trailing ``.?!`` and leading determiners ("the", "a", "my", "this", ...);
+1. lower-case, drop a trailing ``.?!`` and leading determiners ("the", "a", "my", "this", ...)
+   and quantities with their "of" ("a couple of", "a pair of", "a stack of");
 2. a text that starts with a generic or question word ("something to sit on", "a place to
    sleep", "where I put my books", "the thing above my head") has no noun head: None;
 3. cut a post-modifier: from the first preposition, relative pronoun or subject pronoun after
@@ -42,6 +43,9 @@ _VAGUE_HEADS = frozenset("thing things one ones stuff object objects item items 
 _POST = frozenset(
     "at for on in with from that which where who whose to by near under above over below beneath "
     "beside behind inside into onto of up full i you we he she they while when".split())
+#: Nouns of quantity or arrangement that take the thing after "of" ("a couple of pillows", "a pair
+#: of chairs", "a stack of books"): they are dropped with their "of", as determiners are.
+_QUANTITIES = frozenset("couple pair set bunch stack pile row group few lot lots number handful".split())
 _TOKEN = re.compile(r"[a-z0-9][a-z0-9'\-]*")
 
 
@@ -51,7 +55,7 @@ class QueryHead:
 
     core: str
     head: str
-    cut: bool  # a post-modifier was dropped
+    cut: bool  # a post-modifier (or a leading "a couple of") was dropped: the core stands for the text
 
 
 def query_head(text: str) -> QueryHead | None:
@@ -60,6 +64,11 @@ def query_head(text: str) -> QueryHead | None:
     words = _TOKEN.findall(text.lower())
     while words and words[0] in _DETERMINERS:
         words = words[1:]
+    quantity = False
+    while len(words) > 2 and words[0] in _QUANTITIES and words[1] == "of":  # "a couple of pillows"
+        words, quantity = words[2:], True
+        while words and words[0] in _DETERMINERS:
+            words = words[1:]
     if not words or words[0] in _GENERIC:
         return None
     cut = len(words)
@@ -70,6 +79,6 @@ def query_head(text: str) -> QueryHead | None:
             cut = i
             break
     core = words[:cut]
-    if (len(core) == 1 and cut == len(words)) or core[-1] in _VAGUE_HEADS:
+    if (len(core) == 1 and cut == len(words) and not quantity) or core[-1] in _VAGUE_HEADS:
         return None
-    return QueryHead(" ".join(core), core[-1], cut < len(words))
+    return QueryHead(" ".join(core), core[-1], cut < len(words) or quantity)
