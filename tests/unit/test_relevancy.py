@@ -43,6 +43,7 @@ from openfusion.testing.word_lists import (
     HELD_OUT_4,
     HELD_OUT_5,
     HELD_OUT_6,
+    HELD_OUT_7,
 )
 
 
@@ -184,7 +185,8 @@ def test_the_word_lists_are_disjoint_and_name_only_scene_categories() -> None:
     ignored) is in two lists or twice in one, and every category named is one of the scene's."""
     lists = {"CALIBRATION": CALIBRATION, "HELD_OUT": HELD_OUT, "HELD_OUT_2": HELD_OUT_2, "HELD_OUT_3": HELD_OUT_3,
              "HELD_OUT_4": HELD_OUT_4, "HELD_OUT_5": HELD_OUT_5,
-             "HELD_OUT_6": HELD_OUT_6}
+             "HELD_OUT_6": HELD_OUT_6,
+             "HELD_OUT_7": HELD_OUT_7}
     seen: dict[str, str] = {}
     for name, word_list in lists.items():
         for text, wanted in word_list:
