@@ -90,7 +90,7 @@ def test_calibrations_are_per_space_and_a_saved_one_wins_only_for_its_space_and_
     assert minilm is CALIBRATIONS["minilm-l6-v2"] and minilm.calibrated and minilm.negatives == DEFAULT_NEGATIVES
     assert minilm.query_categories == DEFAULT_QUERY_CATEGORIES and minilm.method == METHOD
     assert minilm.phrases == [*DEFAULT_NEGATIVES, *DEFAULT_QUERY_CATEGORIES]
-    assert 0.5 < minilm.threshold < 1 and minilm.margin == pytest.approx(0.1275, abs=1e-3)
+    assert 0.5 < minilm.threshold < 1 and minilm.margin == pytest.approx(0.0525, abs=1e-3)
     assert minilm.head_name_cos == HEAD_NAME_COS and CALIBRATIONS["hash-trigram-256"].head_name_cos == HEAD_NAME_COS
     assert SpaceCalibration.from_dict(minilm.to_dict()) == replace(minilm, note="")  # a map file keeps all but the note
     other = calibration_for("clip-vit-b-32")  # uncalibrated: plain LERF at 0.5, no text-to-text categories
@@ -123,11 +123,13 @@ def test_calibrations_are_per_space_and_a_saved_one_wins_only_for_its_space_and_
           "query_categories": list(DEFAULT_QUERY_CATEGORIES)}
     assert calibration_for("minilm-l6-v2", v3) is minilm and minilm.head_name_cos is not None
     assert "made for method 'lerf+query-categories-v3'" in caplog.text
-    # a map saved under v5 (the head rule with name cosine 0.7): ignored the same way
-    caplog.clear()
-    v5 = {**minilm.to_dict(), "method": "lerf+query-categories+head-v5", "head_name_cos": 0.7}
-    assert calibration_for("minilm-l6-v2", v5) is minilm and minilm.head_name_cos == 0.8
-    assert "made for method 'lerf+query-categories+head-v5'" in caplog.text
+    # maps saved under v5 (name cosine 0.7) or v6 (threshold at precision >= 0.96): ignored the same way
+    for old, name_cos, threshold in (("v5", 0.7, 0.928), ("v6", 0.8, 0.928)):
+        caplog.clear()
+        record = {**minilm.to_dict(), "method": f"lerf+query-categories+head-{old}", "head_name_cos": name_cos,
+                  "threshold": threshold}
+        assert calibration_for("minilm-l6-v2", record) is minilm and minilm.head_name_cos == 0.8
+        assert f"made for method 'lerf+query-categories+head-{old}'" in caplog.text
 
 
 def _scene(encoder_name: str, texts: list[str]):  # noqa: ANN202
@@ -148,20 +150,19 @@ def _first_match(scorer: RelevancyScorer, cats: list[str], regions: np.ndarray, 
 def test_the_head_rule_asks_the_head_word_to_describe_the_region() -> None:
     """MiniLM embeds "wall clock" next to the wall and "a seat at the desk" next to the desk; with
     the head rule the clock matches nothing and the seat is a chair; a core that is nearly a
-    region's own name keeps it ("trash can", whose head "can" alone is no bin; v6: cosine 0.8, so
-    "door key" and "cabinet minister", within 0.7 of the door and the cabinet, no longer match);
+    region's own name keeps it ("trash can", whose head "can" alone is no bin; cosine 0.8);
     "a couple of" is dropped like a determiner; texts with no noun head are scored whole."""
-    cases = {"wall clock": None, "a ceiling fan": None, "a desk fan": None, "window blinds": None,
-             "a seat at the desk": "chair", "a light for the desk": "lamp", "wall shelf": "bookshelf",
+    cases = {"a ceiling fan": None, "a desk fan": None, "window blinds": None, "pillow fight": None,
+             "monitor lizard": None, "a seat at the desk": "office chair", "a light for the desk": "lamp",
              "trash can": "trash can", "office chair": "office chair", "the trash cans": "trash can",
-             "something to sit on": "sofa", "a place to sleep": "bed", "couch": "sofa", "zebra": None,
-             "door key": None, "cabinet minister": None, "a couple of pillows": "pillow"}
+             "something to sit on": "chair", "a place to sleep": "bed", "couch": "sofa", "zebra": None,
+             "a couple of pillows": "pillow"}
     scorer, cats, regions, vectors = _scene("minilm", list(cases))
     got = {text: _first_match(scorer, cats, regions, vectors, text) for text in cases}
     assert got == cases
     # v3's scoring (the whole text only) answered the modifier's region
-    whole = {t: cats[int(np.argmax(scorer.relevancy(vectors[t], regions)[0]))] for t in ("wall clock", "a seat at the desk")}
-    assert whole == {"wall clock": "wall", "a seat at the desk": "desk"}
+    whole = {t: cats[int(np.argmax(scorer.relevancy(vectors[t], regions)[0]))] for t in ("a ceiling fan", "a seat at the desk")}
+    assert whole == {"a ceiling fan": "ceiling", "a seat at the desk": "desk"}
 
 
 def test_text_margins_are_the_texts_without_a_head_rule_and_capped_by_the_head_with_it() -> None:
@@ -223,43 +224,43 @@ def _figures_at(encoder_name: str, word_list, precision: float, recall: float): 
     return figures
 
 
-DEV_POOL = CALIBRATION + HELD_OUT + HELD_OUT_2 + HELD_OUT_3 + HELD_OUT_4 + HELD_OUT_5
+DEV_POOL = CALIBRATION + HELD_OUT + HELD_OUT_2 + HELD_OUT_3 + HELD_OUT_4 + HELD_OUT_5 + HELD_OUT_6
 
 
 def test_match_on_the_minilm_word_lists() -> None:
-    """v6 on the six development lists, which chose its threshold (best recall at pooled
-    precision >= 0.96): pooled 0.972 / 0.724, each list in sample as below (docs/CLI.md; v3 with
-    its threshold re-chosen on the same lists: 0.962 / 0.534; leaving one list out, the bench:
-    v6 0.959 / 0.728, v3 0.943 / 0.545). Judged on HELD_OUT_6, written blind and committed before
-    v6 was measured on it: 0.853 / 0.563 (with "a couple of" dropped, found on that list, 0.855 /
-    0.573); v3 as shipped before 0.701 / 0.728 on it. The issue's targets (0.95 / 0.90) are missed."""
-    dev = _figures_at("minilm", DEV_POOL, 0.972, 0.724)
-    for word_list, p, r in ((CALIBRATION, 0.989, 0.870), (HELD_OUT, 0.971, 0.702), (HELD_OUT_2, 1.000, 0.750),
-                            (HELD_OUT_3, 0.974, 0.712), (HELD_OUT_4, 0.932, 0.697), (HELD_OUT_5, 0.970, 0.619),
-                            (HELD_OUT_6, 0.855, 0.573)):
+    """v7 on the seven development lists, which chose its threshold (the best F1 pooled): pooled
+    0.895 / 0.767, each list in sample as below (docs/CLI.md; v3, its threshold chosen by the same
+    rule: 0.830 / 0.822; leaving one list out, the bench: v7 0.890 / 0.765, v3 0.828 / 0.815).
+    Judged on HELD_OUT_7, written blind and committed before v7 was measured on it: 0.868 / 0.617
+    (v3 as shipped before: 0.811 / 0.682). The issue's targets (0.95 / 0.90) are missed."""
+    dev = _figures_at("minilm", DEV_POOL, 0.895, 0.767)
+    for word_list, p, r in ((CALIBRATION, 0.967, 0.890), (HELD_OUT, 0.976, 0.851), (HELD_OUT_2, 0.981, 0.797),
+                            (HELD_OUT_3, 0.840, 0.760), (HELD_OUT_4, 0.872, 0.758), (HELD_OUT_5, 0.860, 0.705),
+                            (HELD_OUT_6, 0.841, 0.670), (HELD_OUT_7, 0.868, 0.617)):
         _figures_at("minilm", word_list, p, r)
     failures = dict(dev.failures)
     # unrelated words: no match, also those the LERF negatives alone let through ("car" -> plant),
-    # the one "appliance" took off ("refrigerator" -> cabinet) and the compounds the head rule
-    # takes off ("wall clock" -> wall, "a ceiling fan" -> ceiling, "door key" -> door)
-    for text in ("zebra", "car", "kangaroo", "camel", "refrigerator", "owl", "democracy", "wall clock",
-                 "a ceiling fan", "a desk fan", "window blinds", "curtains", "a laptop", "door key",
-                 "cabinet minister", "pillow fight"):
+    # the one "appliance" took off ("refrigerator" -> cabinet) and compounds the head rule takes
+    # off ("a ceiling fan" -> ceiling, "pillow fight" -> pillow, "monitor lizard" -> monitor)
+    for text in ("zebra", "car", "kangaroo", "camel", "refrigerator", "owl", "democracy", "a ceiling fan",
+                 "a desk fan", "window blinds", "pillow fight", "monitor lizard"):
         assert text not in failures, (text, failures.get(text))
     # paraphrases and synonyms find a region they name, the head rule's among them
-    for text in ("something to sit on", "couch", "a place to sleep", "a seat at the desk", "a light for the desk",
-                 "wall shelf"):
+    for text in ("something to sit on", "somewhere to sit", "couch", "a place to sleep", "houseplant",
+                 "a seat at the desk", "a light for the desk"):
         assert text not in failures, (text, failures.get(text))
+    # what the balanced threshold lets through (docs/CLI.md): near-domain and a few far words
+    assert {failures.get(t) for t in ("curtains", "castle", "a television")} == {"window", "wall", "monitor"}
 
 
 def test_match_on_the_hash_word_lists() -> None:
-    """The lexical space matches near-exact words only: pooled 0.966 / 0.487 (v3 re-chosen
-    0.972 / 0.135), each list as below, HELD_OUT_6 judged (0.837 / 0.398; 0.840 / 0.408 with
-    "a couple of" dropped); "chair" still matches a region named "wooden chair"."""
-    dev = _figures_at("hash", DEV_POOL, 0.966, 0.487)
-    for word_list, p, r in ((CALIBRATION, 0.983, 0.590), (HELD_OUT, 0.929, 0.553), (HELD_OUT_2, 1.000, 0.500),
-                            (HELD_OUT_3, 0.979, 0.442), (HELD_OUT_4, 0.906, 0.485), (HELD_OUT_5, 1.000, 0.400),
-                            (HELD_OUT_6, 0.840, 0.408)):
+    """The lexical space matches near-exact words only: pooled 0.874 / 0.526 (v3 by the same rule
+    0.766 / 0.564), each list as below, HELD_OUT_7 judged (0.894 / 0.393; v3 as shipped 0.886 /
+    0.290); "chair" still matches a region named "wooden chair"."""
+    dev = _figures_at("hash", DEV_POOL, 0.874, 0.526)
+    for word_list, p, r in ((CALIBRATION, 0.923, 0.600), (HELD_OUT, 0.771, 0.574), (HELD_OUT_2, 0.818, 0.562),
+                            (HELD_OUT_3, 0.900, 0.519), (HELD_OUT_4, 0.848, 0.566), (HELD_OUT_5, 0.980, 0.476),
+                            (HELD_OUT_6, 0.830, 0.427), (HELD_OUT_7, 0.894, 0.393)):
         _figures_at("hash", word_list, p, r)
     assert "something to rest on" in dict(dev.failures)  # no meaning in trigrams
     assert "zebra" not in dict(dev.failures)

@@ -1,5 +1,5 @@
 """Relevancy in [0, 1] and a calibrated ``match`` for ranked regions (the LERF formulation,
-with contrast categories on the query side, and the head rule of v5/v6).
+with contrast categories on the query side, and the head rule of v5-v7).
 
 A raw cosine ``score`` has a scale that depends on the text encoder ("zebra" answers the plant
 with 0.41 in MiniLM), so no fixed score threshold means "this is what you asked for". Following
@@ -58,7 +58,7 @@ about -0.2 (unrelated) to +0.5 (the class name itself), so ``T = 0.05`` maps a m
 synonym) to 0.98 and 0 to 0.5. ``T`` does not change which regions match (a threshold on
 relevancy is a threshold on the margin); it only sets how the number reads.
 
-The head rule (v5; v6 its name cosine 0.8). A text encoder embeds a phrase as a blend of its words: "wall clock" lands
+The head rule (v5; its name cosine 0.8 since v6). A text encoder embeds a phrase as a blend of its words: "wall clock" lands
 next to the wall, "a seat at the desk" next to the desk. The query's head
 (:func:`openfusion.mapping.query_head.query_head`: determiners dropped, a post-modifier cut,
 the last word of the rest) must describe the region too:
@@ -81,21 +81,27 @@ cosine 0.8 (v6) raised the left-out recall from 0.684 to 0.728 at the same preci
 blind list's "door key", "cabinet minister", "pillow fight" sit within 0.7 of the door, cabinet,
 pillow but not within 0.8), and v6 was judged on ``HELD_OUT_6`` (written blind, committed before
 v6 was measured on it): MiniLM 0.853 / 0.563 against v3's 0.701 / 0.728, hash 0.837 / 0.398
-against 0.656 / 0.408 (``bench/bench_relevancy.py``, docs/CLI.md). Not kept: ScanNet-style
+against 0.656 / 0.408 (``bench/bench_relevancy.py``, docs/CLI.md). v6's threshold (the highest
+recall at precision >= 0.96) answered "no match" to "something to sit on" in the built-in room
+(chair 0.90; the lists counted only the best-ranked seat, the sofa); v7 keeps v6's scoring and
+takes the threshold at the best F1 of the development lists instead (below), judged on
+``HELD_OUT_7`` (written blind, committed before v7 was measured on it): MiniLM 0.868 / 0.617
+against v3's 0.811 / 0.682, hash 0.894 / 0.393 against 0.886 / 0.290. Not kept: ScanNet-style
 vocabulary contrasts (NYU40's class names, where a name is far from the region and close to the
 query) changed nothing or lost recall; min(text, core) for post-modified texts instead of the
 core, or a slack on the head's margin were no better.
 
 ``match``: relevancy at or above a threshold calibrated per embedding space on the development
-word lists of :mod:`openfusion.testing.word_lists` pooled (six: ``CALIBRATION``, ``HELD_OUT``
-to ``HELD_OUT_5``, 803 queries; all have been seen, so none can judge): the margin
-with the highest recall at precision >= 0.96 (0.01 kept in hand over the target 0.95), the
-middle of the margins that reach it. A method chosen after this needs a list written before it
-is measured to be judged. The calibrations live
+word lists of :mod:`openfusion.testing.word_lists` pooled (seven: ``CALIBRATION``, ``HELD_OUT``
+to ``HELD_OUT_6``, 966 queries; all have been seen, so none can judge): the margin with the
+highest F1 of precision and recall (the middle of the margins that reach it), a balance: no
+margin reaches the issue's precision 0.95 and recall 0.90 together, and the margin of the
+highest recall at precision >= 0.96 (v6) missed paraphrases a user expects to match. A method
+chosen after this needs a list written before it is measured to be judged. The calibrations live
 in :data:`CALIBRATIONS`, keyed by embedding-space id; ``save_map`` records the one of the map's
 space in the map file's header, and a saved map answers with the calibration it was saved with
-when it was made for this :data:`METHOD`; one saved for another method (maps saved with v5:
-name cosine 0.7, hash margin 0.3325; v3: no head rule, margin 0.04; v2: five categories; older
+when it was made for this :data:`METHOD`; one saved for another method (maps saved with v6:
+margin 0.1275; v5: name cosine 0.7, hash margin 0.3325; v3: no head rule, margin 0.04; v2: five categories; older
 maps: plain LERF, no ``method`` field)
 is ignored with a logged reason and the library's table answers. A space without a calibration
 gets :data:`FALLBACK` (``match`` = the query beats every negative, relevancy 0.5; no query
@@ -117,7 +123,7 @@ from openfusion.mapping.query_head import query_head
 logger = logging.getLogger(__name__)
 
 #: The relevancy formula this library computes (module docstring); a saved calibration names it.
-METHOD = "lerf+query-categories+head-v6"
+METHOD = "lerf+query-categories+head-v7"
 #: What a saved calibration without a ``method`` field was made for (maps saved before v2).
 LEGACY_METHOD = "lerf-v1"
 
@@ -125,7 +131,7 @@ LEGACY_METHOD = "lerf-v1"
 DEFAULT_NEGATIVES: tuple[str, ...] = ("object", "things", "stuff", "texture")
 #: Contrast categories (query side): broad kinds of things that are no part of a furnished room.
 DEFAULT_QUERY_CATEGORIES: tuple[str, ...] = ("animal", "vehicle", "food", "building", "landscape", "appliance")
-#: The head rule (v6; v5 had 0.7) leaves a region alone when the query's core noun phrase is this
+#: The head rule (since v6; v5 had 0.7) leaves a region alone when the query's core noun phrase is this
 #: close to it (cosine): the core is nearly the region's own name ("trash can", whose head word
 #: "can" alone does not describe it).
 HEAD_NAME_COS = 0.8
@@ -149,7 +155,7 @@ class SpaceCalibration:
     calibrated: bool = True  # False: FALLBACK values for a space nobody calibrated
     note: str = ""
     method: str = METHOD
-    head_name_cos: float | None = None  # the head rule (v5, v6): its name cosine; None: no head rule
+    head_name_cos: float | None = None  # the head rule (v5-v7): its name cosine; None: no head rule
 
     @property
     def margin(self) -> float:
@@ -188,17 +194,17 @@ def _threshold_for_margin(margin: float, temperature: float) -> float:
 
 
 #: Calibrations by embedding-space id (``bench/bench_relevancy.py`` measures them; the figures are
-#: in docs/CLI.md). Margins: the highest recall at precision >= 0.96 on the development lists
-#: pooled, the middle of the margins that reach it. MiniLM: margin 0.1275. Hash trigrams are not
+#: in docs/CLI.md). Margins: the best F1 on the development lists pooled, the middle of the
+#: margins that reach it. MiniLM: margin 0.0525. Hash trigrams are not
 #: semantic: the threshold keeps near-exact words only (the query shares most trigrams with the
 #: region's text); its margins run over [-0.2, 0.9], hence T = 0.1.
 CALIBRATIONS: dict[str, SpaceCalibration] = {
     "minilm-l6-v2": SpaceCalibration(
-        "minilm-l6-v2", 0.05, _threshold_for_margin(0.1275, 0.05), DEFAULT_NEGATIVES, DEFAULT_QUERY_CATEGORIES,
-        note="margin 0.1275 over the LERF negatives and the query categories, head rule",
+        "minilm-l6-v2", 0.05, _threshold_for_margin(0.0525, 0.05), DEFAULT_NEGATIVES, DEFAULT_QUERY_CATEGORIES,
+        note="margin 0.0525 over the LERF negatives and the query categories, head rule",
         head_name_cos=HEAD_NAME_COS),
     "hash-trigram-256": SpaceCalibration(
-        "hash-trigram-256", 0.1, _threshold_for_margin(0.3025, 0.1), DEFAULT_NEGATIVES, DEFAULT_QUERY_CATEGORIES,
+        "hash-trigram-256", 0.1, _threshold_for_margin(0.1875, 0.1), DEFAULT_NEGATIVES, DEFAULT_QUERY_CATEGORIES,
         note="lexical: near-exact words only", head_name_cos=HEAD_NAME_COS),
 }
 
