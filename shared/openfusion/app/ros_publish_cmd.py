@@ -4,7 +4,9 @@
         [--domain-id N] [--ros-namespace NS] [--ros-connect EP] [--frame-id map]
         [--map-cloud] [--every S | --once] [--distro jazzy|humble]
 
-Each round (every ``--every`` seconds, 2 by default; once with ``--once``) it asks the query
+Each round (every ``--every`` seconds, 2 by default; once with ``--once``, which first waits up
+to ``--timeout`` for a subscriber on each topic, so the one round is not sent before the route to a
+subscriber exists; publishers block rather than drop a message when the link is busy) it asks the query
 service (:class:`~openfusion.client.OpenFusionClient`, with points) and publishes
 
 | topic | type | what |
@@ -90,7 +92,7 @@ class RosPublishCommand:
                                  f"{MAP_CLOUD_EVERY_S:g} s at most)")
         parser.add_argument("--every", type=float, default=2.0, help="seconds between rounds (default 2)")
         parser.add_argument("--once", action="store_true", help="publish one round and exit")
-        parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the services")
+        parser.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the services (and, with --once, for a subscriber on each topic)")
         add_config_arguments(parser)
 
     @staticmethod
@@ -99,6 +101,7 @@ class RosPublishCommand:
 
         from openfusion.client import OpenFusionClient
         from openfusion.sources.ros2 import Ros2Publisher
+        from openfusion.viz.ros_messages import MARKER_ARRAY, POINTCLOUD2
 
         if any(not t.strip() for t in args.text):
             raise UsageError("a query text is empty")
@@ -122,6 +125,13 @@ class RosPublishCommand:
                                       domain_id=args.domain_id, distro=args.distro,
                                       keyed_attachment=args.keyed_attachment)
             last_map = float("-inf")
+            if args.once:
+                topics = [(QUERY_POINTS_TOPIC, POINTCLOUD2), (QUERY_MARKERS_TOPIC, MARKER_ARRAY)]
+                topics += [(MAP_POINTS_TOPIC, POINTCLOUD2)] if args.map_cloud else []
+                waiting = publisher.wait_for_subscribers(topics, args.timeout)
+                if waiting:
+                    print(f"no subscriber on {', '.join(waiting)} after {args.timeout:g} s; publishing anyway",
+                          file=sys.stderr, flush=True)
             try:
                 while True:
                     stamp = time.time_ns()

@@ -503,8 +503,12 @@ class Ros2Publisher:
     def _publisher(self, topic: str, typename: str) -> Any:
         pub = self._publishers.get((topic, typename))
         if pub is None:
+            import zenoh
+
             key = self.key(topic, typename)
-            pub = self.session.declare_publisher(key)
+            # block rather than drop when the link's queue is full: a map cloud is megabytes, sent
+            # seconds apart, and a dropped one is gone until the next round (ROS "reliable")
+            pub = self.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
             self._publishers[(topic, typename)] = pub
             if self.layout == "rmw_zenoh":
                 self._gids[key] = os.urandom(16)
@@ -517,6 +521,18 @@ class Ros2Publisher:
                     "::,1:,:,:,,"))
             logger.info("publishing ROS 2 topic %s (%s) on %s", topic, typename, key)
         return pub
+
+    def wait_for_subscribers(self, topics: list[tuple[str, str]], timeout_s: float) -> list[str]:
+        """Declare the publishers of ``topics`` ((topic, typename) pairs) and wait up to ``timeout_s``
+        until each has a matching subscriber (a one-shot round would otherwise go out before the
+        route to a subscriber that is already there exists). Returns the topics still without one."""
+        pubs = {topic: self._publisher(topic, typename) for topic, typename in topics}
+        deadline = time.monotonic() + timeout_s
+        while True:
+            waiting = [t for t, pub in pubs.items() if not bool(getattr(pub.matching_status, "matching", False))]
+            if not waiting or time.monotonic() >= deadline:
+                return waiting
+            time.sleep(0.02)
 
     def publish(self, topic: str, typename: str, payload: bytes) -> None:
         """Put one CDR ``payload`` of ``typename`` on ``topic``."""
