@@ -14,7 +14,7 @@ from openfusion.mapping import (
     region_conf_maps,
     soft_iou_matrix,
 )
-from openfusion.mapping.matching import mask_edge_weights
+from openfusion.mapping.matching import depth_cut_spill, mask_edge_weights
 from openfusion.mapping.params import MatchParams
 from openfusion.testing.analytic_scene import SimpleObservation
 
@@ -293,14 +293,62 @@ def test_plan_update_depth_cut_spill_fuses_nothing() -> None:
 
 
 def test_plan_update_depth_cut_keeps_new_and_own_surface() -> None:
-    """Cut-off border pixels still fuse where the map shows no region yet or already this region's key
-    (noise-free masks on a first view lose nothing)."""
+    """Cut-off border pixels still fuse where the map already shows this region's key, and on surface
+    the map has not labelled yet that is not behind the mask's body (a background mask dilated over a
+    nearer object nobody labelled yet): noise-free masks on a first view lose nothing there."""
     jump = np.where(np.arange(W)[None, :] < 20, 1.0, 3.0).repeat(H, axis=0)
     obs, rendered, d = _dilated_over_an_edge(jump)
-    rendered.key_map[:, 20] = -1
-    rendered.key_map[:, 21] = 0
+    rendered.key_map[:, 20:22] = 0
     plan = plan_update(obs, rendered, d)
     assert (plan.conf_map[:, 20:22] > 0).all() and (plan.key_map[:, 20:22] == 0).all()
+    nearer = np.where(np.arange(W)[None, :] < 20, 3.0, 1.0).repeat(H, axis=0)
+    obs, rendered, d = _dilated_over_an_edge(nearer)
+    rendered.key_map[:, 20:22] = -1
+    plan = plan_update(obs, rendered, d)
+    assert (plan.conf_map[:, 20:22] > 0).all() and (plan.key_map[:, 20:22] == 0).all()
+
+
+def test_plan_update_depth_cut_spill_behind_the_object_on_new_surface() -> None:
+    """A foreground mask dilated over background the map has not labelled yet (the first view of the
+    wall behind a chair) fuses nothing on that background: its key would otherwise hold those voxels
+    until the wall's own views wear it down. Not cut: a step of less than ``depth_cut_new_rel`` (10 %)
+    behind the body, a grazing plane (depth jumps, but no occlusion), a strip of the object's own
+    surface behind its front that meets the next surface across another jump; and
+    ``depth_cut_new_rel=0`` fuses the spill with the mask's key (the previous rule: cut only where the
+    map holds another region)."""
+    assert MatchParams().depth_cut_new_rel == pytest.approx(0.10)
+    behind = np.where(np.arange(W)[None, :] < 20, 1.0, 3.0).repeat(H, axis=0)
+    obs, rendered, d = _dilated_over_an_edge(behind)
+    rendered.key_map[:, 20:] = -1
+    plan = plan_update(obs, rendered, d)
+    np.testing.assert_array_equal(plan.conf_map[:, 20:22], 0.0)
+    assert (plan.conf_map[:, 18:20] > 0).all() and (plan.key_map[:, :20] == 0).all()
+    assert (plan.conf_map[:, 24:] > 0).all()  # the background's own region still fuses
+    obs, rendered, d = _dilated_over_an_edge(behind)
+    rendered.key_map[:, 20:] = -1
+    plan = plan_update(obs, rendered, d, MatchParams(depth_cut_new_rel=0))
+    assert (plan.conf_map[:, 20:22] > 0).all() and (plan.key_map[:, 20:22] == 0).all()
+    step = np.where(np.arange(W)[None, :] < 20, 1.0, 1.07).repeat(H, axis=0)  # a jump, but under 10 %
+    # A plane seen at a grazing angle: depth steps of 6 % per pixel (jumps to depth_jumps), yet the
+    # inverse depth is linear, so the border band is on the mask's own surface, not behind it.
+    inv = np.maximum(0.5 - 0.03 * (np.arange(W) - 20.0), 0.1)
+    grazing = (1.0 / inv)[None, :].repeat(H, axis=0)
+    # A strip of the mask's own object behind its front (a shelf's back panel, 1.5 m behind 1.0 m)
+    # that meets the next surface (3.0 m) across another jump: not background the mask spilled over.
+    own_strip = np.select([np.arange(W) < 20, np.arange(W) < 22], [1.0, 1.5], 3.0)[None, :].repeat(H, axis=0)
+    for depth in (step, grazing, own_strip):
+        obs, rendered, d = _dilated_over_an_edge(depth)
+        rendered.key_map[:, 20:] = -1
+        plan = plan_update(obs, rendered, d)
+        assert (plan.conf_map[:, 20:22] > 0).all() and (plan.key_map[:, 20:22] == 0).all()
+    assert depth_cut_spill(
+        np.where(np.arange(W) < 22, 0, 1)[None, :].repeat(H, axis=0),
+        (np.abs(np.arange(W) - 21.5) < 2)[None, :].repeat(H, axis=0),
+        grazing,
+        MatchParams().depth_cut_rel,
+        0.0,
+        2.0,
+    )[:, 20:22].all()  # the band is cut off by the jumps: only the behind-the-body test keeps it
 
 
 def test_plan_update_splits_a_mask_of_two_map_objects() -> None:

@@ -39,7 +39,10 @@ Depth-edge cut (``MatchParams.depth_cut_rel``, ``crease_rel``)
     linear in the pixel coordinates on a plane, changes slope). A pixel of that border band which its
     region's interior cannot reach within ``mask_edge_px`` + 1 steps through 4-neighbours of the same
     region without crossing such an edge (:func:`depth_cut_spill`) fuses nothing, where the map
-    already renders another region there; on a new surface, or one the map gives this region's key,
+    already renders another region there; on a surface the map has not labelled yet, where it lies
+    behind the mask's body across an occlusion edge (``depth_cut_new_rel``: farther than the body's
+    surface, extrapolated, predicts by more than 10 %; :func:`behind_body`), the background a
+    foreground mask was dilated over; on other new surface, or one the map gives this region's key,
     it fuses as before. The noise model's dilation does not know about surfaces, a real segmenter's
     masks mostly follow depth edges, so this keeps most of the spill of the former off its
     neighbour's voxels (measured in docs/EVAL.md "Standard noise: depth-edge cut"). It uses the
@@ -291,6 +294,65 @@ def depth_cut_spill(
     return lab & band & ~reached
 
 
+def behind_body(
+    labels: np.ndarray, spill: np.ndarray, depth_m: np.ndarray, rel: float, jump_rel: float, steps: int
+) -> np.ndarray:
+    """Pixels of ``spill`` (bool (h, w), e.g. :func:`depth_cut_spill`'s) that lie behind the rest of
+    their mask across an occlusion edge: a spill pixel whose depth exceeds, by more than ``rel`` of it,
+    what a 4-neighbour of the same label predicts there (that neighbour's inverse depth extrapolated
+    linearly from it and the next pixel of the label in line, where no depth jump (``jump_rel``,
+    :func:`depth_jumps`) separates those two; on a plane, however grazing, the inverse
+    depth is linear, so a slanted surface is no edge), and the spill pixels of the same label joined to
+    such a pixel within ``steps`` 4-neighbour steps without a depth jump. A mask dilated over an occlusion edge puts such pixels on the background
+    behind the object; spill nearer than the rest of its mask, or level with it, is not returned."""
+    z = np.asarray(depth_m, np.float32)
+    h, w = z.shape
+    iz = np.where(z > 0, 1.0 / np.maximum(z, 1e-6), 0.0).astype(np.float32)
+    pad = 2
+    lab_p = np.pad(labels, pad, constant_values=-1)
+    seen_p = np.pad((labels >= 0) & (z > 0), pad)
+    iz_p = np.pad(iz, pad)
+    z_p = np.pad(z, pad)
+    behind = np.zeros((h, w), bool)
+    cand = spill & (z > 0)
+    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):  # the neighbour n = p - d and the next one nn = p - 2d
+        n = (slice(pad - dy, pad - dy + h), slice(pad - dx, pad - dx + w))
+        nn = (slice(pad - 2 * dy, pad - 2 * dy + h), slice(pad - 2 * dx, pad - 2 * dx + w))
+        next_to = cand & seen_p[n] & (lab_p[n] == labels)
+        near = np.minimum(z_p[n], z_p[nn])
+        in_line = seen_p[nn] & (lab_p[nn] == labels) & (np.abs(z_p[n] - z_p[nn]) <= jump_rel * near)
+        predicted = np.where(in_line, 2.0 * iz_p[n] - iz_p[nn], iz_p[n])
+        behind |= next_to & (iz * (1.0 + rel) < predicted)
+    if not behind.any():
+        return behind
+    across, down = depth_jumps(z, jump_rel)
+
+    def spread(grow_from: np.ndarray, within: np.ndarray) -> np.ndarray:
+        link_x = (labels[:, 1:] == labels[:, :-1]) & ~across & within[:, 1:] & within[:, :-1]
+        link_y = (labels[1:, :] == labels[:-1, :]) & ~down & within[1:, :] & within[:-1, :]
+        for _ in range(steps):
+            grow = grow_from.copy()
+            grow[:, 1:] |= grow_from[:, :-1] & link_x
+            grow[:, :-1] |= grow_from[:, 1:] & link_x
+            grow[1:, :] |= grow_from[:-1, :] & link_y
+            grow[:-1, :] |= grow_from[1:, :] & link_y
+            grow_from = grow
+        return grow_from
+
+    behind = spread(behind, spill)
+    # Only spill that continues, without a depth jump, into the surface of another label or of no
+    # label (the background the mask was dilated over); a strip of the mask's own object seen behind
+    # its front (a shelf's back panel) meets the next surface across another jump.
+    other_x = (labels[:, 1:] != labels[:, :-1]) & ~across & (z[:, 1:] > 0) & (z[:, :-1] > 0)
+    other_y = (labels[1:, :] != labels[:-1, :]) & ~down & (z[1:, :] > 0) & (z[:-1, :] > 0)
+    meets = np.zeros((h, w), bool)
+    meets[:, 1:] |= other_x
+    meets[:, :-1] |= other_x
+    meets[1:, :] |= other_y
+    meets[:-1, :] |= other_y
+    return spread(behind & meets, behind)
+
+
 @functools.lru_cache(maxsize=8)
 def _offsets_by_distance(radius_px: float) -> tuple[tuple[int, tuple[tuple[int, int], ...]], ...]:
     """Pixel offsets (dy, dx) with 0 < distance < radius_px, grouped by squared distance, nearest first."""
@@ -413,7 +475,8 @@ def plan_update(
     ``min(1, (d + 1) / (mask_edge_px + 1))``, d = distance in pixels to the nearest border between
     winning regions (see the module docstring; 0 turns the weighting off). Border pixels cut off from
     their region's interior by a depth edge of the rendered view fuse nothing where the map shows
-    another region (``depth_cut_rel``, ``crease_rel``; the module docstring).
+    another region, or no region and they lie behind the mask's body (``depth_cut_rel``,
+    ``crease_rel``, ``depth_cut_new_rel``; the module docstring).
     """
     conf_maps = _check_conf_maps(obs.conf_maps, rendered.key_map.shape)
     embeddings = np.asarray(obs.embeddings, np.float32)
@@ -502,10 +565,16 @@ def plan_update(
             spill = depth_cut_spill(
                 labels_px, edge_w < 1, rendered.depth_m, p.depth_cut_rel, p.crease_rel, p.mask_edge_px
             )
-            # Only where the map already holds another region: a new surface, or one the map labels
-            # as this region, takes the pixel as before (noise-free masks lose nothing).
-            spill &= (rendered.key_map >= 0) & (rendered.key_map != pixel_keys)
-            pixel_conf = np.where(spill, np.float32(0), pixel_conf)
+            # Where the map already holds another region; on new surface only behind the mask's body
+            # (a mask's first view of a slanted or nearer surface, or of its own, loses nothing).
+            cut = spill & (rendered.key_map >= 0) & (rendered.key_map != pixel_keys)
+            if p.depth_cut_new_rel > 0:
+                # On surface the map has not labelled yet, only spill that lies behind its mask's body
+                # (a foreground mask dilated over the background), by the larger jump depth_cut_new_rel.
+                cut |= (rendered.key_map < 0) & behind_body(
+                    labels_px, spill, rendered.depth_m, p.depth_cut_new_rel, p.depth_cut_rel, math.ceil(p.mask_edge_px)
+                )
+            pixel_conf = np.where(cut, np.float32(0), pixel_conf)
     plan.key_map[use] = pixel_keys[use]
     plan.conf_map[use] = pixel_conf[use]
     plan.dictionary_version = dictionary.version

@@ -154,6 +154,14 @@ class MatchParams(ConfigSection):
         description="depth-edge cut: also a crease where the rendered inverse depth's slope changes across a pixel "
         "pair by more than this share of the inverse depth (planes have linear inverse depth); 0 = jumps only",
     )
+    depth_cut_new_rel: float = Field(
+        0.10,
+        ge=0,
+        description="depth-edge cut on surface the map has not labelled yet: a cut-off border pixel fuses nothing "
+        "there when it lies behind its mask's body across an occlusion edge, farther than the body's surface "
+        "(extrapolated) predicts by more than this share (a foreground mask dilated over the background behind "
+        "it); 0 = cut only where the map holds another region",
+    )
     split_min_share: float | None = Field(
         0.15,
         ge=0,
