@@ -66,6 +66,7 @@ from openfusion.mapping.answers import (
     TextAnswer,
     answer_text,
     texts_to_embed,
+    texts_to_rank,
 )
 from openfusion.mapping.params import QueryParams
 from openfusion.mapping.queries import candidates_for, region_centroids, region_summaries, subsample_points
@@ -415,17 +416,14 @@ class QueryService:
         checked once for every ranked key, and with ``with_points`` ONE points request to geometry
         for the regions of all of them. Relevancy, match, nearby regions and relations:
         :func:`~openfusion.mapping.answers.answer_text`, as every query path."""
-        # the X of "X next to Y" looks at more candidates; every other text as many as always
+        # the X of "X next to Y" looks at more candidates; the head rule's parts are scored, never ranked
         targets = {rq.target for rq in map(parse_relation_query, queries) if rq is not None}
-        candidates = {
-            text: self.replica.top_k(v, candidates_for(top_k + RELATION_CANDIDATES if text in targets
-                                                       else max(top_k, MAX_ANCHORS)))
-            for text, v in vectors.items()
-        }
+        candidates = {text: self.replica.top_k(vectors[text], candidates_for(
+            top_k + RELATION_CANDIDATES if text in targets else max(top_k, MAX_ANCHORS))) for text in texts_to_rank(queries)}
         summaries = self._summaries_for(sorted({k for ranked in candidates.values() for k, _ in ranked}))
         least = self.section.min_region_points
         usable = {text: drop_empty_regions(ranked, summaries, min_points=least) for text, ranked in candidates.items()}
-        by_vector = {id(vectors[text]): usable[text] for text in vectors}
+        by_vector = {id(vectors[text]): ranked for text, ranked in usable.items()}
 
         def rank(vector: np.ndarray, n: int) -> list[tuple[int, float]]:
             return by_vector[id(vector)][:n]

@@ -14,7 +14,7 @@ from typing import Any, Generic, TypeVar
 
 import zenoh
 
-from openfusion.bus.session import BusError, _is_matching
+from openfusion.bus.session import BusError, is_matching
 from openfusion.bus.stats import ServiceStats
 from openfusion.wire.codec import (
     DEFAULT_MAX_ARRAY_ELEMENTS,
@@ -76,7 +76,7 @@ class Publisher:
     @property
     def has_subscribers(self) -> bool:
         """Whether any subscriber matches the key right now."""
-        return _is_matching(self._pub.matching_status)
+        return is_matching(self._pub.matching_status)
 
     def wait_for_subscribers(self, timeout_s: float) -> bool:
         """Wait up to ``timeout_s`` for a matching subscriber; True when there is one."""

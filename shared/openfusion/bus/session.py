@@ -36,5 +36,6 @@ def open_session(config: ServiceConfig) -> zenoh.Session:
         ) from None
 
 
-def _is_matching(status: Any) -> bool:
+def is_matching(status: Any) -> bool:
+    """Whether a zenoh matching status (or a plain bool) says a subscriber matches."""
     return bool(getattr(status, "matching", status))

@@ -16,7 +16,8 @@ every path answers alike:
 
 :func:`texts_to_embed` lists what to embed for a list of texts (the texts, the X and Y of
 relation queries, and the core noun phrase and head word of each for relevancy's head rule), so a
-caller embeds everything in one encoder call.
+caller embeds everything in one encoder call; :func:`texts_to_rank` the ones whose regions are
+ranked (the head rule's parts only score regions the others ranked).
 """
 
 from __future__ import annotations
@@ -69,18 +70,23 @@ class TextAnswer:
         return any(r.match for r in self.regions)
 
 
-def texts_to_embed(texts: Sequence[str]) -> list[str]:
-    """Every text, then the X and Y of each relation query, then what the head rule of relevancy
-    embeds for each of them (:func:`~openfusion.mapping.relevancy.relevancy_texts`); each once,
-    in first-seen order."""
+def texts_to_rank(texts: Sequence[str]) -> list[str]:
+    """The texts whose regions are ranked: every text, then the X and Y of each relation query;
+    each once, in first-seen order."""
     wanted = list(texts)
     for text in texts:
         rq = parse_relation_query(text)
         if rq is not None:
             wanted += [rq.target, rq.anchor]
-    for text in list(wanted):
-        wanted += relevancy_texts(text)
     return list(dict.fromkeys(wanted))
+
+
+def texts_to_embed(texts: Sequence[str]) -> list[str]:
+    """:func:`texts_to_rank`, then what the head rule of relevancy embeds for each of them
+    (:func:`~openfusion.mapping.relevancy.relevancy_texts`; only scored, never ranked); each once,
+    in first-seen order."""
+    ranked = texts_to_rank(texts)
+    return list(dict.fromkeys(ranked + [part for text in ranked for part in relevancy_texts(text)]))
 
 
 def _scored(

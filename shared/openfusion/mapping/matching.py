@@ -284,14 +284,21 @@ def depth_cut_spill(
     if lab.any():  # labels with no interior pixel: nothing to cut them off from
         has_inside = np.bincount(labels[interior], minlength=int(labels.max()) + 1) > 0
         reached |= lab & ~has_inside[np.where(lab, labels, 0)]
-    for _ in range(math.ceil(reach_px) + 1):
-        grow = reached.copy()
-        grow[:, 1:] |= reached[:, :-1] & link_x
-        grow[:, :-1] |= reached[:, 1:] & link_x
-        grow[1:, :] |= reached[:-1, :] & link_y
-        grow[:-1, :] |= reached[1:, :] & link_y
-        reached = grow
+    reached = _grow(reached, link_x, link_y, math.ceil(reach_px) + 1)
     return lab & band & ~reached
+
+
+def _grow(mask: np.ndarray, link_x: np.ndarray, link_y: np.ndarray, steps: int) -> np.ndarray:
+    """``mask`` (bool (h, w)) grown ``steps`` times to 4-neighbours across the linked pairs:
+    ``link_x`` (h, w - 1) joins a pixel to its right neighbour, ``link_y`` (h - 1, w) to the one below."""
+    for _ in range(steps):
+        grow = mask.copy()
+        grow[:, 1:] |= mask[:, :-1] & link_x
+        grow[:, :-1] |= mask[:, 1:] & link_x
+        grow[1:, :] |= mask[:-1, :] & link_y
+        grow[:-1, :] |= mask[1:, :] & link_y
+        mask = grow
+    return mask
 
 
 def behind_body(
@@ -330,14 +337,7 @@ def behind_body(
     def spread(grow_from: np.ndarray, within: np.ndarray) -> np.ndarray:
         link_x = (labels[:, 1:] == labels[:, :-1]) & ~across & within[:, 1:] & within[:, :-1]
         link_y = (labels[1:, :] == labels[:-1, :]) & ~down & within[1:, :] & within[:-1, :]
-        for _ in range(steps):
-            grow = grow_from.copy()
-            grow[:, 1:] |= grow_from[:, :-1] & link_x
-            grow[:, :-1] |= grow_from[:, 1:] & link_x
-            grow[1:, :] |= grow_from[:-1, :] & link_y
-            grow[:-1, :] |= grow_from[1:, :] & link_y
-            grow_from = grow
-        return grow_from
+        return _grow(grow_from, link_x, link_y, steps)
 
     behind = spread(behind, spill)
     # Only spill that continues, without a depth jump, into the surface of another label or of no

@@ -526,10 +526,12 @@ class Ros2Publisher:
         """Declare the publishers of ``topics`` ((topic, typename) pairs) and wait up to ``timeout_s``
         until each has a matching subscriber (a one-shot round would otherwise go out before the
         route to a subscriber that is already there exists). Returns the topics still without one."""
+        from openfusion.bus.session import is_matching  # the bus (and zenoh) only where publishing
+
         pubs = {topic: self._publisher(topic, typename) for topic, typename in topics}
         deadline = time.monotonic() + timeout_s
         while True:
-            waiting = [t for t, pub in pubs.items() if not bool(getattr(pub.matching_status, "matching", False))]
+            waiting = [t for t, pub in pubs.items() if not is_matching(pub.matching_status)]
             if not waiting or time.monotonic() >= deadline:
                 return waiting
             time.sleep(0.02)
