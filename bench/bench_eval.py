@@ -51,6 +51,8 @@ def main(argv: list[str] | None = None) -> int:
         "--scenes", default=None, help=f"scene specs (default {QUICK_SCENES}; --full {FULL_SCENES})"
     )
     parser.add_argument("--text-encoder", default="minilm", help="minilm (default) or hash")
+    parser.add_argument("--region-text", default="caption", choices=("caption", "name"),
+                        help="the gt encoder's region embeddings: name and captions (default) or name")
     parser.add_argument("--out", default=None, help="folder for results.json/results.md per noise profile")
     parser.add_argument("--details", action="store_true", help="print the full results.md of every profile")
     parser.add_argument("--compare-merging", action="store_true",
@@ -62,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
     base = FULL if args.full else QUICK
-    base = replace(base, text_encoder=args.text_encoder)
+    base = replace(base, text_encoder=args.text_encoder, region_text=args.region_text)
     specs = parse_scene_specs([args.scenes or (FULL_SCENES if args.full else QUICK_SCENES)])
     profiles = [p.strip() for p in args.noise.split(",") if p.strip()]
 

@@ -2,20 +2,25 @@
 """Calibrate ``match`` per embedding space and measure its precision and recall on the word lists.
 
 For each text encoder (``minilm``, ``hash``): the synthetic scene's categories are embedded as
-the gt encoder embeds regions (the category name). The threshold margin is chosen on the
-development lists of ``openfusion.testing.word_lists`` pooled (:data:`DEVELOPMENT`: the seven
+the gt encoder embeds regions (v8: name and captions, ``openfusion.encoders.captions``; the rows
+of earlier methods: the name alone, as they were shipped). The threshold margin is chosen on the
+development lists of ``openfusion.testing.word_lists`` pooled (:data:`DEVELOPMENT`: the eight
 seen lists): the best F1 of precision and recall, the middle of the margins that reach it (v6
-took the highest recall at precision >= 0.96; docs/CLI.md says why that changed). ``cv P/R``: leave one development list out, choose on the others,
-measure on it; the left-out lists counted together. Then each list's figures (in sample), and
-those of :data:`JUDGED` lists (written blind before the method was measured on them:
-``HELD_OUT_7`` judges v7): a new list is one line in either dict. Each space gets rows measured in the same run: the library's method
-(v7: LERF negatives, six query categories and the head rule), v3 (no head rule) and plain LERF
-calibrated by the same rule, and v3 with the threshold it shipped with (chosen on the first three
-lists). The calibrated margin of the library's method must equal the one stored in
-``openfusion.mapping.relevancy.CALIBRATIONS``. ``--alternatives`` prints the development figures
-(pooled and left out) of the head rule's variants and vocabulary contrasts, then those of the
-formulations measured while v3 was chosen (prompt templates, more categories, a genericness term,
-a per-map normalisation).
+took the highest recall at precision >= 0.96; docs/CLI.md says why that changed). ``cv P/R``:
+leave one development list out, choose on the others, measure on it; the left-out lists counted
+together. Then each list's figures (in sample), and those of :data:`JUDGED` lists (written blind
+before the method was measured on them: ``HELD_OUT_8`` judges v8): a new list is one line in
+either dict. Each space gets rows measured in the same run: the library's method (v8: LERF
+negatives, six query categories, the head rule, captioned regions), v8's regions without the head
+rule and plain LERF on them calibrated by the same rule, and v7 and v3 as they were shipped (name
+regions, their thresholds). The calibrated margin of the library's method must equal the one
+stored in ``openfusion.mapping.relevancy.CALIBRATIONS``. A second table gives, per judged list,
+what no threshold can beat: the share of positives whose closest region is a right one, and the
+best recall at precision >= 0.95 over all thresholds. ``--alternatives`` prints the development
+figures (pooled and left out) of the grid v8 was chosen on (captions' weight x name cosine), then,
+on name regions, the head rule's variants and vocabulary contrasts of v5-v7 and the formulations
+measured while v3 was chosen (prompt templates, more categories, a genericness term, a per-map
+normalisation).
 
     HF_HUB_OFFLINE=1 .venv/bin/python bench/bench_relevancy.py
     HF_HUB_OFFLINE=1 .venv/bin/python bench/bench_relevancy.py --failures --alternatives
@@ -29,6 +34,7 @@ from dataclasses import replace
 import numpy as np
 
 from openfusion.encoders import make_text_encoder
+from openfusion.encoders.captions import region_text_embeddings
 from openfusion.eval.classes import NYU40_CLASSES
 from openfusion.mapping.query_head import query_head
 from openfusion.mapping.relevancy import (
@@ -41,16 +47,8 @@ from openfusion.mapping.relevancy import (
     text_margins,
 )
 from openfusion.sources.synthetic import CATEGORIES
-from openfusion.testing.word_lists import (
-    CALIBRATION,
-    HELD_OUT,
-    HELD_OUT_2,
-    HELD_OUT_3,
-    HELD_OUT_4,
-    HELD_OUT_5,
-    HELD_OUT_6,
-    HELD_OUT_7,
-)
+from openfusion.testing.word_lists import CALIBRATION, HELD_OUT, HELD_OUT_2, HELD_OUT_3, HELD_OUT_4
+from openfusion.testing.word_lists_blind import HELD_OUT_5, HELD_OUT_6, HELD_OUT_7, HELD_OUT_8
 
 #: The development lists (pooled, they choose; each is left out once in ``cv``), in the order of
 #: the table's columns. A new list is one more line here.
@@ -62,14 +60,17 @@ DEVELOPMENT: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {
     "HELD_OUT_4": HELD_OUT_4,
     "HELD_OUT_5": HELD_OUT_5,
     "HELD_OUT_6": HELD_OUT_6,
+    "HELD_OUT_7": HELD_OUT_7,
 }
 #: Judged lists (written blind before the method was measured on them, never chosen on).
-JUDGED: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {"HELD_OUT_7": HELD_OUT_7}
+JUDGED: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {"HELD_OUT_8": HELD_OUT_8}
 DEV_POOL = tuple(q for wl in DEVELOPMENT.values() for q in wl)
 MARGINS = np.round(np.arange(-0.3, 0.9, 0.0025), 4)
 CATS = list(CATEGORIES)
 #: v3 as it was shipped: chosen on the first three lists (margins per space).
 V3_SHIPPED_MARGIN = {"minilm-l6-v2": 0.04, "hash-trigram-256": 0.3275}
+#: v7 as it was shipped (name regions, head rule name cosine 0.8): margins per space.
+V7_SHIPPED_MARGIN = {"minilm-l6-v2": 0.0525, "hash-trigram-256": 0.1875}
 
 
 def _margin_to_threshold(margin: float, temperature: float) -> float:
@@ -82,11 +83,24 @@ def _unit(a: np.ndarray) -> np.ndarray:
 
 
 class Space:
-    """One encoder's embeddings of the scene, the lists and the phrases (each text once)."""
+    """One encoder's embeddings of the scene, the lists and the phrases (each text once); the
+    scene's regions embedded as the gt encoder does (``captioned``) or by name (v7 and before)."""
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, *, captioned: bool = True, weight: float | None = None) -> None:
         self.encoder = make_text_encoder(name, **({} if name == "hash" else {"device": "cpu"}))
         self._cache: dict[str, np.ndarray] = {}
+        self.captioned, self.weight = captioned, weight
+
+    def view(self, *, captioned: bool = True, weight: float | None = None) -> Space:
+        """The same encoder and cache, with other regions (name only, or another captions' weight)."""
+        other = object.__new__(Space)
+        other.encoder, other._cache, other.captioned, other.weight = self.encoder, self._cache, captioned, weight
+        return other
+
+    def regions(self) -> np.ndarray:
+        """(categories, d) region embeddings of the scene (:data:`CATS` order)."""
+        kw = {} if self.weight is None else {"name_weight": self.weight}
+        return region_text_embeddings(self.vectors, CATS, captions=None if self.captioned else {}, **kw)
 
     def vectors(self, texts: list[str]) -> np.ndarray:
         missing = [t for t in dict.fromkeys(texts) if t not in self._cache]
@@ -101,7 +115,7 @@ class Space:
 
     def figures(self, word_list, cal: SpaceCalibration, queries: np.ndarray | None = None):  # noqa: ANN001, ANN201
         q = self.vectors([t for t, _ in word_list]) if queries is None else queries
-        return evaluate_match(word_list, q, CATS, self.vectors(CATS), self.vectors(list(cal.negatives)),
+        return evaluate_match(word_list, q, CATS, self.regions(), self.vectors(list(cal.negatives)),
                               temperature=cal.temperature, threshold=cal.threshold,
                               query_category_vectors=self.vectors(list(cal.query_categories)),
                               head_name_cos=cal.head_name_cos, part_vectors=self.parts(word_list))
@@ -113,7 +127,7 @@ def margin_matrix(space: Space, cal: SpaceCalibration, word_list=DEV_POOL, queri
     ``queries`` (other vectors for the texts): no head rule."""
     texts = [t for t, _ in word_list]
     q = _unit(space.vectors(texts) if queries is None else queries)
-    r, n = space.vectors(CATS), space.vectors(list(cal.negatives))
+    r, n = space.regions(), space.vectors(list(cal.negatives))
     c = space.vectors(list(cal.query_categories)) if cal.query_categories else None
     m = margins(q, r, n, c)
     if cal.head_name_cos is not None and queries is None:
@@ -200,7 +214,7 @@ def variant_matrix(space: Space, cal: SpaceCalibration, word_list, *, name_cos: 
     except where cos(core, region) >= ``name_cos``; ``vocab`` (tau, qv): NYU40 class names as
     query-side contrasts where cos(name, region) < tau and cos(query, name) >= qv."""
     texts = [t for t, _ in word_list]
-    r, n = space.vectors(CATS), space.vectors(list(cal.negatives))
+    r, n = space.regions(), space.vectors(list(cal.negatives))
     c = space.vectors(list(cal.query_categories))
 
     def of(t: str) -> np.ndarray:
@@ -227,6 +241,32 @@ def variant_matrix(space: Space, cal: SpaceCalibration, word_list, *, name_cos: 
     return q @ _unit(r).T, m
 
 
+def ceiling(space: Space, cal: SpaceCalibration, word_list) -> tuple[float, float]:  # noqa: ANN001
+    """(share of positives whose closest region by cosine is one of theirs, best recall at
+    precision >= 0.95 over every margin of the grid) on ``word_list``."""
+    cosines, m = margin_matrix(space, cal, word_list)
+    wanted = [w for _, w in word_list]
+    pos = [i for i, w in enumerate(wanted) if w]
+    top1 = float(np.mean([CATS[int(np.argmax(cosines[i]))] in wanted[i] for i in pos]))
+    precision, recall = sweep(cosines, m, MARGINS, word_list)
+    ok = precision >= 0.95
+    return top1, float(recall[ok].max()) if ok.any() else 0.0
+
+
+def caption_alternatives(space: Space, stored: SpaceCalibration) -> None:
+    """The grid v8 was chosen on (the best leave-one-list-out F1): the captions' weight against
+    the name, and the head rule's name cosine (None: no head rule); regions by name last."""
+    print("  v8's grid (captions' weight x name cosine; the best cv F1 chose v8):")
+    for weight in (0.5, 0.7, 1.0, 1.5, None):
+        view = space.view(weight=weight) if weight is not None else space.view(captioned=False)
+        for name_cos in (0.6, 0.7, 0.8, None):
+            cal = replace(stored, head_name_cos=name_cos)
+            i, (p, r), (cp, cr), _ = _pooled_and_cv(lambda wl, v=view, c=cal: margin_matrix(v, c, wl))
+            label = f"name weight {weight}" if weight is not None else "name regions"
+            print(f"    {label + ', name cosine ' + str(name_cos):<58} margin {MARGINS[i]:+.4f}  dev P {p:.3f} "
+                  f"R {r:.3f}  cv P {cp:.3f} R {cr:.3f}  cv F1 {2 * cp * cr / max(cp + cr, 1e-12):.3f}")
+
+
 def alternatives(space: Space, stored: SpaceCalibration) -> None:
     """Development figures (pooled, and leave one list out; the threshold rule of the module
     docstring) of other formulations: the head rule's variants, then those measured for v3."""
@@ -235,8 +275,9 @@ def alternatives(space: Space, stored: SpaceCalibration) -> None:
         print(f"    {label:<58} margin {MARGINS[i]:+.4f}  dev P {p:.3f} R {r:.3f}  cv P {cp:.3f} R {cr:.3f}")
 
     v3 = replace(stored, head_name_cos=None)
+    print("  on name regions (v3-v7):")
     show_matrix("v3: no head rule", lambda wl: margin_matrix(space, v3, wl))
-    show_matrix(f"v7 (library): head rule, name cosine {stored.head_name_cos}", lambda wl: margin_matrix(space, stored, wl))
+    show_matrix(f"v7: head rule, name cosine {stored.head_name_cos}", lambda wl: margin_matrix(space, stored, wl))
     for label, kw in (("no name exception", {}), ("name cosine 0.6", {"name_cos": 0.6}),
                       ("name cosine 0.8", {"name_cos": 0.8}),
                       ("post-modified: min(text, core)", {"name_cos": 0.7, "cut": "min"}),
@@ -249,7 +290,7 @@ def alternatives(space: Space, stored: SpaceCalibration) -> None:
         show_matrix("v7 variant: " + label, lambda wl, kw=kw: variant_matrix(space, stored, wl, **kw))
     # a region's hubness (how close the household vocabulary sits to it: the mean cosine of its 10
     # nearest NYU40 names after the nearest, often its own) taken off its margins, centred
-    r, n, c = space.vectors(CATS), space.vectors(list(stored.negatives)), space.vectors(list(stored.query_categories))
+    r, n, c = space.regions(), space.vectors(list(stored.negatives)), space.vectors(list(stored.query_categories))
     v = _unit(space.vectors([w for w in NYU40_CLASSES if not w.startswith("other")]))
     hub = np.sort(v @ _unit(r).T, axis=0)[-11:-1].mean(0)
     for lam in (0.25, 1.0):
@@ -308,7 +349,7 @@ def v3_alternatives(space: Space, stored: SpaceCalibration) -> None:
         show(f"chosen + 0.15 * q.'{word}'", *sweep(cosines, margins + 0.15 * (q @ _unit(space.vectors([word])).T),
                                                     MARGINS))
     # the two sides weighted apart: max(a * max_i n_i.r, max_j q.c_j + d)
-    r = _unit(space.vectors(CATS))
+    r = _unit(space.regions())
     region_bar = (n @ r.T).max(0)[None, :]
     query_bar = (q @ _unit(space.vectors(list(stored.query_categories))).T).max(1)[:, None]
     for a, d in ((0.9, 0.0), (1.1, 0.05), (1.0, 0.025), (1.0, -0.025)):
@@ -338,16 +379,21 @@ def main() -> None:
           f"; {len(CATEGORIES)} categories; threshold: the best F1 on the development lists pooled")
     print(f"{'space':<18} {'method':<22} {'T':>5} {'margin':>7} {'stored':>7}  {'cv P':>6} {'cv R':>6}  "
           f"{'dev P':>6} {'dev R':>6}  " + "  ".join(f"{_short(n) + ' P':>6} {_short(n) + ' R':>6}" for n in columns))
+    ceilings: list[str] = []
     for name in args.encoders.split(","):
         space = Space(name)
+        named = space.view(captioned=False)
         stored = calibration_for(space.encoder.embedding_space)
         v3 = replace(stored, head_name_cos=None)
-        shipped = V3_SHIPPED_MARGIN.get(space.encoder.embedding_space)
-        rows: list[tuple[str, SpaceCalibration, bool]] = [
-            ("v7 (library)", stored, True), ("v3, re-chosen", v3, True), ("plain LERF", replace(v3, query_categories=()), True)]
-        if shipped is not None:
-            rows.append(("v3 as shipped", replace(v3, threshold=_margin_to_threshold(shipped, v3.temperature)), False))
-        for method, cal, choose in rows:
+        rows: list[tuple[str, SpaceCalibration, bool, Space]] = [
+            ("v8 (library)", stored, True, space), ("v8 regions, no head", v3, True, space),
+            ("plain LERF, v8 regions", replace(v3, query_categories=()), True, space)]
+        for label, table, head in (("v7 as shipped", V7_SHIPPED_MARGIN, 0.8), ("v3 as shipped", V3_SHIPPED_MARGIN, None)):
+            if space.encoder.embedding_space in table:
+                m = table[space.encoder.embedding_space]
+                rows.append((label, replace(stored, head_name_cos=head,
+                                            threshold=_margin_to_threshold(m, stored.temperature)), False, named))
+        for method, cal, choose, space in rows:
             if choose:
                 margin = calibrate(space, cal)
                 if cal is not stored:
@@ -365,8 +411,16 @@ def main() -> None:
                 for list_name, f in figures.items():
                     for text, first in f.failures:
                         print(f"    {list_name} wrong: {text!r} -> {first or 'no match'}")
+            for list_name, wl in JUDGED.items():
+                top1, best = ceiling(space, cal, wl)
+                ceilings.append(f"| {space.encoder.embedding_space} | {method} | {list_name} | {top1:.3f} | {best:.3f} |")
         if args.alternatives:
-            alternatives(space, stored)
+            caption_alternatives(space, stored)
+            alternatives(named, replace(stored, head_name_cos=0.8))
+    print("\nwhat no threshold can beat on the judged lists: positives whose closest region is right (recall's "
+          "bound), best recall at precision >= 0.95 over all thresholds")
+    print("| space | method | list | closest region right | best recall at P >= 0.95 |\n|---|---|---|---|---|")
+    print("\n".join(ceilings))
 
 
 if __name__ == "__main__":

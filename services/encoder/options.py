@@ -10,9 +10,10 @@ from typing import Any
 
 from pydantic import Field, ValidationInfo, field_validator
 
-from openfusion.config import ConfigSection
+from openfusion.config import ConfigSection, one_of
 from openfusion.encoders import NOISE_PROFILES, REGION_ENCODER_NAMES, make_region_encoder
 from openfusion.encoders.base import CLIP_DENSE_BACKENDS, DEFAULT_DENSE_INPUT_LONG_SIDE_PX
+from openfusion.encoders.gt import REGION_TEXTS
 from openfusion.encoders.identity import EncoderIdentity, region_encoder_identity
 from openfusion.sources.synthetic_categories import CATEGORIES
 
@@ -31,6 +32,11 @@ class EncoderOptions(ConfigSection):
     )
     noise: str = Field("off", description=f"gt encoder noise profile: {', '.join(NOISE_PROFILES)}")
     seed: int = Field(0, description="seed of the gt encoder's noise")
+    region_text: str = Field(
+        "caption",
+        description="what the gt encoder embeds for a region: caption (its name and six captions where "
+        "openfusion.encoders.captions knows the category, else the name) or name",
+    )
     encoder_delay_ms: float = Field(
         0.0,
         ge=0,
@@ -55,22 +61,22 @@ class EncoderOptions(ConfigSection):
     @field_validator("encoder")
     @classmethod
     def _encoder(cls, value: str) -> str:
-        if value not in REGION_ENCODER_NAMES:
-            raise ValueError(f"unknown region encoder {value!r}; known: {', '.join(REGION_ENCODER_NAMES)}")
-        return value
+        return one_of(value, REGION_ENCODER_NAMES, "region encoder")
 
     @field_validator("encoder_backend")
     @classmethod
     def _encoder_backend(cls, value: str) -> str:
-        if value not in CLIP_DENSE_BACKENDS:
-            raise ValueError(f"unknown clip-dense backend {value!r}; known: {', '.join(CLIP_DENSE_BACKENDS)}")
-        return value
+        return one_of(value, CLIP_DENSE_BACKENDS, "clip-dense backend")
+
+    @field_validator("region_text")
+    @classmethod
+    def _region_text(cls, value: str) -> str:
+        return one_of(value, REGION_TEXTS, "region_text")
 
     @field_validator("noise")
     @classmethod
     def _noise(cls, value: str, info: ValidationInfo) -> str:
-        if value not in NOISE_PROFILES:
-            raise ValueError(f"unknown noise profile {value!r}; known: {', '.join(NOISE_PROFILES)}")
+        one_of(value, NOISE_PROFILES, "noise profile")
         encoder = info.data.get("encoder", "gt")
         if value != "off" and encoder != "gt":
             raise ValueError(f"noise applies to the gt encoder only, not to {encoder!r} (leave it off)")
@@ -80,7 +86,7 @@ class EncoderOptions(ConfigSection):
 def _encoder_options(section: EncoderOptions) -> dict[str, Any]:
     """The keyword options of ``make_region_encoder(section.encoder, ...)`` a section describes."""
     if section.encoder == "gt":
-        return {"noise": section.noise, "seed": section.seed}
+        return {"noise": section.noise, "seed": section.seed, "region_text": section.region_text}
     opts: dict[str, Any] = {"device": section.device}
     if section.model_path:
         opts["model_path" if section.encoder == "onnx" else "model"] = section.model_path

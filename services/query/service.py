@@ -57,7 +57,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from openfusion.bus import QueryError, RequestError, ServiceRunner
-from openfusion.config import ServiceConfig
+from openfusion.config import ServiceConfig, one_of
 from openfusion.encoders import TEXT_ENCODER_NAMES, make_text_encoder
 from openfusion.mapping.answers import (
     MAX_ANCHORS,
@@ -129,9 +129,7 @@ class QuerySection(QueryParams):
     @field_validator("text_encoder")
     @classmethod
     def _text_encoder(cls, value: str) -> str:
-        if value not in TEXT_ENCODER_NAMES:
-            raise ValueError(f"unknown text encoder {value!r}; known: {', '.join(TEXT_ENCODER_NAMES)}")
-        return value
+        return one_of(value, TEXT_ENCODER_NAMES, "text encoder")
 
 
 class QueryConfig(ServiceConfig):

@@ -143,6 +143,14 @@ class ServiceConfig(ConfigSection):
 Path_ = tuple[str, ...]
 
 
+def one_of(value: str, known: Sequence[str], what: str) -> str:
+    """``value`` when it is one of ``known``; else a ValueError naming ``what`` and the known values
+    (a field validator's body: pydantic reports it with the field's path)."""
+    if value not in known:
+        raise ValueError(f"unknown {what} {value!r}; known: {', '.join(known)}")
+    return value
+
+
 def _unwrap_optional(annotation: Any) -> Any:
     origin = typing.get_origin(annotation)
     if origin in (typing.Union, types.UnionType):

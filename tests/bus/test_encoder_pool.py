@@ -218,9 +218,10 @@ def test_a_result_waits_for_an_older_frame_in_flight_instead_of_dropping_it() ->
 
 
 def test_a_worker_embeds_the_scene_categories_before_it_takes_frames() -> None:
-    """A gt worker embeds the built-in scene's category names while it sets up (before its
-    liveliness token), not inside its first frames: without it each worker of a four-worker
-    pool lost 1 to 3 s of a 12 s run (bench/bench_pool.py 0.78 -> 1.0 of 4 x one worker)."""
+    """A gt worker embeds the built-in scene's categories (names and captions, in one call) while
+    it sets up (before its liveliness token), not inside its first frames: without it each worker
+    of a four-worker pool lost 1 to 3 s of a 12 s run (bench/bench_pool.py 0.78 -> 1.0 of 4 x one
+    worker)."""
     from openfusion.encoders.gt import GroundTruthRegionEncoder
     from openfusion.encoders.text_hash import HashTextEncoder
     from openfusion.sources.synthetic_categories import CATEGORIES
@@ -235,5 +236,5 @@ def test_a_worker_embeds_the_scene_categories_before_it_takes_frames() -> None:
     cfg = _config(EncoderConfig, unique_map_id("workers"), "encoder", {"worker_id": "warm"}, listen=[free_port()])
     encoder = GroundTruthRegionEncoder(Counting(dim=32))
     with ServiceThread(EncoderWorker(cfg, encoder=encoder), cfg, "encoder-warm") as worker:
-        assert calls == [sorted(CATEGORIES)]
+        assert len(calls) == 1 and calls[0][: len(CATEGORIES)] == sorted(CATEGORIES)  # names, then captions
         assert worker.counter(EncoderCounter.FRAMES_ENCODED) == 0

@@ -15,6 +15,7 @@ from openfusion.encoders import (
     onnx_providers,
     select_device,
 )
+from openfusion.encoders.captions import CAPTIONS, region_text_embeddings
 from openfusion.encoders.gt import GroundTruthRegionEncoder
 from openfusion.encoders.masks import area_downsample_labels, label_ids
 from openfusion.encoders.noise import apply_region_noise, perturb_embeddings
@@ -55,7 +56,9 @@ def test_noise_off_regions_equal_ground_truth(text):
     assert obs.conf_maps.shape == (3, 120, 160)
     assert obs.labels == ["office chair", "table", "lamp"]
     assert obs.embedding_space == text.embedding_space
-    np.testing.assert_allclose(obs.embeddings, text.encode(["office chair", "table", "lamp"]), atol=1e-6)
+    # each region embeds its name and captions (openfusion.encoders.captions)
+    np.testing.assert_allclose(obs.embeddings, region_text_embeddings(text.encode, ["office chair", "table", "lamp"]),
+                               atol=1e-6)
 
     expected_chair = np.zeros((120, 160), np.float32)
     expected_chair[10:50, 20:60] = 1.0
@@ -316,7 +319,9 @@ def test_warm_up_embeds_the_vocabulary_so_the_first_frames_cost_no_text_encoding
     text = _CountingHash()
     encoder = DelayedRegionEncoder(GroundTruthRegionEncoder(text), delay_ms=0)
     encoder.warm_up(CATEGORIES + ["table"])
-    assert text.calls == [sorted(set(CATEGORIES))]  # one call, each name once
+    names = sorted(set(CATEGORIES))  # one call, each name once, then the captions of those that have them
+    assert len(text.calls) == 1 and text.calls[0][: len(names)] == names
+    assert len(text.calls[0]) == len(set(text.calls[0])) == len(names) + sum(len(CAPTIONS.get(c, ())) for c in names)
     obs = encoder.encode(_grid_frame())
     assert len(obs.labels) == 12 and set(obs.labels) <= set(CATEGORIES)
     assert len(text.calls) == 1  # nothing left to embed

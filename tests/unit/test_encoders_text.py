@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from openfusion.encoders import EncoderError, make_region_encoder, make_text_encoder
+from openfusion.encoders.captions import region_text_embeddings
 from openfusion.testing.images import PixelRect, make_box_frame
 
 CATALOGUE = [
@@ -52,14 +53,18 @@ def test_text_encoders_reject_bad_input(minilm):
 
 
 def test_gt_embeddings_are_minilm_of_raw_category(minilm):
-    """The gt encoder embeds the RAW category ("office chair"), cached per category, in MiniLM space."""
+    """The gt encoder embeds the RAW category ("office chair": its name and captions), cached per
+    category, in MiniLM space; ``region_text="name"``: the name alone."""
     frame = make_box_frame([PixelRect(1, "office chair", 0, 0, 32, 32), PixelRect(2, "office chair", 32, 32, 64, 64)],
                            height_px=64, width_px=64)
     enc = make_region_encoder("gt", text_encoder=minilm)
     obs = enc.encode(frame)
     assert obs.embedding_space == "minilm-l6-v2"
-    np.testing.assert_allclose(obs.embeddings, np.repeat(minilm.encode(["office chair"]), 2, axis=0), atol=1e-5)
+    np.testing.assert_allclose(obs.embeddings, np.repeat(region_text_embeddings(minilm.encode, ["office chair"]), 2,
+                                                         axis=0), atol=1e-5)
     assert list(enc._embedding_cache) == ["office chair"]
+    named = make_region_encoder("gt", text_encoder=minilm, region_text="name").encode(frame)
+    np.testing.assert_allclose(named.embeddings, np.repeat(minilm.encode(["office chair"]), 2, axis=0), atol=1e-5)
 
 
 def test_hash_encoder_is_lexical_and_deterministic():

@@ -1,5 +1,6 @@
 """The head of a query text (openfusion.mapping.query_head): the hand-written noun-phrase
-patterns relevancy's head rule uses (determiners, generic openings, post-modifiers, compounds)."""
+patterns relevancy's head rule uses (determiners, generic openings, post-modifiers, compounds,
+requests and commands)."""
 
 from __future__ import annotations
 
@@ -38,6 +39,17 @@ from openfusion.mapping.query_head import QueryHead, query_head
         ("the thing above my head", None),
         ("a soft thing on the bed", None),
         ("the furniture where I keep dishes", None),
+        # requests and commands around the thing (a robot operator's "go to the door") and fillers
+        ("go to the door", QueryHead("door", "door", True)),
+        ("turn on the lamp", QueryHead("lamp", "lamp", True)),
+        ("please navigate to the office chair", QueryHead("office chair", "chair", True)),
+        ("where is the lamp", QueryHead("lamp", "lamp", True)),
+        ("show me something to sit on", QueryHead("something to sit on", "something to sit on", True)),
+        ("I need to sit down", QueryHead("to sit down", "to sit down", True)),
+        ("bed pls", QueryHead("bed", "bed", True)),
+        ("the wall clock please", QueryHead("wall clock", "clock", True)),
+        ("how do I get out of here", None),  # "here" is no filler after a generic opening
+        ("find", None),
         # one word: the text is its own head
         ("chair", None),
         ("the couch", None),

@@ -2,8 +2,9 @@
 the contrast categories, query side; v5: the query's head word must describe the region too) and
 ``match`` (openfusion.mapping.relevancy): the math, the head rule, the calibration table and its
 record in map files, and precision/recall of ``match`` on the word lists
-(openfusion.testing.word_lists: all five are development lists, pooled they chose the
-thresholds) in the MiniLM and hash spaces. The figures asserted are those docs/CLI.md reports
+(openfusion.testing.word_lists: eight development lists, pooled they chose the thresholds, and
+HELD_OUT_8, written blind, which judges v8) in the MiniLM and hash spaces, the scene's regions
+embedded as the gt encoder embeds them (name and captions, openfusion.encoders.captions). The figures asserted are those docs/CLI.md reports
 (``bench/bench_relevancy.py``).
 
 Bad input tried: a non-positive temperature, no negatives, a saved calibration for another space,
@@ -19,6 +20,7 @@ import numpy as np
 import pytest
 
 from openfusion.encoders import make_text_encoder
+from openfusion.encoders.captions import region_text_embeddings
 from openfusion.mapping.relevancy import (
     CALIBRATIONS,
     DEFAULT_NEGATIVES,
@@ -35,16 +37,8 @@ from openfusion.mapping.relevancy import (
     text_margins,
 )
 from openfusion.sources.synthetic import CATEGORIES
-from openfusion.testing.word_lists import (
-    CALIBRATION,
-    HELD_OUT,
-    HELD_OUT_2,
-    HELD_OUT_3,
-    HELD_OUT_4,
-    HELD_OUT_5,
-    HELD_OUT_6,
-    HELD_OUT_7,
-)
+from openfusion.testing.word_lists import CALIBRATION, HELD_OUT, HELD_OUT_2, HELD_OUT_3, HELD_OUT_4
+from openfusion.testing.word_lists_blind import HELD_OUT_5, HELD_OUT_6, HELD_OUT_7, HELD_OUT_8
 
 
 def test_relevancy_is_the_minimum_over_negatives_of_the_pairwise_softmax() -> None:
@@ -90,7 +84,7 @@ def test_calibrations_are_per_space_and_a_saved_one_wins_only_for_its_space_and_
     assert minilm is CALIBRATIONS["minilm-l6-v2"] and minilm.calibrated and minilm.negatives == DEFAULT_NEGATIVES
     assert minilm.query_categories == DEFAULT_QUERY_CATEGORIES and minilm.method == METHOD
     assert minilm.phrases == [*DEFAULT_NEGATIVES, *DEFAULT_QUERY_CATEGORIES]
-    assert 0.5 < minilm.threshold < 1 and minilm.margin == pytest.approx(0.0525, abs=1e-3)
+    assert 0.5 < minilm.threshold < 1 and minilm.margin == pytest.approx(0.085, abs=1e-3)
     assert minilm.head_name_cos == HEAD_NAME_COS and CALIBRATIONS["hash-trigram-256"].head_name_cos == HEAD_NAME_COS
     assert SpaceCalibration.from_dict(minilm.to_dict()) == replace(minilm, note="")  # a map file keeps all but the note
     other = calibration_for("clip-vit-b-32")  # uncalibrated: plain LERF at 0.5, no text-to-text categories
@@ -123,12 +117,13 @@ def test_calibrations_are_per_space_and_a_saved_one_wins_only_for_its_space_and_
           "query_categories": list(DEFAULT_QUERY_CATEGORIES)}
     assert calibration_for("minilm-l6-v2", v3) is minilm and minilm.head_name_cos is not None
     assert "made for method 'lerf+query-categories-v3'" in caplog.text
-    # maps saved under v5 (name cosine 0.7) or v6 (threshold at precision >= 0.96): ignored the same way
-    for old, name_cos, threshold in (("v5", 0.7, 0.928), ("v6", 0.8, 0.928)):
+    # maps saved under v5 (name cosine 0.7), v6 (threshold at precision >= 0.96) or v7 (name
+    # regions, margin 0.0525): ignored the same way
+    for old, name_cos, threshold in (("v5", 0.7, 0.928), ("v6", 0.8, 0.928), ("v7", 0.8, 0.741)):
         caplog.clear()
         record = {**minilm.to_dict(), "method": f"lerf+query-categories+head-{old}", "head_name_cos": name_cos,
                   "threshold": threshold}
-        assert calibration_for("minilm-l6-v2", record) is minilm and minilm.head_name_cos == 0.8
+        assert calibration_for("minilm-l6-v2", record) is minilm and minilm.head_name_cos == HEAD_NAME_COS
         assert f"made for method 'lerf+query-categories+head-{old}'" in caplog.text
 
 
@@ -136,7 +131,7 @@ def _scene(encoder_name: str, texts: list[str]):  # noqa: ANN202
     """The synthetic room's categories as regions, ``texts`` and their head-rule parts embedded."""
     encoder = make_text_encoder(encoder_name, **({} if encoder_name == "hash" else {"device": "cpu"}))
     wanted = list(dict.fromkeys(t for text in texts for t in [text, *relevancy_texts(text)]))
-    return RelevancyScorer(encoder), list(CATEGORIES), encoder.encode(list(CATEGORIES)), dict(
+    return RelevancyScorer(encoder), list(CATEGORIES), region_text_embeddings(encoder.encode, CATEGORIES), dict(
         zip(wanted, encoder.encode(wanted), strict=True))
 
 
@@ -148,12 +143,14 @@ def _first_match(scorer: RelevancyScorer, cats: list[str], regions: np.ndarray, 
 
 
 def test_the_head_rule_asks_the_head_word_to_describe_the_region() -> None:
-    """MiniLM embeds "wall clock" next to the wall and "a seat at the desk" next to the desk; with
-    the head rule the clock matches nothing and the seat is a chair; a core that is nearly a
-    region's own name keeps it ("trash can", whose head "can" alone is no bin; cosine 0.8);
-    "a couple of" is dropped like a determiner; texts with no noun head are scored whole."""
-    cases = {"a ceiling fan": None, "a desk fan": None, "window blinds": None, "pillow fight": None,
-             "monitor lizard": None, "a seat at the desk": "office chair", "a light for the desk": "lamp",
+    """MiniLM embeds "wall clock" next to the wall and "a ceiling fan" next to the ceiling, close
+    enough to match them; with the head rule they match nothing and "a seat at the desk" is a chair; a core that is nearly a
+    region's own name keeps it ("trash can", whose head "can" alone is no bin; cosine 0.7);
+    "a couple of" is dropped like a determiner; texts with no noun head are scored whole. (At
+    v8's name cosine "window blinds" and "pillow fight" keep the window and the pillow:
+    test_match_on_the_minilm_word_lists.)"""
+    cases = {"a ceiling fan": None, "a desk fan": None, "wall clock": None,
+             "monitor lizard": None, "a seat at the desk": "chair", "a light for the desk": "lamp",
              "trash can": "trash can", "office chair": "office chair", "the trash cans": "trash can",
              "something to sit on": "chair", "a place to sleep": "bed", "couch": "sofa", "zebra": None,
              "a couple of pillows": "pillow"}
@@ -161,8 +158,10 @@ def test_the_head_rule_asks_the_head_word_to_describe_the_region() -> None:
     got = {text: _first_match(scorer, cats, regions, vectors, text) for text in cases}
     assert got == cases
     # v3's scoring (the whole text only) answered the modifier's region
-    whole = {t: cats[int(np.argmax(scorer.relevancy(vectors[t], regions)[0]))] for t in ("a ceiling fan", "a seat at the desk")}
-    assert whole == {"a ceiling fan": "ceiling", "a seat at the desk": "desk"}
+    compounds = ("a ceiling fan", "wall clock", "a desk fan", "monitor lizard")
+    whole = {t: cats[int(np.argmax(scorer.relevancy(vectors[t], regions)[0]))] for t in compounds}
+    assert whole == {"a ceiling fan": "ceiling", "wall clock": "wall", "a desk fan": "desk", "monitor lizard": "monitor"}
+    assert all(scorer.is_match(scorer.relevancy(vectors[t], regions)).any() for t in compounds)
 
 
 def test_text_margins_are_the_texts_without_a_head_rule_and_capped_by_the_head_with_it() -> None:
@@ -187,7 +186,7 @@ def test_the_word_lists_are_disjoint_and_name_only_scene_categories() -> None:
     lists = {"CALIBRATION": CALIBRATION, "HELD_OUT": HELD_OUT, "HELD_OUT_2": HELD_OUT_2, "HELD_OUT_3": HELD_OUT_3,
              "HELD_OUT_4": HELD_OUT_4, "HELD_OUT_5": HELD_OUT_5,
              "HELD_OUT_6": HELD_OUT_6,
-             "HELD_OUT_7": HELD_OUT_7}
+             "HELD_OUT_7": HELD_OUT_7, "HELD_OUT_8": HELD_OUT_8}
     seen: dict[str, str] = {}
     for name, word_list in lists.items():
         for text, wanted in word_list:
@@ -209,7 +208,8 @@ def _figures(encoder_name: str, word_list):  # noqa: ANN001, ANN202
     cal = calibration_for(encoder.embedding_space)
     cats = list(CATEGORIES)
     parts = list(dict.fromkeys(p for q, _ in word_list for p in relevancy_texts(q)))
-    return evaluate_match(word_list, encoder.encode([q for q, _ in word_list]), cats, encoder.encode(cats),
+    return evaluate_match(word_list, encoder.encode([q for q, _ in word_list]), cats,
+                          region_text_embeddings(encoder.encode, cats),
                           encoder.encode(list(cal.negatives)), temperature=cal.temperature, threshold=cal.threshold,
                           query_category_vectors=encoder.encode(list(cal.query_categories)),
                           head_name_cos=cal.head_name_cos, part_vectors=dict(zip(parts, encoder.encode(parts),
@@ -224,43 +224,47 @@ def _figures_at(encoder_name: str, word_list, precision: float, recall: float): 
     return figures
 
 
-DEV_POOL = CALIBRATION + HELD_OUT + HELD_OUT_2 + HELD_OUT_3 + HELD_OUT_4 + HELD_OUT_5 + HELD_OUT_6
+DEV_POOL = CALIBRATION + HELD_OUT + HELD_OUT_2 + HELD_OUT_3 + HELD_OUT_4 + HELD_OUT_5 + HELD_OUT_6 + HELD_OUT_7
 
 
 def test_match_on_the_minilm_word_lists() -> None:
-    """v7 on the seven development lists, which chose its threshold (the best F1 pooled): pooled
-    0.895 / 0.767, each list in sample as below (docs/CLI.md; v3, its threshold chosen by the same
-    rule: 0.830 / 0.822; leaving one list out, the bench: v7 0.890 / 0.765, v3 0.828 / 0.815).
-    Judged on HELD_OUT_7, written blind and committed before v7 was measured on it: 0.868 / 0.617
-    (v3 as shipped before: 0.811 / 0.682). The issue's targets (0.95 / 0.90) are missed."""
-    dev = _figures_at("minilm", DEV_POOL, 0.895, 0.767)
-    for word_list, p, r in ((CALIBRATION, 0.967, 0.890), (HELD_OUT, 0.976, 0.851), (HELD_OUT_2, 0.981, 0.797),
-                            (HELD_OUT_3, 0.840, 0.760), (HELD_OUT_4, 0.872, 0.758), (HELD_OUT_5, 0.860, 0.705),
-                            (HELD_OUT_6, 0.841, 0.670), (HELD_OUT_7, 0.868, 0.617)):
+    """v8 on the eight development lists, which chose its threshold (the best F1 pooled): pooled
+    0.902 / 0.809, each list in sample as below (docs/CLI.md; leaving one list out, the bench:
+    0.901 / 0.808; v7 as shipped, name regions: 0.892 / 0.745). Judged on HELD_OUT_8, written
+    blind and committed before anything was measured on it: 0.875 / 0.733 (v7 as shipped on the
+    same list: 0.880 / 0.629); with the head rule's commands dropped since (found on it, so in
+    sample now): 0.882 / 0.781. The issue's targets (0.95 / 0.90) are missed."""
+    dev = _figures_at("minilm", DEV_POOL, 0.902, 0.809)
+    for word_list, p, r in ((CALIBRATION, 0.980, 0.960), (HELD_OUT, 0.976, 0.851), (HELD_OUT_2, 0.983, 0.906),
+                            (HELD_OUT_3, 0.878, 0.827), (HELD_OUT_4, 0.880, 0.818), (HELD_OUT_5, 0.898, 0.752),
+                            (HELD_OUT_6, 0.846, 0.748), (HELD_OUT_7, 0.839, 0.682), (HELD_OUT_8, 0.882, 0.781)):
         _figures_at("minilm", word_list, p, r)
     failures = dict(dev.failures)
     # unrelated words: no match, also those the LERF negatives alone let through ("car" -> plant),
     # the one "appliance" took off ("refrigerator" -> cabinet) and compounds the head rule takes
     # off ("a ceiling fan" -> ceiling, "pillow fight" -> pillow, "monitor lizard" -> monitor)
     for text in ("zebra", "car", "kangaroo", "camel", "refrigerator", "owl", "democracy", "a ceiling fan",
-                 "a desk fan", "window blinds", "pillow fight", "monitor lizard"):
+                 "a desk fan", "castle", "monitor lizard"):
         assert text not in failures, (text, failures.get(text))
-    # paraphrases and synonyms find a region they name, the head rule's among them
+    # paraphrases and synonyms find a region they name, the head rule's among them, and the
+    # captions' (use and place: v7's name regions missed these)
     for text in ("something to sit on", "somewhere to sit", "couch", "a place to sleep", "houseplant",
-                 "a seat at the desk", "a light for the desk"):
+                 "a seat at the desk", "a light for the desk", "where grandma takes her afternoon nap"):
         assert text not in failures, (text, failures.get(text))
-    # what the balanced threshold lets through (docs/CLI.md): near-domain and a few far words
-    assert {failures.get(t) for t in ("curtains", "castle", "a television")} == {"window", "wall", "monitor"}
+    # what the balanced threshold lets through (docs/CLI.md): near-domain words and compounds
+    assert [failures.get(t) for t in ("curtains", "a television", "window blinds", "pillow fight")] == [
+        "window", "monitor", "window", "pillow"]
 
 
 def test_match_on_the_hash_word_lists() -> None:
-    """The lexical space matches near-exact words only: pooled 0.874 / 0.526 (v3 by the same rule
-    0.766 / 0.564), each list as below, HELD_OUT_7 judged (0.894 / 0.393; v3 as shipped 0.886 /
-    0.290); "chair" still matches a region named "wooden chair"."""
-    dev = _figures_at("hash", DEV_POOL, 0.874, 0.526)
-    for word_list, p, r in ((CALIBRATION, 0.923, 0.600), (HELD_OUT, 0.771, 0.574), (HELD_OUT_2, 0.818, 0.562),
-                            (HELD_OUT_3, 0.900, 0.519), (HELD_OUT_4, 0.848, 0.566), (HELD_OUT_5, 0.980, 0.476),
-                            (HELD_OUT_6, 0.830, 0.427), (HELD_OUT_7, 0.894, 0.393)):
+    """The lexical space matches near-exact words only: pooled 0.892 / 0.520, each list as below,
+    HELD_OUT_8 judged (0.778 / 0.400 before the head rule dropped commands, at margin 0.18; v7 as
+    shipped 0.822 / 0.352; now 0.800 / 0.457, in sample); "chair" still matches a region named
+    "wooden chair" (a category without captions: its name alone)."""
+    dev = _figures_at("hash", DEV_POOL, 0.892, 0.520)
+    for word_list, p, r in ((CALIBRATION, 0.970, 0.640), (HELD_OUT, 0.879, 0.617), (HELD_OUT_2, 0.900, 0.562),
+                            (HELD_OUT_3, 0.949, 0.538), (HELD_OUT_4, 0.853, 0.586), (HELD_OUT_5, 0.945, 0.495),
+                            (HELD_OUT_6, 0.796, 0.417), (HELD_OUT_7, 0.820, 0.383), (HELD_OUT_8, 0.800, 0.457)):
         _figures_at("hash", word_list, p, r)
     assert "something to rest on" in dict(dev.failures)  # no meaning in trigrams
     assert "zebra" not in dict(dev.failures)

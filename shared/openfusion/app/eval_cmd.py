@@ -48,6 +48,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--noise", default="off", choices=NOISE_CHOICES, help="with --encoder gt: its noise profile (default off)"
     )
+    parser.add_argument(
+        "--region-text", default=None, choices=("caption", "name"),
+        help="with --encoder gt: what a region's embedding holds: caption (default: its name and six captions "
+        "where openfusion.encoders.captions knows the category) or name",
+    )
     parser.add_argument("--frames", type=int, default=None, help="frames per scene (default 24, --full 150)")
     parser.add_argument("--width", type=int, default=None, help="synthetic image width (default 640)")
     parser.add_argument("--height", type=int, default=None, help="synthetic image height (default 480)")
@@ -91,8 +96,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def config_from_args(args: argparse.Namespace) -> EvalConfig:
     """The run's :class:`EvalConfig` from parsed options (ValueError on bad values)."""
     base = FULL if args.full else QUICK
-    if args.encoder != "gt" and (args.noise != "off" or args.text_encoder is not None):
-        given = [f for f, v in (("--noise", args.noise != "off"), ("--text-encoder", args.text_encoder)) if v]
+    region_text = getattr(args, "region_text", None)
+    if args.encoder != "gt" and (args.noise != "off" or args.text_encoder is not None or region_text is not None):
+        given = [f for f, v in (("--noise", args.noise != "off"), ("--text-encoder", args.text_encoder),
+                                ("--region-text", region_text)) if v]
         raise UsageError(f"{' and '.join(given)} {'apply' if len(given) > 1 else 'applies'} to --encoder gt only, "
                          f"not {args.encoder!r} (it brings its own text encoder)")
     if args.background_classes is not None and not args.exclude_background:
@@ -111,6 +118,8 @@ def config_from_args(args: argparse.Namespace) -> EvalConfig:
     }
     if args.text_encoder is not None:
         overrides["text_encoder"] = args.text_encoder
+    if region_text is not None:
+        overrides["region_text"] = region_text
     for opt, key in (
         ("frames", "frames"),
         ("width", "width_px"),

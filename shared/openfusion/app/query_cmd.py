@@ -11,7 +11,7 @@ own output, see :mod:`openfusion.app.quiet`): one block per text, in the order g
 text alone prints it::
 
     'chair' in minilm-l6-v2:
-      key      7  score 1.000  chair     831 points  bbox [2.68, 3.069, 0.041] .. [3.242, 3.56, 0.886]  relevancy 1.00 match
+      key      7  score 0.911  chair     856 points  bbox [2.68, 3.069, 0.01] .. [3.242, 3.56, 0.886]  relevancy 1.00 match
                   near: on floor (key 2), next to table (key 6, 0.04 m)
 
 ``score`` is the cosine, ``relevancy`` the LERF relevancy in [0, 1] (with query-side contrast
@@ -21,7 +21,7 @@ the second line names up to three nearby regions with the hit's relation to each
 ``under``, ``above``, ``next to``; :mod:`openfusion.mapping.relations`). A text none of whose
 regions is a match prints one line instead, and the command still exits 0::
 
-    no match for "zebra" (closest: plant, relevancy 0.09)
+    no match for "zebra" (closest: plant, relevancy 0.01)
 
 A text of the form "X on/under/above/next to Y" ("the chair next to the table", "cup on the
 desk") ranks the X regions that stand in the relation to the best Y matches first; the header says
@@ -260,9 +260,9 @@ output (stdout, nothing else; a successful query writes nothing to stderr but th
 one line naming the PLY of --out; --verbose adds log lines and the libraries' output):
   one block per TEXT, in order, each as a query of that text alone prints it:
     'chair' in minilm-l6-v2:
-      key      7  score 1.000  chair       831 points  bbox [..] .. [..]  relevancy 1.00 match
+      key      7  score 0.911  chair       856 points  bbox [..] .. [..]  relevancy 1.00 match
                   near: on floor (key 2), next to table (key 6, 0.04 m)
-    no match for "zebra" (closest: plant, relevancy 0.09)
+    no match for "zebra" (closest: plant, relevancy 0.01)
   score: cosine; relevancy: [0, 1] against the phrases "object", "things", "stuff",
   "texture" and, query side, the categories "animal", "vehicle", "food", "building",
   "landscape", "appliance"; match: relevancy reaches the embedding space's calibrated threshold. A TEXT

@@ -2,8 +2,10 @@
 
 This measures **fusion**, not vision. The regions are the dataset's instance masks (area-averaged
 to the output grid, so boundary cells get soft confidences) and each embedding is the text
-encoder's embedding of the region's raw category name (e.g. "office chair", not the benchmark
-class it is later scored against). Optional noise (see :mod:`openfusion.encoders.noise`) stresses
+encoder's embedding of the region's raw category (e.g. "office chair", not the benchmark class it
+is later scored against): its name and, for a category :mod:`openfusion.encoders.captions` knows
+(the built-in room's), six captions of what it is, is for and looks like, as a captioning region
+encoder would give (``region_text="caption"``, the default; ``"name"``: the name alone). Optional noise (see :mod:`openfusion.encoders.noise`) stresses
 the matcher and the update rule with the errors a real encoder makes.
 """
 
@@ -22,11 +24,15 @@ from openfusion.encoders.base import (
     RegionObservation,
     TextEncoder,
 )
+from openfusion.encoders.captions import region_text_embeddings
 from openfusion.encoders.masks import area_downsample_labels, label_ids
 from openfusion.encoders.noise import NoiseProfile, NoiseReport, apply_region_noise, get_noise_profile
 from openfusion.frame import Frame
 
 logger = logging.getLogger(__name__)
+
+#: What a region's embedding is made of (:class:`GroundTruthRegionEncoder` ``region_text``).
+REGION_TEXTS = ("caption", "name")
 
 
 class GroundTruthRegionEncoder(RegionEncoder):
@@ -34,7 +40,8 @@ class GroundTruthRegionEncoder(RegionEncoder):
 
     Options: ``noise`` (profile name or :class:`NoiseProfile`), ``seed`` (noise is a function of
     seed and frame id only), ``output_scale`` (default 1/4), ``min_area_px`` (regions with less
-    confidence mass on the output grid are skipped; default 1 output pixel).
+    confidence mass on the output grid are skipped; default 1 output pixel), ``region_text``
+    ("caption": name and captions where known; "name": the name alone).
     """
 
     name = "gt"
@@ -48,12 +55,16 @@ class GroundTruthRegionEncoder(RegionEncoder):
         seed: int = 0,
         output_scale: float = DEFAULT_OUTPUT_SCALE,
         min_area_px: float = 1.0,
+        region_text: str = "caption",
     ) -> None:
         super().__init__(output_scale=output_scale)
         if not isinstance(text_encoder, TextEncoder):
             raise TypeError(f"text_encoder must be a TextEncoder, got {type(text_encoder).__name__}")
         if min_area_px < 0:
             raise ValueError(f"min_area_px must be >= 0, got {min_area_px}")
+        if region_text not in REGION_TEXTS:
+            raise ValueError(f"region_text must be one of {REGION_TEXTS}, got {region_text!r}")
+        self.region_text = region_text
         self.text_encoder = text_encoder
         self.embedding_space = text_encoder.embedding_space
         self.dim = text_encoder.dim
@@ -66,11 +77,13 @@ class GroundTruthRegionEncoder(RegionEncoder):
         self._lock = threading.Lock()
 
     def category_embeddings(self, categories: list[str]) -> np.ndarray:
-        """(k, d) embeddings of raw category names, computed once per distinct name."""
+        """(k, d) embeddings of raw categories (name, and captions with ``region_text="caption"``),
+        computed once per distinct name."""
         with self._lock:
             missing = sorted({c for c in categories if c not in self._embedding_cache})
             if missing:
-                emb = self.text_encoder.encode(missing)
+                emb = region_text_embeddings(self.text_encoder.encode, missing,
+                                             captions=None if self.region_text == "caption" else {})
                 for c, e in zip(missing, emb, strict=True):
                     self._embedding_cache[c] = e
             if not categories:

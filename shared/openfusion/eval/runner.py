@@ -70,6 +70,7 @@ class EvalConfig:
     encoder: str = "gt"
     noise: str = "off"
     text_encoder: str = "minilm"
+    region_text: str = "caption"  # the gt encoder's region embeddings: "caption" or "name"
     frames: int = 24
     width_px: int = 640
     height_px: int = 480
@@ -433,7 +434,8 @@ def make_encoders(config: EvalConfig) -> tuple[object, object]:
 
     if config.encoder == "gt":
         text = make_text_encoder(config.text_encoder)
-        region = make_region_encoder("gt", text_encoder=text, noise=config.noise, seed=config.encoder_seed)
+        region = make_region_encoder("gt", text_encoder=text, noise=config.noise, seed=config.encoder_seed,
+                                     region_text=config.region_text)
         return region, text
     if config.noise != "off":
         raise ValueError(f"--noise applies to the gt encoder only, not {config.encoder!r}")

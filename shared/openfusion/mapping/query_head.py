@@ -7,8 +7,11 @@ deterministic patterns: no parser with an English model can be installed offline
 NLTK's models download from GitHub), and English noun phrases in object queries are regular
 enough for these rules:
 
-1. lower-case, drop a trailing ``.?!`` and leading determiners ("the", "a", "my", "this", ...)
-   and quantities with their "of" ("a couple of", "a pair of", "a stack of");
+1. lower-case, drop a trailing ``.?!``; drop a leading request or command ("go to", "take me
+   to", "turn on", "show me", "find", "where is", "please": what a robot operator types around
+   the thing, "go to the door") and trailing fillers ("please", "pls", "here", "now"); drop
+   leading determiners ("the", "a", "my", "this", ...) and quantities with their "of" ("a couple
+   of", "a pair of", "a stack of");
 2. a text that starts with a generic or question word ("something to sit on", "a place to
    sleep", "where I put my books", "the thing above my head") has no noun head: None;
 3. cut a post-modifier: from the first preposition, relative pronoun or subject pronoun after
@@ -22,7 +25,8 @@ enough for these rules:
 
 :func:`query_head` returns (core, head, whether a post-modifier was cut), or None when there is
 nothing to check: a generic text, a vague head, or a core of one word with nothing cut (the head
-is the text itself). The rules are English-only and approximate ("chest of drawers" -> "chest");
+is the text itself). After a dropped command, a generic or vague rest is returned whole as the
+core ("show me | something to sit on"), so the command's words do not count. The rules are English-only and approximate ("chest of drawers" -> "chest");
 ``tests/unit/test_query_head.py`` lists what they do.
 """
 
@@ -46,6 +50,18 @@ _POST = frozenset(
 #: Nouns of quantity or arrangement that take the thing after "of" ("a couple of pillows", "a pair
 #: of chairs", "a stack of books"): they are dropped with their "of", as determiners are.
 _QUANTITIES = frozenset("couple pair set bunch stack pile row group few lot lots number handful".split())
+#: Leading requests and commands (word sequences), dropped before the noun phrase: "go to the
+#: door" asks for the door. Longest first, so "go over to" wins over "go".
+_COMMANDS: tuple[tuple[str, ...], ...] = tuple(sorted((tuple(c.split()) for c in (
+    "please", "pls", "hey", "ok", "okay", "robot", "now", "can you", "could you", "would you",
+    "go to", "go over to", "go back to", "take me to", "bring me to", "lead me to", "guide me to", "navigate to",
+    "drive to", "move to", "head to", "walk to", "get to", "approach", "stop at", "face", "turn to",
+    "find", "find me", "locate", "show me", "show", "point to", "point at", "look at", "look for", "search for",
+    "highlight", "i need", "i want", "i'm looking for", "i am looking for", "looking for",
+    "where is", "where are", "where's", "is there", "are there",
+    "turn on", "turn off", "switch on", "switch off", "open", "close", "clean", "check")), key=len, reverse=True))
+#: Trailing fillers, dropped after the noun phrase ("bed pls", "floor here").
+_FILLERS = frozenset("please pls plz here there now thanks".split())
 _TOKEN = re.compile(r"[a-z0-9][a-z0-9'\-]*")
 
 
@@ -62,15 +78,23 @@ def query_head(text: str) -> QueryHead | None:
     """The core noun phrase and head word of ``text`` (module docstring); None when the text has
     no noun head or is one word (nothing to check)."""
     words = _TOKEN.findall(text.lower())
+    command = False  # a leading request or command was dropped
+    while (c := next((c for c in _COMMANDS if words[: len(c)] == list(c) and len(words) > len(c)), None)):
+        words, command = words[len(c):], True
     while words and words[0] in _DETERMINERS:
         words = words[1:]
-    quantity = False
+    dropped = command  # words besides determiners were dropped: the core stands for the text
     while len(words) > 2 and words[0] in _QUANTITIES and words[1] == "of":  # "a couple of pillows"
-        words, quantity = words[2:], True
+        words, dropped = words[2:], True
         while words and words[0] in _DETERMINERS:
             words = words[1:]
-    if not words or words[0] in _GENERIC:
+    if not words:
         return None
+    if words[0] in _GENERIC or (command and words[0] == "to"):  # no noun head ("i need | to sit down");
+        # after a command the rest stands for the text
+        return QueryHead(" ".join(words), " ".join(words), True) if command else None
+    while len(words) > 1 and words[-1] in _FILLERS:  # "bed pls", "floor here"
+        words, dropped = words[:-1], True
     cut = len(words)
     for i in range(1, len(words)):
         w = words[i]
@@ -79,6 +103,8 @@ def query_head(text: str) -> QueryHead | None:
             cut = i
             break
     core = words[:cut]
-    if (len(core) == 1 and cut == len(words) and not quantity) or core[-1] in _VAGUE_HEADS:
+    if core[-1] in _VAGUE_HEADS:
+        return QueryHead(" ".join(words), " ".join(words), True) if command else None
+    if len(core) == 1 and cut == len(words) and not dropped:
         return None
-    return QueryHead(" ".join(core), core[-1], cut < len(words) or quantity)
+    return QueryHead(" ".join(core), core[-1], cut < len(words) or dropped)
