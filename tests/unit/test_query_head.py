@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from openfusion.mapping.query_head import QueryHead, query_head
+from openfusion.mapping.query_head import QueryHead, drop_request, query_head
 
 
 @pytest.mark.parametrize(
@@ -50,6 +50,7 @@ from openfusion.mapping.query_head import QueryHead, query_head
         ("the wall clock please", QueryHead("wall clock", "clock", True)),
         ("how do I get out of here", None),  # "here" is no filler after a generic opening
         ("find", None),
+        ("the cabinet next to the bed", QueryHead("cabinet", "cabinet", True)),
         # one word: the text is its own head
         ("chair", None),
         ("the couch", None),
@@ -58,3 +59,10 @@ from openfusion.mapping.query_head import QueryHead, query_head
 )
 def test_query_head(text: str, want: QueryHead | None) -> None:
     assert query_head(text) == want
+
+
+def test_drop_request_keeps_the_rest_as_typed() -> None:
+    assert drop_request("Please go to The Door") == "The Door"
+    assert drop_request("turn on the lamp") == "the lamp"
+    assert drop_request("the lamp") == "the lamp" and drop_request("find") == "find"
+    assert drop_request("show me something to sit on") == "something to sit on"

@@ -81,6 +81,11 @@ def test_the_up_axis_is_a_parameter() -> None:
         ("the thing above my head", None),
         ("something on the table", None),
         ("stuff under the bed", None),
+        # a leading request or command is no part of X, and a command's particle is no relation
+        ("go to the chair next to the table", RelationQuery("chair", "next to", "table")),
+        ("Please find the cup on the desk", RelationQuery("cup", "on", "desk")),
+        ("turn on the lamp", None),
+        ("switch on the light above the desk", RelationQuery("light", "above", "desk")),
     ],
 )
 def test_parse_relation_query(text: str, parsed: RelationQuery | None) -> None:

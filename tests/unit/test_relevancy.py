@@ -257,14 +257,14 @@ def test_match_on_the_minilm_word_lists() -> None:
 
 
 def test_match_on_the_hash_word_lists() -> None:
-    """The lexical space matches near-exact words only: pooled 0.892 / 0.520, each list as below,
+    """The lexical space matches near-exact words only: pooled 0.892 / 0.521, each list as below,
     HELD_OUT_8 judged (0.778 / 0.400 before the head rule dropped commands, at margin 0.18; v7 as
     shipped 0.822 / 0.352; now 0.800 / 0.457, in sample); "chair" still matches a region named
     "wooden chair" (a category without captions: its name alone)."""
-    dev = _figures_at("hash", DEV_POOL, 0.892, 0.520)
+    dev = _figures_at("hash", DEV_POOL, 0.892, 0.521)
     for word_list, p, r in ((CALIBRATION, 0.970, 0.640), (HELD_OUT, 0.879, 0.617), (HELD_OUT_2, 0.900, 0.562),
                             (HELD_OUT_3, 0.949, 0.538), (HELD_OUT_4, 0.853, 0.586), (HELD_OUT_5, 0.945, 0.495),
-                            (HELD_OUT_6, 0.796, 0.417), (HELD_OUT_7, 0.820, 0.383), (HELD_OUT_8, 0.800, 0.457)):
+                            (HELD_OUT_6, 0.796, 0.417), (HELD_OUT_7, 0.824, 0.393), (HELD_OUT_8, 0.800, 0.457)):
         _figures_at("hash", word_list, p, r)
     assert "something to rest on" in dict(dev.failures)  # no meaning in trigrams
     assert "zebra" not in dict(dev.failures)

@@ -46,7 +46,7 @@ _VAGUE_HEADS = frozenset("thing things one ones stuff object objects item items 
 #: Words that start a post-modifier (prepositions, relative and subject pronouns).
 _POST = frozenset(
     "at for on in with from that which where who whose to by near under above over below beneath "
-    "beside behind inside into onto of up full i you we he she they while when".split())
+    "beside behind inside into onto of up full i you we he she they while when next".split())
 #: Nouns of quantity or arrangement that take the thing after "of" ("a couple of pillows", "a pair
 #: of chairs", "a stack of books"): they are dropped with their "of", as determiners are.
 _QUANTITIES = frozenset("couple pair set bunch stack pile row group few lot lots number handful".split())
@@ -74,13 +74,26 @@ class QueryHead:
     cut: bool  # a post-modifier (or a leading "a couple of") was dropped: the core stands for the text
 
 
+def drop_request(text: str) -> str:
+    """``text`` without its leading requests and commands ("go to the door" -> "the door",
+    "please turn on the lamp" -> "the lamp"), as typed otherwise; the text itself when it has none
+    or is nothing else. Relation queries (:func:`openfusion.mapping.relations.parse_relation_query`)
+    read the rest: "turn on the lamp" is no lamp with something "on" it."""
+    tokens = list(_TOKEN.finditer(text.lower()))
+    words = [t.group() for t in tokens]
+    start = 0
+    while (c := next((c for c in _COMMANDS if words[start: start + len(c)] == list(c)
+                      and len(words) > start + len(c)), None)):
+        start += len(c)
+    return text if start == 0 else text[tokens[start].start():]
+
+
 def query_head(text: str) -> QueryHead | None:
     """The core noun phrase and head word of ``text`` (module docstring); None when the text has
     no noun head or is one word (nothing to check)."""
-    words = _TOKEN.findall(text.lower())
-    command = False  # a leading request or command was dropped
-    while (c := next((c for c in _COMMANDS if words[: len(c)] == list(c) and len(words) > len(c)), None)):
-        words, command = words[len(c):], True
+    rest = drop_request(text)
+    command = rest is not text  # a leading request or command was dropped
+    words = _TOKEN.findall(rest.lower())
     while words and words[0] in _DETERMINERS:
         words = words[1:]
     dropped = command  # words besides determiners were dropped: the core stands for the text

@@ -41,6 +41,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from openfusion.mapping.query_head import drop_request
 from openfusion.wire.schemas.query import RELATIONS  # the relations, in the order relation_of tries them
 
 #: A's bottom within this of B's top: A rests on B (metres; boxes are 1st-99th percentile boxes of
@@ -91,7 +92,7 @@ def parse_relation_query(text: str) -> RelationQuery | None:
     """"the chair next to the table" -> RelationQuery("chair", "next to", "table"); None when
     ``text`` is not of that form, or when X is a generic word (:data:`GENERIC_SUBJECTS`: "the
     thing above my head" describes a place, not a thing near "my head"; module docstring)."""
-    m = _PATTERN.match(text)
+    m = _PATTERN.match(drop_request(text))  # "go to the chair next to the table"; "turn on the lamp": no "on"
     if m is None:
         return None
     target, anchor = m.group("target").strip(), m.group("anchor").strip()
