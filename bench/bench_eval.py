@@ -22,6 +22,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from openfusion.encoders.gt import REGION_TEXTS
 from openfusion.eval.report import render_markdown, write_results
 from openfusion.eval.runner import FULL, QUICK, run_eval
 from openfusion.eval.scenes import parse_scene_specs
@@ -51,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
         "--scenes", default=None, help=f"scene specs (default {QUICK_SCENES}; --full {FULL_SCENES})"
     )
     parser.add_argument("--text-encoder", default="minilm", help="minilm (default) or hash")
-    parser.add_argument("--region-text", default="caption", choices=("caption", "name"),
+    parser.add_argument("--region-text", default="caption", choices=REGION_TEXTS,
                         help="the gt encoder's region embeddings: name and captions (default) or name")
     parser.add_argument("--out", default=None, help="folder for results.json/results.md per noise profile")
     parser.add_argument("--details", action="store_true", help="print the full results.md of every profile")

@@ -385,7 +385,7 @@ def main() -> None:
         named = space.view(captioned=False)
         stored = calibration_for(space.encoder.embedding_space)
         v3 = replace(stored, head_name_cos=None)
-        rows: list[tuple[str, SpaceCalibration, bool, Space]] = [
+        rows: list[tuple[str, SpaceCalibration, bool, Space]] = [  # (method, calibration, choose its margin, regions)
             ("v8 (library)", stored, True, space), ("v8 regions, no head", v3, True, space),
             ("plain LERF, v8 regions", replace(v3, query_categories=()), True, space)]
         for label, table, head in (("v7 as shipped", V7_SHIPPED_MARGIN, 0.8), ("v3 as shipped", V3_SHIPPED_MARGIN, None)):
@@ -393,27 +393,27 @@ def main() -> None:
                 m = table[space.encoder.embedding_space]
                 rows.append((label, replace(stored, head_name_cos=head,
                                             threshold=_margin_to_threshold(m, stored.temperature)), False, named))
-        for method, cal, choose, space in rows:
+        for method, cal, choose, regions in rows:
             if choose:
-                margin = calibrate(space, cal)
+                margin = calibrate(regions, cal)
                 if cal is not stored:
                     cal = replace(cal, threshold=_margin_to_threshold(margin, cal.temperature))
-                cv = "{:>6.3f} {:>6.3f}".format(*cross_validated(space, cal))
+                cv = "{:>6.3f} {:>6.3f}".format(*cross_validated(regions, cal))
             else:
                 margin, cv = cal.margin, f"{'-':>6} {'-':>6}"
-            known = "" if space.encoder.embedding_space in CALIBRATIONS else " (not in CALIBRATIONS)"
+            known = "" if regions.encoder.embedding_space in CALIBRATIONS else " (not in CALIBRATIONS)"
             stored_m = f"{cal.margin:>+7.4f}" if cal is stored else f"{'':>7}"
-            figures = {n: space.figures(wl, cal) for n, wl in columns.items()}
-            lists = "  ".join(_pr(f) for f in (space.figures(DEV_POOL, cal), *figures.values()))
-            print(f"{space.encoder.embedding_space:<18} {method:<22} {cal.temperature:>5.2f} {margin:>+7.4f} "
+            figures = {n: regions.figures(wl, cal) for n, wl in columns.items()}
+            lists = "  ".join(_pr(f) for f in (regions.figures(DEV_POOL, cal), *figures.values()))
+            print(f"{regions.encoder.embedding_space:<18} {method:<22} {cal.temperature:>5.2f} {margin:>+7.4f} "
                   f"{stored_m}  {cv}  {lists}{known}")
             if args.failures and cal is stored:
                 for list_name, f in figures.items():
                     for text, first in f.failures:
                         print(f"    {list_name} wrong: {text!r} -> {first or 'no match'}")
             for list_name, wl in JUDGED.items():
-                top1, best = ceiling(space, cal, wl)
-                ceilings.append(f"| {space.encoder.embedding_space} | {method} | {list_name} | {top1:.3f} | {best:.3f} |")
+                top1, best = ceiling(regions, cal, wl)
+                ceilings.append(f"| {regions.encoder.embedding_space} | {method} | {list_name} | {top1:.3f} | {best:.3f} |")
         if args.alternatives:
             caption_alternatives(space, stored)
             alternatives(named, replace(stored, head_name_cos=0.8))

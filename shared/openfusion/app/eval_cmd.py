@@ -19,6 +19,7 @@ import logging
 import sys
 from dataclasses import replace
 
+from openfusion.encoders.gt import REGION_TEXTS
 from openfusion.errors import OpenFusionError, UsageError
 from openfusion.eval.classes import DEFAULT_BACKGROUND_CLASSES
 from openfusion.eval.runner import FULL, QUICK, EvalConfig
@@ -49,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--noise", default="off", choices=NOISE_CHOICES, help="with --encoder gt: its noise profile (default off)"
     )
     parser.add_argument(
-        "--region-text", default=None, choices=("caption", "name"),
+        "--region-text", default=None, choices=REGION_TEXTS,
         help="with --encoder gt: what a region's embedding holds: caption (default: its name and six captions "
         "where openfusion.encoders.captions knows the category) or name",
     )

@@ -9,9 +9,10 @@ enough for these rules:
 
 1. lower-case, drop a trailing ``.?!``; drop a leading request or command ("go to", "take me
    to", "turn on", "show me", "find", "where is", "please": what a robot operator types around
-   the thing, "go to the door") and trailing fillers ("please", "pls", "here", "now"); drop
-   leading determiners ("the", "a", "my", "this", ...) and quantities with their "of" ("a couple
-   of", "a pair of", "a stack of");
+   the thing, "go to the door") and, unless the text opens with a generic word (step 2: "how do I
+   get out of here"), trailing fillers ("please", "pls", "here", "now"); drop leading
+   determiners ("the", "a", "my", "this", ...) and quantities with their "of" ("a couple of", "a
+   pair of", "a stack of");
 2. a text that starts with a generic or question word ("something to sit on", "a place to
    sleep", "where I put my books", "the thing above my head") has no noun head: None;
 3. cut a post-modifier: from the first preposition, relative pronoun or subject pronoun after
@@ -26,8 +27,9 @@ enough for these rules:
 :func:`query_head` returns (core, head, whether a post-modifier was cut), or None when there is
 nothing to check: a generic text, a vague head, or a core of one word with nothing cut (the head
 is the text itself). After a dropped command, a generic or vague rest is returned whole as the
-core ("show me | something to sit on"), so the command's words do not count. The rules are English-only and approximate ("chest of drawers" -> "chest");
-``tests/unit/test_query_head.py`` lists what they do.
+core ("show me | something to sit on"), so the command's words do not count. The rules are
+English-only and approximate ("chest of drawers" -> "chest"); ``tests/unit/test_query_head.py``
+lists what they do.
 """
 
 from __future__ import annotations
@@ -92,7 +94,7 @@ def query_head(text: str) -> QueryHead | None:
     """The core noun phrase and head word of ``text`` (module docstring); None when the text has
     no noun head or is one word (nothing to check)."""
     rest = drop_request(text)
-    command = rest is not text  # a leading request or command was dropped
+    command = rest != text  # a leading request or command was dropped
     words = _TOKEN.findall(rest.lower())
     while words and words[0] in _DETERMINERS:
         words = words[1:]
