@@ -12,7 +12,9 @@ speed before a busy one). Frames then come back in the order they went out: a fr
 behind a worker that frees up later would be overtaken by a newer frame on a worker that frees up
 sooner, and its result, older than one applied, would be dropped as stale (wasted work). Each request runs on a thread of a small
 executor (Zenoh's ``get`` blocks); results are queued for the service loop, which applies them in
-frame order (:class:`~openfusion.services.semantic.service.SemanticService`).
+the order the service took the frames (``seq``, given with each request: frame order for
+``select=latest`` and ``every``, the order of choice for ``coverage``, which may take an older
+frame after a newer one; :class:`~openfusion.services.semantic.service.SemanticService`).
 
 A worker that dies (its token goes, or its request fails without an answer) never holds anything
 up: the frames it held are sent once more to another worker, a frame that already went twice is
@@ -63,6 +65,7 @@ class _Request:
     request: EncodeRequest
     worker_id: str
     attempt: int  # 1, or 2 when re-sent
+    seq: int  # the service's order of the frame (results apply in this order)
     abandoned: bool = False
     sent_at_s: float = 0.0  # CLOCK_MONOTONIC when dispatched
 
@@ -74,6 +77,7 @@ class PoolResult:
     request: EncodeRequest
     reply: EncodeReply
     worker_id: str
+    seq: int = 0  # the order the service took the frame in (results apply in this order)
 
 
 #: Weight of the newest answer in a worker's time per frame (exponential moving average).
@@ -135,6 +139,7 @@ class EncoderPool:
         self._requests: dict[int, _Request] = {}
         self._resend: collections.deque[_Request] = collections.deque()
         self._results: collections.deque[PoolResult] = collections.deque()
+        self._lost: collections.deque[EncodeRequest] = collections.deque()  # frames given up on, for the service
         self._next_id = 0
         self._closed = False
         self._cond = threading.Condition()
@@ -234,10 +239,11 @@ class EncoderPool:
         """(lock held) Send a failed frame once more, or count it as lost."""
         if req.attempt >= 2:
             self.lost += 1
+            self._lost.append(req.request)
             self.stats.incr(PoolCounter.FRAMES_LOST)
             logger.warning("pool: frame %d lost (its workers died twice)", req.request.frame_id)
             return
-        self._resend.append(_Request(-1, req.request, "", req.attempt + 1))
+        self._resend.append(_Request(-1, req.request, "", req.attempt + 1, req.seq))
 
     # dispatch
     @property
@@ -261,35 +267,38 @@ class EncoderPool:
             return self._cond.wait_for(lambda: self._closed or self._free_worker() is not None, timeout=timeout_s) \
                 and not self._closed
 
-    def submit(self, request: EncodeRequest) -> bool:
-        """Send ``request`` to the least-loaded worker; False when no worker has room."""
+    def submit(self, request: EncodeRequest, seq: int) -> bool:
+        """Send ``request`` (the service's ``seq``-th frame) to the least-loaded worker; False when
+        no worker has room."""
         with self._cond:
-            return self._dispatch(request, attempt=1)
+            return self._dispatch(request, attempt=1, seq=seq)
 
     def pump_resends(self, newer_than: int) -> None:
-        """Send frames whose worker died to another worker, while there is room; frames not newer
-        than ``newer_than`` (a newer result is already applied) are counted as lost instead."""
+        """Send frames whose worker died to another worker, while there is room; frames whose
+        ``seq`` is not newer than ``newer_than`` (a later frame's result is already applied) are
+        counted as lost instead."""
         with self._cond:
             while self._resend:
                 req = self._resend[0]
-                if req.request.frame_id <= newer_than:
+                if req.seq <= newer_than:
                     self._resend.popleft()
+                    self._lost.append(req.request)
                     self.lost += 1
                     self.stats.incr(PoolCounter.FRAMES_LOST)
                     continue
-                if not self._dispatch(req.request, attempt=req.attempt):
+                if not self._dispatch(req.request, attempt=req.attempt, seq=req.seq):
                     return
                 self._resend.popleft()
                 self.stats.incr(PoolCounter.FRAMES_RESENT)
 
-    def _dispatch(self, request: EncodeRequest, *, attempt: int) -> bool:
+    def _dispatch(self, request: EncodeRequest, *, attempt: int, seq: int) -> bool:
         worker = self._free_worker()
         if worker is None or self._closed:
             return False
         rid = self._next_id
         self._next_id += 1
         now = time.monotonic()
-        req = _Request(rid, request, worker.worker_id, attempt, sent_at_s=now)
+        req = _Request(rid, request, worker.worker_id, attempt, seq, sent_at_s=now)
         self._requests[rid] = req
         start = max(now, worker.free_at_s) if worker.in_flight else now
         worker.free_at_s = start + (worker.frame_s or 0.0)
@@ -331,7 +340,7 @@ class EncoderPool:
                 if worker is not None:
                     worker.encoded += 1
                 self.encoded_by[req.worker_id] += 1
-                self._results.append(PoolResult(req.request, reply, req.worker_id))
+                self._results.append(PoolResult(req.request, reply, req.worker_id, req.seq))
             else:
                 assert error is not None
                 logger.warning(
@@ -366,6 +375,13 @@ class EncoderPool:
             self._results.clear()
             return out
 
+    def take_lost(self) -> list[EncodeRequest]:
+        """The frames given up on (counted in ``frames_lost``) since the last call."""
+        with self._cond:
+            out = list(self._lost)
+            self._lost.clear()
+            return out
+
     def wait(self, timeout_s: float) -> None:
         """Block until a result, a worker change or ``timeout_s``."""
         with self._cond:
@@ -376,11 +392,11 @@ class EncoderPool:
         with self._cond:
             return len(self._requests) + len(self._resend)
 
-    def older_in_flight(self, frame_id: int) -> bool:
-        """Whether a frame older than ``frame_id`` is still being encoded or waits to go again."""
+    def older_in_flight(self, seq: int) -> bool:
+        """Whether a frame taken before the ``seq``-th is still being encoded or waits to go again."""
         with self._cond:
-            return (any(r.request.frame_id < frame_id for r in self._requests.values() if not r.abandoned)
-                    or any(r.request.frame_id < frame_id for r in self._resend))
+            return (any(r.seq < seq for r in self._requests.values() if not r.abandoned)
+                    or any(r.seq < seq for r in self._resend))
 
     def close(self) -> None:
         with self._cond:

@@ -56,7 +56,8 @@ from openfusion.encoders import RegionObservation
 from openfusion.frame import Frame, resize_nearest
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
 from openfusion.mapping.merging import EmptyRegions, MergeSchedule, RegionContacts, apply_merges, plan_merges
-from openfusion.mapping.params import MatchParams, MergeParams
+from openfusion.mapping.params import MatchParams, MergeParams, SelectParams
+from openfusion.mapping.selection import CandidateWindow, CoverageScorer
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.encoder.options import (
     EncoderOptions,
@@ -65,6 +66,7 @@ from openfusion.services.encoder.options import (
     warm_up_encoder,
 )
 from openfusion.services.semantic.pool import EncoderPool, PoolResult
+from openfusion.services.semantic.selection import CandidateFeeder, Pending
 from openfusion.wire.counters import ENCODED_BY_PREFIX, PoolCounter, SemanticCounter
 from openfusion.wire.endpoints import (
     DICTIONARY_DELTA,
@@ -94,10 +96,10 @@ from openfusion.wire.schemas import (
 logger = logging.getLogger(__name__)
 
 
-class SemanticSection(MatchParams, MergeParams, EncoderOptions):
-    """The semantic service's settings: every matching and merging parameter (:class:`MatchParams`,
-    :class:`MergeParams`, declared there once), the local encoder (:class:`EncoderOptions`, shared
-    with the encoder workers) and the service's own."""
+class SemanticSection(MatchParams, MergeParams, SelectParams, EncoderOptions):
+    """The semantic service's settings: every matching, merging and frame-selection parameter
+    (:class:`MatchParams`, :class:`MergeParams`, :class:`SelectParams`, declared there once), the
+    local encoder (:class:`EncoderOptions`, shared with the encoder workers) and the service's own."""
 
     encoder_pool: bool = Field(
         False, description="send frames to the encoder pool's workers (openfusion service encoder) instead of "
@@ -123,6 +125,10 @@ class SemanticSection(MatchParams, MergeParams, EncoderOptions):
     recover_timeout_s: float = Field(
         10.0, ge=0, description="at start, try this long to recover the map's dictionary from geometry (0 = never)"
     )
+#: select=every: frames waiting for the encoder (a slower encoder drops the oldest, counted as drops).
+EVERY_QUEUE = 64
+
+
 class SemanticConfig(ServiceConfig):
     semantic: SemanticSection = Field(default_factory=SemanticSection)
 
@@ -163,6 +169,11 @@ class SemanticService:
         self._merge_schedule = MergeSchedule(self.merge_params, min_interval_s=self.section.merge_min_interval_s)
         self._empty_regions = EmptyRegions()
         self.switch = SemanticSwitch(self.section.every_k, self.section.max_hz)
+        self.select_params = SelectParams.from_section(self.section)
+        # coverage: candidates are scored on a thread of their own (selection.CandidateFeeder)
+        self._scorer = CoverageScorer(self.select_params) if self.select_params.select == "coverage" else None
+        self._feeder: CandidateFeeder | None = None
+        self._next_seq = 0  # the order frames are taken for the encoder in (pool results apply in it)
         self._frames: Subscriber[RgbdFrame] | None = None
         self._instances: InstanceBuffer | None = InstanceBuffer() if self.encoder.needs_instances else None
         self._update_pub: Publisher | None = None
@@ -170,12 +181,11 @@ class SemanticService:
         self._published_version = self.dictionary.version
         self._frames_without_instance = 0
         self._pool: EncoderPool | None = None
-        self._last_applied = -1  # the newest frame whose result was applied (pool mode)
-        # Results waiting for older frames still in flight: (frame id, arrival order, arrived at, result).
+        self._last_applied = -1  # the seq of the newest frame whose result was applied (pool mode)
+        # Results waiting for frames taken before them, still in flight: (seq, arrival order, arrived at, result).
         self._held: list[tuple[int, int, float, PoolResult]] = []
         self._arrivals = itertools.count()
         self._waited: set[int] = set()  # arrival numbers of held results already counted as held
-        self._last_dispatched = -1  # the newest frame taken for the pool
         # Held while the dictionary changes and its delta is published: the frame loop and a
         # merge requested on semantic/merge (another thread) change it.
         self._dictionary_lock = threading.RLock()
@@ -221,7 +231,10 @@ class SemanticService:
         the encoder reads them."""
         started = time.monotonic()
         frame = msg.to_frame(instance)
-        self.apply_observation(runner, frame, self.encoder.encode(frame), started)
+        runner.stats.incr(SemanticCounter.ENCODER_CALLS)
+        obs = self.encoder.encode(frame)
+        runner.stats.incr(SemanticCounter.ENCODER_REGIONS, len(obs.conf_maps))
+        self.apply_observation(runner, frame, obs, started)
 
     def apply_observation(self, runner: ServiceRunner, frame: Frame, obs: RegionObservation, started: float) -> None:
         """Render the map at the frame's pose, match, update the dictionary, send the update."""
@@ -237,6 +250,8 @@ class SemanticService:
         with self._dictionary_lock:
             prev_version = self.dictionary.version
             planned = plan_update(obs, rendered, self.dictionary, self.match_params)
+            if self._scorer is not None:  # the regions this frame wrote: seen now, from its direction
+                self._scorer.observe_plan(planned.key_map, frame.T_world_cam, K_small, frame.stamp_ns)
             # The delta goes first, so a key never reaches geometry before its dictionary row.
             self._publish_delta()
             self._update_pub.put(SemanticUpdate(
@@ -299,6 +314,8 @@ class SemanticService:
             if plan.merged_into or removed:
                 apply_merges(self.dictionary, plan.merged_into, embedding=self.merge_params.merge_embedding,
                              removed=removed)
+                if self._scorer is not None:
+                    self._scorer.merge(plan.merged_into, removed)
                 self._publish_delta()
             version, regions = self.dictionary.version, len(self.dictionary)
         runner.stats.incr(SemanticCounter.MERGE_PASSES)
@@ -327,7 +344,18 @@ class SemanticService:
         runner.queryable(SEMANTIC_MERGE, lambda req: self.handle_merge(runner, req))
         if self._instances is not None:
             runner.subscriber(SENSOR_INSTANCE, self._instances.add, queue_size=8)
-        self._frames = runner.subscriber(SENSOR_RGBD, latest_only=True)
+        # latest: the newest frame only; every: a queue (a slower encoder drops the oldest, counted);
+        # coverage: a queue the size of the window, emptied by the scoring thread
+        mode = self.select_params.select
+        self._frames = (runner.subscriber(SENSOR_RGBD, latest_only=True) if mode == "latest" else
+                        runner.subscriber(SENSOR_RGBD, queue_size=EVERY_QUEUE if mode == "every"
+                                          else self.select_params.select_window))
+        if self._scorer is not None:
+            self._feeder = CandidateFeeder(
+                frames=self._frames, window=CandidateWindow(self._scorer), scorer=self._scorer,
+                accept=self.switch.accept, instances=self._instances, instance_wait_s=self.section.instance_wait_s,
+                render_timeout_s=self.section.render_timeout_s, on_no_instance=self._skip_without_instance)
+            runner.stats.set(SemanticCounter.SKIPPED_NO_GAIN, 0)
         if self.section.encoder_pool:
             assert runner.session is not None
             self._pool = EncoderPool(runner.session, PoolKeys(runner.keys.prefix), map_id=runner.keys.map_id,
@@ -342,17 +370,48 @@ class SemanticService:
 
     def loop(self, runner: ServiceRunner) -> None:
         assert self._frames is not None
-        if self._pool is not None:
-            self._loop_pool(runner, self._pool)
+        feeding = None
+        if self._feeder is not None:
+            feeding = threading.Thread(target=self._feeder.run, args=(runner,), name="semantic-select", daemon=True)
+            feeding.start()
+        try:
+            if self._pool is not None:
+                self._loop_pool(runner, self._pool)
+                return
+            while not runner.stopping:
+                self._local_step(runner)
+        finally:
+            if self._feeder is not None:
+                self._feeder.window.close()
+            if feeding is not None:
+                feeding.join(timeout=max(self.section.render_timeout_s, 1.0) + 1.0)
+
+    def _local_step(self, runner: ServiceRunner) -> None:
+        """Encode here the next frame: the best candidate (coverage), else the next one off the
+        subscription (latest, every)."""
+        assert self._frames is not None
+        if self._feeder is not None:
+            pending = self._feeder.take(runner, timeout_s=0.2)
+            if pending is not None:
+                self._encode_pending(runner, pending)
             return
-        while not runner.stopping:
-            msg = self._frames.recv(timeout_s=0.2)
-            if msg is None:
-                continue
-            try:
-                self._handle(runner, msg)
-            finally:  # whatever became of it, the frame is done with: tests and tools wait on this
-                runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
+        msg = self._frames.recv(timeout_s=0.2)
+        if msg is None:
+            return
+        try:
+            self._next_seq += 1
+            self._handle(runner, msg)
+        finally:  # whatever became of it, the frame is done with: tests and tools wait on this
+            runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
+
+    def _encode_pending(self, runner: ServiceRunner, pending: Pending) -> None:
+        """Encode a chosen candidate here (switch and instance join were done when it came)."""
+        assert self._feeder is not None
+        self._next_seq += 1
+        try:
+            self._process_counted(runner, pending.msg, pending.instance)
+        finally:
+            self._feeder.finish(runner, pending.msg)
 
     def _handle(self, runner: ServiceRunner, msg: RgbdFrame) -> None:
         """Fuse one frame or count why it was skipped; never raises for one frame's failure."""
@@ -366,6 +425,10 @@ class SemanticService:
             if instance is None:
                 self._skip_without_instance(runner, msg)
                 return
+        self._process_counted(runner, msg, instance)
+
+    def _process_counted(self, runner: ServiceRunner, msg: RgbdFrame, instance: InstanceFrame | None) -> None:
+        """:meth:`process`; a failure is logged and counted, never raised."""
         try:
             self.process(runner, msg, instance)
         except QueryError as exc:  # geometry did not answer (or refused) the render request
@@ -413,53 +476,71 @@ class SemanticService:
 
     def _apply_step(self, runner: ServiceRunner, pool: EncoderPool) -> None:
         now = time.monotonic()
+        for lost in pool.take_lost():  # frames the pool gave up on are done with too
+            if self._feeder is not None:
+                self._frame_done(runner, lost.frame_id, lost.stamp_ns)
         for result in pool.take_results():
-            heapq.heappush(self._held, (result.request.frame_id, next(self._arrivals), now, result))
+            runner.stats.incr(SemanticCounter.ENCODER_CALLS)
+            runner.stats.incr(SemanticCounter.ENCODER_REGIONS, len(result.reply.conf_maps))
+            heapq.heappush(self._held, (result.seq, next(self._arrivals), now, result))
         self._release_results(runner, pool)
         pool.wait(0.2)  # a result, a worker change, or the reorder wait's next check
 
     def _pool_step(self, runner: ServiceRunner, pool: EncoderPool) -> None:
-        """One turn of :meth:`_loop_pool`: re-send, then dispatch or encode one frame."""
+        """One turn of :meth:`_loop_pool`: re-send, then dispatch or encode one frame (the best
+        candidate with ``select=coverage``: the pool takes from the same window when it has more
+        candidates than free workers)."""
         assert self._frames is not None
         stats = runner.stats
         pool.pump_resends(self._last_applied)
         alive = pool.alive
         stats.set(PoolCounter.NO_ENCODER, int(alive == 0 and not self.section.local_encoder))
         if alive == 0 and self.section.local_encoder:
-            msg = self._frames.recv(timeout_s=0.2)
-            if msg is not None:
-                try:
-                    stats.incr(PoolCounter.LOCAL_FRAMES)
-                    self._handle(runner, msg)
-                    self._last_applied = max(self._last_applied, msg.frame_id)
-                finally:
-                    stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
+            before = self._next_seq
+            self._local_step(runner)
+            if self._next_seq != before:  # a frame was taken and encoded here
+                stats.incr(PoolCounter.LOCAL_FRAMES)
+                self._last_applied = self._next_seq
             return
         if not pool.wait_for_capacity(0.2):
             return
-        msg = self._frames.recv(timeout_s=0.05)
-        if msg is None:
-            return
-        if msg.frame_id < self._last_dispatched:  # frame ids started again: a new playback
-            logger.info("semantic: frame ids restarted (%d after %d): a new playback", msg.frame_id,
-                        self._last_dispatched)
-            self._last_applied = -1
-        self._last_dispatched = msg.frame_id
-        request = self._pool_request(runner, msg)
+        if self._feeder is not None:
+            pending = self._feeder.take(runner, timeout_s=0.05)
+            if pending is None:
+                return
+            msg = pending.msg
+            request: EncodeRequest | None = EncodeRequest.of(msg, pending.instance, map_id=runner.keys.map_id,
+                                                             embedding_space=self.dictionary.embedding_space)
+        else:
+            msg = self._frames.recv(timeout_s=0.05)
+            if msg is None:
+                return
+            request = self._pool_request(runner, msg)
         if request is None:
-            stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
+            self._frame_done(runner, msg.frame_id, msg.stamp_ns)
             return
-        if not pool.submit(request):  # the worker with room died in between: try it again later
+        self._next_seq += 1
+        if not pool.submit(request, self._next_seq):  # the worker with room died in between
             stats.incr(SemanticCounter.FRAMES_FAILED)
-            stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
+            self._frame_done(runner, msg.frame_id, msg.stamp_ns)
+
+    def _frame_done(self, runner: ServiceRunner, frame_id: int, stamp_ns: int) -> None:
+        """A frame taken off the subscription is done with: ``last_frame_handled`` moves (with
+        coverage, once every frame taken before it is done too: selection.HandledFrames)."""
+        if self._feeder is not None:
+            mark = self._feeder.handled.done(frame_id, stamp_ns)
+            if mark is not None:
+                runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, mark)
+        else:
+            runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, frame_id)
 
     def _release_results(self, runner: ServiceRunner, pool: EncoderPool) -> None:
-        """Apply held results oldest first; one whose older frames are still in flight waits for
-        them up to ``pool_reorder_wait_s`` (a result that comes after a newer one was applied is
-        dropped as stale by :meth:`_apply_pool_result`)."""
+        """Apply held results in the order their frames were taken; one whose earlier frames are
+        still in flight waits for them up to ``pool_reorder_wait_s`` (a result that comes after a
+        later one was applied is dropped as stale by :meth:`_apply_pool_result`)."""
         while self._held:
-            frame_id, order, arrived, result = self._held[0]
-            if (pool.older_in_flight(frame_id)
+            seq, order, arrived, result = self._held[0]
+            if (pool.older_in_flight(seq)
                     and time.monotonic() - arrived < self.section.pool_reorder_wait_s):
                 if order not in self._waited:
                     self._waited.add(order)
@@ -486,15 +567,17 @@ class SemanticService:
 
     def _apply_pool_result(self, runner: ServiceRunner, result: PoolResult) -> None:
         frame_id = result.request.frame_id
-        if frame_id <= self._last_applied:  # a newer frame's result is in the map already
+        if result.seq <= self._last_applied:  # a later frame's result is in the map already
             runner.stats.incr(PoolCounter.RESULTS_STALE)
+            if self._feeder is not None:  # the watermark waits for every frame taken
+                self._frame_done(runner, frame_id, result.request.stamp_ns)
             return
         try:
             obs = RegionObservation(conf_maps=result.reply.conf_maps, embeddings=result.reply.embeddings,
                                     embedding_space=result.reply.embedding_space)
             obs.validate(dim=self.dictionary.dim)
             self.apply_observation(runner, result.request.to_frame(), obs, time.monotonic())
-            self._last_applied = frame_id
+            self._last_applied = result.seq
             runner.stats.incr(ENCODED_BY_PREFIX + result.worker_id)
         except QueryError as exc:
             logger.warning("semantic: frame %d skipped: %s", frame_id, exc)
@@ -504,7 +587,7 @@ class SemanticService:
             runner.stats.incr(SemanticCounter.FRAMES_FAILED)
             runner.stats.add_error()
         finally:
-            runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, frame_id)
+            self._frame_done(runner, frame_id, result.request.stamp_ns)
 
     def _skip_without_instance(self, runner: ServiceRunner, msg: RgbdFrame) -> None:
         runner.stats.incr(SemanticCounter.SKIPPED_NO_INSTANCE)

@@ -62,7 +62,7 @@ class Map:
         self.map_id = unique_map_id("pool")
         ports = {"listen": [port]} if listen else {"connect": [port]}
         geo = _config(GeometryConfig, self.map_id, "geometry", {"initial_block_count": 1024}, **ports)
-        sem = _config(SemanticConfig, self.map_id, "semantic", {"recover_timeout_s": 0, "instance_wait_s": 2,
+        sem = _config(SemanticConfig, self.map_id, "semantic", {"select": "latest", "recover_timeout_s": 0, "instance_wait_s": 2,
                                                                "encoder_pool": True, "local_encoder": False,
                                                                **semantic_values},
                       connect=[port])

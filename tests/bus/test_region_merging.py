@@ -120,7 +120,7 @@ def test_merges_reach_every_replica_and_survive_a_semantic_restart() -> None:
     port = free_port()
     router = open_session(_config(ServiceConfig, map_id, "", {}, port=port, mode="router"))
     geo_cfg = _config(GeometryConfig, map_id, "geometry", {"initial_block_count": 2048}, port=port)
-    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"merge_every": 2, "merge_min_interval_s": 0, "recover_timeout_s": 30,
+    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"select": "latest", "merge_every": 2, "merge_min_interval_s": 0, "recover_timeout_s": 30,
                                                            "instance_wait_s": 10}, port=port)
     query_cfg = _config(QueryConfig, map_id, "query", {"text_encoder": "hash"}, port=port)
     with (
@@ -179,7 +179,7 @@ def test_a_merge_pass_without_geometry_is_counted_and_mapping_goes_on() -> None:
     """No geometry on the bus: the pass's contacts request times out; merge_failures counts it and
     the dictionary is unchanged."""
     map_id = unique_map_id("merge-nogeo")
-    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"recover_timeout_s": 0, "render_timeout_s": 0.5},
+    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"select": "latest", "recover_timeout_s": 0, "render_timeout_s": 0.5},
                       port=free_port(), mode="peer")
     service = SemanticService(sem_cfg, encoder=SplittingEncoder(split_on=[]))
     with ServiceThread(service, sem_cfg, "semantic") as semantic:
@@ -210,7 +210,7 @@ def test_a_lost_merge_delta_is_repaired_by_the_resync_and_a_save_merges_first(tm
     geo_cfg = _config(GeometryConfig, map_id, "geometry", {"initial_block_count": 2048, "checkpoint_period_s": 0,
                                                            "merge_on_save_timeout_s": 10}, port=port)
     # No periodic pass (merge_every far away): only the passes this test asks for happen.
-    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"merge_every": 1000, "recover_timeout_s": 0,
+    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"select": "latest", "merge_every": 1000, "recover_timeout_s": 0,
                                                            "instance_wait_s": 10}, port=port)
     with ServiceThread(GeometryService(geo_cfg), geo_cfg, "geometry") as geometry:
         session = open_session(_config(ServiceConfig, map_id, "", {}, port=port))

@@ -42,7 +42,7 @@ def test_semantic_service_counts_failed_and_empty_frames_and_keeps_going() -> No
     map_id = unique_map_id("sem")
     port = free_port()
     geo_cfg = _config(GeometryConfig, map_id, "geometry", {"initial_block_count": 2048}, listen=[port])
-    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"recover_timeout_s": 0, "instance_wait_s": 10},
+    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"select": "latest", "recover_timeout_s": 0, "instance_wait_s": 10},
                       connect=[port])
     frames = list(open_source("synthetic:frames=6,width=160,height=120"))
     with (

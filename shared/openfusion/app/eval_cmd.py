@@ -18,11 +18,13 @@ import argparse
 import logging
 import sys
 from dataclasses import replace
+from typing import get_args
 
 from openfusion.encoders.gt import REGION_TEXTS
 from openfusion.errors import OpenFusionError, UsageError
 from openfusion.eval.classes import DEFAULT_BACKGROUND_CLASSES
 from openfusion.eval.runner import FULL, QUICK, EvalConfig
+from openfusion.mapping.params import SelectMode
 
 logger = logging.getLogger(__name__)
 
@@ -61,6 +63,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--semantic-every", type=int, default=None, help="semantic step every k-th frame (default 1)"
     )
+    parser.add_argument(
+        "--select", choices=get_args(SelectMode), default=None,
+        help="which frames are encoded: coverage (default: those that add something, "
+        "openfusion.mapping.selection), every, or latest (the same as every in one process)")
     parser.add_argument(
         "--gt-spacing",
         type=float,
@@ -133,6 +139,8 @@ def config_from_args(args: argparse.Namespace) -> EvalConfig:
             overrides[key] = v
     if args.voxel_size is not None:
         overrides["volume"] = base.volume.with_changes(voxel_size_m=args.voxel_size)
+    if getattr(args, "select", None) is not None:
+        overrides["select"] = base.select.model_copy(update={"select": args.select})
     if overrides["exclude_background"] and not overrides["background_classes"]:
         raise UsageError("--exclude-background needs at least one class in --background-classes")
     return replace(base, **overrides)
@@ -159,6 +167,9 @@ def run(args: argparse.Namespace) -> int:
         f"f-mIoU {q['f_mIoU']:.3f}  mAcc {q['mAcc']:.3f}  "
         f"accuracy {summary['geometry']['accuracy_vox']:.2f} voxels  completeness {summary['geometry']['completeness']:.3f}"
     )
+    sel = summary["selection"]
+    print(f"encoder calls {sel['encoder_calls']} of {sel['frames']} frames (--select {sel['select']}), "
+          f"{summary['regions']['calls_per_object'] or 0:.1f} per object")
     print(f"wrote {json_path} and {md_path}")
     missed = [t["name"] for t in summary["targets"] if not t["passed"]]
     if missed:

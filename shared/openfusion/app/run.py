@@ -210,7 +210,8 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
             _with_carried(stats, carried), source=config.bridge.source, encoder=config.semantic.encoder, noise=config.semantic.noise,
             semantic_every=config.semantic.every_k, wall_s=time.monotonic() - started,
             frames_requested=config.bridge.max_frames, interrupted=signals.requested is not None,
-            restarts=cluster.restarts, error=error, encoder_workers=args.encoder_workers)
+            restarts=cluster.restarts, error=error, encoder_workers=args.encoder_workers,
+            select=config.semantic.select)
 
     try:
         stats = _follow_progress(args, client, cluster, signals, stats, carried)

@@ -32,7 +32,7 @@ from openfusion.services.semantic.service import SemanticSection
 #: The section fields ``openfusion run`` offers as flags (everything else: ``--set`` or ``--config``).
 RUN_FLAGS: dict[str, list[str]] = {
     "bridge": ["source", "rate_hz"],
-    "semantic": ["encoder", "noise", "every_k", "encoder_delay_ms"],
+    "semantic": ["encoder", "noise", "every_k", "encoder_delay_ms", "select"],
     "query": ["text_encoder"],
     "supervision": ["max_restarts", "restart_backoff_s"],
 }

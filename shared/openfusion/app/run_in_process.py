@@ -23,7 +23,7 @@ from openfusion.app.run_config import RunConfig
 from openfusion.app.summary import RunSummary
 from openfusion.frame import Frame
 from openfusion.mapping import save_map
-from openfusion.mapping.params import MatchParams, MergeParams
+from openfusion.mapping.params import MatchParams, MergeParams, SelectParams
 from openfusion.mapping.pipeline import PipelineStats, map_scene
 from openfusion.mapping.queries import RegionTable, answer_texts, subsample_points
 from openfusion.services.encoder.options import region_encoder_from_section
@@ -93,6 +93,7 @@ def _run_in_process(args: argparse.Namespace, config: RunConfig, signals: StopSi
             match_params=MatchParams.from_section(config.semantic),
             merge_params=MergeParams.from_section(config.semantic),
             semantic_every=config.semantic.every_k,
+            select_params=SelectParams.from_section(config.semantic),
             on_frame=on_frame,
         )
     finally:

@@ -82,6 +82,14 @@ class RunSummary(BaseModel):
     #: semantic frames per second of mapping time (first to last fused frame): with encoder workers
     #: the semantic service waits on them, so its busy time no longer bounds its rate
     semantic_rate_hz: float | None = None
+    #: frame selection (``semantic.select``): frames the region encoder encoded (``encoder_calls``), the
+    #: regions it returned over them (``encoder_regions``), those per region of the final map
+    #: (``calls_per_region``), and frames not encoded because they added too little (``skipped_no_gain``)
+    select: str = "coverage"
+    encoder_calls: int = 0
+    encoder_regions: int = 0
+    calls_per_region: float | None = None
+    skipped_no_gain: int = 0
     restarts: dict[str, int] = {}
     frames_replayed: int = 0
     frames_duplicate: int = 0
@@ -92,7 +100,7 @@ class RunSummary(BaseModel):
     def from_health(
         cls, stats: dict[str, HealthStats], *, source: str, encoder: str, noise: str, semantic_every: int, wall_s: float,
         frames_requested: int | None = None, interrupted: bool = False, encoder_workers: int = 0,
-        restarts: dict[str, int] | None = None, error: str | None = None,
+        restarts: dict[str, int] | None = None, error: str | None = None, select: str = "coverage",
     ) -> RunSummary:
         """From the last health stats of the run's services. After an interrupt the bridge was
         stopped and its last stats can lag by a second of frames; playback loses no frame, so every
@@ -138,6 +146,9 @@ class RunSummary(BaseModel):
             semantic_rate_hz=_round(_rate(c("semantic", SemanticCounter.SEMANTIC_FRAMES),
                                           c("semantic", SemanticCounter.FIRST_FUSED_AT_S),
                                           c("semantic", SemanticCounter.LAST_FUSED_AT_S))),
+            **_selection(select, c("semantic", SemanticCounter.ENCODER_CALLS),
+                         c("semantic", SemanticCounter.ENCODER_REGIONS), c("semantic", SemanticCounter.REGIONS),
+                         c("semantic", SemanticCounter.SKIPPED_NO_GAIN)),
             restarts=dict(restarts or {}),
             frames_replayed=int(c("bridge", BridgeCounter.FRAMES_REPLAYED)),
             frames_duplicate=int(c("geometry", GeometryCounter.FRAMES_DUPLICATE)),
@@ -159,4 +170,12 @@ class RunSummary(BaseModel):
             rec_fps=_round(stats.rec_fps), sem_rec_fps=_round(stats.sem_rec_fps), wall_s=round(wall_s, 1),
             frames_requested=frames_requested,
             frames_played=stats.frames_integrated if frames_played is None else frames_played, interrupted=interrupted,
+            **_selection(stats.select, stats.encoder_calls, stats.encoder_regions, regions, stats.skipped_no_gain),
         )
+
+
+def _selection(select: str, calls: float, regions_encoded: float, regions: float, skipped: float) -> dict:
+    """run.json's frame-selection fields (the same from health counters and from pipeline stats)."""
+    return {"select": select, "encoder_calls": int(calls), "encoder_regions": int(regions_encoded),
+            "calls_per_region": _round(regions_encoded / regions) if regions else None,
+            "skipped_no_gain": int(skipped)}

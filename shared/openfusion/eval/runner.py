@@ -49,7 +49,8 @@ from openfusion.eval.protocol import (
 from openfusion.eval.scenes import SceneSpec, check_scene_inputs, open_scene
 from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume
 from openfusion.mapping.merging import EmptyRegions, MergeSchedule, merge_regions
-from openfusion.mapping.params import MatchParams, MergeParams, VolumeParams
+from openfusion.mapping.params import MatchParams, MergeParams, SelectParams, VolumeParams
+from openfusion.mapping.selection import FrameSelector
 
 logger = logging.getLogger(__name__)
 
@@ -78,6 +79,7 @@ class EvalConfig:
     volume: VolumeParams = field(default_factory=VolumeParams)
     match: MatchParams = field(default_factory=MatchParams)
     merge: MergeParams = field(default_factory=MergeParams)
+    select: SelectParams = field(default_factory=SelectParams)  # which frames are encoded (coverage)
     semantic_every: int = 1
     exclude_background: bool = False
     background_classes: tuple[str, ...] = DEFAULT_BACKGROUND_CLASSES
@@ -111,10 +113,11 @@ class EvalConfig:
 
     def to_dict(self) -> dict:
         """Plain JSON (results.json): the volume's and matching parameters flattened into the top level."""
-        d = {k: v for k, v in self.__dict__.items() if k not in ("volume", "match", "merge")}
+        d = {k: v for k, v in self.__dict__.items() if k not in ("volume", "match", "merge", "select")}
         d.update(self.volume.to_dict())
         d.update(self.match.model_dump())
         d.update(self.merge.model_dump())
+        d.update(self.select.model_dump())
         d["background_classes"] = list(self.background_classes)
         return d
 
@@ -147,6 +150,11 @@ class MappingRun:
     merge_passes: int = 0
     regions_merged: int = 0
     merge_s: float = 0.0
+    encoder_calls: int = 0  # frames given to the region encoder
+    encoder_regions: int = 0  # regions it returned over those calls
+    frames_scored: int = 0
+    skipped_no_gain: int = 0
+    select_s: float = 0.0
 
 
 def map_scene_for_eval(
@@ -156,12 +164,15 @@ def map_scene_for_eval(
     volume_params: VolumeParams,
     match_params: MatchParams | None = None,
     merge_params: MergeParams | None = None,
+    select_params: SelectParams | None = None,
     semantic_every: int = 1,
     observed: ObservedSurface | None = None,
     record_for_baselines: bool = True,
     raw_open3d_baseline: bool = False,
 ) -> MappingRun:
-    """Integrate every frame and run the semantic step on every ``semantic_every``-th frame.
+    """Integrate every frame and run the semantic step on the frames the selection picks
+    (``select_params``, :class:`~openfusion.mapping.selection.FrameSelector`, as the pipeline) of
+    every ``semantic_every``-th frame.
 
     ``raw_open3d_baseline`` also integrates every frame into a plain Open3D grid (timed
     separately, interleaved with ours, first on every other frame, so both see the same machine
@@ -175,9 +186,11 @@ def map_scene_for_eval(
     merge_p = merge_params if merge_params is not None else MergeParams()
     schedule = MergeSchedule(merge_p)
     empty = EmptyRegions(passes=1)  # updates are written before the next pass
+    selector = FrameSelector(select_params, volume.render)
 
     def merge_pass() -> None:  # timed with the semantic step (it is part of it in the services)
         result = merge_regions(volume, dictionary, merge_p, empty=empty)
+        selector.merged(result.plan.merged_into, result.removed)
         run.merge_passes += 1
         run.regions_merged += result.merged
         run.merge_s += result.total_ms / 1e3
@@ -208,12 +221,16 @@ def map_scene_for_eval(
         depth_m = frame.depth_m()
         if observed is not None:
             observed.add_view(depth_m, frame.intrinsics, frame.T_world_cam)
-        if i % semantic_every:
+        if i % semantic_every or not selector.wants(frame):
             continue
         t1 = time.perf_counter()
         obs = region_encoder.encode(frame)
+        run.encoder_calls += 1
+        run.encoder_regions += len(obs.conf_maps)
         t2 = time.perf_counter()
         mapper.step(obs, frame.T_world_cam, frame.intrinsics, depth_m=depth_m)
+        if mapper.last_plan is not None:
+            selector.encoded(frame, mapper.last_plan.key_map)
         t3 = time.perf_counter()
         run.encode_s += t2 - t1
         run.semantic_step_s += t3 - t2
@@ -234,6 +251,9 @@ def map_scene_for_eval(
         raise ValueError(f"source {getattr(source, 'name', source)!r} produced no frames")
     if merge_p.merge_every > 0 and run.semantic_frames:
         merge_pass()
+    run.frames_scored = selector.stats.frames_scored
+    run.skipped_no_gain = selector.stats.skipped_no_gain
+    run.select_s = selector.stats.score_s
     if raw is not None:
         run.raw_integrate_s = raw.seconds
         del raw  # free its grid before the evaluation allocates
@@ -241,6 +261,17 @@ def map_scene_for_eval(
 
 
 # --------------------------------------------------------------------------- one scene
+
+
+def encoder_calls_per_region(encoder_regions: int, dictionary_regions: int, gt_objects: int | None) -> dict:
+    """Region encodes (regions the encoder returned, summed over its calls) per region of the final
+    map and per ground-truth object (OVI-MAP's VLM calls per instance)."""
+    return {
+        "encoder_regions": int(encoder_regions),
+        "dictionary_regions": int(dictionary_regions),
+        "calls_per_region": encoder_regions / dictionary_regions if dictionary_regions else None,
+        "calls_per_object": encoder_regions / gt_objects if gt_objects else None,
+    }
 
 
 def _quality(pred: np.ndarray, gt_of_points: np.ndarray, gt: GroundTruth, config: EvalConfig) -> dict:
@@ -285,6 +316,7 @@ def evaluate_scene(
         volume_params=params,
         match_params=config.match,
         merge_params=config.merge,
+        select_params=config.select,
         semantic_every=config.semantic_every,
         observed=observed,
         record_for_baselines=config.baselines,
@@ -401,9 +433,18 @@ def evaluate_scene(
         "sem_rec3d_fps": run.frames / sem_s if sem_s > 0 else None,
         "semantic_step_ms": 1e3 * run.semantic_step_s / max(run.semantic_frames, 1),
         "encode_ms": 1e3 * run.encode_s / max(run.semantic_frames, 1),
+        # frame selection: calls of the region encoder (frames, and regions over them), frames left out
+        "select": config.select.select,
+        "encoder_calls": run.encoder_calls,
+        "encoder_regions": run.encoder_regions,
+        "frames_scored": run.frames_scored,
+        "skipped_no_gain": run.skipped_no_gain,
+        "select_s": run.select_s,
+        "select_ms": 1e3 * run.select_s / run.frames_scored if run.frames_scored else None,
     }
     regions = region_counts(keys, gt, observed.mask)
     regions.update(merge_passes=run.merge_passes, regions_merged=run.regions_merged, merge_s=run.merge_s)
+    regions.update(encoder_calls_per_region(run.encoder_regions, len(run.dictionary), regions.get("gt_objects")))
     return {
         "scene": spec.name,
         "regions": regions,
@@ -511,6 +552,22 @@ def summarize(scenes: Sequence[dict], config: EvalConfig) -> dict:
         "regions_merged": sum(s.get("regions", {}).get("regions_merged", 0) for s in scenes),
     }
     regions["regions_100_per_object"] = regions_100 / regions["gt_objects"] if regions["gt_objects"] else None
+    encoder_regions = sum(s["speed"].get("encoder_regions", 0) for s in scenes)
+    regions.update(encoder_calls_per_region(encoder_regions, sum(s["regions"].get("dictionary_regions", 0)
+                                                                 for s in scenes), regions["gt_objects"]))
+    select_s = sum(s["speed"].get("select_s", 0.0) for s in scenes)
+    scored = sum(s["speed"].get("frames_scored", 0) for s in scenes)
+    step_s = sum(s["speed"]["encode_s"] + s["speed"]["semantic_step_s"] for s in scenes)
+    sem_frames = sum(s["speed"]["semantic_frames"] for s in scenes)
+    selection = {
+        "select": config.select.select,
+        "frames": frames,
+        "encoder_calls": sum(s["speed"].get("encoder_calls", 0) for s in scenes),
+        "encoder_regions": encoder_regions,
+        "skipped_no_gain": sum(s["speed"].get("skipped_no_gain", 0) for s in scenes),
+        "select_ms": 1e3 * select_s / scored if scored else None,
+        "semantic_step_ms": 1e3 * step_s / sem_frames if sem_frames else None,
+    }
     return {
         "scenes": [s["scene"] for s in scenes],
         "regions": regions,
@@ -522,6 +579,7 @@ def summarize(scenes: Sequence[dict], config: EvalConfig) -> dict:
             "raw_open3d_fps": frames / raw if raw else None,
             "sem_rec3d_fps": frames / sem if sem > 0 else None,
         },
+        "selection": selection,
         "memory_bytes": memory,
         "query_ms": query,
         "targets": check_targets(quality, geometry, config),

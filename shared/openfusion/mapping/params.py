@@ -270,3 +270,67 @@ class QueryParams(ConfigSection):
 def default_min_region_points() -> int:
     """The declared default of :attr:`QueryParams.min_region_points`."""
     return int(QueryParams.model_fields["min_region_points"].default)
+
+
+SelectMode = Literal["coverage", "every", "latest"]
+
+
+class SelectParams(ConfigSection):
+    """Which frames the region encoder sees (:mod:`openfusion.mapping.selection`, where the
+    reasoning behind each rule and default is written down). The semantic service's section extends
+    this model; ``openfusion run --in-process`` and ``openfusion eval`` build the same one, so a
+    result measured in-process is what the services do.
+
+    ``coverage`` scores each candidate frame by what the encoder would add (surface the map holds no
+    confident region for, a region seen from a viewing direction it was not encoded from, a region
+    not encoded for ``select_stale_s``) and encodes the best one, and only one whose gain reaches
+    ``select_min_gain``; ``latest`` encodes the newest frame whenever the encoder is free (the
+    services' behaviour before selection); ``every`` encodes every frame, in order. In one process
+    the encoder is free for every frame, so there ``latest`` is ``every``."""
+
+    model_config = ConfigDict(allow_inf_nan=False)
+
+    select: SelectMode = Field(
+        "coverage", description="which frames are encoded: coverage (the ones that add something, best first), "
+        "latest (the newest whenever the encoder is free), every (all, in order)")
+    select_min_gain: float = Field(
+        0.05, ge=0, le=10, description="coverage: a frame is encoded only when its gain (shares of its view: new "
+        "surface + select_direction_weight x new directions + stale regions) reaches this; 0 = any frame with "
+        "something new")
+    select_window: int = Field(
+        16, ge=1, le=256, description="coverage, services: candidate frames held while the encoder is busy; a full "
+        "window lets its lowest-scoring frame go (~3 MB per 640x480 frame with its instance image)")
+    select_width_px: int = Field(
+        64, ge=8, le=640, description="coverage: width of the view a candidate is scored at (height from the "
+        "frame's aspect ratio); the render of the map at that size is the scoring's main cost")
+    select_low_conf: float = Field(
+        0.2, ge=0, le=1, description="coverage: a surface pixel whose rendered region confidence is below this "
+        "counts as unlabelled")
+    select_cell_m: float = Field(
+        0.1, gt=0, le=10, description="coverage: unlabelled surface is remembered per cube of this edge: surface an "
+        "encoded frame showed from the same direction bin is not new again")
+    select_tries: int = Field(
+        2, ge=1, le=4, description="coverage: unlabelled surface counts as new until this many encoded frames "
+        "showed it from the same direction bin (an encoder may miss a region once; what it never labels is not "
+        "tried forever)")
+    select_min_views: int = Field(
+        0, ge=0, le=100, description="coverage: a region in view written by fewer encoded frames than this counts "
+        "like a new direction with all its pixels (OVO keeps several views per segment; one noisy view is not "
+        "a region's final word)")
+    select_direction_bins: int = Field(
+        24, ge=1, le=64, description="coverage: viewing directions are binned on the sphere into this many bins "
+        "(Fibonacci sphere; 24: about 47 degrees across each)")
+    select_direction_weight: float = Field(
+        0.5, ge=0, description="coverage: weight of a region's pixels seen from a direction bin it was not encoded "
+        "from, against new surface (1)")
+    select_min_region_share: float = Field(
+        0.005, ge=0, le=1, description="coverage: a region counts for new directions and staleness only when it "
+        "fills at least this share of the view (OVI-MAP: 1000 of 307200 pixels)")
+    select_stale_s: float | None = Field(
+        60.0, gt=0, description="coverage: a region in view not encoded for this long (frame stamps) counts with "
+        "all its pixels, so it cannot go stale while it is seen (none = never stale)")
+
+    @classmethod
+    def from_section(cls, section: ConfigSection) -> SelectParams:
+        """The selection parameters of a config section that extends this model (the semantic service's)."""
+        return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})

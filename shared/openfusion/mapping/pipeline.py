@@ -22,7 +22,8 @@ from openfusion.mapping.dictionary import RegionDictionary
 from openfusion.mapping.errors import CapacityError
 from openfusion.mapping.mapper import SemanticMapper
 from openfusion.mapping.merging import EmptyRegions, MergeSchedule, merge_regions
-from openfusion.mapping.params import MatchParams, MergeParams, VolumeParams
+from openfusion.mapping.params import MatchParams, MergeParams, SelectParams, VolumeParams
+from openfusion.mapping.selection import FrameSelector
 from openfusion.mapping.volume import SemanticVolume
 
 logger = logging.getLogger(__name__)
@@ -61,6 +62,13 @@ class PipelineStats:
     regions_merged: int = 0  # regions folded into another (dictionary entries removed by merges)
     regions_pruned: int = 0  # regions removed for holding no voxel in two merge passes in a row
     merge_s: float = 0.0
+    # frame selection (openfusion.mapping.selection): what went to the encoder and what was left out
+    select: str = "coverage"
+    encoder_calls: int = 0  # frames given to the region encoder
+    encoder_regions: int = 0  # regions it returned, summed over those calls
+    frames_scored: int = 0  # frames scored by the coverage scorer
+    skipped_no_gain: int = 0  # frames not encoded: they added too little (select_min_gain)
+    select_s: float = 0.0  # time spent scoring (render at the scored size + numpy)
 
     def _rates(self) -> tuple[float | None, float | None]:
         return reconstruction_rates(frames_integrated=self.frames_integrated, integrate_s=self.integrate_s,
@@ -91,11 +99,14 @@ def map_scene(
     match_params: MatchParams | None = None,
     merge_params: MergeParams | None = None,
     semantic_every: int = 1,
+    select_params: SelectParams | None = None,
     max_frames: int | None = None,
     on_frame: Callable[[Frame, PipelineStats], None] | None = None,
 ) -> MapResult:
-    """Integrate every frame of ``source``; run the semantic step on every ``semantic_every``-th
-    frame id (0 = geometry only). Returns the map and its stats.
+    """Integrate every frame of ``source``; of every ``semantic_every``-th frame id (0 = geometry
+    only), run the semantic step on the frames the selection picks (``select_params``, default
+    :class:`SelectParams`: coverage, the frames that add something; ``select="every"``: all of
+    them; :class:`~openfusion.mapping.selection.FrameSelector`). Returns the map and its stats.
 
     Regions that are one object merge (:mod:`openfusion.mapping.merging`, ``merge_params``) every
     ``merge_every`` semantic frames and once at the end, so the returned (and saved) map holds the
@@ -114,10 +125,12 @@ def map_scene(
     merge_p = merge_params if merge_params is not None else MergeParams()
     schedule = MergeSchedule(merge_p)
     empty = EmptyRegions(passes=1)  # updates are written before the next pass
-    stats = PipelineStats()
+    selector = FrameSelector(select_params, volume.render)
+    stats = PipelineStats(select=selector.params.select)
 
     def merge_pass() -> None:
         result = merge_regions(volume, dictionary, merge_p, empty=empty)
+        selector.merged(result.plan.merged_into, result.removed)
         stats.merge_passes += 1
         stats.regions_merged += result.merged
         stats.regions_pruned += len(result.removed)
@@ -138,11 +151,16 @@ def map_scene(
         t1 = time.perf_counter()
         stats.integrate_s += t1 - t0
         stats.frames_integrated += 1
-        if semantic_every and frame.frame_id % semantic_every == 0:
+        if semantic_every and frame.frame_id % semantic_every == 0 and _selected(selector, frame, stats):
+            t1 = time.perf_counter()
             try:
+                stats.encoder_calls += 1
                 obs = region_encoder.encode(frame)
+                stats.encoder_regions += len(obs.conf_maps)
                 t2 = time.perf_counter()
                 mapper.step(obs, frame.T_world_cam, frame.intrinsics, depth_m=frame.depth_m())
+                if mapper.last_plan is not None:
+                    selector.encoded(frame, mapper.last_plan.key_map)
             except Exception:  # one frame's encoder or step failure is logged and counted, never fatal
                 logger.exception("frame %d: the semantic step failed; the frame keeps its geometry", frame.frame_id)
                 stats.semantic_failed += 1
@@ -166,3 +184,12 @@ def map_scene(
     for reason, n in refused.items():
         stats.frames_skipped[reason] = stats.frames_skipped.get(reason, 0) + n
     return MapResult(volume, dictionary, stats)
+
+
+def _selected(selector: FrameSelector, frame: Frame, stats: PipelineStats) -> bool:
+    """Whether the selection sends ``frame`` to the encoder; its counts and time go into ``stats``."""
+    chosen = selector.wants(frame)
+    stats.frames_scored = selector.stats.frames_scored
+    stats.skipped_no_gain = selector.stats.skipped_no_gain
+    stats.select_s = selector.stats.score_s
+    return chosen

@@ -88,6 +88,14 @@ class SemanticCounter(StrEnum):
     REGIONS_MERGED = "regions_merged"  # regions folded into another by those passes
     REGIONS_PRUNED = "regions_pruned"  # regions removed for holding no voxel in two passes in a row
     MERGE_FAILURES = "merge_failures"  # passes skipped: geometry did not answer geometry/contacts
+    # frame selection (openfusion.mapping.selection; semantic.select)
+    ENCODER_CALLS = "encoder_calls"  # frames the region encoder encoded (here, or answered by the pool's workers)
+    ENCODER_REGIONS = "encoder_regions"  # regions it returned, summed over those calls
+    FRAMES_SCORED = "frames_scored"  # candidate frames scored (coverage)
+    SKIPPED_NO_GAIN = "skipped_no_gain"  # frames not encoded: they would add less than select_min_gain
+    SELECT_EVICTED = "select_evicted"  # candidates a full window let go for better ones (never encoded)
+    SELECT_BUSY_S = "select_busy_s"  # time spent scoring candidates (render request + scoring)
+    SELECT_WINDOW = "select_window"  # candidates waiting for the encoder now
 
 
 class EncoderCounter(StrEnum):

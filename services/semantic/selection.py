@@ -1,0 +1,179 @@
+"""The semantic service's side of frame selection (``semantic.select = coverage``): candidates in,
+the best one out when the encoder is free.
+
+A thread of its own (:meth:`CandidateFeeder.run`) takes every frame off the ``sensor/rgbd``
+subscription (a queue of ``select_window`` frames, not latest-only), applies the semantic switch,
+joins the frame with its instance image when the encoder reads them, asks geometry for a render of
+the map at the frame's pose at the scored size (``geometry/render``, ``select_width_px`` wide) and
+offers the prepared view to the :class:`~openfusion.mapping.selection.CandidateWindow`. The
+encoding side (the service loop with its local encoder, or the encoder pool's dispatch) takes the
+best candidate from the window whenever it is free; a candidate that adds too little is dropped
+without being encoded (``skipped_no_gain``), one a full window lets go for better ones is counted
+in ``select_evicted``. Scoring on its own thread keeps the encoder busy: scoring the frames that
+came during one encoder call costs a render request each, and with the local encoder those
+requests would otherwise wait for, and delay, the next call.
+
+``last_frame_handled`` (the counter tests and tools wait on) keeps its meaning under selection,
+where frames leave the window out of order: it is the newest frame taken off the subscription
+such that it and every frame taken before it are done with (encoded, or skipped for a counted
+reason): :class:`HandledFrames`.
+
+The rules and the scorer are library code (:mod:`openfusion.mapping.selection`); this module only
+wires them to the bus.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from openfusion.bus import QueryError, ServiceRunner, Subscriber
+from openfusion.bus.instance_join import InstanceBuffer
+from openfusion.frame import CameraIntrinsics
+from openfusion.mapping.selection import CandidateWindow, CoverageScorer, WindowChange
+from openfusion.wire.counters import SemanticCounter
+from openfusion.wire.endpoints import GEOMETRY_RENDER
+from openfusion.wire.schemas import InstanceFrame, RenderRequest, RgbdFrame
+
+logger = logging.getLogger(__name__)
+
+
+class HandledFrames:
+    """The ``last_frame_handled`` watermark: frames are announced as they are taken off the
+    subscription and marked done in any order; :meth:`done` returns the newest frame id whose
+    frame and every frame announced before it are done (None when that did not move)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._order: collections.deque[tuple[int, int]] = collections.deque()  # (frame id, stamp) in arrival order
+        self._done: set[tuple[int, int]] = set()
+
+    def arrived(self, frame_id: int, stamp_ns: int) -> None:
+        with self._lock:
+            self._order.append((frame_id, stamp_ns))
+
+    def done(self, frame_id: int, stamp_ns: int) -> int | None:
+        with self._lock:
+            self._done.add((frame_id, stamp_ns))
+            mark = None
+            while self._order and self._order[0] in self._done:
+                head = self._order.popleft()
+                self._done.discard(head)
+                mark = head[0]
+            return mark
+
+    @property
+    def pending(self) -> int:
+        with self._lock:
+            return len(self._order)
+
+
+@dataclass
+class Pending:
+    """A candidate's payload: the frame as it came and its instance image (when the encoder reads them)."""
+
+    msg: RgbdFrame
+    instance: InstanceFrame | None
+
+
+class CandidateFeeder:
+    """Frames off the subscription -> scored candidates in the window (module docstring)."""
+
+    def __init__(
+        self,
+        *,
+        frames: Subscriber[RgbdFrame],
+        window: CandidateWindow[Pending],
+        scorer: CoverageScorer,
+        accept: Any,
+        instances: InstanceBuffer | None,
+        instance_wait_s: float,
+        render_timeout_s: float,
+        on_no_instance: Any,
+    ) -> None:
+        self.frames = frames
+        self.window = window
+        self.scorer = scorer
+        self.accept = accept  # (frame id, now) -> bool: the semantic switch
+        self.instances = instances
+        self.instance_wait_s = instance_wait_s
+        self.render_timeout_s = render_timeout_s
+        self.on_no_instance = on_no_instance  # (runner, msg): counts and logs a frame without its instance image
+        self.handled = HandledFrames()
+
+    def run(self, runner: ServiceRunner) -> None:
+        """Feed the window until the service stops (a thread of the service)."""
+        while not runner.stopping:
+            msg = self.frames.recv(timeout_s=0.2)
+            if msg is None:
+                continue
+            try:
+                self.feed(runner, msg)
+            except Exception:  # one frame's failure never ends the feeding: logged, counted, next frame
+                logger.exception("semantic: scoring frame %d failed; it is skipped", msg.frame_id)
+                runner.stats.incr(SemanticCounter.FRAMES_FAILED)
+                runner.stats.add_error()
+                self.finish(runner, msg)
+
+    def feed(self, runner: ServiceRunner, msg: RgbdFrame) -> None:
+        """Score one frame and offer it to the window (or count why it is not a candidate)."""
+        stats = runner.stats
+        self.handled.arrived(msg.frame_id, msg.stamp_ns)
+        if not self.accept(msg.frame_id, time.monotonic()):
+            stats.incr(SemanticCounter.SKIPPED_SWITCH)
+            self.finish(runner, msg)
+            return
+        instance = None
+        if self.instances is not None and msg.instance is None:
+            instance = self.instances.take(msg, timeout_s=self.instance_wait_s)
+            stats.set(SemanticCounter.INSTANCES_EVICTED, self.instances.evicted)
+            if instance is None:
+                self.on_no_instance(runner, msg)
+                self.finish(runner, msg)
+                return
+        started = time.monotonic()
+        try:
+            evidence = self._prepare(runner, msg)
+        except QueryError as exc:  # geometry did not answer the render: the frame cannot be scored
+            logger.warning("semantic: frame %d not scored: %s", msg.frame_id, exc)
+            stats.incr(SemanticCounter.SKIPPED_NO_RENDER)
+            self.finish(runner, msg)
+            return
+        change = self.window.offer(evidence, Pending(msg, instance))
+        stats.incr(SemanticCounter.SELECT_BUSY_S, time.monotonic() - started)
+        stats.incr(SemanticCounter.FRAMES_SCORED)
+        self.account(runner, change)
+
+    def _prepare(self, runner: ServiceRunner, msg: RgbdFrame) -> Any:
+        def render(T_world_cam: Any, K_small: CameraIntrinsics) -> Any:
+            return runner.call(GEOMETRY_RENDER, RenderRequest(frame_id=msg.frame_id, T_world_cam=T_world_cam,
+                                                              **RenderRequest.intrinsics_fields(K_small)),
+                               timeout_s=self.render_timeout_s)
+
+        return self.scorer.prepare_frame(msg.to_frame(), render)
+
+    def take(self, runner: ServiceRunner, timeout_s: float) -> Pending | None:
+        """The best candidate for the encoder now (waiting up to ``timeout_s``), or None."""
+        change = self.window.take(timeout_s)
+        self.account(runner, change)
+        return change.taken.payload if change.taken is not None else None
+
+    def account(self, runner: ServiceRunner, change: WindowChange[Pending]) -> None:
+        """Count the candidates that left without being encoded; they are done with."""
+        for cand in change.no_gain:
+            runner.stats.incr(SemanticCounter.SKIPPED_NO_GAIN)
+            self.finish(runner, cand.payload.msg)
+        for cand in change.evicted:
+            runner.stats.incr(SemanticCounter.SELECT_EVICTED)
+            self.finish(runner, cand.payload.msg)
+        runner.stats.set(SemanticCounter.SELECT_WINDOW, len(self.window))
+
+    def finish(self, runner: ServiceRunner, msg: RgbdFrame) -> None:
+        """``msg`` is done with (encoded, failed or skipped): move ``last_frame_handled``."""
+        mark = self.handled.done(msg.frame_id, msg.stamp_ns)
+        if mark is not None:
+            runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, mark)

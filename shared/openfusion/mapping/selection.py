@@ -1,0 +1,558 @@
+"""Coverage-driven frame selection: encode the views that add something.
+
+The region encoder is the most expensive step of the pipeline, and most frames of a camera at
+30 fps show what the frame before showed. :class:`CoverageScorer` says, for a candidate frame,
+what encoding it would add to the map, from the frame's pose and depth and the map as geometry
+holds it (a render of the region keys and confidences at the frame's pose), plus a small record
+of what earlier encoded frames covered. :class:`CandidateWindow` holds the candidates while the
+encoder is busy and gives it the best one when it is free. The in-process pipeline, the evaluation
+and the semantic service (with its local encoder or the encoder pool) all use these two classes
+(:class:`FrameSelector` is the in-process driver), with the parameters of
+:class:`~openfusion.mapping.params.SelectParams`.
+
+The score (one number, shares of the scored view's pixels)
+    ``gain = new_surface + select_direction_weight * new_direction + stale``
+
+    - **new surface**: surface pixels (the frame's own depth is valid) where the render shows no
+      region or a confidence below ``select_low_conf``, and whose surface was not shown from the
+      same direction bin by an encoded frame before. The second half matters: surface an encoder
+      never labels (a floor gap, a region border whose fused confidence stays low, anything a
+      real encoder misses) would otherwise make every view of it look new forever. Unlabelled
+      surface is remembered per cube of ``select_cell_m`` with a bit per direction bin.
+    - **new direction**: pixels of a region (labelled, confident) seen from a viewing direction
+      bin the region was not encoded from (OVI-MAP's per-instance coverage of directions; our
+      bins are ``select_direction_bins`` points of a Fibonacci sphere, the direction is the one
+      from the surface to the camera). Only regions that fill at least
+      ``select_min_region_share`` of the view count (OVI-MAP asks 1000 visible pixels).
+    - **stale**: pixels of a region in view (same size rule) that no encoded frame showed for
+      ``select_stale_s`` seconds of frame time: the floor that keeps a region that stays in view
+      from going stale; a stale region that fills ``select_min_gain`` of a view is encoded again.
+
+    A frame is encoded only when ``gain >= select_min_gain``: a frame that adds nothing is not
+    encoded even when the encoder is idle (counted ``skipped_no_gain``).
+
+Why these rules and defaults (measured in docs/EVAL.md, "Frame selection")
+    OVI-MAP (CVPR 2026) runs its VLM only on views that add viewing-direction coverage of an
+    instance (at most 0.9 overlap with the covered bins, at least 1000 visible pixels, the top K by
+    visible area) and cut VLM calls per instance from 18.7 to 8.6 at about the same accuracy; OVO
+    keeps the top views per segment by mask area. We score whole frames because our encoders
+    describe a frame at once (one call per frame, all its regions), so what a call buys is the sum
+    over its regions: new surface first (weight 1: an unlabelled pixel is a miss in every metric),
+    new directions of known regions at half weight (a second view of a labelled surface refines
+    its embedding and its borders but is worth less than a first one), and staleness as a floor.
+    The bins are coarse (24, about 47 degrees across): finer bins made a robot's small turns look
+    new. The view is scored at 64 px wide: a ray cast of the map at that size costs ~4 ms on a
+    laptop core, well under 10 % of a semantic step (render, match and update at the encoder's
+    160x120 alone take ~35 ms), and a region of 0.5 % of the view is still 15 pixels.
+
+What is remembered (the scorer's state; it grows with the mapped surface, not with time)
+    per region: a bit mask of the direction bins it was encoded from and the stamp of its last
+    encoded view; per ``select_cell_m`` cube of surface an encoded frame showed: a bit mask of the
+    bins it was shown from. Both follow merges (:meth:`CoverageScorer.merge`). A restarted semantic
+    service starts with an empty record: every labelled region looks unseen from every direction
+    once, so the first views after a restart are encoded again (the map itself is recovered).
+
+Cost: :meth:`CoverageScorer.prepare` is numpy over the scored view's pixels (~0.3 ms at 64x48); a
+rescore of a prepared view (:meth:`CoverageScorer.score`, after the record changed) ~0.1 ms; the
+render at the candidate's pose is the caller's (``SemanticVolume.render`` in one process, a
+``geometry/render`` request in the services) and dominates.
+
+Written here rather than taken from a library: no library scores views against a semantic map;
+the pieces are numpy.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Generic, TypeVar
+
+import numpy as np
+
+from openfusion.frame import CameraIntrinsics, Frame, resize_nearest
+from openfusion.mapping.params import SelectParams
+
+T = TypeVar("T")
+
+#: A chosen view marks the surface it shows sampled this many times denser (per side) than it is
+#: scored: at 64 px wide a scored pixel of a wall 4.7 m away is 9 cm across, about a cube, and
+#: the cubes between the scored pixels' samples were counted as never shown in the next frame
+#: (measured: 4-10 % of every view looked new right after an encoded frame).
+MARK_DENSITY = 3
+
+#: Cell coordinates are packed into one int64: 21 bits per axis around 0 (+-1,048,576 cells; at
+#: 0.1 m cells +-100 km).
+_CELL_BITS = 21
+_CELL_OFFSET = 1 << (_CELL_BITS - 1)
+_CELL_MASK = (1 << _CELL_BITS) - 1
+
+
+def fibonacci_directions(n: int) -> np.ndarray:
+    """``n`` unit vectors spread evenly over the sphere (float64 (n, 3)): the direction bins' centres."""
+    if n < 1:
+        raise ValueError(f"need at least one direction bin, got {n}")
+    i = np.arange(n, dtype=np.float64) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    theta = math.pi * (1.0 + math.sqrt(5.0)) * i
+    return np.stack([r * np.cos(theta), r * np.sin(theta), z], axis=1)
+
+
+def scoring_size(intrinsics: CameraIntrinsics, width_px: int) -> tuple[int, int]:
+    """(height, width) of the scored view: ``width_px`` wide (at most the frame's), same aspect."""
+    w = max(1, min(int(width_px), intrinsics.width_px))
+    h = max(1, int(round(intrinsics.height_px * w / intrinsics.width_px)))
+    return h, w
+
+
+@dataclass
+class ViewEvidence:
+    """A candidate view, prepared once (:meth:`CoverageScorer.prepare`): per surface pixel of the
+    scored view its direction bin, its surface cube and the region the map holds there."""
+
+    frame_id: int
+    stamp_s: float
+    view_px: int  # pixels of the scored view (the shares' denominator)
+    bins: np.ndarray  # (n,) int64, direction bin of each surface pixel
+    cells: np.ndarray  # (n,) int64, packed surface cube of each surface pixel
+    keys: np.ndarray  # (n,) int64, the map's region at each surface pixel (-1: none)
+    confident: np.ndarray  # (n,) bool, key >= 0 with confidence >= select_low_conf
+    # what a chosen view marks as shown: the surface cubes and bins of the view sampled
+    # MARK_DENSITY times denser than it is scored (None: the scored pixels)
+    mark_cells: np.ndarray | None = None
+    mark_bins: np.ndarray | None = None
+
+    @property
+    def surface_px(self) -> int:
+        return int(len(self.bins))
+
+
+@dataclass(frozen=True)
+class ViewScore:
+    """What encoding a view would add, in shares of its pixels (module docstring)."""
+
+    frame_id: int
+    gain: float
+    new_surface: float
+    new_direction: float
+    stale: float
+    surface: float  # share of the view with valid depth
+    regions: int  # regions in view big enough to count
+
+
+class CoverageScorer:
+    """The score of a view against what encoded frames already covered (module docstring).
+
+    Thread-safe: the semantic service prepares candidates on one thread, takes them on another and
+    records plans on a third."""
+
+    def __init__(self, params: SelectParams | None = None) -> None:
+        self.params = params if params is not None else SelectParams()
+        p = self.params
+        self.directions = fibonacci_directions(p.select_direction_bins)
+        self._lock = threading.RLock()
+        self._region_bins: dict[int, int] = {}
+        self._region_last_s: dict[int, float] = {}
+        self._region_views: dict[int, int] = {}  # encoded frames whose update wrote the region
+        # _cell_tries[i][cube]: the direction bins the cube was shown from by at least i + 1 encoded frames
+        self._cell_tries: list[dict[int, int]] = [{} for _ in range(p.select_tries)]
+        self._rays: dict[CameraIntrinsics, np.ndarray] = {}
+
+    # ------------------------------------------------------------------ record
+    @property
+    def regions_recorded(self) -> int:
+        with self._lock:
+            return len(self._region_bins)
+
+    @property
+    def cells_recorded(self) -> int:
+        with self._lock:
+            return len(self._cell_tries[0])
+
+    def record_bytes(self) -> int:
+        """Rough memory of the record (python dict entries of two ints, ~100 B each)."""
+        with self._lock:
+            return 100 * (sum(len(t) for t in self._cell_tries) + 3 * len(self._region_bins))
+
+    def reset(self) -> None:
+        with self._lock:
+            self._region_bins.clear()
+            self._region_last_s.clear()
+            self._region_views.clear()
+            for table in self._cell_tries:
+                table.clear()
+
+    def merge(self, merged_into: Mapping[int, int], removed: Iterable[int] = ()) -> None:
+        """Follow the dictionary: region ``b`` merged into ``a`` gives ``a`` its direction bins and the
+        later of the two last-seen stamps; removed regions are forgotten."""
+        with self._lock:
+            def root(k: int) -> int:
+                seen = set()
+                while k in merged_into and k not in seen:
+                    seen.add(k)
+                    k = int(merged_into[k])
+                return k
+
+            for b in merged_into:
+                b, a = int(b), root(int(b))
+                bits = self._region_bins.pop(b, 0)
+                last = self._region_last_s.pop(b, None)
+                views = self._region_views.pop(b, 0)
+                if a < 0:
+                    continue
+                if bits:
+                    self._region_bins[a] = self._region_bins.get(a, 0) | bits
+                if views:
+                    self._region_views[a] = self._region_views.get(a, 0) + views
+                if last is not None:
+                    self._region_last_s[a] = max(last, self._region_last_s.get(a, last))
+            for k in removed:
+                self._region_bins.pop(int(k), None)
+                self._region_last_s.pop(int(k), None)
+                self._region_views.pop(int(k), None)
+
+    # ------------------------------------------------------------------ geometry of a view
+    def _camera_rays(self, intrinsics: CameraIntrinsics) -> np.ndarray:
+        """(h*w, 3) camera-frame rays with z = 1 through every pixel centre (integer coordinates, the
+        convention of :meth:`CameraIntrinsics.scaled`; cached)."""
+        rays = self._rays.get(intrinsics)
+        if rays is None:
+            h, w = intrinsics.height_px, intrinsics.width_px
+            u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))  # pixel centres
+            rays = np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy,
+                             np.ones_like(u)], axis=-1).reshape(-1, 3)
+            if len(self._rays) > 16:
+                self._rays.clear()
+            self._rays[intrinsics] = rays
+        return rays
+
+    def _bins_of(self, rays_cam: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
+        """Direction bin (from the surface to the camera, world frame) of each camera ray."""
+        to_camera = -(rays_cam @ np.asarray(T_world_cam, np.float64)[:3, :3].T)
+        return np.argmax(to_camera @ self.directions.T, axis=1).astype(np.int64)
+
+    def _cells_of(self, points_world: np.ndarray) -> np.ndarray:
+        c = np.floor(points_world / self.params.select_cell_m).astype(np.int64) + _CELL_OFFSET
+        c &= _CELL_MASK
+        return (c[:, 0] << (2 * _CELL_BITS)) | (c[:, 1] << _CELL_BITS) | c[:, 2]
+
+    def prepare(
+        self,
+        *,
+        frame_id: int,
+        stamp_ns: int,
+        T_world_cam: np.ndarray,
+        intrinsics: CameraIntrinsics,
+        depth_m: np.ndarray,
+        key_map: np.ndarray,
+        conf_map: np.ndarray,
+        full_depth_m: np.ndarray | None = None,
+        full_intrinsics: CameraIntrinsics | None = None,
+    ) -> ViewEvidence:
+        """The evidence of one view: ``intrinsics`` of the scored view (:func:`scoring_size`),
+        the frame's depth in metres at that size, and the map's key and confidence maps rendered at
+        the frame's pose at that size. ``full_depth_m`` with its ``full_intrinsics`` (the frame's
+        own): what the view marks as shown when it is chosen is sampled from it,
+        :data:`MARK_DENSITY` times denser than the score (a cube the scored pixels step over is
+        shown all the same). Raises ValueError when the sizes disagree."""
+        h, w = intrinsics.height_px, intrinsics.width_px
+        for name, arr in (("depth_m", depth_m), ("key_map", key_map), ("conf_map", conf_map)):
+            if np.shape(arr) != (h, w):
+                raise ValueError(f"{name} is {np.shape(arr)}, the scored view is {(h, w)}")
+        depth = np.asarray(depth_m, np.float64).reshape(-1)
+        surface = np.isfinite(depth) & (depth > 0)
+        rays = self._camera_rays(intrinsics)[surface]
+        T = np.asarray(T_world_cam, np.float64)
+        points = (rays * depth[surface, None]) @ T[:3, :3].T + T[:3, 3]
+        keys = np.asarray(key_map).reshape(-1)[surface].astype(np.int64)
+        conf = np.asarray(conf_map, np.float32).reshape(-1)[surface]
+        ev = ViewEvidence(
+            frame_id=int(frame_id), stamp_s=stamp_ns / 1e9, view_px=h * w, bins=self._bins_of(rays, T),
+            cells=self._cells_of(points), keys=keys, confident=(keys >= 0) & (conf >= self.params.select_low_conf))
+        if full_depth_m is not None and full_intrinsics is not None:
+            mh, mw = scoring_size(full_intrinsics, MARK_DENSITY * w)
+            K_mark = full_intrinsics.scaled(mw, mh)
+            fine = np.asarray(resize_nearest(np.asarray(full_depth_m), (mh, mw)), np.float64).reshape(-1)
+            ok = np.isfinite(fine) & (fine > 0)
+            fine_rays = self._camera_rays(K_mark)[ok]
+            ev.mark_cells = self._cells_of((fine_rays * fine[ok, None]) @ T[:3, :3].T + T[:3, 3])
+            ev.mark_bins = self._bins_of(fine_rays, T)
+        return ev
+
+    def prepare_frame(self, frame: Frame, render: Callable[[np.ndarray, CameraIntrinsics], Any]) -> ViewEvidence:
+        """:meth:`prepare` for a frame, with ``render(T_world_cam, intrinsics)`` giving the map's
+        ``key_map`` and ``conf_map`` at the scored size (a ``RenderedView`` or a render reply)."""
+        h, w = scoring_size(frame.intrinsics, self.params.select_width_px)
+        K = frame.intrinsics.scaled(w, h)
+        rendered = render(frame.T_world_cam, K)
+        depth_m = frame.depth_m()
+        return self.prepare(frame_id=frame.frame_id, stamp_ns=frame.stamp_ns, T_world_cam=frame.T_world_cam,
+                            intrinsics=K, depth_m=resize_nearest(depth_m, (h, w)),
+                            key_map=rendered.key_map, conf_map=rendered.conf_map, full_depth_m=depth_m,
+                            full_intrinsics=frame.intrinsics)
+
+    # ------------------------------------------------------------------ score
+    def score(self, ev: ViewEvidence) -> ViewScore:
+        """The view's gain against the record as it is now (cheap: call again after it changed)."""
+        p = self.params
+        with self._lock:
+            # new surface: unlabelled / unsure pixels whose cube was not shown from this bin
+            unsure = ~ev.confident
+            new_surface = 0
+            if unsure.any():
+                cells, bins = ev.cells[unsure], ev.bins[unsure]
+                uniq, inv = np.unique(cells, return_inverse=True)
+                tried = self._cell_tries[-1]
+                masks = np.fromiter((tried.get(int(c), 0) for c in uniq), np.int64, len(uniq))
+                new_surface = int((((masks[inv] >> bins) & 1) == 0).sum())
+            # regions: new directions and staleness, for regions big enough to count
+            new_direction = stale = regions = 0
+            if ev.confident.any():
+                keys, bins = ev.keys[ev.confident], ev.bins[ev.confident]
+                uniq, inv, counts = np.unique(keys, return_inverse=True, return_counts=True)
+                big = counts >= max(1.0, p.select_min_region_share * ev.view_px)
+                regions = int(big.sum())
+                masks = np.fromiter((self._region_bins.get(int(k), 0) for k in uniq), np.int64, len(uniq))
+                few = np.fromiter((self._region_views.get(int(k), 0) < p.select_min_views for k in uniq), bool,
+                                  len(uniq))
+                new_px = ((((masks[inv] >> bins) & 1) == 0) | few[inv]) & big[inv]
+                new_direction = int(new_px.sum())
+                if p.select_stale_s is not None:
+                    last = np.fromiter((self._region_last_s.get(int(k), math.inf) for k in uniq), np.float64,
+                                       len(uniq))
+                    is_stale = big & (ev.stamp_s - last >= p.select_stale_s)
+                    stale = int(counts[is_stale].sum())
+        n = max(1, ev.view_px)
+        gain = (new_surface + p.select_direction_weight * new_direction + stale) / n
+        return ViewScore(frame_id=ev.frame_id, gain=gain, new_surface=new_surface / n,
+                         new_direction=new_direction / n, stale=stale / n, surface=ev.surface_px / n,
+                         regions=regions)
+
+    def worth_encoding(self, score: ViewScore) -> bool:
+        """A view is encoded only when its gain reaches ``select_min_gain`` (and it adds anything)."""
+        return score.gain > 0 and score.gain >= self.params.select_min_gain
+
+    # ------------------------------------------------------------------ record what was encoded
+    def mark_selected(self, ev: ViewEvidence) -> None:
+        """Record a view chosen for the encoder (before its result is back, so the next choice
+        does not pick the same new surface again): its surface cubes and the map's regions in it
+        are now covered from its bins, the regions seen at its stamp."""
+        with self._lock:
+            if ev.mark_cells is not None and ev.mark_bins is not None and len(ev.mark_cells):
+                self._mark_cells(ev.mark_cells, ev.mark_bins)
+            elif ev.surface_px:
+                self._mark_cells(ev.cells, ev.bins)
+            labelled = ev.keys >= 0
+            if labelled.any():
+                _or_into(self._region_bins, ev.keys[labelled], ev.bins[labelled])
+                for k in np.unique(ev.keys[labelled]):
+                    self._region_last_s[int(k)] = ev.stamp_s
+
+    def observe_plan(self, key_map: np.ndarray, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics,
+                     stamp_ns: int) -> None:
+        """Record the regions an applied update wrote (the plan's ``key_map`` at the encoder's
+        size, ``intrinsics`` of that size): new regions get their first direction bins, every
+        region written its last-seen stamp. Scored at :attr:`SelectParams.select_width_px`."""
+        key_map = np.asarray(key_map)
+        if key_map.ndim != 2 or key_map.size == 0:
+            return
+        h, w = scoring_size(intrinsics, self.params.select_width_px)
+        small = resize_nearest(key_map, (h, w)).reshape(-1)
+        labelled = small >= 0
+        if not labelled.any():
+            return
+        rays = self._camera_rays(intrinsics.scaled(w, h))[labelled]
+        bins = self._bins_of(rays, T_world_cam)
+        keys = small[labelled].astype(np.int64)
+        with self._lock:
+            _or_into(self._region_bins, keys, bins)
+            for k in np.unique(keys).tolist():
+                self._region_last_s[k] = max(stamp_ns / 1e9, self._region_last_s.get(k, -math.inf))
+                self._region_views[k] = self._region_views.get(k, 0) + 1
+
+    def _mark_cells(self, cells: np.ndarray, bins: np.ndarray) -> None:
+        """(lock held) One more encoded frame showed ``cells`` from ``bins``: count it per try level."""
+        tries = self._cell_tries
+        for cell, bits in _group_bits(cells, bins):
+            for level in range(len(tries) - 1, 0, -1):
+                below = tries[level - 1].get(cell, 0) & bits
+                if below:
+                    tries[level][cell] = tries[level].get(cell, 0) | below
+            tries[0][cell] = tries[0].get(cell, 0) | bits
+
+
+def _group_bits(keys: np.ndarray, bins: np.ndarray) -> list[tuple[int, int]]:
+    """``(key, bits)`` per distinct key: the OR of ``1 << bin`` over its pairs."""
+    if len(keys) == 0:
+        return []
+    order = np.argsort(keys, kind="stable")
+    keys, bits = keys[order], np.left_shift(np.int64(1), bins[order])
+    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    ored = np.bitwise_or.reduceat(bits, starts)
+    return list(zip(keys[starts].tolist(), ored.tolist(), strict=True))
+
+
+def _or_into(table: dict[int, int], keys: np.ndarray, bins: np.ndarray) -> None:
+    """``table[k] |= 1 << bin`` for every (key, bin) pair, grouped per key."""
+    for k, b in _group_bits(keys, bins):
+        table[k] = table.get(k, 0) | b
+
+
+# ---------------------------------------------------------------------------------- the window
+
+
+@dataclass
+class Candidate(Generic[T]):
+    """A frame waiting for the encoder: its prepared view, its last score and what the caller
+    needs to encode it (``payload``: the frame, or the message and its instance image)."""
+
+    evidence: ViewEvidence
+    score: ViewScore
+    payload: T
+    arrival: int
+
+
+@dataclass
+class WindowChange(Generic[T]):
+    """What one call to the window did: the candidate taken (None: none), and the candidates that
+    left without being encoded: ``no_gain`` (their gain fell under ``select_min_gain``) and
+    ``evicted`` (a full window let them go for better ones)."""
+
+    taken: Candidate[T] | None = None
+    no_gain: list[Candidate[T]] = field(default_factory=list)
+    evicted: list[Candidate[T]] = field(default_factory=list)
+
+
+class CandidateWindow(Generic[T]):
+    """Candidate frames while the encoder is busy; :meth:`take` gives it the best one.
+
+    ``offer`` scores a new candidate and drops it at once when it adds too little; a window over
+    ``select_window`` lets its lowest-scoring candidate go. ``take`` rescores every candidate
+    against the record as it is now (the encoded frames since they were scored may have covered
+    what they showed), drops those that fell under ``select_min_gain`` and returns the best
+    (ties: the newest), recording it as selected. Thread-safe; ``take`` can wait for a candidate."""
+
+    def __init__(self, scorer: CoverageScorer, capacity: int | None = None) -> None:
+        self.scorer = scorer
+        self.capacity = int(capacity if capacity is not None else scorer.params.select_window)
+        if self.capacity < 1:
+            raise ValueError(f"the window must hold at least one frame, got {self.capacity}")
+        self._items: list[Candidate[T]] = []
+        self._arrivals = 0
+        self._cond = threading.Condition()
+        self._closed = False
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._items)
+
+    def offer(self, evidence: ViewEvidence, payload: T) -> WindowChange[T]:
+        score = self.scorer.score(evidence)
+        with self._cond:
+            cand = Candidate(evidence, score, payload, self._arrivals)
+            self._arrivals += 1
+            change: WindowChange[T] = WindowChange()
+            if not self.scorer.worth_encoding(score):
+                change.no_gain.append(cand)
+                return change
+            self._items.append(cand)
+            if len(self._items) > self.capacity:
+                for c in self._items:
+                    c.score = self.scorer.score(c.evidence)
+                worst = min(self._items, key=lambda c: (c.score.gain, c.arrival))
+                self._items.remove(worst)
+                (change.evicted if self.scorer.worth_encoding(worst.score) else change.no_gain).append(worst)
+            self._cond.notify_all()
+            return change
+
+    def take(self, timeout_s: float = 0.0) -> WindowChange[T]:
+        """The best candidate worth encoding (recorded as selected), waiting up to ``timeout_s``
+        for one; ``no_gain``: candidates dropped on the way."""
+        change: WindowChange[T] = WindowChange()
+        deadline = time.monotonic() + max(0.0, timeout_s)
+        with self._cond:
+            while True:
+                for c in self._items:
+                    c.score = self.scorer.score(c.evidence)
+                change.no_gain += [c for c in self._items if not self.scorer.worth_encoding(c.score)]
+                self._items = [c for c in self._items if self.scorer.worth_encoding(c.score)]
+                if self._items:
+                    best = max(self._items, key=lambda c: (c.score.gain, c.arrival))
+                    self._items.remove(best)
+                    self.scorer.mark_selected(best.evidence)
+                    change.taken = best
+                    return change
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or self._closed:
+                    return change
+                self._cond.wait(remaining)
+
+    def drain(self) -> list[Candidate[T]]:
+        """Remove and return every candidate (a new playback, a shutdown)."""
+        with self._cond:
+            out, self._items = self._items, []
+            return out
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+
+# ---------------------------------------------------------------------------------- in one process
+
+
+@dataclass
+class SelectionStats:
+    """Counts and time of the selection in one process (run.json, the eval report)."""
+
+    frames_scored: int = 0
+    skipped_no_gain: int = 0
+    score_s: float = 0.0  # rendering at the scored size + scoring
+
+
+class FrameSelector:
+    """Selection where the encoder is free for every frame (the in-process pipeline, the eval):
+    each frame is scored as it comes and encoded when it adds enough (``select=coverage``), or
+    always (``every`` / ``latest``, which are the same in one process). The services use the same
+    :class:`CoverageScorer` through a :class:`CandidateWindow`, since their encoder is busy while
+    frames come."""
+
+    def __init__(self, params: SelectParams | None, render: Callable[[np.ndarray, CameraIntrinsics], Any]) -> None:
+        self.params = params if params is not None else SelectParams()
+        self.scorer = CoverageScorer(self.params)
+        self.render = render
+        self.stats = SelectionStats()
+        self.last_score: ViewScore | None = None
+
+    @property
+    def scoring(self) -> bool:
+        return self.params.select == "coverage"
+
+    def wants(self, frame: Frame) -> bool:
+        """Whether ``frame`` goes to the encoder; with ``coverage`` it is then recorded as selected."""
+        if not self.scoring:
+            return True
+        t0 = time.perf_counter()
+        ev = self.scorer.prepare_frame(frame, self.render)
+        score = self.scorer.score(ev)
+        self.last_score = score
+        chosen = self.scorer.worth_encoding(score)
+        if chosen:
+            self.scorer.mark_selected(ev)
+        self.stats.frames_scored += 1
+        self.stats.skipped_no_gain += int(not chosen)
+        self.stats.score_s += time.perf_counter() - t0
+        return chosen
+
+    def encoded(self, frame: Frame, key_map: np.ndarray) -> None:
+        """Record the update a chosen frame's encoding planned (``key_map`` at the encoder's size)."""
+        if self.scoring and key_map is not None:
+            h, w = np.shape(key_map)
+            self.scorer.observe_plan(key_map, frame.T_world_cam, frame.intrinsics.scaled(w, h), frame.stamp_ns)
+
+    def merged(self, merged_into: Mapping[int, int], removed: Iterable[int] = ()) -> None:
+        self.scorer.merge(merged_into, removed)
