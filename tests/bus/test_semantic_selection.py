@@ -1,0 +1,166 @@
+"""Coverage-driven frame selection in the semantic service, on a real bus in this process: the
+real geometry and semantic service objects (and an encoder worker of the pool), frames published
+by the test as the bridge would.
+
+Shown: a frame that adds nothing is not encoded even when the encoder is idle (``skipped_no_gain``),
+a frame with new surface is; while the encoder is busy the candidates wait in the window and the
+encoder gets the one that adds something, not the newest; the encoder pool dispatches from the
+same window. Bad input tried: no geometry to render candidates (each frame is counted in
+``skipped_no_render``, ``last_frame_handled`` still moves, nothing is encoded, the service keeps
+running)."""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from contextlib import ExitStack
+
+from openfusion.bus import Publisher, open_session
+from openfusion.services.encoder.service import EncoderConfig, EncoderWorker
+from openfusion.services.geometry.service import GeometryConfig, GeometryService
+from openfusion.services.semantic.service import SemanticConfig, SemanticService
+from openfusion.sources import open_source
+from openfusion.testing.bus import (
+    ServiceThread,
+    free_port,
+    loopback_config,
+    send_until_handled,
+    unique_map_id,
+    wait_for_services,
+    wait_until,
+)
+from openfusion.testing.encoders import FlakyEncoder
+from openfusion.wire.counters import GeometryCounter, PoolCounter, SemanticCounter
+from openfusion.wire.endpoints import SENSOR_RGBD
+from openfusion.wire.schemas import RgbdFrame
+
+LAP = list(open_source("synthetic:frames=90,width=160,height=120"))
+HERE, THERE = LAP[0], LAP[-1]  # a quarter of the room's lap apart: the second shows surface the first did not
+
+
+def _as(frame, frame_id: int):  # noqa: ANN001, ANN202
+    """``frame`` again under another id (the same view, later)."""
+    return dataclasses.replace(frame, frame_id=frame_id, stamp_ns=frame_id * 33_333_333)
+
+
+def _config(model, map_id: str, section: str, values: dict, **ports):  # noqa: ANN001, ANN003, ANN202
+    return model.model_validate({**loopback_config(map_id, **ports).model_dump(), section: values})
+
+
+class GatedEncoder(FlakyEncoder):
+    """Holds frame ``gate_on`` until :attr:`release` is set (a busy encoder, on cue)."""
+
+    def __init__(self, gate_on: int) -> None:
+        super().__init__(empty_on=(), fail_on=())
+        self.gate_on = gate_on
+        self.started = threading.Event()
+        self.release = threading.Event()
+        self.encoded: list[int] = []
+
+    def encode(self, frame):  # noqa: ANN001, ANN201
+        if frame.frame_id == self.gate_on:
+            self.started.set()
+            self.release.wait(timeout=120)
+        self.encoded.append(frame.frame_id)
+        return super().encode(frame)
+
+
+SELECT = {"select": "coverage", "select_tries": 1, "recover_timeout_s": 0, "instance_wait_s": 5}
+
+
+def _rig(stack: ExitStack, *, encoder, semantic_values: dict, geometry: bool = True):  # noqa: ANN001, ANN202
+    map_id = unique_map_id("select")
+    port = free_port()
+    sem_cfg = _config(SemanticConfig, map_id, "semantic", {**SELECT, **semantic_values}, listen=[port])
+    semantic = stack.enter_context(ServiceThread(SemanticService(sem_cfg, encoder=encoder), sem_cfg, "semantic"))
+    geo = None
+    if geometry:
+        geo_cfg = _config(GeometryConfig, map_id, "geometry", {"initial_block_count": 2048}, connect=[port])
+        geo = stack.enter_context(ServiceThread(GeometryService(geo_cfg), geo_cfg, "geometry"))
+    session = open_session(loopback_config(map_id, connect=[port]))
+    stack.callback(session.close)
+    wait_for_services(session, map_id, ["semantic", *(["geometry"] if geometry else [])])
+    rgbd = Publisher(session, SENSOR_RGBD.key(sem_cfg.keys), message=RgbdFrame)
+    wait_until(lambda: rgbd.has_subscribers, timeout_s=60)
+    return semantic, geo, rgbd, port, map_id
+
+
+def _handled(semantic: ServiceThread) -> float:
+    return semantic.counter(SemanticCounter.LAST_FRAME_HANDLED)
+
+
+def _send(rgbd: Publisher, frame) -> None:  # noqa: ANN001
+    rgbd.put(RgbdFrame.from_frame(frame, with_instance=True))
+
+
+def test_a_frame_that_adds_nothing_is_not_encoded_even_when_the_encoder_is_idle() -> None:
+    with ExitStack() as stack:
+        semantic, geometry, rgbd, _, _ = _rig(stack, encoder=FlakyEncoder(empty_on=(), fail_on=()),
+                                              semantic_values={})
+        send_until_handled(lambda: _send(rgbd, _as(HERE, 0)), lambda: _handled(semantic) == 0)
+        assert semantic.counter(SemanticCounter.ENCODER_CALLS) == 1
+        for i in range(1, 5):  # the same view four times: nothing new
+            _send(rgbd, _as(HERE, i))
+            wait_until(lambda i=i: _handled(semantic) == i, timeout_s=60)
+        assert semantic.counter(SemanticCounter.ENCODER_CALLS) == 1
+        assert semantic.counter(SemanticCounter.SKIPPED_NO_GAIN) == 4
+        _send(rgbd, _as(THERE, 5))  # new surface
+        wait_until(lambda: _handled(semantic) == 5, timeout_s=60)
+        assert semantic.counter(SemanticCounter.ENCODER_CALLS) == 2
+        assert semantic.counter(SemanticCounter.SEMANTIC_FRAMES) == 2
+        assert semantic.counter(SemanticCounter.FRAMES_SCORED) == 6
+        assert semantic.counter(SemanticCounter.ENCODER_REGIONS) >= len(semantic.app.dictionary) > 3
+        wait_until(lambda: geometry.counter(GeometryCounter.UPDATES_APPLIED) == 2, timeout_s=60)
+
+
+def test_while_the_encoder_is_busy_it_gets_the_candidate_that_adds_something_not_the_newest() -> None:
+    """Frame 0 holds the encoder. Meanwhile frame 1 (the same view), frame 2 (new surface) and frame 3
+    (the same view as 0 again, the newest) come: 1 and 3 add nothing and are dropped, 2 waits in the
+    window and is encoded next."""
+    encoder = GatedEncoder(gate_on=0)
+    with ExitStack() as stack:
+        semantic, _geometry, rgbd, _, _ = _rig(stack, encoder=encoder, semantic_values={"select_window": 4})
+        send_until_handled(lambda: _send(rgbd, _as(HERE, 0)), lambda: encoder.started.is_set())
+        for frame in (_as(HERE, 1), _as(THERE, 2), _as(HERE, 3)):
+            _send(rgbd, frame)
+        wait_until(lambda: semantic.counter(SemanticCounter.FRAMES_SCORED) == 4, timeout_s=60)
+        assert semantic.counter(SemanticCounter.SKIPPED_NO_GAIN) == 2
+        assert semantic.counter(SemanticCounter.SELECT_WINDOW) == 1
+        assert _handled(semantic) == -1  # frame 0 is still being encoded: nothing before it is done
+        encoder.release.set()
+        wait_until(lambda: _handled(semantic) == 3, timeout_s=60)
+        assert encoder.encoded == [0, 2]
+        assert semantic.counter(SemanticCounter.ENCODER_CALLS) == 2
+
+
+def test_the_encoder_pool_dispatches_from_the_same_window() -> None:
+    with ExitStack() as stack:
+        semantic, _geometry, rgbd, port, _ = _rig(
+            stack, encoder=FlakyEncoder(empty_on=(), fail_on=()),
+            semantic_values={"encoder_pool": True, "local_encoder": False})
+        cfg = _config(EncoderConfig, unique_map_id("workers"), "encoder", {"worker_id": "w1"}, connect=[port])
+        stack.enter_context(ServiceThread(EncoderWorker(cfg, encoder=FlakyEncoder(empty_on=(), fail_on=())), cfg,
+                                          "encoder-w1"))
+        wait_until(lambda: semantic.counter(PoolCounter.ENCODER_WORKERS) == 1, timeout_s=60)
+        send_until_handled(lambda: _send(rgbd, _as(HERE, 0)), lambda: _handled(semantic) == 0)
+        for i in range(1, 4):
+            _send(rgbd, _as(HERE, i))
+        _send(rgbd, _as(THERE, 4))
+        wait_until(lambda: _handled(semantic) == 4, timeout_s=60,
+                   describe=lambda: f"semantic {dict(semantic.stats.counters)}")
+        assert semantic.counter(PoolCounter.FRAMES_DISPATCHED) == 2
+        assert semantic.counter(SemanticCounter.ENCODER_CALLS) == 2
+        assert semantic.counter(SemanticCounter.SKIPPED_NO_GAIN) == 3
+        assert semantic.counter("encoded_by:w1") == 2
+
+
+def test_without_geometry_frames_are_counted_as_not_rendered_and_the_service_goes_on() -> None:
+    with ExitStack() as stack:
+        semantic, _geometry, rgbd, _, _ = _rig(stack, encoder=FlakyEncoder(empty_on=(), fail_on=()),
+                                               semantic_values={"render_timeout_s": 0.3}, geometry=False)
+        send_until_handled(lambda: _send(rgbd, _as(HERE, 0)), lambda: _handled(semantic) == 0)
+        _send(rgbd, _as(THERE, 1))
+        wait_until(lambda: _handled(semantic) == 1, timeout_s=60)
+        assert semantic.counter(SemanticCounter.SKIPPED_NO_RENDER) == 2
+        assert semantic.counter(SemanticCounter.ENCODER_CALLS) == 0
+        assert semantic._thread is not None and semantic._thread.is_alive()
