@@ -8,6 +8,9 @@ measured in the same run with the gt encoder on synthetic scenes, noise off and 
     python bench/bench_eval.py --out DIR  # also write results.json / results.md per noise profile
     python bench/bench_eval.py --compare-merging [--merge-embedding weighted,mean,first]
         # region merging and the matcher's join off (before) vs on (after), same run; no baselines
+    python bench/bench_eval.py --full --compare-select
+        # every frame encoded (before) vs coverage-driven frame selection (after), same run: quality,
+        # encoder calls (frames, regions, per ground-truth object), scoring cost; no baselines
 
 Prints markdown tables (the ratios are to the region map). Exit 0 always unless it crashes;
 targets are reported, not asserted (use ``openfusion eval --check-targets`` for that).
@@ -26,7 +29,7 @@ from openfusion.encoders.gt import REGION_TEXTS
 from openfusion.eval.report import render_markdown, write_results
 from openfusion.eval.runner import FULL, QUICK, run_eval
 from openfusion.eval.scenes import parse_scene_specs
-from openfusion.mapping.params import MatchParams, MergeParams
+from openfusion.mapping.params import MatchParams, MergeParams, SelectParams
 
 QUICK_SCENES = "synthetic:seed=1,synthetic:seed=2"
 FULL_SCENES = "synthetic:seed=1,synthetic:seed=2,synthetic:seed=3"
@@ -58,6 +61,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--details", action="store_true", help="print the full results.md of every profile")
     parser.add_argument("--compare-merging", action="store_true",
                         help="each profile with region merging + join off (before) and on (after); no baselines")
+    parser.add_argument("--compare-select", action="store_true",
+                        help="each profile with every frame encoded (before) and coverage selection (after); "
+                             "no baselines")
+    parser.add_argument("--select-set", action="append", default=[], metavar="FIELD=VALUE",
+                        help="with --compare-select: a select_* parameter of the 'after' run (repeatable)")
     parser.add_argument("--merge-embedding", default="weighted",
                         help="with --compare-merging: comma-separated merged-embedding rules to compare "
                              "(weighted, mean, first)")
@@ -69,6 +77,9 @@ def main(argv: list[str] | None = None) -> int:
     specs = parse_scene_specs([args.scenes or (FULL_SCENES if args.full else QUICK_SCENES)])
     profiles = [p.strip() for p in args.noise.split(",") if p.strip()]
 
+    if args.compare_select:
+        after = SelectParams.model_validate(dict(kv.split("=", 1) for kv in args.select_set))
+        return compare_select(base, specs, profiles, after)
     if args.compare_merging:
         return compare_merging(base, specs, profiles, [e.strip() for e in args.merge_embedding.split(",") if e.strip()])
 
@@ -138,6 +149,39 @@ def compare_merging(base, specs, profiles: list[str], embeddings: list[str]) -> 
             print(f"| {noise} | {name} | {_f(m['f_mIoU'])} | {_f(m['mAcc'])} | {reg['regions_100']} | "
                   f"{reg['gt_objects']} | {_f(reg['regions_100_per_object'], '{:.2f}')} | {reg['regions_merged']} | "
                   f"{_f(merge_ms, '{:.0f}')} | {wall:.0f} |", flush=True)
+    return 0
+
+
+def compare_select(base, specs, profiles: list[str], after: SelectParams) -> int:  # noqa: ANN001
+    """Every frame encoded (before) and coverage-driven selection (after), per noise profile, in one
+    run: quality, encoder calls (frames; regions; per ground-truth object: OVI-MAP's measure) and
+    what scoring costs per frame against a semantic step measured in the same run."""
+    base = replace(base, baselines=False, raw_open3d_baseline=False)
+    changed = {k: v for k, v in after.model_dump().items() if v != SelectParams.model_fields[k].default}
+    print(f"### Frame selection, every frame vs coverage ({len(specs)} synthetic scenes, {base.frames} frames at "
+          f"{base.width_px}x{base.height_px}, gt encoder + {base.text_encoder}{', after: ' + str(changed) if changed else ''})")
+    print()
+    print("| noise | frames encoded | f-mIoU | Δ f-mIoU | mAcc | unlabelled | encoder calls | share of frames | "
+          "regions encoded | calls per object | calls per region | scoring ms/frame | semantic step ms | "
+          "scoring / step | wall (s) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for noise in profiles:
+        before_f = None
+        for name, select in (("every", SelectParams(select="every")), ("coverage", after)):
+            t0 = time.perf_counter()
+            r = run_eval(specs, replace(base, noise=noise, select=select))
+            wall = time.perf_counter() - t0
+            s = r["summary"]
+            m, sel, reg = s["quality"]["region_map"]["metrics"], s["selection"], s["regions"]
+            before_f = m["f_mIoU"] if before_f is None else before_f
+            share = sel["encoder_calls"] / sel["frames"] if sel["frames"] else None
+            cost = (sel["select_ms"] / sel["semantic_step_ms"] if sel["select_ms"] and sel["semantic_step_ms"]
+                    else None)
+            print(f"| {noise} | {name} | {_f(m['f_mIoU'], '{:.4f}')} | {m['f_mIoU'] - before_f:+.4f} | "
+                  f"{_f(m['mAcc'])} | {_f(m['unlabelled_fraction'])} | {sel['encoder_calls']} of {sel['frames']} | "
+                  f"{_f(share, '{:.2f}')} | {sel['encoder_regions']} | {_f(reg['calls_per_object'], '{:.1f}')} | "
+                  f"{_f(reg['calls_per_region'], '{:.1f}')} | {_f(sel['select_ms'], '{:.1f}')} | "
+                  f"{_f(sel['semantic_step_ms'], '{:.1f}')} | {_f(cost, '{:.2f}')} | {wall:.0f} |", flush=True)
     return 0
 
 

@@ -120,10 +120,12 @@ class ViewEvidence:
     cells: np.ndarray  # (n,) int64, packed surface cube of each surface pixel
     keys: np.ndarray  # (n,) int64, the map's region at each surface pixel (-1: none)
     confident: np.ndarray  # (n,) bool, key >= 0 with confidence >= select_low_conf
-    # what a chosen view marks as shown: the surface cubes and bins of the view sampled
-    # MARK_DENSITY times denser than it is scored (None: the scored pixels)
-    mark_cells: np.ndarray | None = None
-    mark_bins: np.ndarray | None = None
+    unsure_px: np.ndarray | None = None  # (h, w) bool: surface pixels without a confident region
+    # For marking a chosen view (:meth:`CoverageScorer.mark_selected`): the frame's depth and camera,
+    # sampled MARK_DENSITY times denser than the score (None: the scored pixels are marked)
+    full_depth_m: np.ndarray | None = field(default=None, repr=False)
+    full_intrinsics: CameraIntrinsics | None = None
+    T_world_cam: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def surface_px(self) -> int:
@@ -255,7 +257,7 @@ class CoverageScorer:
         """The evidence of one view: ``intrinsics`` of the scored view (:func:`scoring_size`),
         the frame's depth in metres at that size, and the map's key and confidence maps rendered at
         the frame's pose at that size. ``full_depth_m`` with its ``full_intrinsics`` (the frame's
-        own): what the view marks as shown when it is chosen is sampled from it,
+        own, kept by reference): what the view marks as shown when it is chosen is sampled from it,
         :data:`MARK_DENSITY` times denser than the score (a cube the scored pixels step over is
         shown all the same). Raises ValueError when the sizes disagree."""
         h, w = intrinsics.height_px, intrinsics.width_px
@@ -269,18 +271,27 @@ class CoverageScorer:
         points = (rays * depth[surface, None]) @ T[:3, :3].T + T[:3, 3]
         keys = np.asarray(key_map).reshape(-1)[surface].astype(np.int64)
         conf = np.asarray(conf_map, np.float32).reshape(-1)[surface]
-        ev = ViewEvidence(
+        confident = (keys >= 0) & (conf >= self.params.select_low_conf)
+        unsure_px = np.zeros(h * w, bool)
+        unsure_px[np.flatnonzero(surface)[~confident]] = True
+        return ViewEvidence(
             frame_id=int(frame_id), stamp_s=stamp_ns / 1e9, view_px=h * w, bins=self._bins_of(rays, T),
-            cells=self._cells_of(points), keys=keys, confident=(keys >= 0) & (conf >= self.params.select_low_conf))
-        if full_depth_m is not None and full_intrinsics is not None:
-            mh, mw = scoring_size(full_intrinsics, MARK_DENSITY * w)
-            K_mark = full_intrinsics.scaled(mw, mh)
-            fine = np.asarray(resize_nearest(np.asarray(full_depth_m), (mh, mw)), np.float64).reshape(-1)
-            ok = np.isfinite(fine) & (fine > 0)
-            fine_rays = self._camera_rays(K_mark)[ok]
-            ev.mark_cells = self._cells_of((fine_rays * fine[ok, None]) @ T[:3, :3].T + T[:3, 3])
-            ev.mark_bins = self._bins_of(fine_rays, T)
-        return ev
+            cells=self._cells_of(points), keys=keys, confident=confident, unsure_px=unsure_px.reshape(h, w),
+            full_depth_m=full_depth_m, full_intrinsics=full_intrinsics, T_world_cam=T)
+
+    def _marks(self, ev: ViewEvidence) -> tuple[np.ndarray, np.ndarray]:
+        """(cubes, bins) a chosen view marks as shown: its unsure surface (the rest is labelled and
+        never looked up), sampled :data:`MARK_DENSITY` times denser than it was scored."""
+        unsure = ~ev.confident
+        if ev.full_depth_m is None or ev.full_intrinsics is None or ev.unsure_px is None or ev.T_world_cam is None:
+            return ev.cells[unsure], ev.bins[unsure]
+        h, w = ev.unsure_px.shape
+        mh, mw = scoring_size(ev.full_intrinsics, MARK_DENSITY * w)
+        fine = np.asarray(resize_nearest(np.asarray(ev.full_depth_m), (mh, mw)), np.float64).reshape(-1)
+        pick = (np.isfinite(fine) & (fine > 0) & resize_nearest(ev.unsure_px, (mh, mw)).reshape(-1))
+        T = ev.T_world_cam
+        rays = self._camera_rays(ev.full_intrinsics.scaled(mw, mh))[pick]
+        return self._cells_of((rays * fine[pick, None]) @ T[:3, :3].T + T[:3, 3]), self._bins_of(rays, T)
 
     def prepare_frame(self, frame: Frame, render: Callable[[np.ndarray, CameraIntrinsics], Any]) -> ViewEvidence:
         """:meth:`prepare` for a frame, with ``render(T_world_cam, intrinsics)`` giving the map's
@@ -341,10 +352,9 @@ class CoverageScorer:
         does not pick the same new surface again): its surface cubes and the map's regions in it
         are now covered from its bins, the regions seen at its stamp."""
         with self._lock:
-            if ev.mark_cells is not None and ev.mark_bins is not None and len(ev.mark_cells):
-                self._mark_cells(ev.mark_cells, ev.mark_bins)
-            elif ev.surface_px:
-                self._mark_cells(ev.cells, ev.bins)
+            cells, bins = self._marks(ev)
+            if len(cells):
+                self._mark_cells(cells, bins)
             labelled = ev.keys >= 0
             if labelled.any():
                 _or_into(self._region_bins, ev.keys[labelled], ev.bins[labelled])
@@ -374,25 +384,31 @@ class CoverageScorer:
                 self._region_views[k] = self._region_views.get(k, 0) + 1
 
     def _mark_cells(self, cells: np.ndarray, bins: np.ndarray) -> None:
-        """(lock held) One more encoded frame showed ``cells`` from ``bins``: count it per try level."""
-        tries = self._cell_tries
-        for cell, bits in _group_bits(cells, bins):
-            for level in range(len(tries) - 1, 0, -1):
-                below = tries[level - 1].get(cell, 0) & bits
-                if below:
-                    tries[level][cell] = tries[level].get(cell, 0) | below
-            tries[0][cell] = tries[0].get(cell, 0) | bits
+        """(lock held) One more encoded frame showed ``cells`` from ``bins``: count it per try level
+        (a bin reaches level i + 1 when it was at level i before this frame)."""
+        uniq, bits = _group_bits_arrays(cells, bins)
+        keys = uniq.tolist()
+        old = [np.fromiter((t.get(c, 0) for c in keys), np.int64, len(keys)) for t in self._cell_tries]
+        for level, table in enumerate(self._cell_tries):
+            new = old[level] | (bits if level == 0 else old[level - 1] & bits)
+            changed = np.flatnonzero(new != old[level])
+            table.update(zip(uniq[changed].tolist(), new[changed].tolist(), strict=True))
+
+
+def _group_bits_arrays(keys: np.ndarray, bins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(distinct keys, the OR of ``1 << bin`` over each key's pairs), as int64 arrays."""
+    if len(keys) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    order = np.argsort(keys, kind="stable")
+    keys, bits = keys[order], np.left_shift(np.int64(1), bins[order])
+    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    return keys[starts], np.bitwise_or.reduceat(bits, starts)
 
 
 def _group_bits(keys: np.ndarray, bins: np.ndarray) -> list[tuple[int, int]]:
     """``(key, bits)`` per distinct key: the OR of ``1 << bin`` over its pairs."""
-    if len(keys) == 0:
-        return []
-    order = np.argsort(keys, kind="stable")
-    keys, bits = keys[order], np.left_shift(np.int64(1), bins[order])
-    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
-    ored = np.bitwise_or.reduceat(bits, starts)
-    return list(zip(keys[starts].tolist(), ored.tolist(), strict=True))
+    uniq, bits = _group_bits_arrays(keys, bins)
+    return list(zip(uniq.tolist(), bits.tolist(), strict=True))
 
 
 def _or_into(table: dict[int, int], keys: np.ndarray, bins: np.ndarray) -> None:

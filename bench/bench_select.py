@@ -1,0 +1,238 @@
+#!/usr/bin/env python3
+"""Coverage-driven frame selection: encoder calls and quality, before (every frame / the latest
+frame) and after (``--select coverage``), each pair measured in the same run.
+
+    python bench/bench_select.py --laps       # three laps of the built-in room, in process: calls per lap
+    python bench/bench_select.py --cost       # scoring cost per frame against a semantic step, per map size
+    python bench/bench_select.py --services [--repeat 2]
+        # a 90-frame ScanNet-layout scene through `openfusion run` at its own rate (30 fps) with the gt
+        # encoder and a fixed --encoder-delay-ms 150: latest (before) and coverage (after), with the
+        # local encoder and with an encoder pool of 2 workers, against the in-process every-frame map
+    python bench/bench_select.py              # all three
+    python bench/bench_eval.py --full --compare-select   # the three bench rooms, noise off and standard
+
+Every map is scored the same way (:func:`openfusion.eval.saved_map.map_quality`: the ConceptFusion
+protocol of ``openfusion eval``, unlabelled points count as misses). The services section prints
+the machine's load average before and after each run: the services' timing depends on it.
+Prints markdown tables; exit 0 unless it crashes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from openfusion.encoders import make_region_encoder, make_text_encoder
+from openfusion.eval.ground_truth import load_scannet_ground_truth, synthetic_ground_truth
+from openfusion.eval.saved_map import map_quality
+from openfusion.mapping import load_map
+from openfusion.mapping.params import SelectParams, VolumeParams
+from openfusion.mapping.pipeline import map_scene
+from openfusion.sources import open_source
+
+BUILTIN_LAP = 120  # openfusion run's lap of the built-in room (BUILTIN_LAP_FRAMES)
+
+
+def _f(v: float | None, fmt: str = "{:.3f}") -> str:
+    return "n/a" if v is None else fmt.format(v)
+
+
+def _load() -> str:
+    one, five, _ = os.getloadavg()
+    return f"{one:.1f}/{five:.1f}"
+
+
+# ----------------------------------------------------------------------------------- laps
+
+
+def laps(laps_n: int, lap: int, width: int, height: int) -> None:
+    """``laps_n`` laps of the built-in room in one process, every frame vs coverage: encoder calls per
+    lap and quality at the end, in one run."""
+    spec = f"synthetic:lap={lap},frames={laps_n * lap},width={width},height={height}"
+    text = make_text_encoder("minilm")
+    encoder = make_region_encoder("gt", text_encoder=text)
+    from openfusion.sources.synthetic import SyntheticWorld
+
+    gt = synthetic_ground_truth(SyntheticWorld(0), spacing_m=0.03)
+    print(f"### {laps_n} laps of the built-in room ({spec}, in process, gt encoder + minilm)")
+    print()
+    lap_cols = " | ".join(f"lap {i + 1} calls" for i in range(laps_n))
+    print(f"| select | {lap_cols} | last lap / first | all calls | regions encoded | f-mIoU | mAcc | "
+          "skipped (no gain) | scoring ms/frame | wall (s) |")
+    print("|---|" + "---|" * (laps_n + 8))
+    for name, params in (("every", SelectParams(select="every")), ("coverage", SelectParams())):
+        per_lap: list[int] = []
+
+        def on_frame(frame, stats, per_lap=per_lap) -> None:  # noqa: ANN001
+            if stats.frames_integrated % lap == 0:
+                per_lap.append(stats.encoder_calls - sum(per_lap))
+
+        t0 = time.perf_counter()
+        r = map_scene(open_source(spec), region_encoder=encoder, volume_params=VolumeParams(),
+                      select_params=params, on_frame=on_frame)
+        wall = time.perf_counter() - t0
+        q = map_quality(r.volume, r.dictionary, gt, text_encoder=text)
+        s = r.stats
+        ratio = per_lap[-1] / per_lap[0] if per_lap and per_lap[0] else None
+        score_ms = 1e3 * s.select_s / s.frames_scored if s.frames_scored else None
+        print(f"| {name} | {' | '.join(str(n) for n in per_lap)} | {_f(ratio, '{:.3f}')} | {s.encoder_calls} | "
+              f"{s.encoder_regions} | {q['f_mIoU']:.4f} | {q['mAcc']:.4f} | {s.skipped_no_gain} | "
+              f"{_f(score_ms, '{:.1f}')} | {wall:.0f} |", flush=True)
+    print()
+
+
+# ----------------------------------------------------------------------------------- cost
+
+
+def cost(laps_n: int, lap: int, width: int, height: int, widths: list[int]) -> None:
+    """What scoring costs per frame against a semantic step (encode + render + match + update at the
+    encoder's size), measured on the same frames, one row per map size (laps walked) and scored width."""
+    from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume
+    from openfusion.mapping.selection import CoverageScorer
+
+    text = make_text_encoder("minilm")
+    encoder = make_region_encoder("gt", text_encoder=text)
+    frames = list(open_source(f"synthetic:lap={lap},frames={laps_n * lap},width={width},height={height}"))
+    volume = SemanticVolume(VolumeParams())
+    dictionary = RegionDictionary(encoder.embedding_space, encoder.dim)
+    mapper = SemanticMapper(volume, dictionary)
+    scorers = {w: CoverageScorer(SelectParams(select_width_px=w)) for w in widths}
+    print(f"### Scoring cost per frame against a semantic step ({width}x{height} frames, every frame encoded, "
+          "in process; the same frames for both)")
+    print()
+    print("| map (frames) | blocks | scored width | render ms | score ms | scoring ms/frame | semantic step ms | "
+          "scoring / step | cubes recorded | regions recorded | record (MiB) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    rows: dict[tuple[int, int], list] = {}
+    for i, frame in enumerate(frames):
+        volume.integrate(frame)
+        for w, scorer in scorers.items():
+            t0 = time.perf_counter()
+            h_s, w_s = (round(frame.intrinsics.height_px * w / frame.intrinsics.width_px), w)
+            rendered = volume.render(frame.T_world_cam, frame.intrinsics.scaled(w_s, h_s))
+            t1 = time.perf_counter()
+            ev = scorer.prepare_frame(frame, lambda *_a, rendered=rendered: rendered)
+            score = scorer.score(ev)
+            if scorer.worth_encoding(score):
+                scorer.mark_selected(ev)
+            t2 = time.perf_counter()
+            rows.setdefault((i // lap, w), []).append([t1 - t0, t2 - t1, 0.0])
+        t0 = time.perf_counter()
+        obs = encoder.encode(frame)
+        mapper.step(obs, frame.T_world_cam, frame.intrinsics, depth_m=frame.depth_m())
+        step = time.perf_counter() - t0
+        for w, scorer in scorers.items():
+            rows[(i // lap, w)][-1][2] = step
+            scorer.observe_plan(mapper.last_plan.key_map, frame.T_world_cam,
+                                frame.intrinsics.scaled(*mapper.last_plan.key_map.shape[::-1]), frame.stamp_ns)
+        if (i + 1) % lap == 0:
+            for w, scorer in scorers.items():
+                t = np.median(np.asarray(rows[(i // lap, w)]), axis=0) * 1e3
+                print(f"| {i + 1} | {volume.num_blocks} | {w} | {t[0]:.1f} | {t[1]:.1f} | {t[0] + t[1]:.1f} | "
+                      f"{t[2]:.1f} | {(t[0] + t[1]) / t[2]:.2f} | {scorer.cells_recorded} | "
+                      f"{scorer.regions_recorded} | {scorer.record_bytes() / 2**20:.1f} |", flush=True)
+    print()
+    print("Medians per frame over each lap; render = the map rendered at the candidate's pose at the scored "
+          "size (in the services a geometry/render request), score = preparing and scoring the view.")
+    print()
+
+
+# ----------------------------------------------------------------------------------- services
+
+
+def _scene(work: Path, frames: int) -> Path:
+    """The ScanNet-layout scene (the built-in world, seed 1, 640x480, one lap of ``frames`` frames)."""
+    from openfusion.sources.scannet_writer import write_scannet_layout
+    from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld
+
+    path = work / "scans" / "scene0001_00"
+    if not (path / "pose").is_dir():
+        write_scannet_layout(SyntheticSource(SyntheticWorld(1), frames, 640, 480, frames_per_lap=frames), path,
+                             ground_truth_spacing_m=0.02, overwrite=True)
+    return path
+
+
+def _run(out: Path, scene: Path, frames: int, *args: str) -> tuple[dict, float, str]:
+    load_before = _load()
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "openfusion.app.cli", "run", "--source", f"scannet:{scene}",
+                           "--frames", str(frames), "--out", str(out), "--quiet", "--query", "chair", *args],
+                          capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"}, timeout=1800)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"openfusion run {' '.join(args)} failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    return json.loads((out / "run.json").read_text()), wall, f"{load_before} -> {_load()}"
+
+
+def services(work: Path, frames: int, delay_ms: float, repeat: int) -> None:
+    scene = _scene(work, frames)
+    gt = load_scannet_ground_truth(scene)
+    text = make_text_encoder("minilm")
+    print(f"### Through the services at the scene's own rate ({frames}-frame ScanNet-layout scene of the built-in "
+          f"world, 30 fps, gt encoder + {delay_ms:g} ms per frame; {os.cpu_count()} cores)")
+    print()
+    print("| run | mode | select | encoder workers | f-mIoU | Δ vs in-process every frame | mAcc | unlabelled | "
+          "encoder calls | skipped (no gain) | regions | calls per region | wall (s) | load 1/5 min before -> after |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    baseline = None
+    variants = [("in-process", "every", 0), ("services", "latest", 0), ("services", "coverage", 0),
+                ("services", "latest", 2), ("services", "coverage", 2)]
+    for rep in range(repeat):
+        for mode, select, workers in variants:
+            if mode == "in-process" and rep:
+                continue  # deterministic: once is enough
+            out = work / f"run-{mode}-{select}-{workers}-{rep}"
+            args = ["--select", select, "--encoder", "gt", "--encoder-delay-ms", str(delay_ms)]
+            if mode == "in-process":
+                args = ["--in-process", "--select", select, "--encoder", "gt"]
+            elif workers:
+                args += ["--encoder-workers", str(workers)]
+            summary, wall, load = _run(out, scene, frames, *args)
+            loaded = load_map(out / "map")
+            q = map_quality(loaded.volume, loaded.dictionary, gt, text_encoder=text)
+            baseline = q["f_mIoU"] if baseline is None else baseline
+            print(f"| {rep + 1} | {mode} | {select} | {workers} | {q['f_mIoU']:.4f} | {q['f_mIoU'] - baseline:+.4f} | "
+                  f"{q['mAcc']:.4f} | {q['unlabelled_fraction']:.3f} | {summary['encoder_calls']} of "
+                  f"{summary['frames_integrated']} | {summary['skipped_no_gain']} | {summary['regions']} | "
+                  f"{_f(summary.get('calls_per_region'), '{:.1f}')} | {wall:.0f} | {load} |", flush=True)
+    print()
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--laps", action="store_true", help="three laps of the built-in room, in process")
+    parser.add_argument("--cost", action="store_true", help="scoring cost per frame against a semantic step")
+    parser.add_argument("--services", action="store_true", help="a ScanNet-layout scene through openfusion run")
+    parser.add_argument("--lap", type=int, default=BUILTIN_LAP, help=f"frames per lap (default {BUILTIN_LAP})")
+    parser.add_argument("--laps-n", type=int, default=3, help="laps (default 3)")
+    parser.add_argument("--widths", default="32,64,128", help="--cost: scored widths (default 32,64,128)")
+    parser.add_argument("--frames", type=int, default=90, help="--services: frames of the scene (default 90)")
+    parser.add_argument("--delay-ms", type=float, default=150.0, help="--services: encoder delay (default 150)")
+    parser.add_argument("--repeat", type=int, default=2, help="--services: runs of each services variant (default 2)")
+    parser.add_argument("--work", type=Path, default=None, help="--services: working folder (default a temporary one)")
+    args = parser.parse_args(argv)
+    everything = not (args.laps or args.cost or args.services)
+    if args.laps or everything:
+        laps(args.laps_n, args.lap, 640, 480)
+    if args.cost or everything:
+        cost(args.laps_n, args.lap, 640, 480, [int(w) for w in args.widths.split(",")])
+    if args.services or everything:
+        if args.work is not None:
+            args.work.mkdir(parents=True, exist_ok=True)
+            services(args.work, args.frames, args.delay_ms, args.repeat)
+        else:
+            with tempfile.TemporaryDirectory(prefix="bench-select-") as tmp:
+                services(Path(tmp), args.frames, args.delay_ms, args.repeat)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
