@@ -45,7 +45,7 @@ FULL_CONF = np.ones((H, W), np.float32)
 
 
 def params(**changes: object) -> SelectParams:
-    return SelectParams(select_width_px=W, **changes)
+    return SelectParams(**{"select_width_px": W, "select_patience_s": None, **changes})
 
 
 def view(scorer: CoverageScorer, *, T=T_FRONT, keys=NO_KEYS, conf=ZERO_CONF, depth=DEPTH, stamp_s=0.0, frame_id=0):  # noqa: ANN001, ANN201
@@ -89,6 +89,25 @@ def test_nothing_new_no_call() -> None:
     assert score.gain == 0.0 and not scorer.worth_encoding(score)
     # min gain 0 still refuses a view with no gain at all
     assert not CoverageScorer(params(select_min_gain=0.0)).worth_encoding(score)
+
+
+def test_a_little_new_surface_is_encoded_once_it_has_waited_select_patience() -> None:
+    """Two of 16 columns new (12 %): under select_min_gain 0.2 right after a chosen view, over the
+    bar once the frame time since it makes the bar fall (0.2 / (1 + t / 0.1 s))."""
+    scorer = CoverageScorer(params(select_min_gain=0.2, select_patience_s=0.1, select_min_views=0))
+    encoded(scorer, view(scorer, stamp_s=10.0), stamp_s=10.0)
+    keys = ALL_KEY_7.copy()
+    keys[:, :2] = -1
+    conf = np.where(keys >= 0, 1.0, 0.0).astype(np.float32)
+    depth = DEPTH.copy()
+    depth[:, :2] = 3.0  # surface the chosen view did not show (another cube)
+    soon = scorer.score(view(scorer, keys=keys, conf=conf, depth=depth, stamp_s=10.03))
+    later = scorer.score(view(scorer, keys=keys, conf=conf, depth=depth, stamp_s=10.1))
+    assert soon.gain == later.gain == pytest.approx(2 / 16)
+    assert scorer.min_gain_at(10.0) == pytest.approx(0.2) and scorer.min_gain_at(10.1) == pytest.approx(0.1)
+    assert not scorer.worth_encoding(soon) and scorer.worth_encoding(later)
+    # nothing new never passes, however long it waited
+    assert not scorer.worth_encoding(scorer.score(view(scorer, keys=ALL_KEY_7, conf=FULL_CONF, stamp_s=50.0)))
 
 
 def test_unlabelled_surface_is_tried_select_tries_times_per_direction() -> None:

@@ -294,9 +294,13 @@ class SelectParams(ConfigSection):
         "coverage", description="which frames are encoded: coverage (the ones that add something, best first), "
         "latest (the newest whenever the encoder is free), every (all, in order)")
     select_min_gain: float = Field(
-        0.05, ge=0, le=10, description="coverage: a frame is encoded only when its gain (shares of its view: new "
+        0.1, ge=0, le=10, description="coverage: a frame is encoded only when its gain (shares of its view: new "
         "surface + select_direction_weight x new directions + stale regions) reaches this; 0 = any frame with "
         "something new")
+    select_patience_s: float | None = Field(
+        0.1, gt=0, description="coverage: the gain a frame needs falls with the frame time since the last encoded "
+        "frame, select_min_gain / (1 + t / this): new surface that has waited a while is encoded even when it is "
+        "little (a glimpse behind an object), a frame with nothing new never is; none = a fixed threshold")
     select_window: int = Field(
         16, ge=1, le=256, description="coverage, services: candidate frames held while the encoder is busy; a full "
         "window lets its lowest-scoring frame go (~3 MB per 640x480 frame with its instance image)")

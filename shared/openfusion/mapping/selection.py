@@ -28,8 +28,11 @@ The score (one number, shares of the scored view's pixels)
       ``select_stale_s`` seconds of frame time: the floor that keeps a region that stays in view
       from going stale; a stale region that fills ``select_min_gain`` of a view is encoded again.
 
-    A frame is encoded only when ``gain >= select_min_gain``: a frame that adds nothing is not
-    encoded even when the encoder is idle (counted ``skipped_no_gain``).
+    A frame is encoded only when it adds something and ``gain >= select_min_gain / (1 + t /
+    select_patience_s)``, ``t`` the frame time since the last frame chosen: the bar falls while
+    nothing is encoded, so a little new surface that has waited (a glimpse behind an object that
+    the next frames hide again) is encoded too, and a frame that adds nothing never is, even when
+    the encoder is idle (counted ``skipped_no_gain``).
 
 Why these rules and defaults (measured in docs/EVAL.md, "Frame selection")
     OVI-MAP (CVPR 2026) runs its VLM only on views that add viewing-direction coverage of an
@@ -137,6 +140,7 @@ class ViewScore:
     """What encoding a view would add, in shares of its pixels (module docstring)."""
 
     frame_id: int
+    stamp_s: float
     gain: float
     new_surface: float
     new_direction: float
@@ -162,6 +166,7 @@ class CoverageScorer:
         # _cell_tries[i][cube]: the direction bins the cube was shown from by at least i + 1 encoded frames
         self._cell_tries: list[dict[int, int]] = [{} for _ in range(p.select_tries)]
         self._rays: dict[CameraIntrinsics, np.ndarray] = {}
+        self._last_selected_s: float | None = None  # frame time of the newest view chosen
 
     # ------------------------------------------------------------------ record
     @property
@@ -184,6 +189,7 @@ class CoverageScorer:
             self._region_bins.clear()
             self._region_last_s.clear()
             self._region_views.clear()
+            self._last_selected_s = None
             for table in self._cell_tries:
                 table.clear()
 
@@ -338,13 +344,23 @@ class CoverageScorer:
                     stale = int(counts[is_stale].sum())
         n = max(1, ev.view_px)
         gain = (new_surface + p.select_direction_weight * new_direction + stale) / n
-        return ViewScore(frame_id=ev.frame_id, gain=gain, new_surface=new_surface / n,
+        return ViewScore(frame_id=ev.frame_id, stamp_s=ev.stamp_s, gain=gain, new_surface=new_surface / n,
                          new_direction=new_direction / n, stale=stale / n, surface=ev.surface_px / n,
                          regions=regions)
 
+    def min_gain_at(self, stamp_s: float) -> float:
+        """The gain a view of frame time ``stamp_s`` needs: ``select_min_gain``, falling as
+        ``1 / (1 + t / select_patience_s)`` with the time ``t`` since the last view chosen."""
+        p = self.params
+        with self._lock:
+            last = self._last_selected_s
+        if p.select_patience_s is None or last is None:
+            return p.select_min_gain
+        return p.select_min_gain / (1.0 + max(0.0, stamp_s - last) / p.select_patience_s)
+
     def worth_encoding(self, score: ViewScore) -> bool:
-        """A view is encoded only when its gain reaches ``select_min_gain`` (and it adds anything)."""
-        return score.gain > 0 and score.gain >= self.params.select_min_gain
+        """A view is encoded only when it adds something and its gain reaches :meth:`min_gain_at`."""
+        return score.gain > 0 and score.gain >= self.min_gain_at(score.stamp_s)
 
     # ------------------------------------------------------------------ record what was encoded
     def mark_selected(self, ev: ViewEvidence) -> None:
@@ -352,6 +368,7 @@ class CoverageScorer:
         does not pick the same new surface again): its surface cubes and the map's regions in it
         are now covered from its bins, the regions seen at its stamp."""
         with self._lock:
+            self._last_selected_s = max(ev.stamp_s, self._last_selected_s or -math.inf)
             cells, bins = self._marks(ev)
             if len(cells):
                 self._mark_cells(cells, bins)
