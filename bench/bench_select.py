@@ -2,13 +2,14 @@
 """Coverage-driven frame selection: encoder calls and quality, before (every frame / the latest
 frame) and after (``--select coverage``), each pair measured in the same run.
 
-    python bench/bench_select.py --laps       # three laps of the built-in room, in process: calls per lap
-    python bench/bench_select.py --cost       # scoring cost per frame against a semantic step, per map size
+    python bench/bench_select.py --full --laps   # three 120-frame laps of the built-in room, in process
+    python bench/bench_select.py --full --cost   # scoring cost per frame against a semantic step, per map size
     python bench/bench_select.py --services [--repeat 2]
         # a 90-frame ScanNet-layout scene through `openfusion run` at its own rate (30 fps) with the gt
         # encoder and a fixed --encoder-delay-ms 150: latest (before) and coverage (after), with the
         # local encoder and with an encoder pool of 2 workers, against the in-process every-frame map
-    python bench/bench_select.py              # all three
+    python bench/bench_select.py --full       # all three
+    python bench/bench_select.py [--quick]    # CI-sized: laps of 40 frames at 320x240 and their cost
     python bench/bench_eval.py --full --compare-select   # the three bench rooms, noise off and standard
 
 Every map is scored the same way (:func:`openfusion.eval.saved_map.map_quality`: the ConceptFusion
@@ -164,7 +165,10 @@ def _run(out: Path, scene: Path, frames: int, *args: str) -> tuple[dict, float, 
     load_before = _load()
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "openfusion.app.cli", "run", "--source", f"scannet:{scene}",
-                           "--frames", str(frames), "--out", str(out), "--quiet", "--query", "chair", *args],
+                           "--frames", str(frames), "--out", str(out), "--quiet", "--query", "chair",
+                           # the scene's mesh (about 600,000 vertices at 640x480) is over geometry's default
+                           # reply limit, and openfusion run asks for it after saving the map
+                           "--set", "geometry.max_points_reply=2000000", *args],
                           capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"}, timeout=1800)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
@@ -208,10 +212,13 @@ def services(work: Path, frames: int, delay_ms: float, repeat: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_true", help="CI-sized (default): 40-frame laps at 320x240, no services")
+    size.add_argument("--full", action="store_true", help="120-frame laps at 640x480, and the services section")
     parser.add_argument("--laps", action="store_true", help="three laps of the built-in room, in process")
     parser.add_argument("--cost", action="store_true", help="scoring cost per frame against a semantic step")
     parser.add_argument("--services", action="store_true", help="a ScanNet-layout scene through openfusion run")
-    parser.add_argument("--lap", type=int, default=BUILTIN_LAP, help=f"frames per lap (default {BUILTIN_LAP})")
+    parser.add_argument("--lap", type=int, default=None, help=f"frames per lap (default 40, --full {BUILTIN_LAP})")
     parser.add_argument("--laps-n", type=int, default=3, help="laps (default 3)")
     parser.add_argument("--widths", default="32,64,128", help="--cost: scored widths (default 32,64,128)")
     parser.add_argument("--frames", type=int, default=90, help="--services: frames of the scene (default 90)")
@@ -220,11 +227,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work", type=Path, default=None, help="--services: working folder (default a temporary one)")
     args = parser.parse_args(argv)
     everything = not (args.laps or args.cost or args.services)
+    lap = args.lap or (BUILTIN_LAP if args.full else 40)
+    width, height = (640, 480) if args.full else (320, 240)
     if args.laps or everything:
-        laps(args.laps_n, args.lap, 640, 480)
+        laps(args.laps_n, lap, width, height)
     if args.cost or everything:
-        cost(args.laps_n, args.lap, 640, 480, [int(w) for w in args.widths.split(",")])
-    if args.services or everything:
+        cost(args.laps_n, lap, width, height, [int(w) for w in args.widths.split(",")])
+    if args.services or (everything and args.full):
         if args.work is not None:
             args.work.mkdir(parents=True, exist_ok=True)
             services(args.work, args.frames, args.delay_ms, args.repeat)

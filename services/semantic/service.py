@@ -2,19 +2,25 @@
 
 | key | direction | message |
 |---|---|---|
-| ``…/sensor/rgbd`` | subscribes, latest frame only | :class:`~openfusion.wire.schemas.RgbdFrame` |
+| ``…/sensor/rgbd`` | subscribes (``select``: a window of candidates, the latest frame only, or a queue) | :class:`~openfusion.wire.schemas.RgbdFrame` |
 | ``…/sensor/instance`` | subscribes when the encoder reads instance images (gt) | :class:`~openfusion.wire.schemas.InstanceFrame` |
-| ``…/geometry/render`` | queries | RenderRequest → RenderReply |
+| ``…/geometry/render`` | queries (each frame it encodes; with ``select=coverage`` also each candidate, at the scored size) | RenderRequest → RenderReply |
 | ``…/geometry/dictionary`` | queries once on start (recovery) | DictionaryRequest → DictionarySnapshot |
 | ``…/geometry/contacts`` | queries every ``merge_every`` semantic frames | RegionContactsRequest → RegionContactsReply |
 | ``…/semantic/update`` | publishes | :class:`~openfusion.wire.schemas.SemanticUpdate` |
 | ``…/semantic/dictionary/delta`` | publishes | :class:`~openfusion.wire.schemas.DictionaryDelta` |
 | ``…/semantic/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot (with its merge table) |
 | ``…/semantic/merge`` | queryable (geometry asks before it saves) | MergeRequest → MergeReply |
-| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions``, ``merge_passes``, ``regions_merged``, ``regions_pruned``, ``merge_failures`` |
+| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions``, ``merge_passes``, ``regions_merged``, ``regions_pruned``, ``merge_failures``, ``encoder_calls``, ``encoder_regions``, ``frames_scored``, ``skipped_no_gain``, ``select_evicted``, ``select_busy_s``, ``select_window`` |
 
-A slow encoder never builds a queue: the frame subscription keeps only the newest frame and
-counts the ones it replaced. An encoder that reads ground-truth instance images (gt) gets each
+Which frames are encoded (``select``, :class:`~openfusion.mapping.params.SelectParams`): with
+``coverage`` (the default) a thread of its own scores every frame against the map
+(:mod:`openfusion.services.semantic.selection`, rules in :mod:`openfusion.mapping.selection`) and
+keeps the ones that add something in a window of ``select_window`` candidates; the encoder (here,
+or the pool's workers) gets the best candidate whenever it is free, and a frame that adds too
+little is never encoded (``skipped_no_gain``). With ``latest`` the subscription keeps only the
+newest frame (the behaviour before selection), with ``every`` a queue of frames. Either way a slow
+encoder never builds an unbounded queue: frames a full queue or window lets go are counted. An encoder that reads ground-truth instance images (gt) gets each
 frame joined with its ``InstanceFrame`` (same frame id and stamp; the bridge sends it first); a
 frame whose instance image has not come within ``instance_wait_s`` is skipped and counted in
 ``skipped_no_instance`` (a frame that carries its own instance image uses that). The semantic switch: ``every_k = 0`` turns semantics off,
