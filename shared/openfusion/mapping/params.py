@@ -298,11 +298,11 @@ class SelectParams(ConfigSection):
         "surface + select_direction_weight x new directions + stale regions) reaches this; 0 = any frame with "
         "something new")
     select_patience_s: float | None = Field(
-        0.1, gt=0, description="coverage: the gain a frame needs falls with the frame time since the last encoded "
+        0.1, gt=0, description="coverage: the gain a frame needs falls with the frame time t to the nearest encoded "
         "frame, select_min_gain / (1 + t / this): new surface that has waited a while is encoded even when it is "
         "little (a glimpse behind an object), a frame with nothing new never is; none = a fixed threshold")
     select_window: int = Field(
-        16, ge=1, le=256, description="coverage, services: candidate frames held while the encoder is busy; a full "
+        32, ge=1, le=256, description="coverage, services: candidate frames held while the encoder is busy; a full "
         "window lets its lowest-scoring frame go (~3 MB per 640x480 frame with its instance image)")
     select_width_px: int = Field(
         64, ge=8, le=640, description="coverage: width of the view a candidate is scored at (height from the "

@@ -66,6 +66,7 @@ the pieces are numpy.
 
 from __future__ import annotations
 
+import bisect
 import math
 import threading
 import time
@@ -85,6 +86,9 @@ T = TypeVar("T")
 #: the cubes between the scored pixels' samples were counted as never shown in the next frame
 #: (measured: 4-10 % of every view looked new right after an encoded frame).
 MARK_DENSITY = 3
+
+#: Frame times of chosen views kept for the patience rule (:meth:`CoverageScorer.min_gain_at`).
+SELECTED_KEPT = 1024
 
 #: Cell coordinates are packed into one int64: 21 bits per axis around 0 (+-1,048,576 cells; at
 #: 0.1 m cells +-100 km).
@@ -124,10 +128,10 @@ class ViewEvidence:
     keys: np.ndarray  # (n,) int64, the map's region at each surface pixel (-1: none)
     confident: np.ndarray  # (n,) bool, key >= 0 with confidence >= select_low_conf
     unsure_px: np.ndarray | None = None  # (h, w) bool: surface pixels without a confident region
-    # For marking a chosen view (:meth:`CoverageScorer.mark_selected`): the frame's depth and camera,
-    # sampled MARK_DENSITY times denser than the score (None: the scored pixels are marked)
-    full_depth_m: np.ndarray | None = field(default=None, repr=False)
-    full_intrinsics: CameraIntrinsics | None = None
+    # For marking a chosen view (:meth:`CoverageScorer.mark_selected`): the frame's depth sampled
+    # MARK_DENSITY times denser than the score, and that grid's camera (None: the scored pixels are marked)
+    mark_depth_m: np.ndarray | None = field(default=None, repr=False)
+    mark_intrinsics: CameraIntrinsics | None = None
     T_world_cam: np.ndarray | None = field(default=None, repr=False)
 
     @property
@@ -166,7 +170,7 @@ class CoverageScorer:
         # _cell_tries[i][cube]: the direction bins the cube was shown from by at least i + 1 encoded frames
         self._cell_tries: list[dict[int, int]] = [{} for _ in range(p.select_tries)]
         self._rays: dict[CameraIntrinsics, np.ndarray] = {}
-        self._last_selected_s: float | None = None  # frame time of the newest view chosen
+        self._selected_s: list[float] = []  # frame times of the views chosen (sorted; the newest SELECTED_KEPT)
 
     # ------------------------------------------------------------------ record
     @property
@@ -189,7 +193,7 @@ class CoverageScorer:
             self._region_bins.clear()
             self._region_last_s.clear()
             self._region_views.clear()
-            self._last_selected_s = None
+            self._selected_s.clear()
             for table in self._cell_tries:
                 table.clear()
 
@@ -263,9 +267,9 @@ class CoverageScorer:
         """The evidence of one view: ``intrinsics`` of the scored view (:func:`scoring_size`),
         the frame's depth in metres at that size, and the map's key and confidence maps rendered at
         the frame's pose at that size. ``full_depth_m`` with its ``full_intrinsics`` (the frame's
-        own, kept by reference): what the view marks as shown when it is chosen is sampled from it,
-        :data:`MARK_DENSITY` times denser than the score (a cube the scored pixels step over is
-        shown all the same). Raises ValueError when the sizes disagree."""
+        own): what the view marks as shown when it is chosen is sampled from it, :data:`MARK_DENSITY`
+        times denser than the score (a cube the scored pixels step over is shown all the same); only
+        that sample is kept. Raises ValueError when the sizes disagree."""
         h, w = intrinsics.height_px, intrinsics.width_px
         for name, arr in (("depth_m", depth_m), ("key_map", key_map), ("conf_map", conf_map)):
             if np.shape(arr) != (h, w):
@@ -280,23 +284,27 @@ class CoverageScorer:
         confident = (keys >= 0) & (conf >= self.params.select_low_conf)
         unsure_px = np.zeros(h * w, bool)
         unsure_px[np.flatnonzero(surface)[~confident]] = True
-        return ViewEvidence(
+        ev = ViewEvidence(
             frame_id=int(frame_id), stamp_s=stamp_ns / 1e9, view_px=h * w, bins=self._bins_of(rays, T),
             cells=self._cells_of(points), keys=keys, confident=confident, unsure_px=unsure_px.reshape(h, w),
-            full_depth_m=full_depth_m, full_intrinsics=full_intrinsics, T_world_cam=T)
+            T_world_cam=T)
+        if full_depth_m is not None and full_intrinsics is not None:
+            mh, mw = scoring_size(full_intrinsics, MARK_DENSITY * w)
+            ev.mark_depth_m = np.asarray(resize_nearest(np.asarray(full_depth_m), (mh, mw)), np.float32)
+            ev.mark_intrinsics = full_intrinsics.scaled(mw, mh)
+        return ev
 
     def _marks(self, ev: ViewEvidence) -> tuple[np.ndarray, np.ndarray]:
         """(cubes, bins) a chosen view marks as shown: its unsure surface (the rest is labelled and
         never looked up), sampled :data:`MARK_DENSITY` times denser than it was scored."""
         unsure = ~ev.confident
-        if ev.full_depth_m is None or ev.full_intrinsics is None or ev.unsure_px is None or ev.T_world_cam is None:
+        if ev.mark_depth_m is None or ev.mark_intrinsics is None or ev.unsure_px is None or ev.T_world_cam is None:
             return ev.cells[unsure], ev.bins[unsure]
-        h, w = ev.unsure_px.shape
-        mh, mw = scoring_size(ev.full_intrinsics, MARK_DENSITY * w)
-        fine = np.asarray(resize_nearest(np.asarray(ev.full_depth_m), (mh, mw)), np.float64).reshape(-1)
+        mh, mw = ev.mark_depth_m.shape
+        fine = ev.mark_depth_m.astype(np.float64).reshape(-1)
         pick = (np.isfinite(fine) & (fine > 0) & resize_nearest(ev.unsure_px, (mh, mw)).reshape(-1))
         T = ev.T_world_cam
-        rays = self._camera_rays(ev.full_intrinsics.scaled(mw, mh))[pick]
+        rays = self._camera_rays(ev.mark_intrinsics)[pick]
         return self._cells_of((rays * fine[pick, None]) @ T[:3, :3].T + T[:3, 3]), self._bins_of(rays, T)
 
     def prepare_frame(self, frame: Frame, render: Callable[[np.ndarray, CameraIntrinsics], Any]) -> ViewEvidence:
@@ -350,13 +358,17 @@ class CoverageScorer:
 
     def min_gain_at(self, stamp_s: float) -> float:
         """The gain a view of frame time ``stamp_s`` needs: ``select_min_gain``, falling as
-        ``1 / (1 + t / select_patience_s)`` with the time ``t`` since the last view chosen."""
+        ``1 / (1 + t / select_patience_s)`` with the frame time ``t`` to the nearest view chosen
+        (in one process the last one; in the services' window, where an older candidate can be
+        taken after a newer one, the nearest on either side)."""
         p = self.params
         with self._lock:
-            last = self._last_selected_s
-        if p.select_patience_s is None or last is None:
-            return p.select_min_gain
-        return p.select_min_gain / (1.0 + max(0.0, stamp_s - last) / p.select_patience_s)
+            chosen = self._selected_s
+            if p.select_patience_s is None or not chosen:
+                return p.select_min_gain
+            i = bisect.bisect_left(chosen, stamp_s)
+            t = min(abs(stamp_s - chosen[j]) for j in (i - 1, i) if 0 <= j < len(chosen))
+        return p.select_min_gain / (1.0 + t / p.select_patience_s)
 
     def worth_encoding(self, score: ViewScore) -> bool:
         """A view is encoded only when it adds something and its gain reaches :meth:`min_gain_at`."""
@@ -368,7 +380,9 @@ class CoverageScorer:
         does not pick the same new surface again): its surface cubes and the map's regions in it
         are now covered from its bins, the regions seen at its stamp."""
         with self._lock:
-            self._last_selected_s = max(ev.stamp_s, self._last_selected_s or -math.inf)
+            bisect.insort(self._selected_s, ev.stamp_s)
+            if len(self._selected_s) > SELECTED_KEPT:
+                del self._selected_s[0]
             cells, bins = self._marks(ev)
             if len(cells):
                 self._mark_cells(cells, bins)
