@@ -5,11 +5,12 @@ A thread of its own (:meth:`CandidateFeeder.run`) takes every frame off the ``se
 subscription (a queue of ``select_window`` frames, not latest-only), applies the semantic switch,
 joins the frame with its instance image when the encoder reads them, asks geometry for a render of
 the map at the frame's pose at the scored size (``geometry/render``, ``select_width_px`` wide) and
-offers the prepared view to the :class:`~openfusion.mapping.selection.CandidateWindow`. The
-encoding side (the service loop with its local encoder, or the encoder pool's dispatch) takes the
-best candidate from the window whenever it is free; a candidate that adds too little is dropped
-without being encoded (``skipped_no_gain``), one a full window lets go for better ones is counted
-in ``select_evicted``. Scoring on its own thread keeps the encoder busy: scoring the frames that
+offers the prepared view to the :class:`~openfusion.mapping.selection.CandidateWindow`, which
+decides it at once with the rule of the in-process pipeline (so the services choose the frames one
+process would). The encoding side (the service loop with its local encoder, or the encoder pool's
+dispatch) takes the chosen frame of highest gain whenever it is free; a frame that adds too little
+is dropped without being encoded (``skipped_no_gain``), a chosen one a full window lets go for
+frames of higher gain is counted in ``select_evicted``. Scoring on its own thread keeps the encoder busy: scoring the frames that
 came during one encoder call costs a render request each, and with the local encoder those
 requests would otherwise wait for, and delay, the next call.
 

@@ -197,44 +197,46 @@ def test_direction_bins_cover_the_sphere_evenly() -> None:
     assert scoring_size(CameraIntrinsics(640, 480, 500, 500, 319.5, 239.5), 64) == (48, 64)
 
 
-def test_window_gives_the_best_candidate_and_drops_what_no_longer_adds() -> None:
-    """Three candidates: the unlabelled view, the same view again, and one whose left half the map
-    holds as region 7 (a region this record never saw encoded: new from every direction, at half
-    weight). The window gives an unlabelled view first (equal gains: the newest); recording it
-    leaves its duplicate with no gain and the third view with only region 7's directions: taken
-    next, and the duplicate is dropped as no gain."""
+def test_window_decides_as_frames_come_and_gives_the_best_waiting_frame() -> None:
+    """Three frames while the encoder is busy: an unlabelled view (chosen), the same view again
+    (nothing new once the first is chosen: dropped at once, even though nothing was encoded yet),
+    and one whose left half the map holds as region 7, a region this record never saw encoded (new
+    from every direction, at half weight: chosen). The encoder gets the higher gain first."""
     scorer = CoverageScorer(params(select_min_views=0, select_tries=1))
     window: CandidateWindow[str] = CandidateWindow(scorer, capacity=8)
     half = NO_KEYS.copy()
     half[:, : W // 2] = 7
-    window.offer(view(scorer, keys=half, conf=np.where(half >= 0, 1.0, 0.0).astype(np.float32), frame_id=0), "half")
-    window.offer(view(scorer, frame_id=1), "blank")
-    window.offer(view(scorer, frame_id=2), "blank again")
-    first = window.take()
-    assert first.taken is not None and first.taken.payload == "blank again"  # equal gains: the newest
-    second = window.take()
+    assert not window.offer(view(scorer, frame_id=0), "blank").no_gain
+    assert [c.payload for c in window.offer(view(scorer, frame_id=1), "blank again").no_gain] == ["blank again"]
+    change = window.offer(view(scorer, keys=half, conf=np.where(half >= 0, 1.0, 0.0).astype(np.float32),
+                               frame_id=2), "half")
+    assert not change.no_gain and len(window) == 2
+    first, second = window.take(), window.take()
+    assert first.taken is not None and first.taken.payload == "blank" and first.taken.score.gain == pytest.approx(1.0)
     assert second.taken is not None and second.taken.payload == "half"
     assert second.taken.score.new_surface == 0.0 and second.taken.score.new_direction == pytest.approx(0.5)
-    assert [c.payload for c in second.no_gain] == ["blank"]
-    assert len(window) == 0
     assert window.take(timeout_s=0.01).taken is None
 
 
-def test_a_full_window_lets_its_lowest_scoring_candidate_go() -> None:
+def test_a_full_window_lets_its_lowest_gain_frame_go() -> None:
     scorer = CoverageScorer(params(select_min_views=0, select_min_gain=0.1))
     window: CandidateWindow[int] = CandidateWindow(scorer, capacity=2)
-    quarter = NO_KEYS.copy()
-    quarter[:, : 3 * W // 4] = 7
-    conf = np.where(quarter >= 0, 1.0, 0.0).astype(np.float32)
-    assert not window.offer(view(scorer, keys=quarter, conf=conf, frame_id=0), 0).evicted
-    assert not window.offer(view(scorer, frame_id=1), 1).evicted
-    change = window.offer(view(scorer, frame_id=2), 2)
-    assert [c.payload for c in change.evicted] == [0]
+
+    def wall_at(depth_m: float, share: float):  # noqa: ANN202
+        depth = np.zeros((H, W), np.float32)
+        depth[:, : round(W * share)] = depth_m  # surface the others did not show (another cube)
+        return depth
+
+    assert not window.offer(view(scorer, depth=wall_at(2.0, 1.0), frame_id=0), 0).evicted
+    assert not window.offer(view(scorer, depth=wall_at(3.0, 0.5), frame_id=1), 1).evicted
+    change = window.offer(view(scorer, depth=wall_at(4.0, 0.75), frame_id=2), 2)
+    assert [c.payload for c in change.evicted] == [1]
     # a view that adds less than select_min_gain is dropped at once (one pixel of new surface)
     one_pixel = np.zeros((H, W), np.float32)
-    one_pixel[0, 0] = 2.0
+    one_pixel[0, 0] = 5.0
     small = window.offer(view(scorer, depth=one_pixel, frame_id=3), 3)
     assert [c.payload for c in small.no_gain] == [3] and len(window) == 2
+    assert [window.take().taken.payload for _ in range(2)] == [0, 2]
 
 
 SPEC = "synthetic:frames=8,width=160,height=120"

@@ -4,8 +4,9 @@ The region encoder is the most expensive step of the pipeline, and most frames o
 30 fps show what the frame before showed. :class:`CoverageScorer` says, for a candidate frame,
 what encoding it would add to the map, from the frame's pose and depth and the map as geometry
 holds it (a render of the region keys and confidences at the frame's pose), plus a small record
-of what earlier encoded frames covered. :class:`CandidateWindow` holds the candidates while the
-encoder is busy and gives it the best one when it is free. The in-process pipeline, the evaluation
+of what earlier encoded frames covered; :meth:`CoverageScorer.decide` chooses a frame or not.
+:class:`CandidateWindow` holds the chosen frames while the encoder is busy and gives it the best
+one when it is free. The in-process pipeline, the evaluation
 and the semantic service (with its local encoder or the encoder pool) all use these two classes
 (:class:`FrameSelector` is the in-process driver), with the parameters of
 :class:`~openfusion.mapping.params.SelectParams`.
@@ -374,6 +375,17 @@ class CoverageScorer:
         """A view is encoded only when it adds something and its gain reaches :meth:`min_gain_at`."""
         return score.gain > 0 and score.gain >= self.min_gain_at(score.stamp_s)
 
+    def decide(self, ev: ViewEvidence) -> tuple[ViewScore, bool]:
+        """Score a view and choose it or not; a chosen view is recorded at once
+        (:meth:`mark_selected`). The one decision of every pipeline: one process asks it for every
+        frame, the services' window for every frame as it comes."""
+        with self._lock:
+            score = self.score(ev)
+            chosen = self.worth_encoding(score)
+            if chosen:
+                self.mark_selected(ev)
+            return score, chosen
+
     # ------------------------------------------------------------------ record what was encoded
     def mark_selected(self, ev: ViewEvidence) -> None:
         """Record a view chosen for the encoder (before its result is back, so the next choice
@@ -464,9 +476,9 @@ class Candidate(Generic[T]):
 
 @dataclass
 class WindowChange(Generic[T]):
-    """What one call to the window did: the candidate taken (None: none), and the candidates that
-    left without being encoded: ``no_gain`` (their gain fell under ``select_min_gain``) and
-    ``evicted`` (a full window let them go for better ones)."""
+    """What one call to the window did: the frame taken (None: none), and the frames that left
+    without being encoded: ``no_gain`` (not chosen: their gain is under the bar) and ``evicted``
+    (chosen, but a full window let them go for frames of higher gain)."""
 
     taken: Candidate[T] | None = None
     no_gain: list[Candidate[T]] = field(default_factory=list)
@@ -474,13 +486,17 @@ class WindowChange(Generic[T]):
 
 
 class CandidateWindow(Generic[T]):
-    """Candidate frames while the encoder is busy; :meth:`take` gives it the best one.
+    """The frames chosen for the encoder while it is busy; :meth:`take` gives it the best one.
 
-    ``offer`` scores a new candidate and drops it at once when it adds too little; a window over
-    ``select_window`` lets its lowest-scoring candidate go. ``take`` rescores every candidate
-    against the record as it is now (the encoded frames since they were scored may have covered
-    what they showed), drops those that fell under ``select_min_gain`` and returns the best
-    (ties: the newest), recording it as selected. Thread-safe; ``take`` can wait for a candidate."""
+    :meth:`offer` decides a frame as it comes, with the same rule as one process
+    (:meth:`CoverageScorer.decide`: scored against what the frames chosen before it cover, chosen
+    when its gain reaches the bar, and then recorded as chosen at once, so the next frame is
+    judged as if this one were encoded). A frame that adds too little is dropped there
+    (``no_gain``); a chosen one waits here. So the frames the services encode are the frames one
+    process would, only later, as long as the window holds the backlog: a window over
+    ``select_window`` lets its lowest-gain frame go (``evicted``; what it showed stays recorded as
+    chosen, so the cost of an overload is surface left for a later view). :meth:`take` gives the
+    encoder the waiting frame of highest gain (ties: the newest). Thread-safe; ``take`` can wait."""
 
     def __init__(self, scorer: CoverageScorer, capacity: int | None = None) -> None:
         self.scorer = scorer
@@ -497,45 +513,38 @@ class CandidateWindow(Generic[T]):
             return len(self._items)
 
     def offer(self, evidence: ViewEvidence, payload: T) -> WindowChange[T]:
-        score = self.scorer.score(evidence)
+        """Decide one frame: wait in the window (chosen) or drop it (``no_gain``); a full window
+        lets its lowest-gain frame go (``evicted``)."""
         with self._cond:
+            score, chosen = self.scorer.decide(evidence)
             cand = Candidate(evidence, score, payload, self._arrivals)
             self._arrivals += 1
             change: WindowChange[T] = WindowChange()
-            if not self.scorer.worth_encoding(score):
+            if not chosen:
                 change.no_gain.append(cand)
                 return change
             self._items.append(cand)
             if len(self._items) > self.capacity:
-                for c in self._items:
-                    c.score = self.scorer.score(c.evidence)
                 worst = min(self._items, key=lambda c: (c.score.gain, c.arrival))
                 self._items.remove(worst)
-                (change.evicted if self.scorer.worth_encoding(worst.score) else change.no_gain).append(worst)
+                change.evicted.append(worst)
             self._cond.notify_all()
             return change
 
     def take(self, timeout_s: float = 0.0) -> WindowChange[T]:
-        """The best candidate worth encoding (recorded as selected), waiting up to ``timeout_s``
-        for one; ``no_gain``: candidates dropped on the way."""
+        """The waiting frame of highest gain, waiting up to ``timeout_s`` for one."""
         change: WindowChange[T] = WindowChange()
         deadline = time.monotonic() + max(0.0, timeout_s)
         with self._cond:
-            while True:
-                for c in self._items:
-                    c.score = self.scorer.score(c.evidence)
-                change.no_gain += [c for c in self._items if not self.scorer.worth_encoding(c.score)]
-                self._items = [c for c in self._items if self.scorer.worth_encoding(c.score)]
-                if self._items:
-                    best = max(self._items, key=lambda c: (c.score.gain, c.arrival))
-                    self._items.remove(best)
-                    self.scorer.mark_selected(best.evidence)
-                    change.taken = best
-                    return change
+            while not self._items:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0 or self._closed:
                     return change
                 self._cond.wait(remaining)
+            best = max(self._items, key=lambda c: (c.score.gain, c.arrival))
+            self._items.remove(best)
+            change.taken = best
+            return change
 
     def drain(self) -> list[Candidate[T]]:
         """Remove and return every candidate (a new playback, a shutdown)."""
@@ -584,12 +593,8 @@ class FrameSelector:
         if not self.scoring:
             return True
         t0 = time.perf_counter()
-        ev = self.scorer.prepare_frame(frame, self.render)
-        score = self.scorer.score(ev)
+        score, chosen = self.scorer.decide(self.scorer.prepare_frame(frame, self.render))
         self.last_score = score
-        chosen = self.scorer.worth_encoding(score)
-        if chosen:
-            self.scorer.mark_selected(ev)
         self.stats.frames_scored += 1
         self.stats.skipped_no_gain += int(not chosen)
         self.stats.score_s += time.perf_counter() - t0
