@@ -187,7 +187,8 @@ def services(work: Path, frames: int, delay_ms: float, repeat: int) -> None:
           "encoder calls | skipped (no gain) | regions | calls per region | wall (s) | load 1/5 min before -> after |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     baseline = None
-    variants = [("in-process", "every", 0), ("services", "latest", 0), ("services", "coverage", 0),
+    variants = [("in-process", "every", 0), ("in-process", "coverage", 0), ("services", "latest", 0),
+                ("services", "coverage", 0),
                 ("services", "latest", 2), ("services", "coverage", 2)]
     for rep in range(repeat):
         for mode, select, workers in variants:
