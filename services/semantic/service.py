@@ -16,9 +16,9 @@
 Which frames are encoded (``select``, :class:`~openfusion.mapping.params.SelectParams`): with
 ``coverage`` (the default) a thread of its own scores every frame against the map
 (:mod:`openfusion.services.semantic.selection`, rules in :mod:`openfusion.mapping.selection`) and
-keeps the ones that add something in a window of ``select_window`` candidates; the encoder (here,
-or the pool's workers) gets the best candidate whenever it is free, and a frame that adds too
-little is never encoded (``skipped_no_gain``). With ``latest`` the subscription keeps only the
+decides each as it comes with the in-process rule; the chosen frames wait in a window of
+``select_window`` and the encoder (here, or the pool's workers) gets the one of highest gain
+whenever it is free, and a frame that adds too little is never encoded (``skipped_no_gain``). With ``latest`` the subscription keeps only the
 newest frame (the behaviour before selection), with ``every`` a queue of frames. Either way a slow
 encoder never builds an unbounded queue: frames a full queue or window lets go are counted. An encoder that reads ground-truth instance images (gt) gets each
 frame joined with its ``InstanceFrame`` (same frame id and stamp; the bridge sends it first); a
@@ -131,6 +131,8 @@ class SemanticSection(MatchParams, MergeParams, SelectParams, EncoderOptions):
     recover_timeout_s: float = Field(
         10.0, ge=0, description="at start, try this long to recover the map's dictionary from geometry (0 = never)"
     )
+
+
 #: select=every: frames waiting for the encoder (a slower encoder drops the oldest, counted as drops).
 EVERY_QUEUE = 64
 
