@@ -65,6 +65,7 @@ from openfusion.mapping.answers import (
     RankedRegion,
     TextAnswer,
     answer_text,
+    pool_size,
     texts_to_embed,
     texts_to_rank,
 )
@@ -417,7 +418,8 @@ class QueryService:
         # the X of "X next to Y" looks at more candidates; the head rule's parts are scored, never ranked
         targets = {rq.target for rq in map(parse_relation_query, queries) if rq is not None}
         candidates = {text: self.replica.top_k(vectors[text], candidates_for(
-            top_k + RELATION_CANDIDATES if text in targets else max(top_k, MAX_ANCHORS))) for text in texts_to_rank(queries)}
+            top_k + RELATION_CANDIDATES if text in targets else pool_size(max(top_k, MAX_ANCHORS))))
+            for text in texts_to_rank(queries)}
         summaries = self._summaries_for(sorted({k for ranked in candidates.values() for k, _ in ranked}))
         least = self.section.min_region_points
         usable = {text: drop_empty_regions(ranked, summaries, min_points=least) for text, ranked in candidates.items()}

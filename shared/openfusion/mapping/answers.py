@@ -6,7 +6,9 @@ small to be answers), the regions' embeddings and their boxes; this module does 
 every path answers alike:
 
 - a plain text: regions ranked by cosine ``score``; each gets ``relevancy`` and ``match``
-  (:mod:`openfusion.mapping.relevancy`);
+  (:mod:`openfusion.mapping.relevancy`); ``match`` compares a region with the best of the
+  :data:`MATCH_POOL` regions closest to the text (v9's share of the best), so it is the same
+  whatever ``top_k`` asks for;
 - "X REL Y" (:func:`~openfusion.mapping.relations.parse_relation_query`): X candidates ranked by
   the relation to the best Y matches (:func:`~openfusion.mapping.relations.rank_by_relation`);
   each X hit that stands in the relation names its anchor; ``score``, ``relevancy`` and ``match``
@@ -41,6 +43,15 @@ from openfusion.mapping.relevancy import RelevancyScorer, relevancy_texts
 MAX_ANCHORS = 3
 #: X candidates a relation query looks at beyond ``top_k``.
 RELATION_CANDIDATES = 32
+#: Regions (closest by cosine) a text is scored against to find its best margin, which ``match``
+#: compares every hit with (:func:`openfusion.mapping.relevancy.match_mask`); ``top_k`` more when
+#: it asks for more. A region's margin rarely beats the top 32 cosines' best from further down.
+MATCH_POOL = 32
+
+
+def pool_size(n: int) -> int:
+    """How many ranked regions to score when ``n`` are wanted (:data:`MATCH_POOL` at least)."""
+    return max(int(n), MATCH_POOL)
 
 Rank = Callable[[np.ndarray, int], list[tuple[int, float]]]
 Embeddings = Callable[[list[int]], np.ndarray]
@@ -90,14 +101,18 @@ def texts_to_embed(texts: Sequence[str]) -> list[str]:
 
 
 def _scored(
-    ranked: list[tuple[int, float]], text: str, vectors: Mapping[str, np.ndarray], embeddings: Embeddings,
+    rank: Rank, n: int, text: str, vectors: Mapping[str, np.ndarray], embeddings: Embeddings,
     scorer: RelevancyScorer,
 ) -> list[RankedRegion]:
+    """The ``n`` regions closest to ``text`` with relevancy and match, the match judged among
+    :func:`pool_size` of them."""
+    ranked = rank(vectors[text], pool_size(n))
     if not ranked:
         return []
-    rel = scorer.text_relevancy(text, vectors, embeddings([k for k, _ in ranked]))
-    return [RankedRegion(int(k), float(s), round(float(r), 4), bool(scorer.is_match(r)))
-            for (k, s), r in zip(ranked, rel, strict=True)]
+    margin = scorer.text_margins(text, vectors, embeddings([k for k, _ in ranked]))
+    rel, match = scorer.relevancy_of(margin), scorer.matches(margin)
+    return [RankedRegion(int(k), float(s), round(float(r), 4), bool(ok))
+            for (k, s), r, ok in zip(ranked[:n], rel, match, strict=False)]
 
 
 def answer_text(
@@ -113,21 +128,20 @@ def answer_text(
 ) -> TextAnswer:
     """The answer to ``text`` (module docstring). ``vectors``: the embedding of every text of
     :func:`texts_to_embed`; ``rank(vector, n)``: up to ``n`` (key, cosine) best first, regions
-    that are no answers already left out; ``boxes``: every answerable region's box (None: no
+    that are no answers already left out (it is asked for :func:`pool_size` of them); ``boxes``: every answerable region's box (None: no
     relations, no nearby). A relation query whose Y matches no region is answered as a plain
     query (the whole text): "the thing above my head" names no region "my head" to be above."""
     rq = parse_relation_query(text) if boxes is not None else None
     anchors: list[int] = []
     if rq is not None:
-        ys = _scored(rank(vectors[rq.anchor], MAX_ANCHORS), rq.anchor, vectors, embeddings, scorer)
+        ys = _scored(rank, MAX_ANCHORS, rq.anchor, vectors, embeddings, scorer)
         anchors = [y.key for y in ys if y.match]
         if not anchors:
             rq = None
     if rq is None:
-        regions = _scored(rank(vectors[text], top_k), text, vectors, embeddings, scorer)
+        regions = _scored(rank, top_k, text, vectors, embeddings, scorer)
     else:
-        candidates = _scored(rank(vectors[rq.target], top_k + RELATION_CANDIDATES), rq.target, vectors, embeddings,
-                             scorer)
+        candidates = _scored(rank, top_k + RELATION_CANDIDATES, rq.target, vectors, embeddings, scorer)
         by_key = {c.key: c for c in candidates}
         order = rank_by_relation([(c.key, c.relevancy, c.match) for c in candidates], anchors, boxes, rq.relation,
                                  up_axis=up_axis)
