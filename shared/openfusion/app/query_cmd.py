@@ -15,8 +15,9 @@ text alone prints it::
                   near: on floor (key 2), next to table (key 6, 0.04 m)
 
 ``score`` is the cosine, ``relevancy`` the LERF relevancy in [0, 1] (with query-side contrast
-categories) and ``match`` says the relevancy reaches the embedding space's calibrated threshold
-(:mod:`openfusion.mapping.relevancy`);
+categories) and ``match`` says the hit is what was asked: the relevancy reaches the embedding
+space's calibrated threshold and the hit's margin is at least 0.7 of the text's best in the map
+(:mod:`openfusion.mapping.relevancy`, v9);
 the second line names up to three nearby regions with the hit's relation to each (``on``,
 ``under``, ``above``, ``next to``; :mod:`openfusion.mapping.relations`). A text none of whose
 regions is a match prints one line instead, and the command still exits 0::
@@ -265,7 +266,8 @@ one line naming the PLY of --out; --verbose adds log lines and the libraries' ou
     no match for "zebra" (closest: plant, relevancy 0.01)
   score: cosine; relevancy: [0, 1] against the phrases "object", "things", "stuff",
   "texture" and, query side, the categories "animal", "vehicle", "food", "building",
-  "landscape", "appliance"; match: relevancy reaches the embedding space's calibrated threshold. A TEXT
+  "landscape", "appliance"; match: what was asked (relevancy reaches the embedding space's
+  calibrated threshold and the margin is at least 0.7 of the text's best). A TEXT
   without any match prints the "no match" line (exit status 0).
   "X on|under|above|next to Y" (also: on top of, underneath, beneath, below, over, beside,
   near, by), e.g. "the chair next to the table": X regions in that relation to the best Y

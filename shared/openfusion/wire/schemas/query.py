@@ -110,8 +110,9 @@ class RelationQueryInfo(Record):
 
 class RegionHit(Record):
     """One ranked region: key, similarity ``score`` (cosine), ``relevancy`` in [0, 1] against the
-    canonical negative phrases and the query-side contrast categories, ``match`` (relevancy at or
-    above the embedding space's calibrated threshold; see :mod:`openfusion.mapping.relevancy`),
+    canonical negative phrases and the query-side contrast categories, ``match`` (what was asked:
+    relevancy at or above the embedding space's calibrated threshold and a margin at least a share
+    of the query's best; see :mod:`openfusion.mapping.relevancy`),
     label, axis-aligned bbox and
     centroid (world, metres), up to three ``nearby`` regions with the hit's relation to each, and
     for a relation query the anchor region it stands in the relation to (``relation``)."""
