@@ -55,8 +55,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from pydantic import ValidationError
-
 from openfusion.app.launcher import Cluster, RunError, StopSignals, wait_for_services
 from openfusion.app.outputs import open_rerun, say_progress, surface_mesh, write_query_outputs
 from openfusion.app.run_config import RUN_FLAGS, SECTION_MODELS, RunConfig, write_service_config
@@ -69,7 +67,7 @@ from openfusion.sources.registry import check_source_spec, describe_source, pars
 from openfusion.wire.counters import BridgeCounter, CommonCounter, GeometryCounter, SemanticCounter
 from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
 from openfusion.wire.keys import validate_map_id
-from openfusion.wire.schemas import TextQuery
+from openfusion.wire.limits import LimitError, check_text, check_top_k
 
 logger = logging.getLogger(__name__)
 
@@ -402,15 +400,14 @@ def _check_out_dir(out: Path) -> None:
 
 
 def _check_queries(queries: Sequence[str], top_k: int) -> None:
-    """Refuse example queries the query service would refuse (empty text, ``--top-k`` out of range)
-    with the limits of its request message, before the scene is mapped."""
+    """Refuse example queries the query service would refuse (empty or too long a text, ``--top-k``
+    out of range) with the one set of limits (:mod:`openfusion.wire.limits`), before the scene is mapped."""
     for text in queries:
         try:
-            TextQuery(text=text, top_k=top_k, with_points=True, max_points=QUERY_MAX_POINTS)
-        except ValidationError as exc:
-            err = exc.errors(include_url=False)[0]
-            flag = {"text": "--query", "top_k": "--top-k"}.get(str(err["loc"][0]), str(err["loc"][0]))
-            raise UsageError(f"{flag} {err['input']!r}: {err['msg'][:1].lower()}{err['msg'][1:]}") from None
+            check_text(text)
+        except LimitError as exc:
+            raise UsageError(f"--query {text[:40]!r}: {exc}") from None
+    check_top_k(top_k, name="--top-k")
 
 
 def _check_text_encoder(config: RunConfig) -> None:
