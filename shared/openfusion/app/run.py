@@ -32,7 +32,10 @@ service, ``--restart-backoff-s``, doubled for each restart; :mod:`openfusion.app
 last frame it holds, the bridge replays the frames after it, and geometry ignores frames it
 already holds, so every frame is integrated exactly once (README, "Crash-proof mapping").
 Past the restart limit the run fails as without supervision, but first saves the map geometry
-holds (when it is alive) and writes ``run.json`` with the ``error``.
+holds (when it is alive) and writes ``run.json`` with the ``error``. ``run.json``'s ``map_saved``
+says where the map went on every path that saved one (done, interrupted, failed after saving);
+the progress line and ``run.json`` count semantic frames the same way across restarts
+(:func:`progress_counts`).
 
 Settings: one :class:`~openfusion.app.run_config.RunConfig` (every service's section), validated
 before anything starts, written to ``OUT/run-config.json`` and read by every service.
@@ -202,13 +205,16 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
     stats: dict[str, Any] = {}
     carried: dict[str, dict[str, float]] = {}
     map_dir = out / "map"
+    saved_to: str | None = None  # where the map went, once saved (run.json's map_saved)
 
     def summary_now(error: str | None = None) -> RunSummary:
-        return RunSummary.from_health(
+        summary = RunSummary.from_health(
             _with_carried(stats, carried), source=config.bridge.source, encoder=config.semantic.encoder, noise=config.semantic.noise,
             semantic_every=config.semantic.every_k, wall_s=time.monotonic() - started,
             frames_requested=config.bridge.max_frames, interrupted=signals.requested is not None,
             restarts=cluster.restarts, error=error, encoder_workers=args.encoder_workers)
+        summary.map_saved = saved_to
+        return summary
 
     try:
         stats = _follow_progress(args, client, cluster, signals, stats, carried)
@@ -222,6 +228,7 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
             raise signals.interrupted("no frame was integrated yet; nothing saved")
     _say(args, "saving the map")
     client.control("save", str(map_dir.resolve()))
+    saved_to = str(map_dir.resolve())
     replies = []
     for text in args.queries:
         if signals.requested:
@@ -250,7 +257,7 @@ def _save_what_is_left(args: argparse.Namespace, client: Any, cluster: Cluster, 
     if geometry is not None and geometry.alive() and summary.frames_integrated > 0:
         try:
             client.control("save", str(map_dir.resolve()))
-            summary.map_saved = True
+            summary.map_saved = str(map_dir.resolve())
             _say(args, f"saved the map of {summary.frames_integrated} integrated frames to {map_dir}")
         except Exception as exc:  # noqa: BLE001 - the run's own error is what the user must see
             logger.warning("could not save the map after the run failed: %s", exc)
@@ -296,6 +303,14 @@ def _carry_over(stats: dict[str, Any], fresh: dict[str, Any], carried: dict[str,
         into = carried.setdefault(name, {})
         for counter in counters:
             into[counter] = into.get(counter, 0.0) + old.counter(counter)
+
+
+def progress_counts(stats: dict[str, Any]) -> dict[str, int]:
+    """The progress line's semantic counts, from the stats run.json is made of (with the counts of
+    earlier processes of a restarted service added: :func:`_with_carried`), so the line ends on
+    the ``semantic_frames`` that run.json says."""
+    return {"semantic": int(_counter(stats, "semantic", SemanticCounter.SEMANTIC_FRAMES)),
+            "regions": int(_counter(stats, "semantic", SemanticCounter.REGIONS))}
 
 
 def _with_carried(stats: dict[str, Any], carried: dict[str, dict[str, float]]) -> dict[str, Any]:
@@ -356,14 +371,14 @@ def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
                 stable_since = None
             cluster.check_alive()
             fresh = collect_health(client.session, client.keys, timeout_s=1.0)
-            _carry_over(stats, fresh, {} if carried is None else carried)
+            carried = {} if carried is None else carried
+            _carry_over(stats, fresh, carried)
             stats.update(fresh)
             integrated = _counter(stats, "geometry", GeometryCounter.FRAMES_INTEGRATED)
             refused = (_counter(stats, "geometry", GeometryCounter.CAPACITY_REFUSED)
                        + _counter(stats, "geometry", GeometryCounter.FRAMES_FAILED))
             bar.n = int(integrated)
-            bar.set_postfix(semantic=int(_counter(stats, "semantic", SemanticCounter.SEMANTIC_FRAMES)),
-                            regions=int(_counter(stats, "semantic", SemanticCounter.REGIONS)))
+            bar.set_postfix(**progress_counts(_with_carried(stats, carried)))
             bar.refresh()
             done = playback_stopped or _counter(stats, "bridge", BridgeCounter.PLAYBACK_DONE) >= 1
             published = _counter(stats, "bridge", BridgeCounter.FRAMES_PUBLISHED)

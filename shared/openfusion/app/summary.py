@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, ValidationInfo, field_validator
 
 from openfusion.mapping.pipeline import PipelineStats, reconstruction_rates
 from openfusion.wire.counters import (
@@ -46,8 +46,13 @@ class RunSummary(BaseModel):
     announced the last frame its checkpoint holds (not in ``frames_published``, which counts each
     frame once); ``frames_duplicate``: frames geometry received and dropped because it already held
     them. ``frames_integrated`` counts each frame once, restarts or not. ``error``: the run failed
-    (a service died past the restart limit, a timeout) and ``map_saved`` says whether the map of
-    the frames integrated by then was saved to ``map_dir`` anyway.
+    (a service died past the restart limit, a timeout).
+
+    ``map_saved``: where the map went (the absolute path of the map folder, ``OUT/map``) on every
+    path that saved one: a finished run, an interrupted one, one that failed after saving what
+    geometry held; null when no map was saved (nothing integrated yet, or the run failed before it
+    could save). ``semantic_frames`` adds up over restarts of the semantic service, as the
+    progress line does. A ``run.json`` written before (``map_saved`` true or false) still loads.
     """
 
     mode: Literal["services", "in-process"]
@@ -86,7 +91,15 @@ class RunSummary(BaseModel):
     frames_replayed: int = 0
     frames_duplicate: int = 0
     error: str | None = None
-    map_saved: bool | None = None
+    map_saved: str | None = None
+
+    @field_validator("map_saved", mode="before")
+    @classmethod
+    def _legacy_map_saved(cls, value: object, info: ValidationInfo) -> object:
+        """``run.json`` before issue 32: ``true`` (saved to ``map_dir``) or ``false``/null (not saved)."""
+        if isinstance(value, bool):
+            return info.data.get("map_dir", "map") if value else None
+        return value
 
     @classmethod
     def from_health(
@@ -141,7 +154,7 @@ class RunSummary(BaseModel):
             restarts=dict(restarts or {}),
             frames_replayed=int(c("bridge", BridgeCounter.FRAMES_REPLAYED)),
             frames_duplicate=int(c("geometry", GeometryCounter.FRAMES_DUPLICATE)),
-            error=error, map_saved=False if error else None,
+            error=error,
         )
 
     @classmethod
