@@ -80,8 +80,8 @@ def main() -> None:
     for n in sizes:
         vectors, rank, embeddings, boxes = _setup(n, rng)
         for text in TEXTS:
-            def run(scorer: RelevancyScorer, text: str = text) -> None:
-                answer_text(text, vectors, rank=rank, embeddings=embeddings, scorer=scorer, boxes=boxes, top_k=5)
+            def run(scorer: RelevancyScorer, text: str = text, setup=(vectors, rank, embeddings, boxes)) -> None:  # noqa: ANN001
+                answer_text(text, setup[0], rank=setup[1], embeddings=setup[2], scorer=scorer, boxes=setup[3], top_k=5)
 
             pool = answers.MATCH_POOL
             answers.MATCH_POOL = 0  # v8: only the regions returned are scored
