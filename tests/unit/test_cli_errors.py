@@ -89,6 +89,7 @@ BAD_ARGUMENTS = [
     (["run", "--source", "rosbag:{tmp}/nobag"], "rosbag source: {tmp}/nobag does not exist"),
     (["run", "--source", "ros2:domain=3"], "unknown ros2 option(s) domain; known: layout"),
     (["ros-publish", "--every", "0", "chair"], "--every must be positive, got 0"),
+    (["ros-publish", "--top-k", "500", "chair"], "--top-k must be from 1 to 100, got 500"),
     (["ros-publish", "--layout", "dds", "chair"], "invalid choice: 'dds'"),
     (["query", "--map-dir", "{tmp}/nomap", "chair"], "no map at {tmp}/nomap"),
     # the one set of limits (openfusion.wire.limits), both modes, the same line as the page and the service
