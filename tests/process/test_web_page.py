@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from openfusion.bus import Queryable, ServiceRunner, open_session
+from openfusion.bus import Queryable, QueryError, ServiceRunner, open_session
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.encoders import make_text_encoder
@@ -146,7 +146,13 @@ def running_map() -> Iterator[Map]:
         qrunner.ready()
         client = OpenFusionClient.from_config(ServiceConfig(**cfg("client")), timeout_s=30.0)
         closers.append(client.close)
-        wait_until(lambda: client.query_text("chair", top_k=1).regions, timeout_s=60)
+        def answered() -> bool:  # the services may take longer than one query's timeout to come up under load
+            try:
+                return bool(client.query_text("chair", top_k=1).regions)
+            except QueryError:
+                return False
+
+        wait_until(answered, timeout_s=120)
         yield Map(map_id, endpoint, client, geometry)
     finally:
         for close in reversed(closers):
