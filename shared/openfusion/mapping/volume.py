@@ -189,7 +189,7 @@ class SemanticVolume:
 
     @property
     def bytes_per_voxel(self) -> int:
-        """All attributes: tsdf 4 + weight 4 + color 12 + key 4 + conf 4."""
+        """All attributes: tsdf 4 + weight 2 + color 6 + key 2 + conf 2 (``storage``'s docstring)."""
         return BYTES_PER_VOXEL
 
     @property
@@ -268,6 +268,7 @@ class SemanticVolume:
         )
         self._note_capacity_change()
         self._storage.mark_geometry_changed()
+        self._storage.note_integrated()
         self.stats.frames_integrated += 1
         return result
 
