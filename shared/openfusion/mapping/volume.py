@@ -17,7 +17,12 @@ part of the story (read their docstrings for the rules):
   by :mod:`openfusion.mapping.update_rule` (:meth:`SemanticVolume.apply_update`);
 - :mod:`openfusion.mapping.readout` -- surface points and meshes with a key each: the nearest
   labelled voxel of their cell, else the nearest same-facing labelled point's within
-  ``VolumeParams.label_fill_radius_m`` (:meth:`SemanticVolume.extract_points`, ``extract_mesh``).
+  ``VolumeParams.label_fill_radius_m`` (:meth:`SemanticVolume.extract_points`, ``extract_mesh``);
+- :mod:`openfusion.mapping.tiles` / :mod:`openfusion.mapping.paging` /
+  :mod:`openfusion.mapping.tilestore` -- tiles, the memory budget (``memory_budget_mb``: tiles
+  paged out to the tile store and back in before a frame or a render reaches them), incremental
+  checkpoints; :mod:`openfusion.mapping.wholemap` -- read-outs of the whole map while part of it
+  is paged out.
 
 Names that moved to those modules (``RayHits``, ``SurfacePoints``, ``fill_nearest_labels``, ...)
 are re-exported here, so ``from openfusion.mapping.volume import ...`` keeps working.
@@ -27,9 +32,11 @@ from __future__ import annotations
 
 import functools
 import logging
+import tempfile
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
@@ -42,6 +49,7 @@ from openfusion.mapping.errors import CapacityError
 from openfusion.mapping.params import VolumeParams
 from openfusion.mapping.raycast import RayHits, range_map_down_factor
 from openfusion.mapping.readout import FILL_MIN_NORMAL_COS, SurfaceMesh, SurfacePoints, fill_nearest_labels
+from openfusion.mapping.paging import Snapshot, TilePager, budget_blocks, camera_center
 from openfusion.mapping.storage import (
     ATTR_NAMES,
     BYTES_PER_VOXEL,
@@ -49,6 +57,8 @@ from openfusion.mapping.storage import (
     VoxelStorage,
     check_arrays,
 )
+from openfusion.mapping.tiles import TileGrid
+from openfusion.mapping.tilestore import TileStore
 from openfusion.poses import check_pose, invert_pose
 
 __all__ = [
@@ -143,7 +153,10 @@ class SemanticVolume:
     and answer render requests on another.
     """
 
-    def __init__(self, params: VolumeParams | None = None) -> None:
+    def __init__(self, params: VolumeParams | None = None, *, store: TileStore | None = None) -> None:
+        """``store``: the tile store checkpoints go to and tiles are paged out to (a map folder's,
+        :mod:`openfusion.mapping.tilestore`). With ``memory_budget_mb`` and no store, tiles are
+        paged out to a scratch store in a temporary folder, removed by :meth:`close`."""
         self.params = params if params is not None else VolumeParams()
         if self.params.device.startswith("CUDA") and not o3c.cuda.is_available():
             raise ValueError(
@@ -153,6 +166,44 @@ class SemanticVolume:
         self.stats = VolumeStats()
         self._intrinsic_cache: dict[CameraIntrinsics, o3c.Tensor] = {}
         self._storage = VoxelStorage(self.params, o3c.Device(self.params.device))
+        self._scratch_dir: tempfile.TemporaryDirectory[str] | None = None
+        budget = None
+        if self.params.memory_budget_mb is not None:
+            budget = budget_blocks(self.params.memory_budget_mb, self._storage.bytes_per_block)
+            self._storage.reset(capacity=budget)
+            if store is None:
+                self._scratch_dir = tempfile.TemporaryDirectory(prefix="openfusion-tiles-")
+                store = TileStore(Path(self._scratch_dir.name) / "map.ofz")
+        grid = TileGrid(self.params.tile_blocks, self.params.block_size_m)
+        self._pager = TilePager(self._storage, grid, store, budget)
+
+    def close(self) -> None:
+        """Release the tile store (and remove a scratch store's folder)."""
+        with self._lock:
+            store = self._pager.store
+            if store is not None:
+                store.close()
+            if self._scratch_dir is not None:
+                self._scratch_dir.cleanup()
+                self._scratch_dir = None
+
+    @property
+    def store(self) -> TileStore | None:
+        """The tile store of this volume (None: nothing is paged and no checkpoint store is set)."""
+        return self._pager.store if self._scratch_dir is None else None
+
+    @property
+    def pager(self) -> TilePager:
+        return self._pager
+
+    @property
+    def budget_blocks(self) -> int | None:
+        return self._pager.budget_blocks
+
+    @property
+    def resident_bytes(self) -> int:
+        """Bytes of the grid's voxel buffers (its capacity: Open3D allocates and touches them all)."""
+        return self._storage.capacity_blocks * self._storage.bytes_per_block
 
     # ------------------------------------------------------------------ grid bookkeeping
     def _note_capacity_change(self) -> None:
@@ -242,6 +293,11 @@ class SemanticVolume:
             logger.debug("frame %s has no depth in range; nothing integrated", frame.frame_id)
             return IntegrateStats(empty=True)
         result = IntegrateStats(blocks_touched=int(block_coords.shape[0]))
+        pager = self._pager
+        pager.tick(camera_center(frame.T_world_cam))
+        coords_np = block_coords.cpu().numpy()
+        if pager.budget_blocks is not None or pager.stored_blocks:
+            self._page_in_for(coords_np, frame.frame_id)
         if p.max_blocks is not None:
             budget = integration.block_budget(self._storage, block_coords, p.max_blocks)
             result.blocks_new = budget.blocks_new
@@ -269,15 +325,52 @@ class SemanticVolume:
         self._note_capacity_change()
         self._storage.mark_geometry_changed()
         self._storage.note_integrated()
+        pager.touched(block_coords.cpu().numpy() if p.max_blocks is not None else coords_np, changed=True)
         self.stats.frames_integrated += 1
         return result
+
+    def _page_in_for(self, coords: np.ndarray, frame_id: int) -> None:
+        """Make the tiles of a frame's blocks resident (paging stored ones in) and room for its new
+        blocks under the memory budget; :class:`CapacityError` (nothing written) when the frame
+        alone needs more blocks than the budget holds."""
+        pager = self._pager
+        tiles = pager.touched(coords, changed=False)
+        found = self._storage.find_blocks(coords) >= 0
+        stored = {t for t in tiles if t in pager.stored_blocks}
+        tile_of = pager.grid.tiles_of_blocks(coords[~found])
+        new_blocks = sum(1 for t in tile_of.tolist() if tuple(t) not in stored)
+        try:
+            pager.ensure_resident(tiles, extra_blocks=new_blocks)
+        except CapacityError as exc:
+            raise CapacityError(
+                f"frame {frame_id}: {exc}; nothing was integrated", blocks_needed=exc.blocks_needed,
+                blocks_free=exc.blocks_free,
+            ) from exc
 
     # ------------------------------------------------------------------ render / update
     @_locked
     def ray_cast(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> RayHits:
         """Depth and the 8 voxels around the first surface hit of every pixel (depth-tested)."""
         T = check_pose(T_world_cam)
+        self._page_in_view(T, intrinsics)
         return raycast.ray_cast(self._storage, T, intrinsics, self._intrinsic_tensor(intrinsics))
+
+    def _page_in_view(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> None:
+        """Page in the stored tiles a view can reach (renders see the whole map)."""
+        pager = self._pager
+        if not pager.stored_blocks:
+            return
+        stored = np.array(list(pager.stored_blocks), np.int64)
+        seen = pager.grid.tiles_in_view(
+            stored, T_world_cam, fx=intrinsics.fx, fy=intrinsics.fy, cx=intrinsics.cx, cy=intrinsics.cy,
+            width_px=intrinsics.width_px, height_px=intrinsics.height_px, depth_max_m=self.params.depth_max_m,
+        )
+        if seen.any():
+            pager.tick(camera_center(T_world_cam))
+            tiles = [tuple(int(v) for v in t) for t in stored[seen]]
+            pager.ensure_resident(tiles)  # type: ignore[arg-type]
+            for t in tiles:
+                pager.last_used[t] = pager.clock  # type: ignore[index]
 
     @_locked
     def render(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> RenderedView:
@@ -337,9 +430,10 @@ class SemanticVolume:
         self.stats.updates += 1
         if stats.pixels_used == 0:
             return stats
-        stats.voxels_updated, counts = view_update.write_view(
+        stats.voxels_updated, counts, voxels = view_update.write_view(
             self._storage, hits, use, key_map, conf_map, self.params.conf_history_weight
         )
+        self._pager.touched_voxels(voxels)
         stats.voxels_labelled, stats.voxels_reinforced, stats.voxels_weakened, stats.voxels_switched = counts
         self.stats.voxels_updated += stats.voxels_updated
         return stats
@@ -355,12 +449,27 @@ class SemanticVolume:
     @_locked
     def labelled_voxels(self) -> tuple[np.ndarray, np.ndarray]:
         """(integer voxel coordinates (n, 3) int64, keys (n,) int64) of every voxel carrying a key."""
-        return self._storage.labelled_voxels()
+        coords, keys = self.labelled_blocks()
+        from openfusion.mapping.storage import voxels_of_labelled
+
+        return voxels_of_labelled(coords, keys, self.params.block_resolution)
 
     @_locked
     def labelled_blocks(self) -> tuple[np.ndarray, np.ndarray]:
         """(block coordinates (N, 3), keys (N, R, R, R) [z, y, x], -1 = none) of the blocks holding a key."""
-        return self._storage.labelled_blocks()
+        coords, keys = self._storage.labelled_blocks()
+        if not self._pager.stored_blocks:
+            return coords, keys
+        from openfusion.mapping.storage import labelled_of
+
+        parts_c, parts_k = [coords], [keys]
+        res = self.params.block_resolution
+        for _, tc, raw in self._pager.iter_stored():
+            key1 = self._storage.slots.key1_of(raw["key"].reshape(len(tc), -1))
+            c, k = labelled_of(tc, key1, res)
+            parts_c.append(c)
+            parts_k.append(k)
+        return np.concatenate(parts_c), np.concatenate(parts_k)
 
     def region_contacts(self, *, radius_vox: int = 1) -> Any:
         """Which regions' labelled voxels touch, how much, and each region's labelled voxel count
@@ -386,19 +495,67 @@ class SemanticVolume:
         only points of those regions; ``max_points`` subsamples uniformly at random
         (deterministic for a given ``seed``).
         """
+        if self._pager.stored_blocks:
+            from openfusion.mapping import wholemap
+
+            return wholemap.extract_points(self._storage, self._pager, keys, max_points, seed=seed)
         return readout.extract_points(self._storage, keys, max_points, seed=seed)
 
     @_locked
     def extract_mesh(self, keys: np.ndarray | list[int] | None = None) -> SurfaceMesh:
         """Surface mesh (marching cubes); with ``keys``, only triangles whose 3 vertices carry one of
         those keys (unreferenced vertices dropped)."""
+        if self._pager.stored_blocks:
+            from openfusion.mapping import wholemap
+
+            return wholemap.extract_mesh(self._storage, self._pager, keys)
         return readout.extract_mesh(self._storage, keys)
+
+    @_locked
+    def mesh_parts(self, keys: np.ndarray | list[int] | None = None) -> list[SurfaceMesh]:
+        """The mesh in parts of at most ``wholemap.CHUNK_BLOCKS`` blocks each (a large map's mesh
+        written or sent part by part; one part for a map with nothing paged out)."""
+        from openfusion.mapping import wholemap
+
+        if not self._pager.stored_blocks and self._storage.num_blocks <= wholemap.CHUNK_BLOCKS:
+            return [readout.extract_mesh(self._storage, keys)]
+        return list(wholemap.iter_mesh_parts(self._storage, self._pager, keys))
 
     # ------------------------------------------------------------------ arrays (save / load)
     @_locked
     def to_arrays(self) -> dict[str, np.ndarray]:
-        """All active blocks as plain arrays (``key`` holds real keys, -1 = none)."""
-        return self._storage.to_arrays()
+        """Every block (resident and paged out) as plain arrays (``key`` holds real keys, -1 = none)."""
+        arrays = self._storage.to_arrays()
+        if not self._pager.stored_blocks:
+            return arrays
+        parts = [arrays, *self._pager.stored_arrays()]
+        return {name: np.concatenate([p[name] for p in parts]) for name in arrays}
+
+    @property
+    def num_blocks_total(self) -> int:
+        """Blocks of the whole map: resident and paged out."""
+        return self._storage.num_blocks + sum(self._pager.stored_blocks.values())
+
+    # ------------------------------------------------------------------ checkpoints (tile store)
+    @_locked
+    def checkpoint_snapshot(self, *, full: bool = False) -> Snapshot:
+        """The tiles changed since the last checkpoint, copied now (:mod:`openfusion.mapping.paging`)."""
+        snap = self._pager.snapshot(full=full)
+        snap.tile_index = self._tile_index()  # type: ignore[attr-defined]
+        return snap
+
+    def _tile_index(self) -> np.ndarray:
+        """int32 (T, 4): every tile of the map (x, y, z, block count)."""
+        groups = self._pager._resident_groups()
+        rows = [(*t, len(g[1])) for t, g in groups.items()] + [
+            (*t, n) for t, n in self._pager.stored_blocks.items()
+        ]
+        return np.array(sorted(rows), np.int32).reshape(-1, 4)
+
+    @_locked
+    def checkpoint_committed(self, snap: Snapshot) -> None:
+        """``snap`` is durable in the store (bookkeeping of what is dirty and where tiles are)."""
+        self._pager.committed(snap)
 
     @classmethod
     def from_arrays(cls, params: VolumeParams, arrays: dict[str, np.ndarray]) -> SemanticVolume:
@@ -407,4 +564,5 @@ class SemanticVolume:
         volume = cls(params)
         if volume._storage.load_arrays(arrays):
             volume.stats.grow_events += 1
+        volume._pager.sync_resident()
         return volume
