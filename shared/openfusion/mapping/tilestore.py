@@ -51,7 +51,7 @@ from typing import Any
 import lmdb
 import numpy as np
 
-from openfusion.mapping.errors import MapFormatError
+from openfusion.mapping.errors import MapFormatError, StoreWriteError
 from openfusion.mapping.tiles import tile_key, tile_of_key
 
 logger = logging.getLogger(__name__)
@@ -262,8 +262,11 @@ class TileStore:
 
     def put_paged(self, epoch: int, tile: tuple[int, int, int], blob: bytes) -> None:
         """Keep a tile paged out in ``epoch`` (not durable until a checkpoint commits it)."""
-        with self.env.begin(write=True, db=self._paged) as txn:
-            txn.put(_EPOCH.pack(epoch) + tile_key(tile), blob)
+        try:
+            with self.env.begin(write=True, db=self._paged) as txn:
+                txn.put(_EPOCH.pack(epoch) + tile_key(tile), blob)
+        except lmdb.Error as exc:
+            raise StoreWriteError(f"{self.path}: could not page out tile {tile}: {exc}") from exc
 
     def discard_paged(self) -> int:
         """Drop every paged entry (a writer opening the store: they are newer than its checkpoint)."""
@@ -302,6 +305,13 @@ class TileStore:
         header = dict(header)
         header["codec"] = self.codec_name
         header["arrays"] = {n: {"shape": list(a.shape), "dtype": a.dtype.str, "crc32": _crc(a)} for n, a in arrays.items()}
+        try:
+            self._commit(upto_epoch, blobs, header, arrays, removed)
+        except lmdb.Error as exc:
+            raise StoreWriteError(f"{self.path}: checkpoint not written: {exc}") from exc
+
+    def _commit(self, upto_epoch: int, blobs: dict[tuple[int, int, int], bytes], header: dict[str, Any],
+                arrays: dict[str, np.ndarray], removed: list[tuple[int, int, int]] | None) -> None:
         with self.env.begin(write=True) as txn:
             moved: list[bytes] = []
             cur = txn.cursor(db=self._paged)

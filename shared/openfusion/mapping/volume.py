@@ -46,10 +46,10 @@ import open3d.core as o3c
 from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.mapping import integration, raycast, readout, view_update
 from openfusion.mapping.errors import CapacityError
+from openfusion.mapping.paging import Snapshot, TilePager, budget_blocks, camera_center
 from openfusion.mapping.params import VolumeParams
 from openfusion.mapping.raycast import RayHits, range_map_down_factor
 from openfusion.mapping.readout import FILL_MIN_NORMAL_COS, SurfaceMesh, SurfacePoints, fill_nearest_labels
-from openfusion.mapping.paging import Snapshot, TilePager, budget_blocks, camera_center
 from openfusion.mapping.storage import (
     ATTR_NAMES,
     BYTES_PER_VOXEL,
