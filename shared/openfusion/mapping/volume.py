@@ -32,8 +32,10 @@ from __future__ import annotations
 
 import functools
 import logging
+import shutil
 import tempfile
 import threading
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -135,6 +137,11 @@ class VolumeStats:
 _F = TypeVar("_F", bound=Callable[..., Any])
 
 
+def _remove_scratch(store: TileStore, folder: str) -> None:
+    store.close()
+    shutil.rmtree(folder, ignore_errors=True)
+
+
 def _locked(method: _F) -> _F:
     """Serialise a public method on the volume's lock (Open3D's grid is not thread-safe)."""
 
@@ -166,14 +173,16 @@ class SemanticVolume:
         self.stats = VolumeStats()
         self._intrinsic_cache: dict[CameraIntrinsics, o3c.Tensor] = {}
         self._storage = VoxelStorage(self.params, o3c.Device(self.params.device))
-        self._scratch_dir: tempfile.TemporaryDirectory[str] | None = None
+        self._scratch: weakref.finalize | None = None
         budget = None
         if self.params.memory_budget_mb is not None:
             budget = budget_blocks(self.params.memory_budget_mb, self._storage.bytes_per_block)
             self._storage.reset(capacity=budget)
             if store is None:
-                self._scratch_dir = tempfile.TemporaryDirectory(prefix="openfusion-tiles-")
-                store = TileStore(Path(self._scratch_dir.name) / "map.ofz")
+                folder = tempfile.mkdtemp(prefix="openfusion-tiles-")
+                store = TileStore(Path(folder) / "map.ofz")
+                # Removed by close(), or when the volume is collected (no warning: it is ours).
+                self._scratch = weakref.finalize(self, _remove_scratch, store, folder)
         grid = TileGrid(self.params.tile_blocks, self.params.block_size_m)
         self._pager = TilePager(self._storage, grid, store, budget)
 
@@ -183,14 +192,16 @@ class SemanticVolume:
             store = self._pager.store
             if store is not None:
                 store.close()
-            if self._scratch_dir is not None:
-                self._scratch_dir.cleanup()
-                self._scratch_dir = None
+            if self._pager.base is not None:
+                self._pager.base.close()
+            if self._scratch is not None:
+                self._scratch()
+                self._scratch = None
 
     @property
     def store(self) -> TileStore | None:
         """The tile store of this volume (None: nothing is paged and no checkpoint store is set)."""
-        return self._pager.store if self._scratch_dir is None else None
+        return self._pager.store if self._scratch is None else None
 
     @property
     def pager(self) -> TilePager:
