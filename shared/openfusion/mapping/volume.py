@@ -103,6 +103,7 @@ class UpdateStats:
     pixels_used: int = 0
     pixels_depth_rejected: int = 0
     voxels_updated: int = 0
+    render_budget_short: int = 0  # renders whose view did not fit the memory budget (rendered what was resident)
     voxels_labelled: int = 0  # previously unlabelled
     voxels_reinforced: int = 0  # same key
     voxels_weakened: int = 0  # other key, kept its key
@@ -220,6 +221,9 @@ class SemanticVolume:
     def _note_capacity_change(self) -> None:
         if self._storage.note_capacity_change():
             self.stats.grow_events += 1
+            if self._pager.budget_blocks is not None:
+                logger.warning("the grid grew past the memory budget (%d blocks): a bug, please report it",
+                               self._pager.budget_blocks)
 
     @property
     def device(self) -> str:
@@ -346,12 +350,14 @@ class SemanticVolume:
         alone needs more blocks than the budget holds."""
         pager = self._pager
         tiles = pager.touched(coords, changed=False)
-        found = self._storage.find_blocks(coords) >= 0
         stored = {t for t in tiles if t in pager.stored_blocks}
-        tile_of = pager.grid.tiles_of_blocks(coords[~found])
-        new_blocks = sum(1 for t in tile_of.tolist() if tuple(t) not in stored)
+        # Open3D's integrate grows the grid (a whole-grid copy) when the blocks in use plus *all* the
+        # blocks it is given, not only the new ones, exceed its capacity (measured, open3d 0.20):
+        # so room is made for the frame's whole block list after the stored tiles came back.
         try:
-            pager.ensure_resident(tiles, extra_blocks=new_blocks)
+            pager.ensure_resident(tiles, extra_blocks=len(coords))
+            if pager.budget_blocks is not None and stored:
+                pager.ensure_resident(tiles, extra_blocks=len(coords))
         except CapacityError as exc:
             raise CapacityError(
                 f"frame {frame_id}: {exc}; nothing was integrated", blocks_needed=exc.blocks_needed,
@@ -376,11 +382,22 @@ class SemanticVolume:
             stored, T_world_cam, fx=intrinsics.fx, fy=intrinsics.fy, cx=intrinsics.cx, cy=intrinsics.cy,
             width_px=intrinsics.width_px, height_px=intrinsics.height_px, depth_max_m=self.params.depth_max_m,
         )
-        if seen.any():
-            pager.tick(camera_center(T_world_cam))
-            tiles = [tuple(int(v) for v in t) for t in stored[seen]]
+        if not seen.any():
+            return
+        pager.tick(camera_center(T_world_cam))
+        resident = np.array(pager.resident_tiles(), np.int64).reshape(-1, 3)
+        in_view = resident[pager.grid.tiles_in_view(
+            resident, T_world_cam, fx=intrinsics.fx, fy=intrinsics.fy, cx=intrinsics.cx, cy=intrinsics.cy,
+            width_px=intrinsics.width_px, height_px=intrinsics.height_px, depth_max_m=self.params.depth_max_m,
+        )]
+        tiles = [tuple(int(v) for v in t) for t in np.concatenate([stored[seen], in_view])]
+        try:
             pager.ensure_resident(tiles)  # type: ignore[arg-type]
-            for t in tiles:
+        except CapacityError as exc:  # a view wider than the budget: render what is resident
+            self.stats.render_budget_short += 1
+            logger.warning("render: the tiles in view do not fit the memory budget (%s); rendering the resident ones", exc)
+        for t in tiles:
+            if t in pager.last_used:
                 pager.last_used[t] = pager.clock  # type: ignore[index]
 
     @_locked
