@@ -10,8 +10,15 @@ import numpy as np
 import pytest
 
 from openfusion.errors import OpenFusionError
-from openfusion.mapping import CapacityError, MapFormatError, RegionDictionary, SemanticVolume, VolumeParams
-from openfusion.mapping import load_map, save_map
+from openfusion.mapping import (
+    CapacityError,
+    MapFormatError,
+    RegionDictionary,
+    SemanticVolume,
+    VolumeParams,
+    load_map,
+    save_map,
+)
 from openfusion.mapping.keyslots import KeySlots
 from openfusion.mapping.mapstore import checkpoint
 from openfusion.mapping.storage import MAX_WEIGHT, WEIGHT_CLAMP_EVERY

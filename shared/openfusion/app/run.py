@@ -57,6 +57,7 @@ from typing import Any
 
 from pydantic import ValidationError
 
+from openfusion.app.end_of_run import fetch_mesh, save_and_wait
 from openfusion.app.launcher import Cluster, RunError, StopSignals, wait_for_services
 from openfusion.app.outputs import open_rerun, say_progress, surface_mesh, write_query_outputs
 from openfusion.app.run_config import RUN_FLAGS, SECTION_MODELS, RunConfig, write_service_config
@@ -223,7 +224,9 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
             (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
             raise signals.interrupted("no frame was integrated yet; nothing saved")
     _say(args, "saving the map")
-    client.control("save", str(map_dir.resolve()))
+    geometry = cluster.processes.get("geometry")
+    save_and_wait(client, map_dir, say=lambda line: _say(args, line),
+                  alive=lambda: geometry is not None and geometry.alive())
     replies = []
     for text in args.queries:
         if signals.requested:
@@ -234,11 +237,10 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
         summary = summary_now()
         (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
         raise signals.interrupted(f"saved the map of {summary.frames_integrated} integrated frames to {map_dir}")
-    mesh = client.mesh()
-    write_query_outputs(out, replies, (mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys),
-                        say=say_progress(args.quiet))
+    mesh = fetch_mesh(client, map_dir, say=lambda line: _say(args, line))  # too large for a reply: from OUT/map
+    write_query_outputs(out, replies, mesh, say=say_progress(args.quiet))
     if rerun is not None:
-        rerun.log_mesh(surface_mesh(mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys))
+        rerun.log_mesh(mesh if not isinstance(mesh, tuple) else surface_mesh(*mesh))
         for text, _space, hits in replies:
             rerun.log_query(text, hits)
     return summary_now()
