@@ -281,3 +281,18 @@ def test_tile_blobs_round_trip_and_corruption_is_refused() -> None:
                 decode_tile(codec, broken)
     with pytest.raises(MapFormatError, match="unknown tile codec"):
         make_codec("snappy")
+
+
+def test_paging_through_tensors_as_on_cuda(reference: SemanticVolume) -> None:
+    """The tensor code path (what a CUDA grid uses: no numpy views of the buffers), on the CPU:
+    paging out and in, erasing and a key compaction give the same map."""
+    volume = SemanticVolume(VolumeParams(**BASE, memory_budget_mb=BUDGET_MB))
+    volume._storage.use_numpy_views = False
+    try:
+        for f in FRAMES:
+            volume.integrate(f)
+        assert volume.pager.stats.tiles_paged_in > 0
+        volume._storage.compact_keys()
+        _assert_same_map(volume, reference)
+    finally:
+        volume.close()

@@ -417,7 +417,9 @@ class VoxelStorage:
             if self.use_numpy_views:
                 self.vbg.attribute(name).numpy()[buf] = 0
             else:
-                self.vbg.attribute(name)[o3c.Tensor(buf, device=self.device)] = 0
+                t = self.vbg.attribute(name)
+                shape = (len(buf), *tuple(t.shape)[1:])
+                t[o3c.Tensor(buf, device=self.device)] = o3c.Tensor.zeros(shape, t.dtype, self.device)
         self.vbg.hashmap().erase(o3c.Tensor(np.ascontiguousarray(coords, np.int32), device=self.device))
         self.mark_geometry_changed()
         self.generation += 1  # buffer indices of renders taken before may now name other blocks
@@ -458,7 +460,7 @@ class VoxelStorage:
             else:
                 t = self.vbg.attribute("key")
                 arr = remap[t.cpu().numpy()]
-                t[...] = o3c.Tensor(arr, device=self.device)
+                t[:] = o3c.Tensor(arr, device=self.device)
                 used.append(np.unique(arr))
         if callable(self.on_compact_keys):
             used.append(np.asarray(self.on_compact_keys(remap), np.int64))
