@@ -82,14 +82,25 @@ def _child(argv: list[str]) -> int:
 
 
 # ---------------------------------------------------------------------------- parent
-def _sample_rss(proc: subprocess.Popen[str], samples: list[tuple[float, float]], stop: threading.Event) -> None:
+def _anon_mib(pid: int) -> float:
+    """RssAnon of a process (MiB): its own memory, without file pages mapped from the page cache
+    (LMDB reads the store through a memory map; those pages are the OS's cache, dropped under
+    pressure, and are counted in RSS but not here)."""
+    with open(f"/proc/{pid}/status") as fh:
+        for line in fh:
+            if line.startswith("RssAnon:"):
+                return int(line.split()[1]) / 1024
+    return 0.0
+
+
+def _sample_rss(proc: subprocess.Popen[str], samples: list[tuple[float, float, float]], stop: threading.Event) -> None:
     import psutil
 
     p = psutil.Process(proc.pid)
     while not stop.is_set():
         try:
-            samples.append((time.monotonic(), p.memory_info().rss / 2**20))
-        except psutil.Error:
+            samples.append((time.monotonic(), p.memory_info().rss / 2**20, _anon_mib(proc.pid)))
+        except (psutil.Error, OSError):
             return
         stop.wait(1.0)
 
@@ -124,12 +135,14 @@ def _summarise(run: dict[str, object], floor_m2: float) -> dict[str, object]:
     done = next(r for r in records if r["event"] == "done")  # type: ignore[index]
     t0 = frames[0]["t"] - frames[0]["integrate_s"]
     t_end = frames[-1]["t"]
-    rss = [(t, m) for t, m in run["rss"] if t >= t0]  # type: ignore[union-attr]
+    rss = [(t, m, a) for t, m, a in run["rss"] if t >= t0]  # type: ignore[union-attr]
 
-    def rss_at(q: float) -> float:
+    def rss_at(q: float, col: int = 1) -> float:
         when = t0 + q * (t_end - t0)
-        before = [m for t, m in rss if t <= when] or [rss[0][1]]
+        before = [s[col] for s in rss if s[0] <= when] or [rss[0][col]]
         return before[-1]
+
+    during = [s for s in rss if s[0] <= t_end]  # the mapping itself, before the final save's read-out
 
     n = len(frames)
 
@@ -141,7 +154,9 @@ def _summarise(run: dict[str, object], floor_m2: float) -> dict[str, object]:
     fps = [1.0 / f for f in _quarters([f["integrate_s"] for f in frames])]
     return {
         "budget": run["budget"], "device": run["device"], "frames": n,
-        "rss_q": [rss_at(q) for q in (0.25, 0.5, 0.75, 1.0)], "rss_peak": max(m for _, m in rss),
+        "rss_q": [rss_at(q) for q in (0.25, 0.5, 0.75, 1.0)], "rss_peak": max(s[1] for s in during),
+        "anon_q": [rss_at(q, 2) for q in (0.25, 0.5, 0.75, 1.0)], "anon_peak": max(s[2] for s in during),
+        "save_peak": max(s[1] for s in rss),
         "fps_q": fps, "ckpt": [ckpt_at(q) for q in (0.25, 0.5, 1.0)],
         "map_mb": done["map_bytes"] / 2**20, "mb_per_m2": done["map_bytes"] / 2**20 / floor_m2,
         "blocks": done["blocks"], "paged_out": done["paged_out"], "paged_in": done["paged_in"],
@@ -219,13 +234,16 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _print(rows: list[dict[str, object]]) -> None:
-    print("\n## Memory (RSS MiB at 25/50/75/100 % of the run, peak) and integration (frames/s per quarter)\n")
-    print("| rooms | floor m^2 | frames | budget MiB | device | RSS 25% | 50% | 75% | 100% | peak | fps q1 | q2 | q3 | q4 | blocks | paged out / in |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("\n## Memory while mapping (MiB at 25/50/75/100 % of the frames and peak: RSS, and RssAnon = RSS without "
+          "the store's memory-mapped file pages) and integration (frames/s per quarter)\n")
+    print("| rooms | floor m^2 | frames | budget MiB | device | RSS 25% | 50% | 75% | 100% | peak | anon 25% | 50% | 75% "
+          "| 100% | peak | final save peak RSS | fps q1 | q2 | q3 | q4 | blocks | paged out / in |")
+    print("|" + "---|" * 22)
     for r in rows:
-        rq, fq = r["rss_q"], r["fps_q"]
+        rq, aq, fq = r["rss_q"], r["anon_q"], r["fps_q"]
         print(f"| {r['rooms']} | {r['floor_m2']:.0f} | {r['frames']} | {r['budget']} | {r['device']} | "
               + " | ".join(f"{v:.0f}" for v in rq) + f" | {r['rss_peak']:.0f} | "  # type: ignore[union-attr]
+              + " | ".join(f"{v:.0f}" for v in aq) + f" | {r['anon_peak']:.0f} | {r['save_peak']:.0f} | "  # type: ignore[union-attr]
               + " | ".join(f"{v:.1f}" for v in fq) + f" | {r['blocks']} | {r['paged_out']} / {r['paged_in']} |")  # type: ignore[union-attr]
     print("\n## Checkpoints (seconds, tiles written) near 25 / 50 / 100 % of the run, map on disk, surface\n")
     print("| rooms | budget MiB | device | ckpt 25% | ckpt 50% | ckpt 100% (+summaries) | map MiB | MiB per m^2 | surface points (ratio) | revisited rooms' points (ratio) |")

@@ -296,6 +296,9 @@ class GeometryService(DictionaryFollower):
             reason = exc.strerror or str(exc)
             logger.error("geometry: checkpoint to %s failed: %s; the map is kept in memory", failed, reason)
             raise CheckpointFailed(failed, reason) from exc
+        except BaseException:
+            self._dirty = True  # not saved: the next period tries again
+            raise
         finally:
             release()
             self._set_saving(False)
