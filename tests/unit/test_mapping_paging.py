@@ -296,3 +296,19 @@ def test_paging_through_tensors_as_on_cuda(reference: SemanticVolume) -> None:
         _assert_same_map(volume, reference)
     finally:
         volume.close()
+
+
+def test_each_thread_gets_its_own_zstd_objects() -> None:
+    """A checkpoint encodes on one thread while integration pages tiles out on another; zstandard's
+    objects are not thread-safe (sharing one crashed geometry with SIGSEGV), so each thread has its own."""
+    import threading
+
+    codec = make_codec("zstd")
+    seen: list[object] = []
+    threads = [threading.Thread(target=lambda: seen.append(codec._pair()[0])) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len({id(c) for c in seen}) == 2 and seen[0] is not codec._pair()[0]
+    assert codec.decompress(codec.compress(b"tile" * 100)) == b"tile" * 100

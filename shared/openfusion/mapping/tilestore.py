@@ -75,19 +75,31 @@ TILE_ATTRS: tuple[tuple[str, type, int], ...] = (
 
 
 class _Zstd:
+    """zstd with a content checksum. ``zstandard``'s compressor and decompressor objects are not
+    thread-safe (a checkpoint encodes on the service's thread while integration pages tiles out
+    on another: sharing one crashed the process), so each thread gets its own."""
+
     name = "zstd"
 
     def __init__(self, level: int = 3) -> None:
         import zstandard
 
-        self._c = zstandard.ZstdCompressor(level=level, write_checksum=True)
-        self._d = zstandard.ZstdDecompressor()
+        self._zstd = zstandard
+        self._level = level
+        self._local = threading.local()
+
+    def _pair(self) -> tuple[Any, Any]:
+        pair = getattr(self._local, "pair", None)
+        if pair is None:
+            pair = (self._zstd.ZstdCompressor(level=self._level, write_checksum=True), self._zstd.ZstdDecompressor())
+            self._local.pair = pair
+        return pair
 
     def compress(self, data: bytes) -> bytes:
-        return self._c.compress(data)
+        return self._pair()[0].compress(data)
 
     def decompress(self, data: bytes) -> bytes:
-        return self._d.decompress(data)
+        return self._pair()[1].decompress(data)
 
 
 class _Lz4:
