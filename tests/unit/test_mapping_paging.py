@@ -92,6 +92,26 @@ def test_read_outs_see_the_whole_map_while_tiles_are_paged_out(reference: Semant
     assert paged.num_blocks == resident_before
 
 
+def test_a_key_filtered_read_out_reads_only_the_tiles_of_those_keys() -> None:
+    """Points of one region from a map with tiles paged out equal the whole map's points of it."""
+    volume, ref = _map(BUDGET_MB, FRAMES[:4]), _map(None, FRAMES[:4])
+    try:
+        K = FRAMES[0].intrinsics.scaled(80, 60)
+        keys = np.full((60, 80), 4, np.int32)
+        keys[:, 40:] = 9
+        for v in (volume, ref):
+            v.apply_update(FRAMES[0].T_world_cam, K, keys, np.full((60, 80), 0.7, np.float32))
+            for f in FRAMES[4:]:
+                v.integrate(f)
+        assert volume.pager.stored_blocks
+        a, b = volume.extract_points(keys=[4]), ref.extract_points(keys=[4])
+        assert len(a) > 0
+        np.testing.assert_array_equal(a.points, b.points)
+        assert len(volume.extract_points(keys=[12345])) == 0
+    finally:
+        volume.close()
+
+
 def test_render_pages_in_what_the_view_reaches(reference: SemanticVolume) -> None:
     """A render from the first pose after the camera moved on: the tiles it sees are read back,
     so its depth image equals the whole map's."""

@@ -13,8 +13,10 @@ Why LMDB and zstd (measured by ``bench/bench_tilestore.py`` against SQLite and l
     the writer, and ``Environment.copy`` makes a consistent copy for a save elsewhere. SQLite in
     WAL mode has the same guarantees and is in the standard library; measured on tiles of the
     built-in room it wrote and read tiles slower (see the bench) and needs a checkpointing
-    journal. zstd (``zstandard``) on byte-shuffled attributes (blosc's shuffle: every byte plane
-    of the float TSDF together) gives the smaller map; lz4 is faster to decode but larger.
+    journal. zstd (``zstandard``, level 6) on byte-shuffled attributes (blosc's shuffle: every byte
+    plane of the float TSDF together) gives the smaller map; lz4 is faster to decode but larger.
+    Level 6 against level 3 (measured on a 2-room walk): 5.6 % smaller, 2.3x the encoding time
+    (still outside the lock a checkpoint holds); level 9 saves 1 % more for 1.8x again.
 
 Layout (one LMDB environment, a folder holding ``data.mdb`` and ``lock.mdb``; sub-databases)
     ``meta``    ``header`` (JSON: format, version, codec, tile_blocks, volume parameters,
@@ -81,7 +83,7 @@ class _Zstd:
 
     name = "zstd"
 
-    def __init__(self, level: int = 3) -> None:
+    def __init__(self, level: int = 6) -> None:
         import zstandard
 
         self._zstd = zstandard

@@ -9,7 +9,8 @@ grid of the same layout, read out there with the ordinary rule (:mod:`openfusion
 and only the points (triangles) whose owning block is in the chunk are kept. Every point is owned
 by exactly one block, so chunks neither drop nor duplicate points; the result equals the read-out
 of the whole map in one grid (``tests/unit/test_mapping_paging.py`` checks it), in the same
-sorted order. Stored tiles are read from the store one at a time (a small cache keeps the
+sorted order. With a key filter only the tiles holding one of the keys, and their neighbours, are
+read out (a query's points: a few tiles, not the building). Stored tiles are read from the store one at a time (a small cache keeps the
 neighbours of the current chunk), so the read-out needs the scratch grid and the result, never the
 whole map, in memory. Mesh vertices on a chunk seam appear once per chunk (triangles are not
 duplicated, vertices are not welded across seams).
@@ -67,10 +68,30 @@ class _TileSource:
         return hit
 
 
-def _chunks(source: _TileSource) -> Iterator[list[Tile]]:
+def _tiles_holding(source: _TileSource, keys: np.ndarray | list[int] | None) -> list[Tile]:
+    """The tiles to read out for a key filter: those with a voxel of one of ``keys``, and their
+    neighbours (a point there can take such a key from the label fill, within 6 cm)."""
+    tiles = source.tiles()
+    if keys is None:
+        return tiles
+    wanted = np.asarray(list(keys) if not isinstance(keys, np.ndarray) else keys, np.int64) + 1
+    slots = np.flatnonzero(np.isin(source.storage.slots.key1, wanted))
+    slots = slots[slots > 0]
+    if len(slots) == 0:
+        return []
+    hit: list[Tile] = []
+    for t in tiles:
+        got = source.get(t)
+        if got is not None and np.isin(got[1]["key"], slots).any():
+            hit.append(t)
+    around = {(t[0] + dx, t[1] + dy, t[2] + dz) for t in hit for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)}
+    return [t for t in tiles if t in around]
+
+
+def _chunks(source: _TileSource, keys: np.ndarray | list[int] | None = None) -> Iterator[list[Tile]]:
     chunk: list[Tile] = []
     size = 0
-    for t in source.tiles():
+    for t in _tiles_holding(source, keys):
         n = source.blocks(t)
         if chunk and size + n > CHUNK_BLOCKS:
             yield chunk
@@ -86,14 +107,16 @@ def _owner_blocks(points: np.ndarray, voxel_size_m: float, res: int) -> np.ndarr
     return np.floor_divide(voxel, res)
 
 
-def _iter_scratch(storage: VoxelStorage, pager: TilePager) -> Iterator[tuple[VoxelStorage, np.ndarray]]:
+def _iter_scratch(
+    storage: VoxelStorage, pager: TilePager, keys: np.ndarray | list[int] | None = None
+) -> Iterator[tuple[VoxelStorage, np.ndarray]]:
     """Per chunk: a scratch storage holding the chunk's blocks and their halo, and the owned blocks
     (:func:`~openfusion.mapping.tiles.pack_coords` keys, sorted)."""
     source = _TileSource(storage, pager)
     grid = pager.grid
     scratch: VoxelStorage | None = None
     offsets = np.array([(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)], np.int64)
-    for chunk in _chunks(source):
+    for chunk in _chunks(source, keys):
         own_coords: list[np.ndarray] = []
         raws: list[dict[str, np.ndarray]] = []
         for t in chunk:
@@ -153,7 +176,7 @@ def extract_points(
         raise ValueError(f"max_points must be >= 0, got {max_points}")
     p = storage.params
     parts: list[SurfacePoints] = []
-    for scratch, own in _iter_scratch(storage, pager):
+    for scratch, own in _iter_scratch(storage, pager, keys):
         pts = readout.extract_points(scratch, keys)
         if len(pts) == 0:
             continue
@@ -180,7 +203,7 @@ def iter_mesh_parts(
 ) -> Iterator[SurfaceMesh]:
     """The whole map's mesh, one part per chunk (module docstring: seams)."""
     p = storage.params
-    for scratch, own in _iter_scratch(storage, pager):
+    for scratch, own in _iter_scratch(storage, pager, keys):
         mesh = readout.extract_mesh(scratch, keys)
         if len(mesh.triangles) == 0:
             continue
