@@ -3,8 +3,9 @@
 through the synthetic building (``synthetic:building``, rooms along a corridor, rooms revisited at
 the end), with and without a memory budget, in one run.
 
-Each configuration maps the same frames in its own process (so resident memory is that process's
-alone), as the geometry service does: ``SemanticVolume.integrate`` per frame (3D-Rec, geometry
+The walk is rendered once to disk; each configuration maps the same frames in its own process (so
+resident memory is that process's alone, without the building's renderer), as the geometry
+service does: ``SemanticVolume.integrate`` per frame (3D-Rec, geometry
 only), an incremental checkpoint into the map's tile store every ``--checkpoint-every`` frames,
 a final checkpoint with region summaries. The parent samples each child's resident set size
 (RSS, psutil) every second and prints, per configuration:
@@ -42,19 +43,54 @@ import numpy as np
 _CHILD_FLAG = "--child"
 
 
+# ---------------------------------------------------------------------------- frames rendered once
+def _render_frames(spec: str, folder: Path) -> int:
+    """Render the walk once into ``folder`` (one ``.npz`` per frame): the children then hold only
+    what geometry holds, not the building's renderer."""
+    from openfusion.sources import open_source
+
+    folder.mkdir(parents=True, exist_ok=True)
+    n = 0
+    for i, f in enumerate(open_source(spec)):
+        np.savez(folder / f"{i:06d}.npz", depth=f.depth, color=f.color, K=f.intrinsics.K,
+                 size=np.array([f.intrinsics.width_px, f.intrinsics.height_px]), T=f.T_world_cam,
+                 scale=np.array(f.depth_scale), stamp=np.array(f.stamp_ns))
+        n += 1
+    return n
+
+
+class _FramesOnDisk:
+    def __init__(self, folder: Path) -> None:
+        self.files = sorted(folder.glob("*.npz"))
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def __iter__(self):  # noqa: ANN204
+        from openfusion.frame import CameraIntrinsics, Frame
+
+        for i, path in enumerate(self.files):
+            z = np.load(path)
+            K = z["K"]
+            w, h = (int(v) for v in z["size"])
+            intr = CameraIntrinsics(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]),
+                                    width_px=w, height_px=h)
+            yield Frame(frame_id=i, stamp_ns=int(z["stamp"]), color=z["color"], depth=z["depth"],
+                        depth_scale=float(z["scale"]), intrinsics=intr, T_world_cam=z["T"])
+
+
 # ---------------------------------------------------------------------------- child: one configuration
 def _child(argv: list[str]) -> int:
     from openfusion.mapping import RegionDictionary, SemanticVolume, VolumeParams
     from openfusion.mapping.mapstore import checkpoint
     from openfusion.mapping.tilestore import TileStore
-    from openfusion.sources import open_source
 
-    spec, budget_text, device, every, out_dir = argv
+    frames_dir, budget_text, device, every, out_dir = argv
     budget = None if budget_text == "none" else float(budget_text)
     out = Path(out_dir)
     volume = SemanticVolume(VolumeParams(memory_budget_mb=budget, device=device), store=TileStore(out / "map.ofz"))
     dictionary = RegionDictionary("none", 1)
-    source = open_source(spec)
+    source = _FramesOnDisk(Path(frames_dir))
     n = len(source)
 
     def emit(**record: object) -> None:
@@ -105,10 +141,10 @@ def _sample_rss(proc: subprocess.Popen[str], samples: list[tuple[float, float, f
         stop.wait(1.0)
 
 
-def _run(spec: str, budget: str, device: str, every: int, work: Path) -> dict[str, object]:
+def _run(frames_dir: Path, budget: str, device: str, every: int, work: Path) -> dict[str, object]:
     out = work / f"{budget}-{device.replace(':', '')}"
     out.mkdir(parents=True, exist_ok=True)
-    proc = subprocess.Popen([sys.executable, __file__, _CHILD_FLAG, spec, budget, device, str(every), str(out)],
+    proc = subprocess.Popen([sys.executable, __file__, _CHILD_FLAG, str(frames_dir), budget, device, str(every), str(out)],
                             stdout=subprocess.PIPE, text=True, env={**os.environ, "OPENFUSION_QUIET": "1"})
     samples: list[tuple[float, float]] = []
     stop = threading.Event()
@@ -215,12 +251,14 @@ def main(argv: list[str] | None = None) -> int:
             frames = rooms * args.frames_per_room
             spec = f"synthetic:building,rooms={rooms},frames={frames},width={args.width},height={args.height}"
             floor_m2, revisited = _revisited_rooms(spec)
+            frames_dir = Path(tmp) / f"frames-{rooms}"
+            _render_frames(spec, frames_dir)
             base_points: tuple[int, list[int]] | None = None
             for device in args.devices.split(","):
                 for budget in args.budgets.split(","):
                     print(f"# {rooms} rooms ({floor_m2:.0f} m^2, {frames} frames), budget {budget}, {device} ...",
                           file=sys.stderr, flush=True)
-                    run = _run(spec, budget, device, args.checkpoint_every, Path(tmp) / f"r{rooms}")
+                    run = _run(frames_dir, budget, device, args.checkpoint_every, Path(tmp) / f"r{rooms}")
                     row = _summarise(run, floor_m2)
                     row.update(rooms=rooms, floor_m2=floor_m2)
                     row["points"], row["room_points"] = _surface(row["out"], revisited, budget)  # type: ignore[arg-type]
