@@ -97,3 +97,17 @@ def _with_store(volume: SemanticVolume, params: VolumeParams, checkpoint_dir: Pa
         fresh.pager.sync_resident()
         loaded.close()
     return fresh
+
+
+def validate(path: Path) -> None:
+    """Raise :class:`~openfusion.mapping.MapFormatError` unless ``path`` holds a readable map (a
+    store's header and arrays, without reading its tiles; a version-1 file whole)."""
+    loaded = load_map(path, memory_budget_mb=64.0) if find_store(path) is not None else load_map(path)
+    loaded.volume.close()
+
+
+def reopen(params: VolumeParams, checkpoint_dir: Path | None) -> SemanticVolume:
+    """After a failed load: the last committed checkpoint of the folder, or an empty map."""
+    if checkpoint_dir is not None and _committed_store(checkpoint_dir):
+        return load_own(checkpoint_dir, params, fallback=False).volume
+    return new_volume(params, checkpoint_dir)

@@ -212,11 +212,18 @@ class GeometryService(DictionaryFollower):
         ``restore_counts``: (a restart) take ``frames_integrated`` and ``integrate_busy_s`` from it."""
         params = self.section.volume_params()
         own = self.checkpoint_dir is not None and Path(path).resolve() == self.checkpoint_dir.resolve()
-        if own:
-            self.volume.close()  # its store is the one being loaded
-            loaded = checkpoints.load_own(path, params, fallback=fallback)
-        else:
-            loaded = checkpoints.load_other(path, params, self.checkpoint_dir)
+        if not own:
+            checkpoints.validate(path)  # a bad map is refused before the current one is let go
+        with self._lock:
+            # The checkpoint folder's store is reopened (own) or replaced (a copy of the other map).
+            self.volume.close()
+            try:
+                loaded = (checkpoints.load_own(path, params, fallback=fallback) if own
+                          else checkpoints.load_other(path, params, self.checkpoint_dir))
+            except BaseException:
+                self.volume = checkpoints.reopen(params, self.checkpoint_dir)
+                self._map_changed(reset_keys=True)
+                raise
         last = loaded.meta.get("last_frame_id")
         self.playback = str(loaded.meta.get("playback") or "")
         if restore_counts:

@@ -52,9 +52,6 @@ logger = logging.getLogger(__name__)
 Tile = tuple[int, int, int]
 #: Page-outs make room down to this share of the budget (hysteresis).
 ROOM_TARGET = 0.9
-#: Fixed resident overhead beside the budget, measured (README "Scale"): the process (Python,
-#: Open3D, NumPy, SciPy, Zenoh) plus the working buffers of one frame and one render.
-STATED_OVERHEAD_MB = 450
 
 
 def budget_blocks(memory_budget_mb: float, bytes_per_block: int) -> int:
