@@ -95,6 +95,7 @@ from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
 from openfusion.services.geometry import checkpoints
 from openfusion.services.geometry.dictionary_follower import DictionaryFollower
+from openfusion.services.geometry.memory import MemoryPeaks
 from openfusion.services.geometry.section import GeometryConfig, SummaryCache
 from openfusion.services.geometry.section import (
     GeometrySection as GeometrySection,  # re-exported: the config's section
@@ -192,6 +193,7 @@ class GeometryService(DictionaryFollower):
         self._dirty = False
         self._last_checkpoint = time.monotonic()
         self.saving = False
+        self._memory = MemoryPeaks()
         self._runner: ServiceRunner | None = None
         self._frames_sub: Subscriber[RgbdFrame] | None = None
         self._progress_pub: Publisher | None = None
@@ -608,9 +610,18 @@ class GeometryService(DictionaryFollower):
         self._set_checkpoint_frame()
         self.announce()
 
+    def _sample_memory(self) -> None:
+        got = self._memory.sample()
+        if got is not None and self._runner is not None:
+            stats = self._runner.stats
+            stats.set(GeometryCounter.RSS_MB, got[0])
+            stats.set(GeometryCounter.RSS_PEAK_MB, self._memory.rss_peak_mb)
+            stats.set(GeometryCounter.RSS_ANON_PEAK_MB, self._memory.anon_peak_mb)
+
     def loop(self, runner: ServiceRunner) -> None:
         period = self.section.checkpoint_period_s
         while not runner.wait(min(period, 1.0) if period > 0 else 1.0):
+            self._sample_memory()
             if self.waiting_for_frames:  # until the next playback frame comes in order
                 self.announce()
             if (
