@@ -332,3 +332,23 @@ def test_each_thread_gets_its_own_zstd_objects() -> None:
         t.join()
     assert len({id(c) for c in seen}) == 2 and seen[0] is not codec._pair()[0]
     assert codec.decompress(codec.compress(b"tile" * 100)) == b"tile" * 100
+
+
+def test_the_grid_grows_in_the_background_and_loses_nothing(reference: SemanticVolume) -> None:
+    """A grid that starts with room for 64 blocks grows several times while frames and semantic
+    updates go on: copies run beside integration, only what changed meanwhile is copied again
+    under the lock, and the result equals the map of a grid that never had to grow."""
+    volume = SemanticVolume(VolumeParams(**BASE, initial_block_count=64))
+    K = FRAMES[0].intrinsics.scaled(80, 60)
+    for i, f in enumerate(FRAMES):
+        volume.integrate(f)
+        if i == 5:  # a semantic update while a copy may be running: its tiles are copied again
+            volume.apply_update(f.T_world_cam, K, np.full((60, 80), 2, np.int32), np.full((60, 80), 0.5, np.float32))
+    assert volume._grower is not None and volume._grower.stats.grows >= 2
+    ref = SemanticVolume(VolumeParams(**BASE))
+    for i, f in enumerate(FRAMES):
+        ref.integrate(f)
+        if i == 5:
+            ref.apply_update(f.T_world_cam, K, np.full((60, 80), 2, np.int32), np.full((60, 80), 0.5, np.float32))
+    _assert_same_map(volume, ref)
+    volume.close()

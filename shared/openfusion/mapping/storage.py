@@ -155,6 +155,7 @@ class VoxelStorage:
         self.slots = KeySlots()
         self.on_compact_keys: object = None
         self.integrations_since_clamp = 0
+        self.compactions = 0  # key compactions so far (every voxel's slot rewritten)
         self.reset()
 
     # ------------------------------------------------------------------ grid lifetime and growth
@@ -451,6 +452,7 @@ class VoxelStorage:
         slot through the compaction map, let the owner of stored blocks do the same
         (``on_compact_keys``) and free the slots no voxel uses any more."""
         remap = self.slots.compaction_map()
+        self.compactions += 1
         used: list[np.ndarray] = []
         if self.num_blocks:
             if self.use_numpy_views:

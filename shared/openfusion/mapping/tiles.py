@@ -147,6 +147,11 @@ class TileVersions:
         arr = np.asarray(tiles, np.int64).reshape(-1, 3)
         return [tuple(int(v) for v in row) for row in arr]  # type: ignore[misc]
 
+    @property
+    def clock(self) -> int:
+        """The version the latest change got (a mark: tiles with a larger version changed after it)."""
+        return self._clock
+
     def touch(self, tiles: np.ndarray | Iterable[Iterable[int]]) -> None:
         """Record a change of ``tiles`` (int (T, 3))."""
         self._clock += 1

@@ -48,6 +48,7 @@ import open3d.core as o3c
 from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.mapping import integration, raycast, readout, view_update
 from openfusion.mapping.errors import CapacityError
+from openfusion.mapping.growth import GridGrower
 from openfusion.mapping.paging import Snapshot, TilePager, budget_blocks, camera_center
 from openfusion.mapping.params import VolumeParams
 from openfusion.mapping.raycast import RayHits, range_map_down_factor
@@ -186,10 +187,14 @@ class SemanticVolume:
                 self._scratch = weakref.finalize(self, _remove_scratch, store, folder)
         grid = TileGrid(self.params.tile_blocks, self.params.block_size_m)
         self._pager = TilePager(self._storage, grid, store, budget)
+        #: Without a budget the grid grows ahead of need in the background (:mod:`.growth`).
+        self._grower = GridGrower(self._storage, self._pager.versions, grid) if budget is None else None
 
     def close(self) -> None:
         """Release the tile store (and remove a scratch store's folder)."""
         with self._lock:
+            if self._grower is not None:
+                self._grower.close()
             store = self._pager.store
             if store is not None:
                 store.close()
@@ -271,6 +276,8 @@ class SemanticVolume:
     @_locked
     def clear(self) -> None:
         """Drop all geometry and semantics (counters are kept)."""
+        if self._grower is not None:
+            self._grower.close()
         self._storage.reset()
 
     def _intrinsic_tensor(self, intrinsics: CameraIntrinsics) -> o3c.Tensor:
@@ -313,6 +320,8 @@ class SemanticVolume:
         coords_np = block_coords.cpu().numpy()
         if pager.budget_blocks is not None or pager.stored_blocks:
             self._page_in_for(coords_np, frame.frame_id)
+        if self._grower is not None:
+            self._grower.before_integrate(len(coords_np))
         if p.max_blocks is not None:
             budget = integration.block_budget(self._storage, block_coords, p.max_blocks)
             result.blocks_new = budget.blocks_new
@@ -334,6 +343,7 @@ class SemanticVolume:
             if budget.admitted is None:
                 return result
             block_coords = budget.admitted
+        vbg = self._storage.vbg  # the grid may have been swapped for a grown copy above
         vbg.integrate(
             block_coords, depth_img, color_img, K, extrinsic, depth_scale, p.depth_max_m, p.trunc_voxels
         )
