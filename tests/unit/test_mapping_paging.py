@@ -140,7 +140,11 @@ def test_semantics_survive_paging_and_a_merge_reaches_stored_tiles() -> None:
         for f in FRAMES[2:]:  # walk on: the first view's tiles leave
             volume.integrate(f)
         assert volume.pager.stats.tiles_paged_out > 0
+        _, before = volume.labelled_blocks()  # reads (and caches) the stored tiles' key slots
+        assert int((before == 7).sum()) == labelled[7]
         volume.relabel_keys({7: 3})
+        _, after = volume.labelled_blocks()  # the cache holds slots: the merge shows through
+        assert int((after == 7).sum()) == 0 and int((after == 3).sum()) == labelled[7]
         arrays = volume.to_arrays()
         assert int((arrays["key"] == 7).sum()) == 0
         assert int((arrays["key"] == 3).sum()) == labelled[7]

@@ -99,6 +99,10 @@ class TilePager:
         self.base: TileStore | None = None
         self.stored_blocks: dict[Tile, int] = {}  # tiles *not* resident -> their block count
         self.epoch = 0
+        #: Stored tiles -> (coords, key slots (n, R**3) uint16) of their blocks holding a key: what
+        #: region contacts (merges) read of every stored tile, kept so a merge pass does not decode
+        #: the building each time. Slots, not keys: merges change the slot table, not these.
+        self.label_cache: dict[Tile, tuple[np.ndarray, np.ndarray]] = {}
         self.stats = PagerStats()
         self.camera_m = np.zeros(3)
         storage.on_compact_keys = self._compact_stored_keys
@@ -240,7 +244,20 @@ class TilePager:
             raise MapFormatError(f"tile {tile} is missing from the store")
         return blob, store.codec_name
 
+    def stored_labelled(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """(coords, key slots (n, R**3)) of the labelled blocks of every stored tile (cached)."""
+        for t in sorted(self.stored_blocks):
+            hit = self.label_cache.get(t)
+            if hit is None:
+                coords, raw = self._read(t)
+                slots = raw["key"].reshape(len(coords), -1)
+                keep = (slots > 0).any(axis=1)
+                hit = (coords[keep].copy(), slots[keep].copy())
+                self.label_cache[t] = hit
+            yield hit
+
     def _page_in(self, tile: Tile) -> None:
+        self.label_cache.pop(tile, None)
         coords, raw = self._read(tile)
         self.storage.write_raw_blocks(coords, raw)
         del self.stored_blocks[tile]
@@ -306,6 +323,7 @@ class TilePager:
         """Rewrite the key slots of every stored tile through ``remap`` (as new paged entries:
         the committed tiles keep the slots the committed table names); returns slots in use."""
         used: list[np.ndarray] = [np.zeros(1, np.int64)]
+        self.label_cache.clear()
         if self.store is None:
             return used[0]
         for t in sorted(self.stored_blocks):

@@ -502,9 +502,8 @@ class SemanticVolume:
 
         parts_c, parts_k = [coords], [keys]
         res = self.params.block_resolution
-        for _, tc, raw in self._pager.iter_stored():
-            key1 = self._storage.slots.key1_of(raw["key"].reshape(len(tc), -1))
-            c, k = labelled_of(tc, key1, res)
+        for tc, slots in self._pager.stored_labelled():
+            c, k = labelled_of(tc, self._storage.slots.key1_of(slots), res)
             parts_c.append(c)
             parts_k.append(k)
         return np.concatenate(parts_c), np.concatenate(parts_k)
