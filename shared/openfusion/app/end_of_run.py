@@ -11,7 +11,9 @@ Save (:func:`save_and_wait`)
 
 Mesh (:func:`fetch_mesh`)
     ``geometry/mesh`` answers in one reply up to ``max_points_reply`` vertices. A larger mesh is
-    refused (``too_large``); the run then builds it from the map it just saved (``OUT/map``),
+    refused (``too_large``), a building's read-out can outlast the request (``timeout``), and a map
+    larger than geometry's memory budget (``tiles_paged_out`` > 0) is not asked for at all; the run
+    then builds the mesh from the map it just saved (``OUT/map``),
     part by part (:func:`openfusion.mapping.wholemap.iter_mesh_parts`, with the map's memory
     budget when it has one), so ``mesh.ply`` is written whatever the size of the map.
 """
@@ -72,14 +74,21 @@ def save_and_wait(
 
 
 def fetch_mesh(client: Any, map_dir: Path, *, say: Callable[[str], None]) -> Any:
-    """The map's mesh: over the bus in one reply, or built from the saved map when too large."""
+    """The map's mesh: over the bus in one reply, or built from the saved map when the map is
+    larger than geometry's memory budget (tiles were paged out), the mesh too large for one reply,
+    or its read-out slower than the request's timeout."""
+    counters = _geometry_counters(client) or {}
+    if counters.get(GeometryCounter.TILES_PAGED_OUT, 0.0) > 0:
+        say("the map is larger than geometry's memory budget; building the mesh from the saved map")
+        return mesh_from_map(map_dir)
     try:
         reply = client.mesh()
         return reply.vertices, reply.triangles, reply.vertex_colors, reply.vertex_keys
     except QueryError as exc:
-        if exc.code != "too_large":
+        if exc.code not in ("too_large", "timeout"):
             raise
-        say(f"the mesh is too large for one reply ({exc.reason}); building it from the saved map")
+        why = "too large for one reply" if exc.code == "too_large" else "not read out within the request's timeout"
+        say(f"the mesh is {why} ({exc.reason}); building it from the saved map")
     return mesh_from_map(map_dir)
 
 

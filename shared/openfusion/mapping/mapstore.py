@@ -39,6 +39,7 @@ import numpy as np
 
 from openfusion.mapping.dictionary import RegionDictionary
 from openfusion.mapping.errors import MapFormatError
+from openfusion.mapping.heap import release_freed_memory
 from openfusion.mapping.params import VolumeParams
 from openfusion.mapping.queries import RegionTable
 from openfusion.mapping.relevancy import calibration_for
@@ -123,7 +124,10 @@ def checkpoint(
     header["tile_blocks"] = volume.params.tile_blocks
     store.commit(upto_epoch=snap.epoch, blobs=blobs, header=header, arrays=arrays)
     volume.checkpoint_committed(snap)
-    return {"tiles": len(blobs), "bytes": sum(len(b) for b in blobs.values())}
+    written = {"tiles": len(blobs), "bytes": sum(len(b) for b in blobs.values())}
+    del snap, blobs
+    release_freed_memory()
+    return written
 
 
 def save_store(

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from openfusion.mapping.errors import CapacityError, MapFormatError
+from openfusion.mapping.heap import release_freed_memory
 from openfusion.mapping.storage import VoxelStorage, logical_arrays
 from openfusion.mapping.tiles import TileGrid, TileVersions
 from openfusion.mapping.tilestore import TileStore, decode_tile, encode_tile
@@ -207,6 +208,8 @@ class TilePager:
             self._page_out(t, coords, buf)
             resident -= len(buf)
             n_out += 1
+        if n_out:
+            release_freed_memory()
         return n_out
 
     def _page_out(self, tile: Tile, coords: np.ndarray, buf: np.ndarray) -> None:
