@@ -11,6 +11,9 @@ memory pressure), counted in RSS but not in RssAnon. The memory budget bounds th
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
+
+from openfusion.wire.counters import GeometryCounter
 
 _STATUS = Path("/proc/self/status")
 
@@ -44,3 +47,21 @@ class MemoryPeaks:
             self.rss_peak_mb = max(self.rss_peak_mb, got[0])
             self.anon_peak_mb = max(self.anon_peak_mb, got[1])
         return got
+
+    def sample_into(self, stats: Any) -> None:
+        """Sample now and publish the sample and the peaks as health counters."""
+        got = self.sample()
+        if got is not None:
+            stats.set(GeometryCounter.RSS_MB, got[0])
+            stats.set(GeometryCounter.RSS_PEAK_MB, self.rss_peak_mb)
+            stats.set(GeometryCounter.RSS_ANON_PEAK_MB, self.anon_peak_mb)
+
+
+def publish_map_size(stats: Any, volume: Any) -> None:
+    """The map's size and residency as health counters (all blocks, resident ones, the grid's MiB,
+    tiles paged out and in)."""
+    stats.set(GeometryCounter.NUM_BLOCKS, volume.num_blocks_total)
+    stats.set(GeometryCounter.RESIDENT_BLOCKS, volume.num_blocks)
+    stats.set(GeometryCounter.RESIDENT_MB, volume.resident_bytes / 2**20)
+    stats.set(GeometryCounter.TILES_PAGED_OUT, volume.pager.stats.tiles_paged_out)
+    stats.set(GeometryCounter.TILES_PAGED_IN, volume.pager.stats.tiles_paged_in)

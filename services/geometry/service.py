@@ -15,7 +15,7 @@
 | ``…/control/{save,load,reset}`` | queryable (admin) | ControlRequest → ControlReply |
 | ``…/semantic/merge`` | queries before ``control/save`` and the final save | MergeRequest → MergeReply |
 | ``…/semantic/dictionary`` | queries on a gap in the deltas (resync) | DictionaryRequest → DictionarySnapshot |
-| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC), ``voxels_relabelled``, ``save_merges``, ``save_merge_failures``, ``dictionary_resyncs`` |
+| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC), ``voxels_relabelled``, ``save_merges``, ``save_merge_failures``, ``dictionary_resyncs``; the map's size and memory: ``num_blocks`` (all), ``resident_blocks``, ``resident_mb``, ``tiles_paged_out``, ``tiles_paged_in``, ``checkpoint_last_s``, ``checkpoint_last_tiles``, ``saving``, ``rss_mb``, ``rss_peak_mb``, ``rss_anon_peak_mb`` (:mod:`.memory`) |
 
 Checkpoints go to the tile store ``{map_dir}/{map_id}/map.ofz`` every ``checkpoint_period_s``
 (when something changed; without region summaries, which would cost a surface read-out under the
@@ -95,7 +95,7 @@ from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
 from openfusion.services.geometry import checkpoints
 from openfusion.services.geometry.dictionary_follower import DictionaryFollower
-from openfusion.services.geometry.memory import MemoryPeaks
+from openfusion.services.geometry.memory import MemoryPeaks, publish_map_size
 from openfusion.services.geometry.section import GeometryConfig, SummaryCache
 from openfusion.services.geometry.section import (
     GeometrySection as GeometrySection,  # re-exported: the config's section
@@ -328,14 +328,8 @@ class GeometryService(DictionaryFollower):
             self._runner.stats.set(GeometryCounter.SAVING, 1 if saving else 0)
 
     def _set_memory_stats(self) -> None:
-        if self._runner is None:
-            return
-        volume, stats = self.volume, self._runner.stats
-        stats.set(GeometryCounter.NUM_BLOCKS, volume.num_blocks_total)
-        stats.set(GeometryCounter.RESIDENT_BLOCKS, volume.num_blocks)
-        stats.set(GeometryCounter.RESIDENT_MB, volume.resident_bytes / 2**20)
-        stats.set(GeometryCounter.TILES_PAGED_OUT, volume.pager.stats.tiles_paged_out)
-        stats.set(GeometryCounter.TILES_PAGED_IN, volume.pager.stats.tiles_paged_in)
+        if self._runner is not None:
+            publish_map_size(self._runner.stats, self.volume)
 
     def _set_checkpoint_frame(self) -> None:
         if self._runner is not None:
@@ -610,18 +604,10 @@ class GeometryService(DictionaryFollower):
         self._set_checkpoint_frame()
         self.announce()
 
-    def _sample_memory(self) -> None:
-        got = self._memory.sample()
-        if got is not None and self._runner is not None:
-            stats = self._runner.stats
-            stats.set(GeometryCounter.RSS_MB, got[0])
-            stats.set(GeometryCounter.RSS_PEAK_MB, self._memory.rss_peak_mb)
-            stats.set(GeometryCounter.RSS_ANON_PEAK_MB, self._memory.anon_peak_mb)
-
     def loop(self, runner: ServiceRunner) -> None:
         period = self.section.checkpoint_period_s
         while not runner.wait(min(period, 1.0) if period > 0 else 1.0):
-            self._sample_memory()
+            self._memory.sample_into(runner.stats)
             if self.waiting_for_frames:  # until the next playback frame comes in order
                 self.announce()
             if (
