@@ -14,7 +14,8 @@ a final checkpoint with region summaries. The parent samples each child's reside
   budget it stays within (the fixed overhead is the RSS beyond the budget: the process itself,
   Open3D, one frame's buffers);
 - integration frames/s per quarter (median of the integrate calls in that quarter);
-- checkpoint time near 25 / 50 / 100 % of the run (seconds, and tiles written);
+- periodic checkpoint time near 25 / 50 / 100 % of the run (seconds, and tiles written), and the
+  final save's (a checkpoint with region summaries: a whole-map surface read-out);
 - map on disk (MiB) and per m^2 of floor (the building's floor area, from the source);
 - surface points of the whole map and of the revisited rooms, against the run without budget.
 
@@ -103,10 +104,13 @@ def _child(argv: list[str]) -> int:
         dt = time.perf_counter() - t0
         emit(event="frame", i=i, integrate_s=dt, t=time.monotonic(), resident_blocks=volume.num_blocks,
              blocks=volume.num_blocks_total)
-        if (i + 1) % int(every) == 0 or i == n - 1:
+        if (i + 1) % int(every) == 0:
             t0 = time.perf_counter()
-            info = checkpoint(volume, dictionary, {"frames": i + 1}, summary=i == n - 1)
+            info = checkpoint(volume, dictionary, {"frames": i + 1})
             emit(event="checkpoint", i=i, seconds=time.perf_counter() - t0, tiles=info["tiles"], bytes=info["bytes"])
+    t0 = time.perf_counter()  # the final save: a checkpoint with region summaries (a whole-map read-out)
+    info = checkpoint(volume, dictionary, {"frames": n}, summary=True)
+    emit(event="final", seconds=time.perf_counter() - t0, tiles=info["tiles"])
     store = volume.store
     assert store is not None
     store.copy_to(out / "copy" / "map.ofz")  # compacted copy: what a save elsewhere writes
@@ -188,12 +192,14 @@ def _summarise(run: dict[str, object], floor_m2: float) -> dict[str, object]:
         return float(best["seconds"]), int(best["tiles"])
 
     fps = [1.0 / f for f in _quarters([f["integrate_s"] for f in frames])]
+    final = next((r for r in records if r["event"] == "final"), None)  # type: ignore[index]
     return {
         "budget": run["budget"], "device": run["device"], "frames": n,
         "rss_q": [rss_at(q) for q in (0.25, 0.5, 0.75, 1.0)], "rss_peak": max(s[1] for s in during),
         "anon_q": [rss_at(q, 2) for q in (0.25, 0.5, 0.75, 1.0)], "anon_peak": max(s[2] for s in during),
         "save_peak": max(s[1] for s in rss),
         "fps_q": fps, "ckpt": [ckpt_at(q) for q in (0.25, 0.5, 1.0)],
+        "final_s": float(final["seconds"]) if final else float("nan"),
         "map_mb": done["map_bytes"] / 2**20, "mb_per_m2": done["map_bytes"] / 2**20 / floor_m2,
         "blocks": done["blocks"], "paged_out": done["paged_out"], "paged_in": done["paged_in"],
         "out": run["out"],
@@ -284,14 +290,15 @@ def _print(rows: list[dict[str, object]]) -> None:
               + " | ".join(f"{v:.0f}" for v in aq) + f" | {r['anon_peak']:.0f} | {r['save_peak']:.0f} | "  # type: ignore[union-attr]
               + " | ".join(f"{v:.1f}" for v in fq) + f" | {r['blocks']} | {r['paged_out']} / {r['paged_in']} |")  # type: ignore[union-attr]
     print("\n## Checkpoints (seconds, tiles written) near 25 / 50 / 100 % of the run, map on disk, surface\n")
-    print("| rooms | budget MiB | device | ckpt 25% | ckpt 50% | ckpt 100% (+summaries) | map MiB | MiB per m^2 | surface points (ratio) | revisited rooms' points (ratio) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| rooms | budget MiB | device | ckpt 25% | ckpt 50% | ckpt 100% | final save (+summaries) | map MiB | MiB per m^2 "
+          "| surface points (ratio) | revisited rooms' points (ratio) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         c = r["ckpt"]
         rooms_txt = ", ".join(f"{p} ({q:.3f})" for p, q in zip(r["room_points"], r["room_ratio"], strict=True))  # type: ignore[arg-type]
         print(f"| {r['rooms']} | {r['budget']} | {r['device']} | "
               + " | ".join(f"{s:.2f} s ({t})" for s, t in c)  # type: ignore[union-attr]
-              + f" | {r['map_mb']:.1f} | {r['mb_per_m2']:.3f} | {r['points']} ({r['points_ratio']:.4f}) | {rooms_txt} |")
+              + f" | {r['final_s']:.1f} s | {r['map_mb']:.1f} | {r['mb_per_m2']:.3f} | {r['points']} ({r['points_ratio']:.4f}) | {rooms_txt} |")
 
 
 if __name__ == "__main__":
