@@ -277,6 +277,14 @@ class GeometryService(DictionaryFollower):
             # surface read-out saved); else the save reads the surface out once.
             cached = self._summary
             regions = cached.table if cached is not None and cached.map_version == self.map_version else None
+            if regions is None and summary:
+                # Read the surface out here rather than inside the save, and keep the table: the
+                # queries that follow a save (the end of `openfusion run`) are answered from it
+                # instead of each asking for a whole-map read-out (tens of seconds on a floor).
+                pts = self.volume.extract_points()
+                regions = RegionTable.of_points(pts.keys, pts.points)
+                horizon = max(self._key_horizon, int(regions.keys[-1]) + 1 if len(regions) else 0)
+                self._summary = SummaryCache(self.map_version, horizon, regions)
             last = self.last_frame_id
             meta = {
                 "map_id": self.config.map_id,
