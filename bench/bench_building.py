@@ -23,8 +23,9 @@ Rows per building size (``--rooms 4,10``) show how each grows. ``--devices CPU:0
 rows on Open3D's CUDA device (3D-Rec on the GPU; where CUDA exists). Ratios are against the
 first configuration of the same size (no budget, CPU).
 
-    .venv/bin/python bench/bench_building.py --quick                  # 4 and 10 rooms, 320x240
-    .venv/bin/python bench/bench_building.py --rooms 10 --frames 600 --width 640 --height 480
+    .venv/bin/python bench/bench_building.py --quick     # 2 and 4 rooms at 160x120, budget 40 MiB (default)
+    .venv/bin/python bench/bench_building.py --full      # 4 and 10 rooms at 320x240, budget 300 MiB
+    .venv/bin/python bench/bench_building.py --rooms 10 --frames-per-room 60 --width 640 --height 480
 """
 
 from __future__ import annotations
@@ -240,17 +241,23 @@ def main(argv: list[str] | None = None) -> int:
     if argv and argv[0] == _CHILD_FLAG:
         return _child(argv[1:])
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="4 and 10 rooms, 320x240, 300 frames per 10 rooms")
-    parser.add_argument("--rooms", default="10", help="building sizes, comma-separated (a row each)")
-    parser.add_argument("--frames-per-room", type=int, default=40)
-    parser.add_argument("--width", type=int, default=320)
-    parser.add_argument("--height", type=int, default=240)
-    parser.add_argument("--budgets", default="none,300", help="memory budgets in MiB ('none': no budget)")
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_true",
+                      help="2 and 4 rooms, 15 frames per room at 160x120, budgets none,40 (default; a few minutes)")
+    size.add_argument("--full", action="store_true",
+                      help="4 and 10 rooms, 30 frames per room at 320x240, budgets none,300 (README figures)")
+    parser.add_argument("--rooms", default=None, help="building sizes, comma-separated (a row each)")
+    parser.add_argument("--frames-per-room", type=int, default=None)
+    parser.add_argument("--width", type=int, default=None)
+    parser.add_argument("--height", type=int, default=None)
+    parser.add_argument("--budgets", default=None, help="memory budgets in MiB ('none': no budget)")
     parser.add_argument("--devices", default="CPU:0", help="Open3D devices, e.g. CPU:0,CUDA:0")
     parser.add_argument("--checkpoint-every", type=int, default=25, help="frames between checkpoints")
     args = parser.parse_args(argv)
-    if args.quick:
-        args.rooms, args.frames_per_room = "4,10", 30
+    preset = (("4,10", 30, 320, 240, "none,300") if args.full else ("2,4", 15, 160, 120, "none,40"))
+    for name, value in zip(("rooms", "frames_per_room", "width", "height", "budgets"), preset, strict=True):
+        if getattr(args, name) is None:
+            setattr(args, name, value)
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-building-") as tmp:
         for rooms in [int(r) for r in args.rooms.split(",")]:

@@ -64,7 +64,9 @@ class _Lmdb:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--full", action="store_true")
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_true", help="60 frames at 320x240 (default)")
+    size.add_argument("--full", action="store_true", help="120 frames at 640x480")
     args = parser.parse_args(argv)
     frames, w, h = (120, 640, 480) if args.full else (60, 320, 240)
     volume = SemanticVolume(VolumeParams())
