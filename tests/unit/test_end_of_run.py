@@ -53,6 +53,17 @@ def test_a_long_save_is_waited_for_with_progress(tmp_path: Path) -> None:
     assert any("still writing" in line for line in said) and said[-1].startswith("saved the map")
 
 
+def test_zenohs_own_timeout_reply_is_waited_through_too(tmp_path: Path) -> None:
+    """A queryable that does not answer in time gets Zenoh's error reply ``Timeout`` (code
+    ``error``): the run waits for the save all the same (the failure the issue reported)."""
+    client = _Client([{GeometryCounter.CHECKPOINTS: 1.0},
+                      {GeometryCounter.SAVING: 0.0, GeometryCounter.CHECKPOINTS: 2.0}], control_error="error")
+    client.control = lambda *_a: (_ for _ in ()).throw(QueryError("k", "error", "Timeout"))  # type: ignore[method-assign]
+    said: list[str] = []
+    end_of_run.save_and_wait(client, tmp_path, say=said.append, alive=lambda: True)
+    assert said[-1].startswith("saved the map")
+
+
 def test_geometry_dying_during_the_save_ends_the_wait(tmp_path: Path) -> None:
     client = _Client([{GeometryCounter.SAVING: 1.0}])
     with pytest.raises(RunError, match="died while saving"):

@@ -35,6 +35,12 @@ PROGRESS_EVERY_S = 10.0
 _POLL_S = 1.0
 
 
+def _timed_out(exc: QueryError) -> bool:
+    """Nobody answered in time, or the queryable did not (Zenoh answers the latter itself, with an
+    error reply whose payload is ``Timeout``)."""
+    return exc.code == "timeout" or (exc.code == "error" and exc.reason.strip().lower() == "timeout")
+
+
 def _geometry_counters(client: Any) -> dict[str, float] | None:
     stats = client.health(timeout_s=2.0).get("geometry")
     return None if stats is None else dict(stats.counters)
@@ -51,7 +57,7 @@ def save_and_wait(
         client.control("save", str(map_dir.resolve()))
         return
     except QueryError as exc:
-        if exc.code != "timeout":
+        if not _timed_out(exc):
             raise
     from openfusion.app.launcher import RunError
 
@@ -85,7 +91,7 @@ def fetch_mesh(client: Any, map_dir: Path, *, say: Callable[[str], None]) -> Any
         reply = client.mesh()
         return reply.vertices, reply.triangles, reply.vertex_colors, reply.vertex_keys
     except QueryError as exc:
-        if exc.code not in ("too_large", "timeout"):
+        if exc.code != "too_large" and not _timed_out(exc):
             raise
         why = "too large for one reply" if exc.code == "too_large" else "not read out within the request's timeout"
         say(f"the mesh is {why} ({exc.reason}); building it from the saved map")
