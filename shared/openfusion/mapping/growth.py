@@ -68,6 +68,12 @@ class GridGrower:
     def running(self) -> bool:
         return self._thread is not None
 
+    def settle(self) -> None:
+        """Under the owner's lock: swap in a copy that has finished (so a map that stops growing
+        does not keep two grids), without waiting for one that has not."""
+        if self._thread is not None and self._done.is_set():
+            self._finish()
+
     def before_integrate(self, blocks_given: int) -> None:
         """Under the owner's lock: swap in a finished copy; wait for one that must finish before
         this frame (the old grid would fill); start one when the grid is half full."""

@@ -379,8 +379,13 @@ class SemanticVolume:
     def ray_cast(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> RayHits:
         """Depth and the 8 voxels around the first surface hit of every pixel (depth-tested)."""
         T = check_pose(T_world_cam)
+        self._settle_growth()
         self._page_in_view(T, intrinsics)
         return raycast.ray_cast(self._storage, T, intrinsics, self._intrinsic_tensor(intrinsics))
+
+    def _settle_growth(self) -> None:
+        if self._grower is not None:
+            self._grower.settle()
 
     def _page_in_view(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> None:
         """Page in the stored tiles a view can reach (renders see the whole map)."""
@@ -532,6 +537,7 @@ class SemanticVolume:
         only points of those regions; ``max_points`` subsamples uniformly at random
         (deterministic for a given ``seed``).
         """
+        self._settle_growth()
         if self._pager.stored_blocks:
             from openfusion.mapping import wholemap
 
