@@ -15,8 +15,12 @@ page until Ctrl-C.
 Frames: ``--frames N`` plays N frames. The built-in room (``--source synthetic[:...]``) plays N
 frames whatever N is: its camera walks a closed lap of :data:`BUILTIN_LAP_FRAMES` frames and walks it
 again for longer runs (same poses, frame ids and stamps keep increasing); a spec that sets
-``frames=`` or ``lap=`` keeps them. A source with fewer frames plays what it has, and the run says
-so (``played 300 of 2000 frames: the source has 300``) and records it in ``run.json``.
+``frames=`` or ``lap=`` keeps them. The building (``--source synthetic:building,...``) walks its
+route once: ``--frames N`` spreads N frames over the walk (unless the spec sets ``frames=``), and
+without it the walk plays at its own density (a frame every 0.3 m or 20 degrees). Other sources play
+at most ``--frames`` (default :data:`BUILTIN_LAP_FRAMES`). A source with fewer frames plays what it
+has, and the run says so (``played 300 of 2000 frames: the source has 300``) and records it in
+``run.json``.
 
 Stopping: the first SIGINT (Ctrl-C) or SIGTERM stops playback (the bridge), lets geometry and
 semantic finish the frames they already have, saves the map to ``OUT/map``, writes ``run.json``
@@ -58,6 +62,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from openfusion.app.end_of_run import fetch_mesh, save_and_wait
 from openfusion.app.launcher import Cluster, RunError, StopSignals, wait_for_services
 from openfusion.app.outputs import open_rerun, say_progress, surface_mesh, write_query_outputs
 from openfusion.app.run_config import RUN_FLAGS, SECTION_MODELS, RunConfig, write_service_config
@@ -67,6 +72,7 @@ from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings, add_section_options, config_from_args
 from openfusion.errors import UsageError
 from openfusion.sources.registry import check_source_spec, describe_source, parse_key_values
+from openfusion.sources.synthetic_spec import split_world
 from openfusion.wire.counters import BridgeCounter, CommonCounter, GeometryCounter, SemanticCounter
 from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
 from openfusion.wire.keys import validate_map_id
@@ -90,16 +96,36 @@ def _counter(stats: dict[str, Any], service: str, name: str) -> float:
     return s.counter(name) if s is not None else 0.0
 
 
-def builtin_scene_spec(spec: str, frames: int) -> str:
-    """The source spec that plays ``frames`` frames of the built-in room: a ``synthetic`` spec gets
-    ``frames=N`` and ``lap=BUILTIN_LAP_FRAMES`` unless it sets them; any other spec is unchanged."""
+def builtin_scene_spec(spec: str, frames: int | None) -> str:
+    """The source spec that plays ``frames`` frames (None: the default) of the built-in world: a
+    room spec gets ``frames=N`` (default :data:`BUILTIN_LAP_FRAMES`) and ``lap=BUILTIN_LAP_FRAMES``
+    unless it sets them; a building spec gets ``frames=N`` only when N is given (its walk has its
+    own frame count); any other spec is unchanged."""
     scheme, _sep, rest = spec.strip().partition(":")
     if scheme.lower() != "synthetic":
         return spec
+    world, rest = split_world(rest)
     options = parse_key_values(rest, scheme="synthetic")
-    options.setdefault("frames", str(frames))
+    if world == "building":
+        if frames is not None:
+            options.setdefault("frames", str(frames))
+        return "synthetic:" + ",".join(["building", *(f"{k}={v}" for k, v in options.items())])
+    options.setdefault("frames", str(frames if frames is not None else BUILTIN_LAP_FRAMES))
     options.setdefault("lap", str(BUILTIN_LAP_FRAMES))
     return "synthetic:" + ",".join(f"{k}={v}" for k, v in options.items())
+
+
+def frames_to_play(spec: str, frames: int | None) -> int:
+    """``--frames``, or without it: the walk's frame count for a building spec (opened here: the
+    plan and the walk, no rendering), else :data:`BUILTIN_LAP_FRAMES`."""
+    if frames is not None:
+        return frames
+    scheme, _sep, rest = spec.strip().partition(":")
+    if scheme.lower() == "synthetic" and split_world(rest)[0] == "building":
+        from openfusion.sources.registry import open_source
+
+        return len(open_source(spec))
+    return BUILTIN_LAP_FRAMES
 
 
 def shortfall_note(summary: RunSummary) -> str | None:
@@ -227,7 +253,9 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
             (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
             raise signals.interrupted("no frame was integrated yet; nothing saved")
     _say(args, "saving the map")
-    client.control("save", str(map_dir.resolve()))
+    geometry = cluster.processes.get("geometry")
+    save_and_wait(client, map_dir, say=lambda line: _say(args, line),
+                  alive=lambda: geometry is not None and geometry.alive())
     saved_to = str(map_dir.resolve())
     replies = []
     for text in args.queries:
@@ -239,11 +267,10 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
         summary = summary_now()
         (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
         raise signals.interrupted(f"saved the map of {summary.frames_integrated} integrated frames to {map_dir}")
-    mesh = client.mesh()
-    write_query_outputs(out, replies, (mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys),
-                        say=say_progress(args.quiet))
+    mesh = fetch_mesh(client, map_dir, say=lambda line: _say(args, line))  # too large for a reply: from OUT/map
+    write_query_outputs(out, replies, mesh, say=say_progress(args.quiet))
     if rerun is not None:
-        rerun.log_mesh(surface_mesh(mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys))
+        rerun.log_mesh(mesh if not isinstance(mesh, tuple) else surface_mesh(*mesh))
         for text, _space, hits in replies:
             rerun.log_query(text, hits)
     return summary_now()
@@ -451,9 +478,11 @@ class RunCommand:
     def add_arguments(parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--out", type=Path, default=Path("out"), help="output folder (default ./out)")
         parser.add_argument("--map", dest="map_id", default="demo", help="map id (default demo)")
-        parser.add_argument("--frames", type=int, default=BUILTIN_LAP_FRAMES,
+        parser.add_argument("--frames", type=int, default=None,
                             help=f"frames to play (default {BUILTIN_LAP_FRAMES}); one lap of the built-in room is "
-                            f"{BUILTIN_LAP_FRAMES} frames, more frames walk it again; a shorter source plays what it has")
+                            f"{BUILTIN_LAP_FRAMES} frames, more frames walk it again; synthetic:building walks its "
+                            "route once in N frames (default: its own, a frame every 0.3 m or 20 degrees); "
+                            "a shorter source plays what it has")
         parser.add_argument("--query", dest="queries", action="append", default=None,
                             help="example query (repeatable; default a few furniture queries)")
         parser.add_argument("--top-k", type=int, default=3, help="regions per query (default 3)")
@@ -487,7 +516,7 @@ class RunCommand:
         """The validated run config (bad values are refused here, before any process starts)."""
         validate_map_id(args.map_id)
         _check_out_dir(args.out)
-        if args.frames <= 0:
+        if args.frames is not None and args.frames <= 0:
             raise UsageError(f"--frames must be positive, got {args.frames}")
         if not 0 <= args.encoder_workers <= MAX_ENCODER_WORKERS:
             raise UsageError(f"--encoder-workers must be between 0 and {MAX_ENCODER_WORKERS}, got {args.encoder_workers}")
@@ -518,8 +547,10 @@ class RunCommand:
         # The source's form (scheme, path, options): the bridge would refuse it only after the other
         # services had started.
         check_source_spec(config.bridge.source)
-        # The built-in room plays --frames frames (laps of BUILTIN_LAP_FRAMES); other sources stop there.
+        # The built-in room plays --frames frames (laps of BUILTIN_LAP_FRAMES), the building its walk;
+        # other sources stop there.
         config.bridge.source = builtin_scene_spec(config.bridge.source, args.frames)
+        args.frames = frames_to_play(config.bridge.source, args.frames)
         config.bridge.max_frames = args.frames
         return config
 

@@ -92,6 +92,11 @@ class RunSummary(BaseModel):
     frames_duplicate: int = 0
     error: str | None = None
     map_saved: str | None = None
+    #: geometry's memory (MiB): its grid's voxel buffers (the memory budget when one is set) and the
+    #: peaks of its resident memory, sampled once a second (RSS; RssAnon without mapped file pages)
+    geometry_grid_mb: float | None = None
+    geometry_rss_peak_mb: float | None = None
+    geometry_rss_anon_peak_mb: float | None = None
 
     @field_validator("map_saved", mode="before")
     @classmethod
@@ -148,6 +153,9 @@ class RunSummary(BaseModel):
             frames_encoded_per_worker={k.removeprefix(ENCODED_BY_PREFIX): int(v) for k, v in
                                        (stats["semantic"].counters.items() if "semantic" in stats else [])
                                        if k.startswith(ENCODED_BY_PREFIX)},
+            geometry_grid_mb=_round(c("geometry", GeometryCounter.RESIDENT_MB)),
+            geometry_rss_peak_mb=_round(c("geometry", GeometryCounter.RSS_PEAK_MB)),
+            geometry_rss_anon_peak_mb=_round(c("geometry", GeometryCounter.RSS_ANON_PEAK_MB)),
             semantic_rate_hz=_round(_rate(c("semantic", SemanticCounter.SEMANTIC_FRAMES),
                                           c("semantic", SemanticCounter.FIRST_FUSED_AT_S),
                                           c("semantic", SemanticCounter.LAST_FUSED_AT_S))),

@@ -66,6 +66,16 @@ class GeometryCounter(StrEnum):
     UPDATES_REUSED_RENDER = "updates_reused_render"  # updates written through their frame's render (no second ray cast)
     SAVE_MERGES = "save_merges"  # merge passes the semantic service ran because this service was saving
     SAVE_MERGE_FAILURES = "save_merge_failures"  # saves that went ahead without one (semantic gone or silent)
+    RESIDENT_BLOCKS = "resident_blocks"  # blocks in RAM (num_blocks counts the whole map: resident + paged out)
+    RESIDENT_MB = "resident_mb"  # MiB of the grid's voxel buffers (its capacity: allocated and touched at once)
+    TILES_PAGED_OUT = "tiles_paged_out"  # tiles that left RAM for the tile store (memory budget)
+    TILES_PAGED_IN = "tiles_paged_in"  # tiles read back before a frame or a render reached them
+    CHECKPOINT_LAST_S = "checkpoint_last_s"  # seconds the last checkpoint took (snapshot to commit)
+    CHECKPOINT_LAST_TILES = "checkpoint_last_tiles"  # tiles it encoded (those changed since the one before)
+    SAVING = "saving"  # 1 while a save (control/save) is being written
+    RSS_MB = "rss_mb"  # the process's resident memory, sampled once a second
+    RSS_PEAK_MB = "rss_peak_mb"  # ... its largest sample
+    RSS_ANON_PEAK_MB = "rss_anon_peak_mb"  # largest sample of RssAnon (without the store's mapped file pages)
 
 
 class SemanticCounter(StrEnum):
