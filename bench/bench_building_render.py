@@ -3,7 +3,7 @@
 One row per world: the room (the baseline) and buildings of 2, 4, 10 (the default), 20 and 40
 rooms (``--quick``: 2 and 10). For each: floor area, triangles, frames of its default walk, the
 time to plan it (floor plan + walk) and to render its first frame (building its Embree scenes),
-the process's resident memory the world added (plan, scenes, shading tables), and per 640x480
+the resident memory the world adds to a fresh process (plan, walk, scenes, shading tables), and per 640x480
 frame: the render (``world.render``: ray cast through the doorways in view + shading +
 instances), the same render cast into the whole building at once (``render_whole``, the cost
 without portals), and the whole frame a source hands out (plus depth noise and the instance
@@ -20,6 +20,8 @@ from __future__ import annotations
 import argparse
 import gc
 import os
+import subprocess
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -31,13 +33,45 @@ def _rss_mb() -> float:
     return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
+def _world_rss_mb(rooms: int, seed: int) -> float:
+    """Resident memory (MiB) a world adds to a fresh process: its plan, walk, scenes and shading
+    tables after one 640x480 frame (rooms 0: the room). Run in a subprocess of its own."""
+    out = subprocess.run([sys.executable, __file__, "--rss-of", str(rooms), "--seed", str(seed)],
+                         capture_output=True, text=True, check=True)
+    return float(out.stdout.strip())
+
+
+def _print_rss_of(rooms: int, seed: int) -> None:
+    from openfusion.sources.synthetic import (
+        BuildingSource,
+        SyntheticBuilding,
+        SyntheticSource,
+        SyntheticWorld,
+    )
+
+    gc.collect()
+    before = _rss_mb()
+    if rooms == 0:
+        world = SyntheticWorld(seed)
+        src = SyntheticSource(world, 1, 640, 480)
+    else:
+        world = SyntheticBuilding(seed, rooms=rooms)
+        src = BuildingSource(world, None, 640, 480)
+    src.frame_at(0)
+    print(f"{_rss_mb() - before:.1f}")
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="CI-sized run (buildings of 2 and 10 rooms)")
     parser.add_argument("--frames", type=int, default=None, help="frames per world (default 16, --quick 8)")
     parser.add_argument("--repeats", type=int, default=None, help="timed passes, best kept (default 3, --quick 2)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--rss-of", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.rss_of is not None:
+        _print_rss_of(args.rss_of, args.seed)
+        return
     frames = args.frames or (8 if args.quick else 16)
     repeats = args.repeats or (2 if args.quick else 3)
     sizes = (2, 10) if args.quick else (2, 4, 10, 20, 40)
@@ -50,8 +84,6 @@ def main(argv: Sequence[str] | None = None) -> None:
     )
 
     rows = []
-    gc.collect()
-    before = _rss_mb()
     t0 = time.perf_counter()
     room = SyntheticWorld(args.seed)
     plan_s = time.perf_counter() - t0
@@ -60,10 +92,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     room.render(src.poses[0], src.intrinsics)  # builds the Embree scene
     first_s = time.perf_counter() - t0
     W, D, _ = room.room_size_m
-    rows.append(["room", W * D, room, src, plan_s, first_s, _rss_mb() - before, len(room.camera_path(120))])
+    rows.append(["room", W * D, room, src, plan_s, first_s, _world_rss_mb(0, args.seed), len(room.camera_path(120))])
     for n in sizes:
-        gc.collect()
-        before = _rss_mb()
         t0 = time.perf_counter()
         building = SyntheticBuilding(args.seed, rooms=n)
         natural = len(building.camera_path())
@@ -73,7 +103,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         building.render(src.poses[0], src.intrinsics)  # builds the cells' Embree scenes
         first_s = time.perf_counter() - t0
         rows.append([f"building, {n} rooms", building.floor_area_m2, building, src, plan_s, first_s,
-                     _rss_mb() - before, natural])
+                     _world_rss_mb(n, args.seed), natural])
 
     # Interleaved frame by frame (every world's frame i, then frame i + 1, ...), each the fastest of
     # the repeats, in CPU time of this process (all its threads): load from other processes on a
@@ -111,7 +141,8 @@ def main(argv: Sequence[str] | None = None) -> None:
           "through doorways); render, whole building: the same render cast into all of the building's triangles "
           "at once (what it would cost without portals; the same pixels); frame: what the source hands out (render, depth noise, "
           "categories). walk frames: the default walk (every room once, then the first two again; a frame every "
-          "0.3 m or 20°); the room's is the lap of `openfusion run`. first frame: building the Embree scene(s).")
+          "0.3 m or 20°); the room's is the lap of `openfusion run`. first frame: building the Embree scene(s). RSS: "
+          "what the world adds to a fresh process (plan, walk, scenes, shading tables) after its first frame.")
 
 
 if __name__ == "__main__":

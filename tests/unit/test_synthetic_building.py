@@ -176,6 +176,20 @@ def test_rendering_through_doorways_equals_rendering_the_whole_building() -> Non
     assert differ <= 1e-5 * pixels and recoloured <= 1e-3 * pixels, (differ, recoloured, pixels)
 
 
+def test_portal_shares_count_the_rays_through_each_doorway() -> None:
+    """The estimate that picks which room to join to a view's first cast: rays aimed at a doorway's
+    centre all cross it, rays aimed away or beside it none."""
+    from openfusion.sources.synthetic.portals import portal_shares
+
+    b = SyntheticBuilding(seed=0, rooms=2)
+    quads = np.array([r.portal_quad() for r in b.rooms])
+    o = np.array([b.rooms[0].door_x_m, b.plan.corridor_width_m / 2, 1.0])
+    centre = quads[0].mean(axis=0)
+    rays = np.concatenate([np.tile(o, (4, 1)), np.array([centre - o, o - centre, centre - o + [2, 0, 0], [1, 0, 0]])], 1)
+    np.testing.assert_allclose(portal_shares(quads, rays[:1]), [1.0, 0.0])
+    np.testing.assert_allclose(portal_shares(quads, rays), [0.25, 0.0])
+
+
 # ------------------------------------------------------------------------------------- walk
 
 

@@ -62,19 +62,22 @@ class Portal:
     def other(self, cell: int) -> int:
         return self.cells[1] if cell == self.cells[0] else self.cells[0]
 
-    def share(self, rays: np.ndarray) -> float:
-        """The share of ``rays`` (N, 6) that cross the portal ahead of their origin (occlusion
-        not counted: an estimate for choosing scenes, never for what a ray hits)."""
-        q0, e1, e3 = self.quad[0], self.quad[1] - self.quad[0], self.quad[3] - self.quad[0]
-        n = np.cross(e1, e3)
-        o, d = rays[:, :3].astype(np.float64), rays[:, 3:].astype(np.float64)
-        denom = d @ n
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = ((q0 - o) @ n) / denom
-            p = o + d * t[:, None] - q0
-            u, v = p @ e1 / (e1 @ e1), p @ e3 / (e3 @ e3)
-            inside = (t > 0) & (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)
-        return float(inside.mean()) if len(rays) else 0.0
+
+def portal_shares(quads: np.ndarray, rays: np.ndarray) -> np.ndarray:
+    """(P,) the share of ``rays`` (N, 6) that cross each portal quad ((P, 4, 3), parallelograms)
+    ahead of their origin; occlusion is not counted (an estimate for choosing scenes, never for
+    what a ray hits)."""
+    q0, e1, e3 = quads[:, 0], quads[:, 1] - quads[:, 0], quads[:, 3] - quads[:, 0]
+    n = np.cross(e1, e3)  # (P, 3)
+    o, d = rays[:, :3].astype(np.float64), rays[:, 3:].astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (np.einsum("pc,pc->p", q0, n)[None, :] - o @ n.T) / (d @ n.T)  # (N, P)
+        inside = t > 0
+        for e in (e1, e3):  # the hit's coordinate along each edge, in [0, 1]
+            coord = ((o @ e.T) + t * (d @ e.T) - np.einsum("pc,pc->p", q0, e)[None, :]) / np.einsum("pc,pc->p", e, e)
+            inside &= (coord >= 0) & (coord <= 1)
+    return inside.mean(axis=0) if len(rays) else np.zeros(len(quads))
+
 
 
 class _Scene:
@@ -157,6 +160,8 @@ class PortalRenderer(SceneRenderer):
             self._surfaces.append((np.concatenate(verts).astype(np.float32), np.concatenate(tris).astype(np.uint32),
                                    np.concatenate(global_tri)))
         self._portals = list(portals)
+        self._portals_of = [[k for k, p in enumerate(self._portals) if c in p.cells] for c in range(len(cells))]
+        self._quads = np.array([p.quad for p in self._portals], dtype=np.float64).reshape(-1, 4, 3)
         self._locate = locate
         self._scenes: dict[tuple[tuple[int, ...], int | None], _Scene] = {}
 
@@ -175,13 +180,12 @@ class PortalRenderer(SceneRenderer):
         cell = self._locate(origin)
         if cell is None:
             return super()._view_hits(rays, origin)
-        sample = rays[::16, ::16].reshape(-1, 6)
-        join, most = None, JOIN_FRACTION
-        for k, portal in enumerate(self._portals):
-            if cell in portal.cells:
-                share = portal.share(sample)
-                if share > most:
-                    join, most = k, share
+        join = None
+        mine = self._portals_of[cell]
+        if mine:
+            shares = portal_shares(self._quads[mine], rays[::16, ::16].reshape(-1, 6))
+            if shares.max() > JOIN_FRACTION:
+                join = mine[int(np.argmax(shares))]
         start = (cell,) if join is None else tuple(sorted((cell, self._portals[join].other(cell))))
         # the camera's cell (and the room it faces), every ray at once, as the whole scene would be ...
         tri, t_hit, normals, portal, far = self._scene_of(start, join).cast(rays)
