@@ -336,6 +336,26 @@ def test_scannet_layout_recording_reads_back(tmp_path: Path) -> None:
     assert back.metadata["floor_area_m2"] == pytest.approx(src.world.floor_area_m2, abs=1e-3)
 
 
+def test_record_scannet_command_writes_a_building(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``python -m openfusion.sources.record_scannet SPEC OUT``: writes the scene and says so; an
+    existing folder and a bad spec are one line and exit 2, and leave nothing behind."""
+    from openfusion.sources import record_scannet
+
+    out = tmp_path / "bld0000_00"
+    spec = f"synthetic:building,rooms=1,frames=2,width={W},height={H}"
+    assert record_scannet.main([spec, str(out), "--gt-spacing", "0.3"]) == 0
+    said = capsys.readouterr().out
+    assert said.startswith("wrote 2 frames of synthetic:building,seed=0,rooms=1") and "m² of floor" in said
+    assert len(ScanNetSource(out)) == 2
+    assert record_scannet.main([spec, str(out)]) == 2
+    assert record_scannet.main(["synthetic:building,rooms=0", str(tmp_path / "bad")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"python -m openfusion.sources.record_scannet: error: {out} exists; pass --overwrite to replace it",
+                   "python -m openfusion.sources.record_scannet: error: cannot open source 'synthetic:building,rooms=0': "
+                   "synthetic option rooms='0': must be >= 1, got 0"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bld0000_00"]
+
+
 # ---------------------------------------------------------------------------------- evaluation
 
 

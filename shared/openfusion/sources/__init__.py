@@ -11,6 +11,7 @@ module                 what
 ``registry``           ``open_source(spec, **options)``
 ``scannet``            ScanNet export reader (+ label tsv, instance categories)
 ``scannet_writer``     ``write_scannet_layout``: any source -> ScanNet layout on disk
+``record_scannet``     ``python -m openfusion.sources.record_scannet SPEC OUT``: that, from a source spec
 ``replica``            Replica (NICE-SLAM release)
 ``tum``                TUM RGB-D (timestamp association, pose interpolation)
 ``redwood``            Redwood / Open3D captures (``trajectory.log``)
