@@ -217,11 +217,10 @@ def room_visit(plan: Floorplan, room: BuildingRoom, footprints: Sequence[tuple[f
         order = order[order.index(first) :] + order[: order.index(first)]
         stops = [entry] + [spots[k] for k in order] + [entry]
         path: list[np.ndarray] = [entry]
-        for a, b in zip(stops[:-1], stops[1:], strict=True):
-            leg = grid.shortest_path(a, b)
-            if leg is None:  # cannot happen for reachable spots; skip rather than walk through
-                continue
-            path.extend(leg[1:])
+        for stop in stops[1:]:
+            leg = grid.shortest_path(path[-1], stop)
+            if leg is not None:  # always, for spots in the entry's component; never a jump
+                path.extend(leg[1:])
         dense = _densify(path)
         walked = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense, axis=0), axis=1))])
         yaw = yaw_in
