@@ -63,7 +63,9 @@ def _print_rss_of(rooms: int, seed: int) -> None:
 
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="CI-sized run (buildings of 2 and 10 rooms)")
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_true", help="CI-sized run (buildings of 2 and 10 rooms)")
+    size.add_argument("--full", action="store_true", help="full size (the default): 2, 4, 10, 20 and 40 rooms")
     parser.add_argument("--frames", type=int, default=None, help="frames per world (default 16, --quick 8)")
     parser.add_argument("--repeats", type=int, default=None, help="timed passes, best kept (default 3, --quick 2)")
     parser.add_argument("--seed", type=int, default=0)
