@@ -50,6 +50,7 @@ from __future__ import annotations
 import contextlib
 import math
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -110,7 +111,7 @@ class ChunkCopy:
     tiles: list[Tile]
     clock: int
     resident: list[tuple[np.ndarray, dict[str, np.ndarray]]]
-    stored: list[tuple[Tile, bytes, Any]]  # (tile, blob, codec)
+    stored: list[tuple[Tile, bytes, Any, int]]  # (tile, blob, codec, its blocks)
     key1: np.ndarray  # the slot table (key + 1 per slot) at the copy
     keep: dict[tuple[Tile, int], int]
 
@@ -202,7 +203,7 @@ class TileReadouts:
         groups = self.pager._resident_groups()
         names = ("key",) if keys_only else ATTR_NAMES
         resident: list[tuple[np.ndarray, dict[str, np.ndarray]]] = []
-        stored: list[tuple[Tile, bytes, Any]] = []
+        stored: list[tuple[Tile, bytes, Any, int]] = []
         for t in sorted(chunk_set | around):
             if t in groups:
                 coords, buf = groups[t]
@@ -214,7 +215,7 @@ class TileReadouts:
                     resident.append((coords.copy(), raw))
             elif t in self.pager.stored_blocks:
                 blob, _ = self.pager.blob_of(t)
-                stored.append((t, blob, self.pager._store_of(t).codec))
+                stored.append((t, blob, self.pager._store_of(t).codec, self.pager.stored_blocks[t]))
         keep = {k: v for k, v in self.keep.items() if k[0] in chunk_set}
         return ChunkCopy(list(chunk), self.pager.versions.clock, resident, stored, self.storage.slots.key1.copy(), keep)
 
@@ -249,22 +250,29 @@ def _next_to(coords: np.ndarray, chunk: set[Tile], tile_blocks: int) -> np.ndarr
     return hit.any(axis=1)
 
 
-def _blocks_of(copy: ChunkCopy, tile_blocks: int, names: tuple[str, ...]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Every block of a chunk copy (stored tiles decoded now, their far blocks left out)."""
-    coords = [c for c, _ in copy.resident]
-    raws = [{k: r[k] for k in names} for _, r in copy.resident]
+def _parts_of(copy: ChunkCopy, tile_blocks: int, names: tuple[str, ...]) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
+    """The blocks of a chunk copy part by part (stored tiles decoded now, their far blocks left
+    out); each resident part is let go of as it is handed out."""
     chunk_set = set(copy.tiles)
-    for t, blob, codec in copy.stored:
+    while copy.resident:
+        c, r = copy.resident.pop()
+        yield c, {k: r[k] for k in names}
+    while copy.stored:
+        t, blob, codec, _ = copy.stored.pop()
         c, raw = decode_tile(codec, blob, f"tile {t}")
         if t not in chunk_set:
             sel = _next_to(c, chunk_set, tile_blocks)
             c, raw = c[sel], {k: v[sel] for k, v in raw.items()}
-        coords.append(c)
-        raws.append({k: raw[k] for k in names})
-    if not coords:
+        yield c, {k: raw[k] for k in names}
+
+
+def _blocks_of(copy: ChunkCopy, tile_blocks: int, names: tuple[str, ...]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Every block of a chunk copy in one array per attribute (the key slots, for contacts)."""
+    parts = list(_parts_of(copy, tile_blocks, names))
+    if not parts:
         return np.zeros((0, 3), np.int32), {}
-    return (np.concatenate(coords).astype(np.int32),
-            {k: np.concatenate([r[k] for r in raws]) for k in names})
+    return (np.concatenate([c for c, _ in parts]).astype(np.int32),
+            {k: np.concatenate([r[k] for _, r in parts]) for k in names})
 
 
 def _identity_slots(key1: np.ndarray) -> KeySlots:
@@ -277,33 +285,38 @@ def _identity_slots(key1: np.ndarray) -> KeySlots:
 
 
 class Scratch:
-    """A grid to read chunks out in, reused from chunk to chunk (grown when a chunk needs more)."""
+    """A grid to read chunks out in, reused from chunk to chunk (made again when a chunk needs more)."""
 
     def __init__(self, storage: VoxelStorage) -> None:
         self.params = storage.params.with_changes(memory_budget_mb=None)
         self.device = storage.device
         self.grid: VoxelStorage | None = None
 
-    def load(self, coords: np.ndarray, raw: dict[str, np.ndarray]) -> VoxelStorage:
-        if self.grid is None or self.grid.capacity_blocks < len(coords):
-            self.grid = None
+    def load(self, copy: ChunkCopy, tile_blocks: int) -> VoxelStorage | None:
+        """The chunk's blocks in the grid (written part by part: the copy is let go of as it goes);
+        None when the chunk holds none."""
+        most = sum(len(c) for c, _ in copy.resident) + sum(n for *_, n in copy.stored)
+        if most == 0:
+            return None
+        if self.grid is None or self.grid.capacity_blocks < most:
+            self.grid = None  # the old one is freed before the new one is made
             self.grid = VoxelStorage(self.params, self.device)
-            self.grid.reset(capacity=max(len(coords), 2 * CHUNK_BLOCKS))
+            self.grid.reset(capacity=most + most // 8)
         else:
             c_old, b_old = self.grid.active_blocks()
             self.grid.erase_blocks(c_old, b_old)
-        self.grid.write_raw_blocks(coords, raw)
+        for coords, raw in _parts_of(copy, tile_blocks, ATTR_NAMES):
+            if len(coords):
+                self.grid.write_raw_blocks(np.asarray(coords, np.int32), raw)
         return self.grid
 
 
 def summarise_chunk(copy: ChunkCopy, scratch: Scratch, tile_blocks: int) -> dict[Tile, SummaryPart]:
     """The summary parts of a chunk's tiles (outside the lock: reads only the copy)."""
-    coords, raw = _blocks_of(copy, tile_blocks, ATTR_NAMES)
     out = {t: _empty_summary(copy.clock) for t in copy.tiles}
-    if not len(coords):
+    grid = scratch.load(copy, tile_blocks)
+    if grid is None:
         return out
-    grid = scratch.load(coords, raw)
-    del raw
     grid.slots = _identity_slots(copy.key1)
     pts = readout.extract_points(grid)
     p = grid.params

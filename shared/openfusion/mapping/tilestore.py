@@ -280,6 +280,9 @@ def _entry_key(tile: tuple[int, int, int], generation: int) -> bytes:
 
 
 def _split_entry(key: bytes) -> tuple[bytes, int]:
+    if len(key) != _TILE_KEY_BYTES + _GEN.size:
+        raise MapFormatError(f"a tile entry key is {_TILE_KEY_BYTES + _GEN.size} bytes (tile and generation), got "
+                             f"{len(key)}: a store of another layout")
     return key[:_TILE_KEY_BYTES], _GEN.unpack_from(key, _TILE_KEY_BYTES)[0]
 
 

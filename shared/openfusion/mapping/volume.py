@@ -562,6 +562,11 @@ class SemanticVolume:
                                     settled_clock=settled_clock, max_s=max_s)
 
     @property
+    def readout_stats(self) -> dict[str, int]:
+        """Tiles read out for region summaries and contacts so far (:mod:`.tilereadouts`)."""
+        return dict(self._readouts.stats)
+
+    @property
     def change_clock(self) -> int:
         """The tile versions' clock (grows with every change of the map's voxels)."""
         return self._pager.versions.clock
