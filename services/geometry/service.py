@@ -633,12 +633,12 @@ class GeometryService(DictionaryFollower):
         if self.last_frame_id is not None:
             runner.stats.set(GeometryCounter.LAST_FRAME_ID, self.last_frame_id)
         self._set_checkpoint_frame()
+        self._memory.start(runner.stats)
         self.announce()
 
     def loop(self, runner: ServiceRunner) -> None:
         period = self.section.checkpoint_period_s
         while not runner.wait(min(period, 1.0) if period > 0 else 1.0):
-            self._memory.sample_into(runner.stats)
             if self.waiting_for_frames:  # until the next playback frame comes in order
                 self.announce()
             if (
@@ -682,6 +682,7 @@ class GeometryService(DictionaryFollower):
             logger.exception("geometry: reading out settled tiles failed")
 
     def close(self) -> None:
+        self._memory.stop()
         # The session is closed by now: this last checkpoint is saved without a merge pass.
         if self._dirty and self.checkpoint_dir is not None:
             with contextlib.suppress(CheckpointFailed):  # logged by save()

@@ -145,7 +145,9 @@ class VoxelStorage:
     return the slots still present in them (:mod:`openfusion.mapping.keyslots`).
     """
 
-    def __init__(self, params: VolumeParams, device: o3c.Device) -> None:
+    def __init__(self, params: VolumeParams, device: o3c.Device, *, capacity: int | None = None) -> None:
+        """``capacity``: blocks of the first grid (default: the configured initial count); a
+        memory budget's grid is made at its size at once (never a default-sized one first)."""
         self.params = params
         self.device = device
         #: CPU grids are read and written through numpy views of the buffers, others through tensors.
@@ -158,7 +160,7 @@ class VoxelStorage:
         self.on_relabel: object = None
         self.integrations_since_clamp = 0
         self.compactions = 0  # key compactions so far (every voxel's slot rewritten)
-        self.reset()
+        self.reset(capacity)
 
     # ------------------------------------------------------------------ grid lifetime and growth
     def reset(self, capacity: int | None = None, *, keep_slots: bool = False) -> None:

@@ -161,15 +161,16 @@ def _unshuffle(data: memoryview, dtype: type, count: int) -> np.ndarray:
     return np.ascontiguousarray(planes.T).view(dtype).reshape(-1)
 
 
-def encode_tile(codec: Any, coords: np.ndarray, raw: dict[str, np.ndarray], res: int) -> bytes:
+def encode_tile(codec: Any, coords: np.ndarray, raw: dict[str, np.ndarray], res: int, *, dense: bool = False) -> bytes:
     """One tile's blob: ``coords`` (n, 3) block coordinates and ``raw`` stored values of those blocks
-    (blob format 2, or 1 when an unobserved voxel holds a TSDF or colour: module docstring)."""
+    (blob format 2, or 1 when an unobserved voxel holds a TSDF or colour: module docstring;
+    ``dense``: format 1 always, what ``bench/bench_codec_layout.py`` compares with)."""
     n = len(coords)
     weight = np.asarray(raw["weight"], np.uint16).reshape(-1)
     tsdf = np.asarray(raw["tsdf"], np.float32).reshape(-1)
     color = np.asarray(raw["color"], np.uint16).reshape(-1, 3)
     observed = weight > 0
-    if tsdf[~observed].any() or color[~observed].any():
+    if dense or tsdf[~observed].any() or color[~observed].any():
         parts = [_shuffle(np.asarray(coords, np.int32))]
         for name, dtype, _ in TILE_ATTRS:
             parts.append(_shuffle(np.asarray(raw[name], dtype)))

@@ -178,17 +178,18 @@ class SemanticVolume:
         self._lock = threading.RLock()
         self.stats = VolumeStats()
         self._intrinsic_cache: dict[CameraIntrinsics, o3c.Tensor] = {}
-        self._storage = VoxelStorage(self.params, o3c.Device(self.params.device))
-        self._scratch: weakref.finalize | None = None
         budget = None
         if self.params.memory_budget_mb is not None:
-            budget = budget_blocks(self.params.memory_budget_mb, self._storage.bytes_per_block)
-            self._storage.reset(capacity=budget)
-            if store is None:
-                folder = tempfile.mkdtemp(prefix="openfusion-tiles-")
-                store = TileStore(Path(folder) / "map.ofz")
-                # Removed by close(), or when the volume is collected (no warning: it is ours).
-                self._scratch = weakref.finalize(self, _remove_scratch, store, folder)
+            budget = budget_blocks(self.params.memory_budget_mb, BYTES_PER_VOXEL * self.params.block_resolution**3)
+        # With a budget the grid is made at its size once (a default-sized grid first would be
+        # resident beside it for a moment: +128 MiB at start, measured).
+        self._storage = VoxelStorage(self.params, o3c.Device(self.params.device), capacity=budget)
+        self._scratch: weakref.finalize | None = None
+        if budget is not None and store is None:
+            folder = tempfile.mkdtemp(prefix="openfusion-tiles-")
+            store = TileStore(Path(folder) / "map.ofz")
+            # Removed by close(), or when the volume is collected (no warning: it is ours).
+            self._scratch = weakref.finalize(self, _remove_scratch, store, folder)
         grid = TileGrid(self.params.tile_blocks, self.params.block_size_m)
         self._pager = TilePager(self._storage, grid, store, budget)
         #: Without a budget the grid grows ahead of need in the background (:mod:`.growth`).
