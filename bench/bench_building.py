@@ -99,6 +99,7 @@ def _child(argv: list[str]) -> int:
         print(json.dumps(record), flush=True)
 
     emit(event="start", frames=n, t=time.monotonic())
+    settled = 0  # the change clock at the checkpoint before the last: tiles unchanged since have settled
     for i, frame in enumerate(source):
         t0 = time.perf_counter()
         volume.integrate(frame)
@@ -108,10 +109,18 @@ def _child(argv: list[str]) -> int:
         if (i + 1) % int(every) == 0:
             t0 = time.perf_counter()
             info = checkpoint(volume, dictionary, {"frames": i + 1})
-            emit(event="checkpoint", i=i, seconds=time.perf_counter() - t0, tiles=info["tiles"], bytes=info["bytes"])
-    t0 = time.perf_counter()  # the final save: a checkpoint with region summaries (a whole-map read-out)
+            emit(event="checkpoint", i=i, seconds=time.perf_counter() - t0, tiles=info["tiles"], bytes=info["bytes"],
+                 slices=info["slices"])
+            # The geometry service's idle work: region-summary parts of the tiles that settled.
+            t0 = time.perf_counter()
+            tiles = volume.refresh_region_table(settled_clock=settled)
+            emit(event="idle_readout", i=i, seconds=time.perf_counter() - t0, tiles=tiles)
+            settled = volume.change_clock
+    read_before = volume.readout_stats["summary_tiles_read"]
+    t0 = time.perf_counter()  # the final save: a checkpoint with region summaries (the tiles not read out yet)
     info = checkpoint(volume, dictionary, {"frames": n}, summary=True)
-    emit(event="final", seconds=time.perf_counter() - t0, tiles=info["tiles"])
+    emit(event="final", seconds=time.perf_counter() - t0, tiles=info["tiles"],
+         summary_tiles=volume.readout_stats["summary_tiles_read"] - read_before)
     store = volume.store
     assert store is not None
     store.copy_to(out / "copy" / "map.ofz")  # compacted copy: what a save elsewhere writes
@@ -198,9 +207,11 @@ def _summarise(run: dict[str, object], floor_m2: float) -> dict[str, object]:
         "budget": run["budget"], "device": run["device"], "frames": n,
         "rss_q": [rss_at(q) for q in (0.25, 0.5, 0.75, 1.0)], "rss_peak": max(s[1] for s in during),
         "anon_q": [rss_at(q, 2) for q in (0.25, 0.5, 0.75, 1.0)], "anon_peak": max(s[2] for s in during),
-        "save_peak": max(s[1] for s in rss),
+        "save_peak": max(s[1] for s in rss), "save_anon_peak": max(s[2] for s in rss),
+        "idle_s": sum(float(r["seconds"]) for r in records if r["event"] == "idle_readout"),  # type: ignore[index]
         "fps_q": fps, "ckpt": [ckpt_at(q) for q in (0.25, 0.5, 1.0)],
         "final_s": float(final["seconds"]) if final else float("nan"),
+        "final_summary_tiles": int(final.get("summary_tiles", 0)) if final else 0,
         "map_mb": done["map_bytes"] / 2**20, "mb_per_m2": done["map_bytes"] / 2**20 / floor_m2,
         "blocks": done["blocks"], "paged_out": done["paged_out"], "paged_in": done["paged_in"],
         "out": run["out"],
@@ -288,24 +299,32 @@ def _print(rows: list[dict[str, object]]) -> None:
     print("\n## Memory while mapping (MiB at 25/50/75/100 % of the frames and peak: RSS, and RssAnon = RSS without "
           "the store's memory-mapped file pages) and integration (frames/s per quarter)\n")
     print("| rooms | floor m^2 | frames | budget MiB | device | RSS 25% | 50% | 75% | 100% | peak | anon 25% | 50% | 75% "
-          "| 100% | peak | final save peak RSS | fps q1 | q2 | q3 | q4 | blocks | paged out / in |")
-    print("|" + "---|" * 22)
+          "| 100% | peak | fps q1 | q2 | q3 | q4 | blocks | paged out / in |")
+    print("|" + "---|" * 21)
     for r in rows:
         rq, aq, fq = r["rss_q"], r["anon_q"], r["fps_q"]
         print(f"| {r['rooms']} | {r['floor_m2']:.0f} | {r['frames']} | {r['budget']} | {r['device']} | "
               + " | ".join(f"{v:.0f}" for v in rq) + f" | {r['rss_peak']:.0f} | "  # type: ignore[union-attr]
-              + " | ".join(f"{v:.0f}" for v in aq) + f" | {r['anon_peak']:.0f} | {r['save_peak']:.0f} | "  # type: ignore[union-attr]
+              + " | ".join(f"{v:.0f}" for v in aq) + f" | {r['anon_peak']:.0f} | "  # type: ignore[union-attr]
               + " | ".join(f"{v:.1f}" for v in fq) + f" | {r['blocks']} | {r['paged_out']} / {r['paged_in']} |")  # type: ignore[union-attr]
+    print("\n## The whole run (mapping and the final save): peak memory against the budget\n")
+    print("| rooms | budget MiB | device | RSS peak | RssAnon peak | RssAnon peak - budget (the overhead) |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        over = "-" if r["budget"] == "none" else f"{r['save_anon_peak'] - float(r['budget']):.0f}"  # type: ignore[operator, arg-type]
+        print(f"| {r['rooms']} | {r['budget']} | {r['device']} | {r['save_peak']:.0f} | {r['save_anon_peak']:.0f} | {over} |")
     print("\n## Checkpoints (seconds, tiles written) near 25 / 50 / 100 % of the run, map on disk, surface\n")
-    print("| rooms | budget MiB | device | ckpt 25% | ckpt 50% | ckpt 100% | final save (+summaries) | map MiB | MiB per m^2 "
-          "| surface points (ratio) | revisited rooms' points (ratio) |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| rooms | budget MiB | device | ckpt 25% | ckpt 50% | ckpt 100% | idle read-outs (sum) | final save (+summaries; tiles "
+          "read then) | map MiB | MB per m^2 | surface points (ratio) | revisited rooms' points (ratio) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         c = r["ckpt"]
         rooms_txt = ", ".join(f"{p} ({q:.3f})" for p, q in zip(r["room_points"], r["room_ratio"], strict=True))  # type: ignore[arg-type]
+        mb = float(r["map_mb"]) * 2**20 / 1e6 / float(r["floor_m2"])  # type: ignore[arg-type]
         print(f"| {r['rooms']} | {r['budget']} | {r['device']} | "
               + " | ".join(f"{s:.2f} s ({t})" for s, t in c)  # type: ignore[union-attr]
-              + f" | {r['final_s']:.1f} s | {r['map_mb']:.1f} | {r['mb_per_m2']:.3f} | {r['points']} ({r['points_ratio']:.4f}) | {rooms_txt} |")
+              + f" | {r['idle_s']:.1f} s | {r['final_s']:.1f} s ({r['final_summary_tiles']}) | {r['map_mb']:.1f} | {mb:.3f} | "
+              f"{r['points']} ({r['points_ratio']:.4f}) | {rooms_txt} |")
 
 
 if __name__ == "__main__":

@@ -53,7 +53,7 @@ class _Lmdb:
         self.store = TileStore(path / "map.ofz", codec=codec)
 
     def write(self, blobs: dict[tuple[int, int, int], bytes]) -> None:
-        self.store.commit(upto_epoch=-1, blobs=blobs, header={"bench": True}, arrays={})
+        self.store.commit(blobs=blobs, header={"bench": True}, arrays={})
 
     def read_all(self) -> list[bytes]:
         return [b for _, b in self.store.iter_committed()]
@@ -72,8 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     volume = SemanticVolume(VolumeParams())
     for f in open_source(f"synthetic:seed=1,frames={frames},width={w},height={h}"):
         volume.integrate(f)
-    snap = volume.checkpoint_snapshot(full=True)
-    tiles = snap.tiles
+    tiles = {}
+    for part in volume.checkpoint_plan(every_tile=True):
+        tiles.update(volume.pager.copy_tiles(part, every_tile=True)[0])
     raw_bytes = volume.num_blocks * volume._storage.bytes_per_block
     print(f"# the room: {volume.num_blocks} blocks in {len(tiles)} tiles, {raw_bytes / 2**20:.1f} MiB of compact voxels "
           f"({volume.bytes_per_voxel} B per voxel; was 28)")

@@ -1,7 +1,8 @@
-"""The geometry process's own resident memory, sampled once a second by the service's loop and
-published as health counters (``rss_mb``, ``rss_peak_mb``, ``rss_anon_peak_mb``): what
-``openfusion run`` reports as geometry's memory in ``run.json``. Linux ``/proc/self/status``;
-elsewhere the counters stay absent.
+"""The geometry process's own resident memory, sampled once a second by a thread of its own (the
+service's loop writes checkpoints, whose peaks a sample from the loop would miss) and published as
+health counters (``rss_mb``, ``rss_peak_mb``, ``rss_anon_peak_mb``): what ``openfusion run``
+reports as geometry's memory in ``run.json``. Linux ``/proc/self/status``; elsewhere the counters
+stay absent.
 
 ``RssAnon`` is the process's own memory without file pages it maps: the tile store (LMDB) reads
 tiles through a memory map, and those pages are the kernel's file cache (shared, dropped under
@@ -10,6 +11,7 @@ memory pressure), counted in RSS but not in RssAnon. The memory budget bounds th
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -34,12 +36,36 @@ def process_memory_mib() -> tuple[float, float] | None:
     return values["VmRSS"], values.get("RssAnon", values["VmRSS"])
 
 
+SAMPLE_EVERY_S = 1.0
+
+
 class MemoryPeaks:
     """The largest samples seen so far."""
 
     def __init__(self) -> None:
         self.rss_peak_mb = 0.0
         self.anon_peak_mb = 0.0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self, stats: Any) -> None:
+        """Sample every :data:`SAMPLE_EVERY_S` into ``stats`` on a daemon thread until :meth:`stop`."""
+        if self._thread is not None:
+            return
+
+        def run() -> None:
+            while not self._stop.is_set():
+                self.sample_into(stats)
+                self._stop.wait(SAMPLE_EVERY_S)
+
+        self._thread = threading.Thread(target=run, name="geometry-memory", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
 
     def sample(self) -> tuple[float, float] | None:
         got = process_memory_mib()

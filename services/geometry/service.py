@@ -85,12 +85,13 @@ from openfusion.mapping import (
     MapFormatError,
     RegionDictionary,
     RenderedView,
+    SemanticVolume,
     save_map,
 )
 from openfusion.mapping.mapfile import resolve_map_path
 from openfusion.mapping.mapstore import checkpoint as checkpoint_store
-from openfusion.mapping.merging import block_contacts
 from openfusion.mapping.queries import RegionTable
+from openfusion.mapping.tilestore import STORE_DIR_NAME
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
 from openfusion.services.geometry import checkpoints
@@ -163,6 +164,10 @@ def check_update(msg: SemanticUpdate) -> None:
 
 #: Renders kept for the semantic updates that follow them (the pool applies results in frame order).
 RECENT_RENDERS = 2
+#: A tile unchanged this long has settled: its region-summary part is read out as idle work.
+SETTLE_S = 5.0
+#: Idle read-out per turn of the service loop (about once a second), at least one chunk.
+IDLE_READOUT_S = 0.5
 
 
 class GeometryService(DictionaryFollower):
@@ -190,6 +195,11 @@ class GeometryService(DictionaryFollower):
         self._key_horizon = 0
         self._summary: SummaryCache | None = None
         self._summary_lock = threading.Lock()
+        #: Held by a save, a load and a reset: a load or reset waits for a save to end (a save
+        #: holds the volume lock only for its copies, so they would otherwise overlap).
+        self._swap_lock = threading.Lock()
+        #: (monotonic s, the volume's change clock) of recent loop turns: which tiles have settled.
+        self._change_marks: list[tuple[float, int]] = []
         self._dirty = False
         self._last_checkpoint = time.monotonic()
         self.saving = False
@@ -251,9 +261,12 @@ class GeometryService(DictionaryFollower):
 
     def save(self, path: Path | None = None, *, summary: bool = True) -> Path:
         """Save the map to ``path`` or checkpoint it into the checkpoint folder's store. ``summary=False``
-        (the periodic checkpoints) leaves out the region summaries, which cost a surface read-out
-        under the lock integration waits on; a save asked for on ``control/save`` stores them. A
-        checkpoint holds the lock only while it copies the changed tiles (module docstring)."""
+        (the periodic checkpoints) leaves out the region summaries unless they are at hand for this
+        map version; a save asked for on ``control/save`` stores them (kept per tile: only tiles
+        changed since they were last read out are read again, :mod:`openfusion.mapping.tilereadouts`).
+        Integration goes on while a checkpoint writes: the lock is held for a slice's copy and the
+        checkpoint's last step (:mod:`openfusion.mapping.mapstore`), whose instant the checkpoint's
+        meta (``last_frame_id``...) describes."""
         target = path or self.checkpoint_dir
         if target is None:
             raise RequestError(
@@ -261,64 +274,57 @@ class GeometryService(DictionaryFollower):
             )
         own = self.checkpoint_dir is not None and Path(target).resolve() == self.checkpoint_dir.resolve()
         started = time.monotonic()
-        held = [True]
+        captured: dict[str, int | None] = {}
 
-        def release() -> None:
-            if held[0]:
-                held[0] = False
-                self._lock.release()
-
-        self._lock.acquire()
-        self._set_saving(True)
-        try:
-            # A geometry-only map (semantics off) is saved with an empty placeholder dictionary.
-            dictionary = self.replica.dictionary or RegionDictionary(NO_EMBEDDING_SPACE, 1)
-            # The region table of this very map version when a query already had it computed (a
-            # surface read-out saved); else the save reads the surface out once.
-            cached = self._summary
-            regions = cached.table if cached is not None and cached.map_version == self.map_version else None
-            if regions is None and summary:
-                # Read the surface out here rather than inside the save, and keep the table: the
-                # queries that follow a save (the end of `openfusion run`) are answered from it
-                # instead of each asking for a whole-map read-out (tens of seconds on a floor).
-                pts = self.volume.extract_points()
-                regions = RegionTable.of_points(pts.keys, pts.points)
-                horizon = max(self._key_horizon, int(regions.keys[-1]) + 1 if len(regions) else 0)
-                self._summary = SummaryCache(self.map_version, horizon, regions)
-            last = self.last_frame_id
+        def state() -> tuple[RegionDictionary, dict[str, object]]:
+            """The checkpoint's instant (called holding the lock): what it holds, and the map clean."""
+            captured["last"] = self.last_frame_id
+            self._dirty = False  # a change after this sets it again
             meta = {
                 "map_id": self.config.map_id,
                 "frames_integrated": self.frames_integrated,
                 "integrate_busy_s": self.integrate_busy_s,
-                "last_frame_id": last,
+                "last_frame_id": self.last_frame_id,
                 "playback": self.playback,
             }
-            self._dirty = False  # a change after the snapshot sets it again
-            tiles = 0
-            if own and self.volume.store is not None:
-                info = checkpoint_store(self.volume, dictionary, meta, regions=regions,
-                                        summary=summary or regions is not None, on_snapshot=release)
-                written, tiles = self.volume.store.path, int(info["tiles"])
-            else:
-                written = save_map(target, self.volume, dictionary, meta=meta, regions=regions,
-                                   summary=summary or regions is not None)
-        except OSError as exc:
-            # Disk full, read-only folder...: the store (or file) is as it was before; the map
-            # stays in memory and the next period tries again.
-            self._dirty = True
-            self._last_checkpoint = time.monotonic()
-            self.checkpoint_failures += 1
-            self._count(GeometryCounter.CHECKPOINT_FAILURES)
-            failed = resolve_map_path(target)
-            reason = exc.strerror or str(exc)
-            logger.error("geometry: checkpoint to %s failed: %s; the map is kept in memory", failed, reason)
-            raise CheckpointFailed(failed, reason) from exc
-        except BaseException:
-            self._dirty = True  # not saved: the next period tries again
-            raise
-        finally:
-            release()
-            self._set_saving(False)
+            # A geometry-only map (semantics off) is saved with an empty placeholder dictionary.
+            return self.replica.dictionary or RegionDictionary(NO_EMBEDDING_SPACE, 1), meta
+
+        with self._swap_lock:  # a load or reset waits for the save (the volume stays the same)
+            self._set_saving(True)
+            try:
+                with self._lock:
+                    volume, version = self.volume, self.map_version
+                regions = self._regions_for_save(volume, version, compute=summary)
+                tiles = 0
+                store = volume.store
+                if store is not None and (own or Path(target).suffix != ".npz"):
+                    info = checkpoint_store(volume, None, None, regions=regions, summary=regions is not None,
+                                            lock=self._lock, state=state)
+                    tiles = int(info["tiles"])
+                    written = store.path if own else store.copy_to(Path(target) / STORE_DIR_NAME)
+                else:  # no store of its own (no map_dir), or a version-1 file named: under the lock
+                    with self._lock:
+                        dictionary, meta = state()
+                        written = save_map(target, volume, dictionary, meta=meta, regions=regions,
+                                           summary=regions is not None)
+            except OSError as exc:
+                # Disk full, read-only folder...: the store (or file) is as it was before; the map
+                # stays in memory and the next period tries again.
+                self._dirty = True
+                self._last_checkpoint = time.monotonic()
+                self.checkpoint_failures += 1
+                self._count(GeometryCounter.CHECKPOINT_FAILURES)
+                failed = resolve_map_path(target)
+                reason = exc.strerror or str(exc)
+                logger.error("geometry: checkpoint to %s failed: %s; the map is kept in memory", failed, reason)
+                raise CheckpointFailed(failed, reason) from exc
+            except BaseException:
+                self._dirty = True  # not saved: the next period tries again
+                raise
+            finally:
+                self._set_saving(False)
+        last = captured.get("last")
         self.checkpoint_last_frame_id = last
         self._last_checkpoint = time.monotonic()
         self._count(GeometryCounter.CHECKPOINTS)
@@ -329,6 +335,22 @@ class GeometryService(DictionaryFollower):
         logger.info("geometry: saved map to %s (last frame %s, %d tiles written, %.2f s)", written,
                     "none" if last is None else last, tiles, self._last_checkpoint - started)
         return Path(written)
+
+    def _regions_for_save(self, volume: SemanticVolume, version: int, *, compute: bool) -> RegionTable | None:
+        """The region table a save stores: the cached one of this map version, else (``compute``)
+        the volume's, kept as the cache (the queries after a save, e.g. the end of ``openfusion
+        run``, are answered from it)."""
+        cached = self._summary
+        if cached is not None and cached.map_version == version:
+            return cached.table
+        if not compute:
+            return None
+        table = volume.region_table(lock=self._lock)
+        horizon = max(self._key_horizon, int(table.keys[-1]) + 1 if len(table) else 0)
+        with self._lock:
+            if self.volume is volume:
+                self._summary = SummaryCache(version, horizon, table)
+        return table
 
     def _set_saving(self, saving: bool) -> None:
         self.saving = saving
@@ -521,9 +543,9 @@ class GeometryService(DictionaryFollower):
                 )
             ):
                 with self._lock:
-                    version, horizon = self.map_version, self._key_horizon
-                    pts = self.volume.extract_points()
-                table = RegionTable.of_points(pts.keys, pts.points)
+                    volume, version, horizon = self.volume, self.map_version, self._key_horizon
+                # Per tile, only changed tiles read out again; the lock is held for each chunk's copy.
+                table = volume.region_table(lock=self._lock)
                 if len(table):  # keys present in the map (e.g. loaded from a checkpoint) are covered too
                     horizon = max(horizon, int(table.keys[-1]) + 1)
                 cached = self._summary = SummaryCache(version, horizon, table)
@@ -531,9 +553,9 @@ class GeometryService(DictionaryFollower):
 
     def handle_contacts(self, req: RegionContactsRequest) -> RegionContactsReply:
         with self._lock:
-            version = self.map_version
-            coords, keys = self.volume.labelled_blocks()
-        c = block_contacts(coords, keys, radius_vox=req.radius_vox)  # outside the lock: integration goes on
+            volume, version = self.volume, self.map_version
+        # Per tile, only tiles changed since the last pass counted again (copies under the lock).
+        c = volume.region_contacts(radius_vox=req.radius_vox, lock=self._lock)
         return RegionContactsReply(map_version=version, keys=c.keys.astype(np.int32), surface_voxels=c.surface_voxels,
                                    pair_a=c.pair_a.astype(np.int32), pair_b=c.pair_b.astype(np.int32),
                                    contact_a=c.contact_a, contact_b=c.contact_b)
@@ -571,11 +593,12 @@ class GeometryService(DictionaryFollower):
             if path is None or not (_has_checkpoint(path) if own else resolve_map_path(path).exists()):
                 raise RequestError("not_found", f"no map at {path}")
             try:
-                self._load(path, fallback=own)
+                with self._swap_lock:
+                    self._load(path, fallback=own)
             except MapFormatError as exc:
                 raise RequestError("bad_map", str(exc)) from exc
             return ControlReply(ok=True, message=f"loaded {path}")
-        with self._lock:
+        with self._swap_lock, self._lock:
             self.volume.close()
             self.volume = checkpoints.new_volume(self.section.volume_params(), self.checkpoint_dir, fresh=True)
             self.replica.reset(None)
@@ -610,12 +633,12 @@ class GeometryService(DictionaryFollower):
         if self.last_frame_id is not None:
             runner.stats.set(GeometryCounter.LAST_FRAME_ID, self.last_frame_id)
         self._set_checkpoint_frame()
+        self._memory.start(runner.stats)
         self.announce()
 
     def loop(self, runner: ServiceRunner) -> None:
         period = self.section.checkpoint_period_s
         while not runner.wait(min(period, 1.0) if period > 0 else 1.0):
-            self._memory.sample_into(runner.stats)
             if self.waiting_for_frames:  # until the next playback frame comes in order
                 self.announce()
             if (
@@ -635,8 +658,31 @@ class GeometryService(DictionaryFollower):
                     self.checkpoint_failures += 1
                     self._count(GeometryCounter.CHECKPOINT_FAILURES)
                     runner.stats.add_error()
+            self._read_out_settled_tiles()
+
+    def _read_out_settled_tiles(self) -> None:
+        """Idle work: read out the region-summary parts of tiles nothing changed for
+        :data:`SETTLE_S` (a room the camera left), at most :data:`IDLE_READOUT_S` per turn, so a
+        save or a region query has only the recent tiles left to read (a floor's final save read
+        the whole map out: 50-150 s). Tiles the camera is working on are left for later."""
+        with self._lock:
+            volume = self.volume
+            now = time.monotonic()
+            self._change_marks.append((now, volume.change_clock))
+        marks = [m for m in self._change_marks if now - m[0] <= 2 * SETTLE_S]
+        self._change_marks = marks
+        settled = [clock for t, clock in marks if now - t >= SETTLE_S]
+        if not settled:
+            return
+        try:
+            with self._swap_lock:
+                if self.volume is volume:
+                    volume.refresh_region_table(settled_clock=settled[-1], lock=self._lock, max_s=IDLE_READOUT_S)
+        except Exception:  # idle work: a failure here only leaves the work to the next save
+            logger.exception("geometry: reading out settled tiles failed")
 
     def close(self) -> None:
+        self._memory.stop()
         # The session is closed by now: this last checkpoint is saved without a merge pass.
         if self._dirty and self.checkpoint_dir is not None:
             with contextlib.suppress(CheckpointFailed):  # logged by save()

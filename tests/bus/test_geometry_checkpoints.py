@@ -21,7 +21,6 @@ import pytest
 from openfusion.bus.stats import ServiceStats
 from openfusion.mapping import MapFormatError, RegionDictionary, load_map, save_map
 from openfusion.mapping.mapfile import MAP_FILE_NAME
-from openfusion.mapping.tiles import tile_key
 from openfusion.mapping.tilestore import TileStore
 from openfusion.services.geometry.service import (
     CheckpointFailed,
@@ -127,8 +126,9 @@ def test_last_frame_id_round_trips_and_a_corrupt_tile_stops_the_start(map_dir: P
         tile, blob = next(store.iter_committed())
         bad = bytearray(blob)
         bad[len(bad) // 2] ^= 0xFF
+        entry = store.committed_entry_key(tile)
         with store.env.begin(write=True, db=store._tiles) as txn:
-            txn.put(tile_key(tile), bytes(bad))
+            txn.put(entry, bytes(bad))
     with pytest.raises(MapFormatError, match="map.ofz tile"):
         _service(map_dir, load=True)
 

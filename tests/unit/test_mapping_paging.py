@@ -356,3 +356,101 @@ def test_the_grid_grows_in_the_background_and_loses_nothing(reference: SemanticV
             ref.apply_update(f.T_world_cam, K, np.full((60, 80), 2, np.int32), np.full((60, 80), 0.5, np.float32))
     _assert_same_map(volume, ref)
     volume.close()
+
+
+def test_a_checkpoint_copies_one_slice_at_a_time(tmp_path, monkeypatch) -> None:  # noqa: ANN001
+    """A checkpoint of many changed tiles never holds more than a slice of them (plus the last
+    step's few) as raw copies, and the store then loads as the same map."""
+    from openfusion.mapping import paging
+
+    monkeypatch.setattr(paging, "SLICE_BLOCKS", 40)
+    volume = _map(BUDGET_MB, FRAMES[:12], store=TileStore(tmp_path / "map.ofz"))
+    copied: list[int] = []
+    real = volume.pager.copy_tiles
+
+    def counting(tiles, **kwargs):  # noqa: ANN001, ANN003, ANN202
+        out = real(tiles, **kwargs)
+        copied.append(sum(len(c) for c, _ in out[0].values()))
+        return out
+
+    volume.pager.copy_tiles = counting  # type: ignore[method-assign]
+    info = checkpoint(volume, RegionDictionary("none", 1), {"n": 12})
+    largest_tile = 2**3  # tile_blocks 2
+    assert info["slices"] > 3 and max(copied) <= 40 + largest_tile
+    assert sum(copied) >= volume.num_blocks  # every resident tile was written
+    expected = _sorted(volume.to_arrays())
+    volume.close()
+    got = _sorted(load_map(tmp_path).volume.to_arrays())
+    for name in expected:
+        np.testing.assert_array_equal(expected[name], got[name], err_msg=name)
+
+
+def test_a_page_out_newer_than_a_slice_wins_and_an_unfinished_checkpoint_is_not_read(tmp_path) -> None:  # noqa: ANN001
+    """A slice copies a tile; the camera then changes it and it is paged out (written, newer); the
+    slice's older copy must not overwrite it. Slices written but never committed (a writer that
+    died) are not part of the map: a reader sees the last committed checkpoint, and the next
+    writer deletes them."""
+    volume = _map(None, FRAMES[:6], store=TileStore(tmp_path / "map.ofz"))
+    d = RegionDictionary("none", 1)
+    checkpoint(volume, d, {"n": 6})
+    committed = _sorted(volume.to_arrays())
+    for f in FRAMES[6:9]:
+        volume.integrate(f)
+    pager = volume.pager
+    plan = volume.checkpoint_plan()
+    copies, versions = volume.checkpoint_copy(plan[0])
+    tile = next(iter(copies))
+    coords, buf = pager._resident_groups()[tile]
+    weight = volume._storage.vbg.attribute("weight").numpy()
+    weight[buf[0]].reshape(-1)[0] += 1  # the camera changed the tile after the copy...
+    pager.versions.touch([tile])
+    pager._page_out(tile, coords, buf)  # ...and it left: written into the store, newer than the copy
+    assert pager.write_slice(pager.encode(copies), versions) == len(copies) - 1  # the older copy is skipped
+    volume.checkpoint_slice_written(versions)
+    for tiles in plan[1:]:  # the rest of the passes, then no last step: the writer "dies"
+        c, v = volume.checkpoint_copy(tiles)
+        pager.write_slice(pager.encode(c), v)
+    reader = load_map(tmp_path)
+    got = _sorted(reader.volume.to_arrays())
+    for name in committed:
+        np.testing.assert_array_equal(got[name], committed[name], err_msg=name)
+    assert reader.meta["n"] == 6
+    # A last step and commit now: the page-out's copy is in the map, not the slice's.
+    checkpoint(volume, d, {"n": 9})
+    expected = _sorted(volume.to_arrays())
+    volume.close()
+    got = _sorted(load_map(tmp_path).volume.to_arrays())
+    for name in expected:
+        np.testing.assert_array_equal(got[name], expected[name], err_msg=name)
+    # Uncommitted writes of a writer that died are deleted by the next writer.
+    volume = load_map(tmp_path, writable=True).volume
+    volume.integrate(FRAMES[9])
+    c, v = volume.checkpoint_copy(volume.checkpoint_plan()[0])
+    volume.pager.write_slice(volume.pager.encode(c), v)
+    volume.close()
+    store = TileStore(tmp_path / "map.ofz")
+    assert store.discarded_on_open == len(c)
+    store.close()
+
+
+def test_tile_blobs_leave_out_unobserved_voxels_and_fall_back_when_one_holds_a_value() -> None:
+    """Format 2 (observed voxels' TSDF and colour only) reads back exactly; a tile whose unobserved
+    voxel holds a TSDF is written in format 1, also exactly; format 2 is smaller."""
+    volume = _map(None, FRAMES[:2])
+    coords, buf = volume._storage.active_blocks()
+    raw = volume._storage.read_raw_blocks(buf[:20])
+    codec = make_codec("zstd")
+    assert (raw["weight"] == 0).any() and (raw["tsdf"] == 1.0).any()
+    blob = encode_tile(codec, coords[:20], raw, 8)
+    assert blob[4] == 2
+    c2, r2 = decode_tile(codec, blob)
+    for k in raw:
+        np.testing.assert_array_equal(r2[k], raw[k], err_msg=k)
+    odd = {k: v.copy() for k, v in raw.items()}
+    odd["tsdf"][odd["weight"] == 0] = 0.25
+    dense = encode_tile(codec, coords[:20], odd, 8)
+    assert dense[4] == 1 and len(dense) > len(blob)
+    for k, v in decode_tile(codec, dense)[1].items():
+        np.testing.assert_array_equal(v, odd[k], err_msg=k)
+    with pytest.raises(MapFormatError):
+        decode_tile(codec, blob[:6] + b"\x09" + blob[7:])  # a block count the payload does not hold

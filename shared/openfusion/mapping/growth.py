@@ -154,7 +154,9 @@ class GridGrower:
             sel = idx[i : i + _CHUNK]
             _write_existing(tmp, coords[sel], s.read_raw_blocks(buf[sel]))
         s.replace_grid(new)
-        s.clamp_weights()  # a cap that ran on the old grid during the copy may have been missed
+        capped = s.clamp_weights()  # a cap that ran on the old grid during the copy may have been missed
+        if len(capped):
+            self.versions.touch(self.grid.tiles_of_blocks(s.block_coords_of_buf(capped)))
         self.stats.grows += 1
         self.stats.last_copy_s = copy_s
         self.stats.last_swap_s = time.perf_counter() - t0

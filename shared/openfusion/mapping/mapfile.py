@@ -198,8 +198,7 @@ def save_map(
     arrays["dict_mean_embeddings"] = snap.embeddings.astype(np.float32)
     arrays["dict_counts"] = snap.counts.astype(np.int64)
     if regions is None and summary:
-        surface = volume.extract_points()
-        regions = RegionTable.of_points(surface.keys, surface.points)
+        regions = volume.region_table()  # per tile (bounded memory; equal to the whole surface's table)
     if summary and regions is not None:
         for name in _SUMMARY_ARRAYS:
             arrays[f"summary_{name}"] = np.ascontiguousarray(getattr(regions, name))
@@ -410,14 +409,16 @@ def load_map_summary(path: str | os.PathLike[str]) -> MapSummary | None:
 
 
 def _load_store_summary(path: Path) -> MapSummary | None:
-    from openfusion.mapping.mapstore import dict_names, read_header, summary_names
+    from openfusion.mapping.mapstore import check_header, dict_names, summary_names
 
     with TileStore(path, readonly=True) as store:
-        header = read_header(store)
-        names = summary_names(header)
-        if not names:
+        # Header and arrays from one read transaction (a running geometry may commit meanwhile).
+        header, arrays, tiles = store.read_committed(
+            lambda h: dict_names() + summary_names(check_header(store, h)) if summary_names(check_header(store, h)) else [])
+        tiles.close()
+        header = check_header(store, header)
+        if not summary_names(header):
             return None
-        arrays = store.read_arrays(dict_names() + names, header)
     dictionary = _dictionary(header, arrays)
     regions = _region_table(path, arrays)
     params = VolumeParams.from_dict(header["volume_params"])

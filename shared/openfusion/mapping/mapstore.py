@@ -27,11 +27,13 @@ Reading (:func:`load_store`)
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import shutil
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -88,43 +90,76 @@ def _header(volume: SemanticVolume, dictionary: RegionDictionary, meta: dict[str
     return header, arrays
 
 
-def _summary_arrays(volume: SemanticVolume, regions: RegionTable | None, summary: bool) -> dict[str, np.ndarray]:
+def _summary_arrays(volume: SemanticVolume, regions: RegionTable | None, summary: bool, lock: Any = None) -> dict[str, np.ndarray]:
     if regions is None and summary:
-        surface = volume.extract_points()
-        regions = RegionTable.of_points(surface.keys, surface.points)
+        regions = volume.region_table(lock=lock)  # per tile, cached: only changed tiles are read out
     if not summary or regions is None:
         return {}
     return {f"summary_{n}": np.ascontiguousarray(getattr(regions, n)) for n in SUMMARY_ARRAYS}
 
 
+#: Passes over the changed tiles before a checkpoint's last step (each copies again what the
+#: camera changed during the one before; the last step copies what is left under the lock).
+PRECOPY_PASSES = 3
+
+HeaderState = Callable[[], tuple[RegionDictionary, dict[str, Any]]]
+
+
 def checkpoint(
     volume: SemanticVolume,
-    dictionary: RegionDictionary,
-    meta: dict[str, Any],
+    dictionary: RegionDictionary | None,
+    meta: dict[str, Any] | None,
     *,
     regions: RegionTable | None = None,
     summary: bool = False,
-    on_snapshot: Any = None,
+    lock: Any = None,
+    state: HeaderState | None = None,
 ) -> dict[str, Any]:
-    """An incremental checkpoint into ``volume.store`` (module docstring). ``on_snapshot``: called
-    right after the tiles were copied (under the volume's lock), e.g. to release the caller's lock.
-    Returns what was written (``tiles``, ``bytes``, ``paged_moved``)."""
+    """An incremental checkpoint into ``volume.store`` (module docstring; the slices and the last
+    step: :mod:`openfusion.mapping.paging`). ``lock``: a context manager held, with the volume's
+    own lock, while tiles are copied and during the last step (a service's lock, so the
+    checkpoint's instant is one of its states too); ``state``: called in the last step, returns
+    ``(dictionary, meta)`` as of that instant (else ``dictionary`` and ``meta`` are used).
+    Returns what was written (``tiles``, ``bytes``, ``slices``)."""
     store = volume.store
     if store is None:
         raise ValueError("this volume has no tile store of its own to checkpoint into")
-    summaries = _summary_arrays(volume, regions, summary)
-    header, arrays = _header(volume, dictionary, meta)
-    snap = volume.checkpoint_snapshot()
-    if callable(on_snapshot):
-        on_snapshot()
-    blobs = volume.pager.encode(snap)
+    guard = lock if lock is not None else contextlib.nullcontext()
+    summaries = _summary_arrays(volume, regions, summary, lock=lock)
+    pager = volume.pager
+    written = {"tiles": 0, "bytes": 0, "slices": 0}
+    for n in range(PRECOPY_PASSES):
+        with guard:
+            plan = volume.checkpoint_plan()
+        if not plan or (n > 0 and len(plan) == 1):
+            break  # what is left is small: the last step copies it
+        for tiles in plan:
+            with guard:
+                copies, versions = volume.checkpoint_copy(tiles)
+            if not copies:
+                continue
+            blobs = pager.encode(copies)
+            del copies
+            written["tiles"] += pager.write_slice(blobs, versions)
+            written["bytes"] += sum(len(b) for b in blobs.values())
+            written["slices"] += 1
+            del blobs
+            volume.checkpoint_slice_written(versions)
+    with guard:
+        if state is not None:
+            dictionary, meta = state()
+        header, arrays = _header(volume, dictionary or RegionDictionary("none", 1), meta or {})
+        snap = volume.checkpoint_end()
+    blobs = pager.encode(snap.tiles)
+    snap.tiles.clear()
     arrays.update(summaries)
     arrays["key_slots"] = snap.slot_table  # type: ignore[assignment]
     arrays["tile_index"] = snap.tile_index  # type: ignore[assignment]
     header["tile_blocks"] = volume.params.tile_blocks
-    store.commit(upto_epoch=snap.epoch, blobs=blobs, header=header, arrays=arrays)
+    store.commit(generation=snap.generation, blobs=blobs, header=header, arrays=arrays)
     volume.checkpoint_committed(snap)
-    written = {"tiles": len(blobs), "bytes": sum(len(b) for b in blobs.values())}
+    written["tiles"] += len(blobs)
+    written["bytes"] += sum(len(b) for b in blobs.values())
     del snap, blobs
     release_freed_memory()
     return written
@@ -151,34 +186,48 @@ def save_store(
         checkpoint(volume, dictionary, meta, regions=regions, summary=summary)
         return own.copy_to(target)
     summaries = _summary_arrays(volume, regions, summary)
-    header, arrays = _header(volume, dictionary, meta)
-    header["tile_blocks"] = volume.params.tile_blocks
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".tmp", dir=folder))
     try:
-        with TileStore(tmp) as store:
-            snap = volume.checkpoint_snapshot(full=True)
-            blobs = {t: encode_tile(store.codec, c, raw, volume.params.block_resolution) for t, (c, raw) in snap.tiles.items()}
+        with TileStore(tmp) as store, volume.locked():
+            # The volume is locked throughout (nothing changes); tiles are copied, encoded and
+            # written a slice at a time, so the save never holds the map twice.
+            header, arrays = _header(volume, dictionary, meta)
+            header["tile_blocks"] = volume.params.tile_blocks
+            res = volume.params.block_resolution
             pager = volume.pager
-            for t in list(pager.stored_blocks):  # paged-out tiles: their blobs as they are
-                blob, codec_name = pager.blob_of(t)
-                if codec_name != store.codec_name:
-                    coords, raw = decode_tile(make_codec(codec_name), blob, f"tile {t}")
-                    blob = encode_tile(store.codec, coords, raw, volume.params.block_resolution)
-                blobs[t] = blob
+            for tiles in volume.checkpoint_plan(every_tile=True):
+                copies = pager.copy_tiles(tiles, every_tile=True)[0]
+                store.put_many({t: encode_tile(store.codec, c, raw, res) for t, (c, raw) in copies.items()})
+                del copies
+            stored = sorted(pager.stored_blocks)
+            for i in range(0, len(stored), 64):  # paged-out tiles: their blobs as they are
+                blobs = {}
+                for t in stored[i : i + 64]:
+                    blob, codec_name = pager.blob_of(t)
+                    if codec_name != store.codec_name:
+                        coords, raw = decode_tile(make_codec(codec_name), blob, f"tile {t}")
+                        blob = encode_tile(store.codec, coords, raw, res)
+                    blobs[t] = blob
+                store.put_many(blobs)
             arrays.update(summaries)
-            arrays["key_slots"] = snap.slot_table  # type: ignore[assignment]
-            arrays["tile_index"] = snap.tile_index  # type: ignore[assignment]
-            store.commit(upto_epoch=-1, blobs=blobs, header=header, arrays=arrays)
+            arrays["key_slots"] = volume._storage.slots.to_array()
+            arrays["tile_index"] = volume.tile_index()
+            store.commit(blobs={}, header=header, arrays=arrays)
             store.env.sync(True)
         install_store(tmp, target)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    release_freed_memory()
     return target
 
 
 def read_header(store: TileStore) -> dict[str, Any]:
-    header = store.read_header()
+    return check_header(store, store.read_header())
+
+
+def check_header(store: TileStore, header: dict[str, Any] | None) -> dict[str, Any]:
+    """``header`` when it is one of a map this build reads; :class:`MapFormatError` else."""
     if header is None:
         raise MapFormatError(f"{store.path}: the tile store holds no checkpoint yet")
     if header.get("format") != FORMAT_NAME:
@@ -207,12 +256,25 @@ def load_store(
 
     ``memory_budget_mb``: ``"map"`` keeps the map's own; a number or None replaces it. A writable
     ``store`` becomes the volume's own (checkpoints go there); a read-only one is read from only."""
+    def names(header: dict[str, Any] | None) -> list[str]:
+        check_header(store, header)
+        return dict_names() + ["key_slots", "tile_index"] + summary_names(header)  # type: ignore[arg-type]
+
+    # Header, arrays and (without a budget) every tile from one read transaction: a writer
+    # committing meanwhile (a running geometry's own store) changes none of them.
+    header, arrays, committed = store.read_committed(names)
+    header = check_header(store, header)
+    try:
+        return _load(store, header, arrays, committed, device, memory_budget_mb)
+    finally:
+        committed.close()
+
+
+def _load(store: TileStore, header: dict[str, Any], arrays: dict[str, np.ndarray], committed: Any,
+          device: str | None, memory_budget_mb: float | None | str) -> tuple[SemanticVolume, dict[str, Any], dict[str, np.ndarray]]:
     from openfusion.mapping.keyslots import KeySlots
     from openfusion.mapping.volume import SemanticVolume
 
-    header = read_header(store)
-    names = dict_names() + ["key_slots", "tile_index"] + summary_names(header)
-    arrays = store.read_arrays(names, header)
     try:
         params = VolumeParams.from_dict(header["volume_params"])
         changes: dict[str, Any] = {}
@@ -240,21 +302,21 @@ def load_store(
         if total > volume._storage.capacity_blocks:
             volume._storage.reset(capacity=total, keep_slots=True)
         res = params.block_resolution
-        for t, (coords, raw) in _iter_tiles(store, tiles):
+        for t, (coords, raw) in _iter_tiles(store, tiles, committed):
             if len(coords) != tiles[t]:
                 raise MapFormatError(f"{store.path}: tile {t} holds {len(coords)} blocks, the index says {tiles[t]}")
             if len(coords) and (raw["key"].shape[1:] != (res, res, res)):
                 raise MapFormatError(f"{store.path}: tile {t} has blocks of another resolution")
             volume._storage.write_raw_blocks(coords, raw)
             if own:
-                pager.location[t] = -1
+                pager.location[t] = "own"
         pager.sync_resident()
     return volume, header, arrays
 
 
-def _iter_tiles(store: TileStore, tiles: dict[tuple[int, int, int], int]) -> Any:
+def _iter_tiles(store: TileStore, tiles: dict[tuple[int, int, int], int], committed: Any) -> Any:
     seen = 0
-    for t, blob in store.iter_committed():
+    for t, blob in committed:
         if t not in tiles:
             continue  # a tile of no checkpoint's index (never happens with one writer)
         seen += 1

@@ -16,9 +16,10 @@ Which tiles leave (:meth:`TilePager.make_room`)
     robot walks on, so its tiles age out together. Room is made down to 90 % of the budget, so a
     burst of page-outs happens every few frames, not one tile per frame.
 
-Paging out (:meth:`TilePager.evict`)
-    A tile that changed since it was last written is encoded and put in the store's ``paged``
-    area under the current checkpoint epoch; an unchanged one is dropped (the store holds it).
+Paging out (:meth:`TilePager.make_room`)
+    A tile that changed since it was last written is encoded and written into the store's
+    generation being built (:mod:`openfusion.mapping.tilestore`: committed by the next
+    checkpoint); an unchanged one is dropped (the store holds it).
     Its blocks are zeroed and erased from the grid.
 
 Paging in (:meth:`TilePager.ensure_resident`)
@@ -26,12 +27,22 @@ Paging in (:meth:`TilePager.ensure_resident`)
     revisited room is integrated into its old surface, never into blank blocks that would later
     overwrite it); before a render, every stored tile whose box reaches the view frustum.
 
-Checkpoints (:meth:`TilePager.snapshot`, :meth:`TilePager.committed`)
-    A snapshot, taken under the volume's lock, copies the raw blocks of the resident tiles that
-    changed since they were last written and starts a new epoch; encoding and the store's
-    transaction happen outside the lock (integration goes on), and the transaction also moves the
-    tiles paged out in the snapshot's epoch or before into the committed tiles. So a checkpoint
-    writes what changed since the last one, whatever the size of the map.
+Checkpoints (:mod:`openfusion.mapping.mapstore` drives them; the pager keeps the books)
+    Written in slices, never copied whole: the changed resident tiles are copied a slice of
+    :data:`SLICE_BLOCKS` blocks at a time under the volume's lock (:meth:`TilePager.copy_tiles`),
+    encoded and written into the store's generation being built outside it
+    (:meth:`TilePager.write_slice`), a tile the camera changed meanwhile being copied again in a
+    later pass. The checkpoint's instant is its last step, under the lock
+    (:meth:`TilePager.end_snapshot`): the tiles changed since they were written (few: what the
+    camera saw during the passes) are copied, the slot table and tile index taken and a new
+    generation begun for page-outs; the last transaction commits the generation. So a checkpoint
+    holds a slice, not the map's changes, in memory, and its cost follows what changed since
+    the last one, whatever the size of the map.
+
+    A slice and a page-out can race for one tile (the slice copied it, then the camera changed it
+    and it was paged out, both writing into the same generation): :meth:`TilePager.write_slice`
+    writes a tile only when no newer version of it was written meanwhile, decided inside the
+    store's write transaction, which serialises the two writers.
 """
 
 from __future__ import annotations
@@ -68,11 +79,16 @@ class PagerStats:
     bytes_written: int = 0
 
 
+#: Blocks a checkpoint copies under the lock at once (16 MiB of compact voxels), then encodes and
+#: writes outside it before the next slice.
+SLICE_BLOCKS = 2048
+
+
 @dataclass
 class Snapshot:
-    """What one checkpoint writes (:meth:`TilePager.snapshot`)."""
+    """A checkpoint's last step (:meth:`TilePager.end_snapshot`): what its last transaction writes."""
 
-    epoch: int
+    generation: int
     versions: dict[Tile, int]
     tiles: dict[Tile, tuple[np.ndarray, dict[str, np.ndarray]]] = field(default_factory=dict)
     slot_table: np.ndarray | None = None
@@ -84,7 +100,7 @@ class TilePager:
 
     ``store`` holds paged-out tiles (and the checkpoints); ``budget_blocks`` None: nothing is paged
     out (tiles are still tracked, so checkpoints stay incremental). Not locked: the volume
-    serialises every call."""
+    serialises every call, except :meth:`write_slice`'s store transaction (module docstring)."""
 
     def __init__(self, storage: VoxelStorage, grid: TileGrid, store: TileStore | None, budget_blocks: int | None) -> None:
         self.storage = storage
@@ -94,16 +110,14 @@ class TilePager:
         self.versions = TileVersions()
         self.clock = 0
         self.last_used: dict[Tile, int] = {}  # resident tiles -> clock of their last use
-        #: Tiles with a copy in the store -> the epoch of the newest one (-1: the committed tiles;
-        #: -2: ``base``, the read-only map this volume was loaded from).
-        self.location: dict[Tile, int] = {}
+        #: Tiles with a copy in a store: ``"own"`` (:attr:`store`, committed or in the generation
+        #: being built) or ``"base"`` (the read-only map this volume was loaded from).
+        self.location: dict[Tile, str] = {}
         self.base: TileStore | None = None
         self.stored_blocks: dict[Tile, int] = {}  # tiles *not* resident -> their block count
-        self.epoch = 0
-        #: Stored tiles -> (coords, key slots (n, R**3) uint16) of their blocks holding a key: what
-        #: region contacts (merges) read of every stored tile, kept so a merge pass does not decode
-        #: the building each time. Slots, not keys: merges change the slot table, not these.
-        self.label_cache: dict[Tile, tuple[np.ndarray, np.ndarray]] = {}
+        #: Version of the copy of each tile written into the store's generation being built (a
+        #: slice of a checkpoint skips a tile a page-out wrote newer: module docstring).
+        self._written_version: dict[Tile, int] = {}
         self.stats = PagerStats()
         self.camera_m = np.zeros(3)
         storage.on_compact_keys = self._compact_stored_keys
@@ -147,6 +161,12 @@ class TilePager:
         self.touched(self.storage.block_coords_of_buf(buf), changed=True)
 
     def _resident_groups(self) -> dict[Tile, tuple[np.ndarray, np.ndarray]]:
+        """Resident tiles -> (block coords, buffer indices), cached while the grid is unchanged."""
+        st = self.storage
+        key = (st.geometry_version, st.generation, id(st.vbg))
+        cached = getattr(self, "_groups_cache", None)
+        if cached is not None and cached[0] == key:
+            return cached[1]
         coords, buf = self.storage.active_blocks()
         tiles, inverse = self.grid.group_blocks(coords)
         order = np.argsort(inverse, kind="stable")
@@ -155,6 +175,7 @@ class TilePager:
         for i, t in enumerate(tiles):
             sel = order[bounds[i] : bounds[i + 1]]
             out[tuple(int(v) for v in t)] = (coords[sel], buf[sel])  # type: ignore[index]
+        self._groups_cache = (key, out)
         return out
 
     def sync_resident(self) -> None:
@@ -212,14 +233,22 @@ class TilePager:
             release_freed_memory()
         return n_out
 
+    def _needs_writing(self, tile: Tile) -> bool:
+        """A resident tile whose page-out must write it (changed, or no usable stored copy)."""
+        where = self.location.get(tile)
+        return self.versions.is_dirty(tile) or where is None or (where == "base" and self.base is None)
+
     def _page_out(self, tile: Tile, coords: np.ndarray, buf: np.ndarray) -> None:
         if self.store is None:
             raise RuntimeError("paging out needs a tile store")
-        if self.versions.is_dirty(tile) or tile not in self.location or (self.location[tile] == -2 and self.base is None):
+        if self._needs_writing(tile):
             raw = self.storage.read_raw_blocks(buf)
             blob = encode_tile(self.store.codec, coords, raw, self.res)
-            self.store.put_paged(self.epoch, tile, blob)
-            self.location[tile] = self.epoch
+            # Recorded before the write: a checkpoint's slice that copied this tile earlier then
+            # skips it (module docstring).
+            self._written_version[tile] = self.versions.version(tile)
+            self.store.put(tile, blob)
+            self.location[tile] = "own"
             self.versions.mark_clean(tile)
             self.stats.tiles_written_out += 1
             self.stats.bytes_written += len(blob)
@@ -228,39 +257,32 @@ class TilePager:
         self.stored_blocks[tile] = len(buf)
         self.stats.tiles_paged_out += 1
 
-    def _read(self, tile: Tile) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        loc = self.location.get(tile, -1)
-        store = self.base if loc == -2 else self.store
+    def _store_of(self, tile: Tile) -> TileStore:
+        store = self.base if self.location.get(tile) == "base" else self.store
         if store is None:
             raise MapFormatError(f"tile {tile} is not resident and there is no tile store")
-        blob = store.get(tile, loc)
+        return store
+
+    def _read(self, tile: Tile) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        store = self._store_of(tile)
+        blob = store.get(tile)
         if blob is None:
             raise MapFormatError(f"{store.path}: tile {tile} is missing from the store")
         return decode_tile(store.codec, blob, f"{store.path} tile {tile}")
 
+    def read_stored(self, tile: Tile) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """The blocks of a non-resident tile, decoded from its store (read-outs stream them)."""
+        return self._read(tile)
+
     def blob_of(self, tile: Tile) -> tuple[bytes, str]:
         """The stored blob of a non-resident tile and its codec's name (a save copies it as it is)."""
-        loc = self.location.get(tile, -1)
-        store = self.base if loc == -2 else self.store
-        blob = store.get(tile, loc) if store is not None else None
-        if blob is None or store is None:
-            raise MapFormatError(f"tile {tile} is missing from the store")
+        store = self._store_of(tile)
+        blob = store.get(tile)
+        if blob is None:
+            raise MapFormatError(f"{store.path}: tile {tile} is missing from the store")
         return blob, store.codec_name
 
-    def stored_labelled(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        """(coords, key slots (n, R**3)) of the labelled blocks of every stored tile (cached)."""
-        for t in sorted(self.stored_blocks):
-            hit = self.label_cache.get(t)
-            if hit is None:
-                coords, raw = self._read(t)
-                slots = raw["key"].reshape(len(coords), -1)
-                keep = (slots > 0).any(axis=1)
-                hit = (coords[keep].copy(), slots[keep].copy())
-                self.label_cache[t] = hit
-            yield hit
-
     def _page_in(self, tile: Tile) -> None:
-        self.label_cache.pop(tile, None)
         coords, raw = self._read(tile)
         self.storage.write_raw_blocks(coords, raw)
         del self.stored_blocks[tile]
@@ -280,61 +302,111 @@ class TilePager:
             yield logical_arrays(coords, raw, self.storage.slots)
 
     def adopt_store(self, store: TileStore, tiles: dict[Tile, int], *, as_base: bool = False) -> None:
-        """The map's tiles are in ``store``'s committed area and none is resident (a load);
+        """The map's tiles are in ``store``'s committed generation and none is resident (a load);
         ``as_base``: a read-only map (page-outs of changed tiles go to this pager's own store)."""
         if as_base:
             self.base = store
         else:
             self.store = store
         for t, n in tiles.items():
-            self.location[t] = -2 if as_base else -1
+            self.location[t] = "base" if as_base else "own"
             self.stored_blocks[t] = n
 
     # ------------------------------------------------------------------ checkpoints
-    def snapshot(self, *, full: bool = False) -> Snapshot:
-        """What changed since the last checkpoint, copied now (module docstring); ``full``: every
-        resident tile (a first write into a new store). Starts a new epoch."""
+    def precopy_plan(self, *, every_tile: bool = False) -> list[list[Tile]]:
+        """The resident tiles changed since they were last written (``every_tile``: all of them),
+        in slices of about :data:`SLICE_BLOCKS` blocks (the tiles least recently used first: the
+        camera's own tiles, likeliest to change again, come last)."""
         groups = self._resident_groups()
-        dirty = self.versions.dirty()
-        chosen = list(groups) if full else [t for t in groups if t in dirty or t not in self.location]
-        snap = Snapshot(self.epoch, {t: dirty.get(t, 0) for t in chosen})
+        chosen = [t for t in groups if every_tile or self._needs_writing(t)]
+        chosen.sort(key=lambda t: self.last_used.get(t, 0))
+        slices: list[list[Tile]] = []
+        size = 0
         for t in chosen:
-            coords, buf = groups[t]
-            snap.tiles[t] = (coords.copy(), self.storage.read_raw_blocks(buf))
+            n = len(groups[t][1])
+            if not slices or (size + n > SLICE_BLOCKS and slices[-1]):
+                slices.append([])
+                size = 0
+            slices[-1].append(t)
+            size += n
+        return slices
+
+    def copy_tiles(self, tiles: list[Tile], *, every_tile: bool = False) -> tuple[dict[Tile, tuple[np.ndarray, dict[str, np.ndarray]]], dict[Tile, int]]:
+        """Raw copies of those ``tiles`` still resident and still to be written (``every_tile``:
+        resident), with their versions (under the volume's lock)."""
+        groups = self._resident_groups()
+        out: dict[Tile, tuple[np.ndarray, dict[str, np.ndarray]]] = {}
+        versions: dict[Tile, int] = {}
+        for t in tiles:
+            if t in groups and (every_tile or self._needs_writing(t)):
+                coords, buf = groups[t]
+                out[t] = (coords.copy(), self.storage.read_raw_blocks(buf))
+                versions[t] = self.versions.version(t)
+        return out, versions
+
+    def encode(self, tiles: dict[Tile, tuple[np.ndarray, dict[str, np.ndarray]]]) -> dict[Tile, bytes]:
+        """Blobs of raw tile copies (outside the volume's lock: reads only the copies)."""
+        if self.store is None:
+            raise RuntimeError("a checkpoint needs a tile store")
+        codec = self.store.codec
+        return {t: encode_tile(codec, c, raw, self.res) for t, (c, raw) in tiles.items()}
+
+    def write_slice(self, blobs: dict[Tile, bytes], versions: dict[Tile, int]) -> int:
+        """Write a slice's blobs into the generation being built (outside the volume's lock),
+        skipping a tile a page-out wrote newer meanwhile; returns the tiles written. Call
+        :meth:`slice_written` under the lock afterwards."""
+        if self.store is None:
+            raise RuntimeError("a checkpoint needs a tile store")
+
+        def keep(t: Tile) -> bool:
+            if self._written_version.get(t, -1) >= versions[t]:
+                return False
+            self._written_version[t] = versions[t]
+            return True
+
+        return self.store.put_many(blobs, keep=keep)
+
+    def slice_written(self, versions: dict[Tile, int]) -> None:
+        """Under the volume's lock: the slice's tiles that did not change since they were copied
+        are clean now (their stored copy is current; a page-out drops them)."""
+        for t, v in versions.items():
+            if self.versions.version(t) == v and self._written_version.get(t, -1) >= v:
+                self.versions.mark_written({t: v})
+                self.location[t] = "own"
+
+    def end_snapshot(self) -> Snapshot:
+        """A checkpoint's last step, under the volume's lock: copies of the resident tiles still to
+        be written (changed during the passes), the slot table, and a new generation begun for the
+        writes that follow; :meth:`committed` once the returned generation is committed."""
+        if self.store is None:
+            raise RuntimeError("a checkpoint needs a tile store")
+        groups = self._resident_groups()
+        tiles, versions = self.copy_tiles(list(groups))
+        snap = Snapshot(self.store.begin_generation(), versions, tiles)
+        self._written_version = {}
         snap.slot_table = self.storage.slots.to_array()
-        self.epoch += 1
         return snap
 
-    def encode(self, snap: Snapshot) -> dict[Tile, bytes]:
-        """The snapshot's tiles as blobs (outside the volume's lock: reads only the copies)."""
-        codec = self.store.codec if self.store is not None else None
-        if codec is None:
-            raise RuntimeError("a checkpoint needs a tile store")
-        return {t: encode_tile(codec, c, raw, self.res) for t, (c, raw) in snap.tiles.items()}
-
     def committed(self, snap: Snapshot) -> None:
-        """The snapshot is durable: its tiles and every paged entry up to its epoch are committed."""
+        """The snapshot's generation is durable: its tiles are clean at the versions copied."""
         self.versions.mark_written(snap.versions)
         for t in snap.tiles:
-            self.location[t] = -1
-        for t, e in list(self.location.items()):
-            if 0 <= e <= snap.epoch:
-                self.location[t] = -1
+            self.location[t] = "own"
 
     # ------------------------------------------------------------------ key compaction
     def _compact_stored_keys(self, remap: np.ndarray) -> np.ndarray:
-        """Rewrite the key slots of every stored tile through ``remap`` (as new paged entries:
-        the committed tiles keep the slots the committed table names); returns slots in use."""
+        """Rewrite the key slots of every stored tile through ``remap`` (into the generation being
+        built: the committed tiles keep the slots the committed table names); returns slots in use."""
         used: list[np.ndarray] = [np.zeros(1, np.int64)]
-        self.label_cache.clear()
         if self.store is None:
             return used[0]
         for t in sorted(self.stored_blocks):
             coords, raw = self._read(t)
             raw["key"] = remap[raw["key"]]
             used.append(np.unique(raw["key"]).astype(np.int64))
-            self.store.put_paged(self.epoch, t, encode_tile(self.store.codec, coords, raw, self.res))
-            self.location[t] = self.epoch
+            self._written_version[t] = self.versions.version(t)
+            self.store.put(t, encode_tile(self.store.codec, coords, raw, self.res))
+            self.location[t] = "own"
         self.versions.touch(np.array(list(self.last_used) or np.zeros((0, 3)), np.int64))  # new slots: rewrite
         return np.unique(np.concatenate(used))
 

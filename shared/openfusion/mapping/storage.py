@@ -145,7 +145,9 @@ class VoxelStorage:
     return the slots still present in them (:mod:`openfusion.mapping.keyslots`).
     """
 
-    def __init__(self, params: VolumeParams, device: o3c.Device) -> None:
+    def __init__(self, params: VolumeParams, device: o3c.Device, *, capacity: int | None = None) -> None:
+        """``capacity``: blocks of the first grid (default: the configured initial count); a
+        memory budget's grid is made at its size at once (never a default-sized one first)."""
         self.params = params
         self.device = device
         #: CPU grids are read and written through numpy views of the buffers, others through tensors.
@@ -154,9 +156,11 @@ class VoxelStorage:
         self.geometry_version = 0
         self.slots = KeySlots()
         self.on_compact_keys: object = None
+        #: Called with (slots whose key changed, the mapping) after every :meth:`relabel_keys`.
+        self.on_relabel: object = None
         self.integrations_since_clamp = 0
         self.compactions = 0  # key compactions so far (every voxel's slot rewritten)
-        self.reset()
+        self.reset(capacity)
 
     # ------------------------------------------------------------------ grid lifetime and growth
     def reset(self, capacity: int | None = None, *, keep_slots: bool = False) -> None:
@@ -213,25 +217,29 @@ class VoxelStorage:
         """Call after integrating: invalidates the caches of active blocks."""
         self.geometry_version += 1
 
-    def note_integrated(self) -> None:
-        """Call after every integration: caps weights once every :data:`WEIGHT_CLAMP_EVERY` calls."""
+    def note_integrated(self) -> np.ndarray:
+        """Call after every integration: caps weights once every :data:`WEIGHT_CLAMP_EVERY` calls;
+        returns the buffer indices of the blocks a cap changed (their tiles changed)."""
         self.integrations_since_clamp += 1
         if self.integrations_since_clamp >= WEIGHT_CLAMP_EVERY:
-            self.clamp_weights()
+            return self.clamp_weights()
+        return np.zeros(0, np.int64)
 
-    def clamp_weights(self) -> int:
-        """Cap every weight at :data:`MAX_WEIGHT` (module docstring); returns the voxels capped."""
+    def clamp_weights(self) -> np.ndarray:
+        """Cap every weight at :data:`MAX_WEIGHT` (module docstring); returns the buffer indices of
+        the blocks that held a weight above it."""
         self.integrations_since_clamp = 0
+        n = self.voxels_per_block
         if self.use_numpy_views:
-            w = self.vbg.attribute("weight").numpy().reshape(-1)
-            over = int(np.count_nonzero(w > MAX_WEIGHT))
-            if over:
+            w = self.vbg.attribute("weight").numpy().reshape(-1, n)
+            over = np.flatnonzero((w > MAX_WEIGHT).any(axis=1))
+            if len(over):
                 np.minimum(w, np.uint16(MAX_WEIGHT), out=w)
-            return over
+            return over.astype(np.int64)
         w = self.vbg.attribute("weight")
         over_t = w > MAX_WEIGHT
-        over = int(over_t.to(o3c.int64).sum().item())
-        if over:
+        over = np.flatnonzero(over_t.cpu().numpy().reshape(-1, n).any(axis=1)).astype(np.int64)
+        if len(over):
             w[over_t] = MAX_WEIGHT
         return over
 
@@ -365,13 +373,13 @@ class VoxelStorage:
         return buf
 
     # ------------------------------------------------------------------ raw blocks (tiles, paging, growth)
-    def read_raw_blocks(self, buf: np.ndarray) -> dict[str, np.ndarray]:
+    def read_raw_blocks(self, buf: np.ndarray, *, names: tuple[str, ...] = ATTR_NAMES) -> dict[str, np.ndarray]:
         """Stored values of whole blocks, as kept in the grid: ``{name: (n, res, res, res[, 3])}``
-        in :data:`RAW_DTYPES` (key slots, quantised confidences). A copy."""
+        in :data:`RAW_DTYPES` (key slots, quantised confidences), of the attributes ``names``. A copy."""
         res = self.params.block_resolution
         buf = np.asarray(buf, np.int64)
         out: dict[str, np.ndarray] = {}
-        for name in ATTR_NAMES:
+        for name in names:
             shape = (len(buf), res, res, res) + ((3,) if name == "color" else ())
             if len(buf) == 0:
                 out[name] = np.zeros(shape, RAW_DTYPES[name])
@@ -436,6 +444,8 @@ class VoxelStorage:
             if int(old) < 0 or int(new) < -1:
                 raise ValueError(f"cannot relabel {old} -> {new}: keys are >= 0 (-1 only as target)")
         changed = self.slots.relabel(mapping)
+        if callable(self.on_relabel) and len(changed):
+            self.on_relabel(changed, dict(mapping))
         if len(changed) == 0 or self.num_blocks == 0:
             return 0
         lut = np.zeros(self.slots.max_slots + 1, bool)

@@ -162,6 +162,10 @@ class TileVersions:
         """Tiles changed since they were last written, with their current version."""
         return {t: v for t, v in self._version.items() if v > self._written.get(t, 0)}
 
+    def version(self, tile: tuple[int, int, int]) -> int:
+        """The version of ``tile`` (0: never changed)."""
+        return self._version.get(tile, 0)
+
     def is_dirty(self, tile: tuple[int, int, int]) -> bool:
         return self._version.get(tile, 0) > self._written.get(tile, 0)
 

@@ -30,13 +30,14 @@ are re-exported here, so ``from openfusion.mapping.volume import ...`` keeps wor
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import shutil
 import tempfile
 import threading
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -46,9 +47,10 @@ import open3d as o3d
 import open3d.core as o3c
 
 from openfusion.frame import CameraIntrinsics, Frame
-from openfusion.mapping import integration, raycast, readout, view_update
+from openfusion.mapping import integration, raycast, readout, tilereadouts, view_update
 from openfusion.mapping.errors import CapacityError
 from openfusion.mapping.growth import GridGrower
+from openfusion.mapping.merging import RegionContacts
 from openfusion.mapping.paging import Snapshot, TilePager, budget_blocks, camera_center
 from openfusion.mapping.params import VolumeParams
 from openfusion.mapping.raycast import RayHits, range_map_down_factor
@@ -60,6 +62,8 @@ from openfusion.mapping.storage import (
     VoxelStorage,
     check_arrays,
 )
+from openfusion.mapping.summaries import RegionTable
+from openfusion.mapping.tilereadouts import TileReadouts
 from openfusion.mapping.tiles import TileGrid
 from openfusion.mapping.tilestore import TileStore
 from openfusion.poses import check_pose, invert_pose
@@ -174,21 +178,25 @@ class SemanticVolume:
         self._lock = threading.RLock()
         self.stats = VolumeStats()
         self._intrinsic_cache: dict[CameraIntrinsics, o3c.Tensor] = {}
-        self._storage = VoxelStorage(self.params, o3c.Device(self.params.device))
-        self._scratch: weakref.finalize | None = None
         budget = None
         if self.params.memory_budget_mb is not None:
-            budget = budget_blocks(self.params.memory_budget_mb, self._storage.bytes_per_block)
-            self._storage.reset(capacity=budget)
-            if store is None:
-                folder = tempfile.mkdtemp(prefix="openfusion-tiles-")
-                store = TileStore(Path(folder) / "map.ofz")
-                # Removed by close(), or when the volume is collected (no warning: it is ours).
-                self._scratch = weakref.finalize(self, _remove_scratch, store, folder)
+            budget = budget_blocks(self.params.memory_budget_mb, BYTES_PER_VOXEL * self.params.block_resolution**3)
+        # With a budget the grid is made at its size once (a default-sized grid first would be
+        # resident beside it for a moment: +128 MiB at start, measured).
+        self._storage = VoxelStorage(self.params, o3c.Device(self.params.device), capacity=budget)
+        self._scratch: weakref.finalize | None = None
+        if budget is not None and store is None:
+            folder = tempfile.mkdtemp(prefix="openfusion-tiles-")
+            store = TileStore(Path(folder) / "map.ofz")
+            # Removed by close(), or when the volume is collected (no warning: it is ours).
+            self._scratch = weakref.finalize(self, _remove_scratch, store, folder)
         grid = TileGrid(self.params.tile_blocks, self.params.block_size_m)
         self._pager = TilePager(self._storage, grid, store, budget)
         #: Without a budget the grid grows ahead of need in the background (:mod:`.growth`).
         self._grower = GridGrower(self._storage, self._pager.versions, grid) if budget is None else None
+        #: Region summaries and contacts kept per tile (:mod:`.tilereadouts`).
+        self._readouts = TileReadouts(self._storage, self._pager)
+        self._storage.on_relabel = self._readouts.relabelled
 
     def close(self) -> None:
         """Release the tile store (and remove a scratch store's folder)."""
@@ -279,6 +287,7 @@ class SemanticVolume:
         if self._grower is not None:
             self._grower.close()
         self._storage.reset()
+        self._readouts.forget()
 
     def _intrinsic_tensor(self, intrinsics: CameraIntrinsics) -> o3c.Tensor:
         K = self._intrinsic_cache.get(intrinsics)
@@ -349,7 +358,9 @@ class SemanticVolume:
         )
         self._note_capacity_change()
         self._storage.mark_geometry_changed()
-        self._storage.note_integrated()
+        capped = self._storage.note_integrated()
+        if len(capped):  # weights capped: those blocks' tiles changed too
+            pager.touched(self._storage.block_coords_of_buf(capped), changed=True)
         pager.touched(block_coords.cpu().numpy() if p.max_blocks is not None else coords_np, changed=True)
         self.stats.frames_integrated += 1
         return result
@@ -507,20 +518,59 @@ class SemanticVolume:
 
         parts_c, parts_k = [coords], [keys]
         res = self.params.block_resolution
-        for tc, slots in self._pager.stored_labelled():
-            c, k = labelled_of(tc, self._storage.slots.key1_of(slots), res)
+        for _, tc, raw in self._pager.iter_stored():
+            c, k = labelled_of(tc, self._storage.slots.key1_of(raw["key"].reshape(len(tc), -1)), res)
             parts_c.append(c)
             parts_k.append(k)
         return np.concatenate(parts_c), np.concatenate(parts_k)
 
-    def region_contacts(self, *, radius_vox: int = 1) -> Any:
+    def region_contacts(self, *, radius_vox: int = 1, lock: Any = None) -> RegionContacts:
         """Which regions' labelled voxels touch, how much, and each region's labelled voxel count
-        (:func:`openfusion.mapping.merging.block_contacts`; what a merge pass decides on). Holds
-        the volume's lock only while copying the labelled blocks out."""
-        from openfusion.mapping.merging import block_contacts
+        (what a merge pass decides on; equal to :func:`openfusion.mapping.merging.block_contacts`
+        of every labelled block). Kept per tile (:mod:`.tilereadouts`): only tiles whose
+        neighbourhood changed since the last call are counted again, a chunk at a time, copied
+        holding ``lock`` (a caller's reentrant lock, e.g. a service's) and the volume's lock."""
+        tilereadouts.refresh(self._lock, self._readouts, what="contacts", lock=lock, radius_vox=radius_vox)
+        with self._lock:
+            parts = self._readouts.contact_parts()
+        return tilereadouts.combine_contacts(parts)
 
-        coords, keys = self.labelled_blocks()
-        return block_contacts(coords, keys, radius_vox=radius_vox)
+    def region_table(self, *, lock: Any = None) -> RegionTable:
+        """Per-region surface summaries of the whole map (equal to ``RegionTable.of_points`` of
+        :meth:`extract_points`), kept per tile (:mod:`.tilereadouts`): only the tiles whose
+        neighbourhood changed since the last call are read out again, a chunk at a time, copied
+        holding ``lock`` and the volume's lock and read out holding neither. A map that changes
+        meanwhile gives a table of the tiles as each was read; when the parts kept too few values
+        for an exact box, those tiles are read again (the last try holds the locks throughout)."""
+        for attempt in range(6):
+            hold = attempt >= 3
+            tilereadouts.refresh(self._lock, self._readouts, what="summaries", lock=lock, hold=hold)
+            with tilereadouts.both(lock, self._lock) if hold else self._lock:
+                table, failing = tilereadouts.combine_summaries(self._readouts.summary_parts(), self._storage.slots.key1)
+                if not failing:
+                    return table
+                for (tile, slot), want in failing.items():
+                    self._readouts.keep[(tile, slot)] = max(self._readouts.keep.get((tile, slot), 0), want)
+                    self._readouts.summaries.pop(tile, None)
+        raise RuntimeError("region summaries did not settle: the parts kept too few values six times")
+
+    def refresh_region_table(self, *, settled_clock: int | None = None, lock: Any = None,
+                             max_s: float | None = None) -> int:
+        """Read out the stale summary parts of tiles whose neighbourhood last changed at or before
+        ``settled_clock`` (a service's idle work, so a save has little left), for at most about
+        ``max_s`` seconds; returns the tiles read."""
+        return tilereadouts.refresh(self._lock, self._readouts, what="summaries", lock=lock,
+                                    settled_clock=settled_clock, max_s=max_s)
+
+    @property
+    def readout_stats(self) -> dict[str, int]:
+        """Tiles read out for region summaries and contacts so far (:mod:`.tilereadouts`)."""
+        return dict(self._readouts.stats)
+
+    @property
+    def change_clock(self) -> int:
+        """The tile versions' clock (grows with every change of the map's voxels)."""
+        return self._pager.versions.clock
 
     # ------------------------------------------------------------------ read-out
     @_locked
@@ -580,15 +630,36 @@ class SemanticVolume:
         return self._storage.num_blocks + sum(self._pager.stored_blocks.values())
 
     # ------------------------------------------------------------------ checkpoints (tile store)
+    # The steps of :func:`openfusion.mapping.mapstore.checkpoint` (the rules: :mod:`.paging`).
     @_locked
-    def checkpoint_snapshot(self, *, full: bool = False) -> Snapshot:
-        """The tiles changed since the last checkpoint, copied now (:mod:`openfusion.mapping.paging`)."""
-        snap = self._pager.snapshot(full=full)
-        snap.tile_index = self._tile_index()  # type: ignore[attr-defined]
+    def checkpoint_plan(self, *, every_tile: bool = False) -> list[list[tuple[int, int, int]]]:
+        """Slices of the resident tiles a checkpoint must write (``every_tile``: all)."""
+        self._settle_growth()
+        return self._pager.precopy_plan(every_tile=every_tile)
+
+    @_locked
+    def checkpoint_copy(self, tiles: list[tuple[int, int, int]]) -> tuple[dict, dict]:
+        """Raw copies of one slice's tiles (still to be written) and their versions."""
+        return self._pager.copy_tiles(tiles)
+
+    @_locked
+    def checkpoint_slice_written(self, versions: dict[tuple[int, int, int], int]) -> None:
+        self._pager.slice_written(versions)
+
+    @_locked
+    def checkpoint_end(self) -> Snapshot:
+        """A checkpoint's last step (:meth:`~openfusion.mapping.paging.TilePager.end_snapshot`)."""
+        self._settle_growth()
+        snap = self._pager.end_snapshot()
+        snap.tile_index = self._tile_index()
         return snap
 
-    def _tile_index(self) -> np.ndarray:
+    @_locked
+    def tile_index(self) -> np.ndarray:
         """int32 (T, 4): every tile of the map (x, y, z, block count)."""
+        return self._tile_index()
+
+    def _tile_index(self) -> np.ndarray:
         groups = self._pager._resident_groups()
         rows = [(*t, len(g[1])) for t, g in groups.items()] + [
             (*t, n) for t, n in self._pager.stored_blocks.items()
@@ -597,8 +668,14 @@ class SemanticVolume:
 
     @_locked
     def checkpoint_committed(self, snap: Snapshot) -> None:
-        """``snap`` is durable in the store (bookkeeping of what is dirty and where tiles are)."""
+        """``snap``'s generation is durable in the store (bookkeeping of what is dirty)."""
         self._pager.committed(snap)
+
+    @contextlib.contextmanager
+    def locked(self) -> Iterator[None]:
+        """Hold the volume's lock (nothing changes the map meanwhile): a save into a new store."""
+        with self._lock:
+            yield
 
     @classmethod
     def from_arrays(cls, params: VolumeParams, arrays: dict[str, np.ndarray]) -> SemanticVolume:

@@ -72,7 +72,7 @@ class GeometryCounter(StrEnum):
     TILES_PAGED_IN = "tiles_paged_in"  # tiles read back before a frame or a render reached them
     CHECKPOINT_LAST_S = "checkpoint_last_s"  # seconds the last checkpoint took (snapshot to commit)
     CHECKPOINT_LAST_TILES = "checkpoint_last_tiles"  # tiles it encoded (those changed since the one before)
-    SAVING = "saving"  # 1 while a save (control/save) is being written
+    SAVING = "saving"  # 1 while a save or a periodic checkpoint is being written
     RSS_MB = "rss_mb"  # the process's resident memory, sampled once a second
     RSS_PEAK_MB = "rss_peak_mb"  # ... its largest sample
     RSS_ANON_PEAK_MB = "rss_anon_peak_mb"  # largest sample of RssAnon (without the store's mapped file pages)
