@@ -43,6 +43,7 @@ reaches mapped space; a map frame that is not gravity-aligned needs a guess.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,7 +52,7 @@ from scipy.ndimage import binary_dilation
 from scipy.signal import fftconvolve
 from scipy.spatial import cKDTree
 
-from openfusion.frame import Frame
+from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.mapping.params import JoinParams
 from openfusion.poses import check_pose
 
@@ -93,19 +94,27 @@ def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(delta[:3, 3])), float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
-def backproject_depth(frame: Frame, T_world_cam: np.ndarray | None = None, *, stride_px: int = 4,
-                      depth_max_m: float = 6.0) -> np.ndarray:
-    """The frame's valid depth pixels (every ``stride_px``-th row and column) as (N, 3) float64
-    points in the frame of ``T_world_cam`` (default: the frame's own pose)."""
-    T = np.asarray(frame.T_world_cam if T_world_cam is None else T_world_cam, np.float64)
-    depth = frame.depth_m()[::stride_px, ::stride_px]
-    K = frame.intrinsics
-    v, u = np.mgrid[0:frame.depth.shape[0]:stride_px, 0:frame.depth.shape[1]:stride_px]
+def depth_points(depth_m: np.ndarray, intrinsics: CameraIntrinsics, T_world_cam: np.ndarray, *,
+                 stride_px: int = 1, depth_max_m: float = 6.0) -> np.ndarray:
+    """The valid pixels of a depth image (metres, ``intrinsics`` of its size; every
+    ``stride_px``-th row and column) as (N, 3) float64 points in the frame of ``T_world_cam``."""
+    T = np.asarray(T_world_cam, np.float64)
+    depth = np.asarray(depth_m)[::stride_px, ::stride_px]
+    K = intrinsics
+    v, u = np.mgrid[0:depth_m.shape[0]:stride_px, 0:depth_m.shape[1]:stride_px]
     valid = (depth > 0) & (depth <= depth_max_m) & np.isfinite(depth)
     z = depth[valid].astype(np.float64)
     x = (u[valid] - K.cx) / K.fx * z
     y = (v[valid] - K.cy) / K.fy * z
     return np.c_[x, y, z] @ T[:3, :3].T + T[:3, 3]
+
+
+def backproject_depth(frame: Frame, T_world_cam: np.ndarray | None = None, *, stride_px: int = 4,
+                      depth_max_m: float = 6.0) -> np.ndarray:
+    """The frame's valid depth pixels (every ``stride_px``-th row and column) as (N, 3) float64
+    points in the frame of ``T_world_cam`` (default: the frame's own pose)."""
+    T = frame.T_world_cam if T_world_cam is None else T_world_cam
+    return depth_points(frame.depth_m(), frame.intrinsics, T, stride_px=stride_px, depth_max_m=depth_max_m)
 
 
 def thin(points: np.ndarray, cell_m: float) -> np.ndarray:
@@ -300,11 +309,13 @@ def _decide(fit: _Fit, runner_up: float, params: JoinParams) -> str:
 
 # ------------------------------------------------------------------ registration
 def register_submap(submap_points: np.ndarray, map_points: np.ndarray, params: JoinParams, *,
-                    guess: np.ndarray | None = None) -> Registration:
+                    guess: np.ndarray | None = None, extra_starts: Sequence[np.ndarray] = ()) -> Registration:
     """Register a submap (points in the robot's odometry frame) to the map's surface points.
 
     ``guess``: ``T_map_odom`` to start ICP from (method ``icp``); None searches globally (method
-    ``global``, gravity-aligned frames). The result says whether it is accepted and why not."""
+    ``global``, gravity-aligned frames), with ``extra_starts`` as more candidates (each competes
+    with the search's: the ambiguity rule holds for all). The result says whether it is accepted
+    and why not."""
     if guess is not None:
         guess = check_pose(guess, what="guess (T_map_odom)")
     cell = params.join_voxel_m
@@ -326,7 +337,7 @@ def register_submap(submap_points: np.ndarray, map_points: np.ndarray, params: J
     if guess is not None:
         starts = [np.asarray(guess, np.float64)]
     else:
-        starts = _global_candidates(source, target, params)
+        starts = _global_candidates(source, target, params) + [check_pose(T, what="start") for T in extra_starts]
     coarse: list[tuple[float, np.ndarray]] = []
     for start in starts:
         T = _icp(source, target, start, cell, scales=(3.0, 1.5))

@@ -66,6 +66,15 @@ class GeometryCounter(StrEnum):
     UPDATES_REUSED_RENDER = "updates_reused_render"  # updates written through their frame's render (no second ray cast)
     SAVE_MERGES = "save_merges"  # merge passes the semantic service ran because this service was saving
     SAVE_MERGE_FAILURES = "save_merge_failures"  # saves that went ahead without one (semantic gone or silent)
+    ROBOTS = "robots"  # robots whose frames this map has taken
+    ROBOTS_HELD = "robots_held"  # of them, not joined to the map's frame yet (their frames wait in their submaps)
+    FRAMES_HELD = "frames_held"  # frames taken from held robots (in their submaps; integrated when they join)
+    ROBOTS_JOINED = "robots_joined"  # held robots joined by a registration
+    JOIN_ATTEMPTS = "join_attempts"  # registrations of held robots' submaps tried
+    JOIN_FAILURES = "join_failures"  # registration steps that raised (logged; the robot stays as it was)
+    JOIN_RECHECKS = "join_rechecks"  # re-checks of joined robots' transforms
+    JOIN_CORRECTIONS = "join_corrections"  # re-checks that changed a transform
+    UPDATES_DROPPED_NOT_JOINED = "updates_dropped_not_joined"  # semantic updates of a robot not joined (none written)
 
 
 class SemanticCounter(StrEnum):

@@ -1,0 +1,188 @@
+"""The geometry service's robots: each robot's stream (:mod:`openfusion.mapping.robot_streams`) and
+a thread that joins held robots to the map and re-checks joined ones.
+
+Registrations take seconds (a global search over a building), so they never run on the frame
+thread: :class:`RobotJoiner` takes the map's surface under the lock, registers outside it, and
+applies an accepted join under the lock again (the held frames are integrated then, in order,
+through the transform found). A re-check's map side is rendered on the frame thread before that
+frame is integrated (the map must not already hold the frame it is checked against); only its ICP
+runs here. While the thread registers, other robots' frames go on being integrated.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from openfusion.frame import Frame
+from openfusion.mapping import SemanticVolume
+from openfusion.mapping.robot_join import backproject_depth, depth_points, recheck, register_submap
+from openfusion.mapping.robot_streams import RobotStream, RobotStreams
+from openfusion.wire.counters import GeometryCounter
+
+
+
+class MapOwner(Protocol):
+    """What the joiner needs of the geometry service (its map lock, volume and robots)."""
+
+    _lock: threading.RLock
+    volume: SemanticVolume
+    robots: RobotStreams
+
+    def _count(self, name: str, by: float = 1.0) -> None: ...
+
+    def announce_robots(self) -> None: ...
+
+logger = logging.getLogger("openfusion.services.geometry.service")
+
+RECHECK_DOWNSCALE = 4  # a re-check renders the map at a quarter of the frame's size
+
+
+@dataclass
+class _Recheck:
+    robot: RobotStream
+    frame_points: np.ndarray  # the frame's points in the robot's odometry frame
+    map_points: np.ndarray  # the map's surface rendered at the frame's pose, map frame
+    T_map_odom: np.ndarray  # the transform in use when it was rendered
+
+
+def rendered_map_points(service: MapOwner, robot: RobotStream, frame: Frame) -> np.ndarray:
+    """The map's surface seen from the frame's pose (map frame), at a quarter of its size. Call
+    with the service's lock held."""
+    K = frame.intrinsics.scaled(max(1, frame.intrinsics.width_px // RECHECK_DOWNSCALE),
+                                max(1, frame.intrinsics.height_px // RECHECK_DOWNSCALE))
+    T_map_cam = robot.T_map_odom @ np.asarray(frame.T_world_cam, np.float64)
+    view = service.volume.render(T_map_cam, K)
+    return depth_points(view.depth_m, K, T_map_cam)
+
+
+class RobotJoiner:
+    """Joins held robots and re-checks joined ones on a thread of its own (module docstring)."""
+
+    def __init__(self, service: MapOwner, *, integrate_held: Callable[[RobotStream, list], None]) -> None:
+        self.service = service
+        self._integrate_held = integrate_held
+        self._cond = threading.Condition()
+        self._rechecks: list[_Recheck] = []
+        self._stopping = False
+        self._thread: threading.Thread | None = None
+
+    @property
+    def robots(self) -> RobotStreams:
+        return self.service.robots
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="geometry-robots", daemon=True)
+        self._thread.start()
+
+    def wake(self) -> None:
+        with self._cond:
+            self._cond.notify_all()
+
+    def queue_recheck(self, robot: RobotStream, frame: Frame) -> None:
+        """Call with the service's lock held, before ``frame`` is integrated."""
+        job = _Recheck(robot, backproject_depth(frame), rendered_map_points(self.service, robot, frame),
+                       robot.T_map_odom.copy())
+        with self._cond:
+            self._rechecks = [r for r in self._rechecks if r.robot is not robot] + [job]
+            self._cond.notify_all()
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        with self._cond:
+            self._stopping = True
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+
+    # ------------------------------------------------------------------ the thread
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._stopping and not self._rechecks and not self._due():
+                    self._cond.wait(1.0)
+                if self._stopping:
+                    return
+                rechecks, self._rechecks = self._rechecks, []
+            for job in rechecks:
+                self._guarded(self._recheck, job)
+            for robot in self._due():
+                self._guarded(self._attempt, robot)
+
+    def _due(self) -> list[RobotStream]:
+        with self.service._lock:
+            return [robot for robot in self.robots.held if robot.attempt_due()]
+
+    def _guarded(self, step: Callable, arg: object) -> None:
+        try:
+            step(arg)
+        except Exception:  # one robot's registration failing never stops the others or the service
+            logger.exception("geometry: a robot registration step failed; going on")
+            self.service._count(GeometryCounter.JOIN_FAILURES)
+
+    def step(self) -> None:
+        """Run what is due now on the calling thread (tests)."""
+        with self._cond:
+            rechecks, self._rechecks = self._rechecks, []
+        for job in rechecks:
+            self._recheck(job)
+        for robot in self._due():
+            self._attempt(robot)
+
+    def _attempt(self, robot: RobotStream) -> None:
+        service = self.service
+        with service._lock:
+            if robot.state != "held":
+                return
+            robot.attempt_pending = True
+            robot.frames_since_attempt = 0
+            robot.join_attempts += 1
+            submap = robot.submap.points.copy()
+            map_points = service.volume.extract_points().points.astype(np.float64)
+        guess = robot.spec.T_map_odom if robot.spec.mode == "guess" else None
+        try:
+            # A search tries the identity too: poses are often in the map's frame already (a site map).
+            found = register_submap(submap, map_points, self.robots.params, guess=guess,
+                                    extra_starts=[np.eye(4)] if guess is None else ())
+        finally:
+            robot.attempt_pending = False
+        robot.last_registration = found
+        service._count(GeometryCounter.JOIN_ATTEMPTS)
+        if not found.accepted:
+            logger.info("geometry: robot %s still held after attempt %d (%s, %d submap frames): %s", robot.name,
+                        robot.join_attempts, found.method, robot.submap.num_frames, found.reason)
+            return
+        with service._lock:
+            if robot.state != "held":
+                return
+            frames = robot.join(found.T_map_odom, method=found.method, registration=found)
+            self._integrate_held(robot, frames)
+        service._count(GeometryCounter.ROBOTS_JOINED)
+        t = found.T_map_odom
+        logger.info("geometry: robot %s joined (%s, fitness %.2f, rmse %.1f cm, runner-up %.2f): T_map_odom "
+                    "translation [%.3f, %.3f, %.3f] m, yaw %.2f deg; %d held frames integrated", robot.name,
+                    found.method, found.fitness, found.rmse_m * 100, found.runner_up_fitness, t[0, 3], t[1, 3],
+                    t[2, 3], float(np.degrees(np.arctan2(t[1, 0], t[0, 0]))), len(frames))
+        service.announce_robots()
+
+    def _recheck(self, job: _Recheck) -> None:
+        robot = job.robot
+        if len(job.map_points) < self.robots.params.join_min_submap_points // 4:
+            return  # the map shows too little of what this frame sees
+        params = self.robots.params.model_copy(update={
+            "join_min_submap_points": self.robots.params.join_min_submap_points // 4})
+        found = recheck(job.frame_points, job.map_points, job.T_map_odom, params)
+        with self.service._lock:
+            if not np.array_equal(robot.T_map_odom, job.T_map_odom):
+                return  # changed meanwhile
+            outcome = robot.apply_recheck(found)
+        self.service._count(GeometryCounter.JOIN_RECHECKS)
+        if outcome.startswith("corrected"):
+            self.service._count(GeometryCounter.JOIN_CORRECTIONS)
+            logger.info("geometry: robot %s re-checked: %s", robot.name, outcome)
+        elif outcome.startswith("refused"):
+            logger.info("geometry: robot %s re-check not applied: %s", robot.name, outcome)
