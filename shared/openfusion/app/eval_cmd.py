@@ -36,7 +36,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         nargs="+",
         default=["synthetic:seed=1,synthetic:seed=2"],
         metavar="SPEC",
-        help="scenes to evaluate: synthetic[:seed=N[,frames=N,width=W,height=H,noise=0|1]] or scannet:PATH; "
+        help="scenes to evaluate: synthetic[:seed=N[,frames=N,width=W,height=H,noise=0|1]], "
+        "synthetic:building[,rooms=N,route=A-B,revisit=N,seed=N,frames=N,...] (rooms along a corridor; its walk "
+        "sets its frames, not --frames) or scannet:PATH; "
         "comma-separated and/or several arguments (default: synthetic:seed=1,synthetic:seed=2)",
     )
     parser.add_argument("--encoder", default="gt", help="region encoder (default gt: ground-truth regions)")

@@ -15,8 +15,12 @@ page until Ctrl-C.
 Frames: ``--frames N`` plays N frames. The built-in room (``--source synthetic[:...]``) plays N
 frames whatever N is: its camera walks a closed lap of :data:`BUILTIN_LAP_FRAMES` frames and walks it
 again for longer runs (same poses, frame ids and stamps keep increasing); a spec that sets
-``frames=`` or ``lap=`` keeps them. A source with fewer frames plays what it has, and the run says
-so (``played 300 of 2000 frames: the source has 300``) and records it in ``run.json``.
+``frames=`` or ``lap=`` keeps them. The building (``--source synthetic:building,...``) walks its
+route once: ``--frames N`` spreads N frames over the walk (unless the spec sets ``frames=``), and
+without it the walk plays at its own density (a frame every 0.3 m or 20 degrees). Other sources play
+at most ``--frames`` (default :data:`BUILTIN_LAP_FRAMES`). A source with fewer frames plays what it
+has, and the run says so (``played 300 of 2000 frames: the source has 300``) and records it in
+``run.json``.
 
 Stopping: the first SIGINT (Ctrl-C) or SIGTERM stops playback (the bridge), lets geometry and
 semantic finish the frames they already have, saves the map to ``OUT/map``, writes ``run.json``
@@ -66,6 +70,7 @@ from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings, add_section_options, config_from_args
 from openfusion.errors import UsageError
 from openfusion.sources.registry import check_source_spec, describe_source, parse_key_values
+from openfusion.sources.synthetic_spec import split_world
 from openfusion.wire.counters import BridgeCounter, CommonCounter, GeometryCounter, SemanticCounter
 from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
 from openfusion.wire.keys import validate_map_id
@@ -89,16 +94,36 @@ def _counter(stats: dict[str, Any], service: str, name: str) -> float:
     return s.counter(name) if s is not None else 0.0
 
 
-def builtin_scene_spec(spec: str, frames: int) -> str:
-    """The source spec that plays ``frames`` frames of the built-in room: a ``synthetic`` spec gets
-    ``frames=N`` and ``lap=BUILTIN_LAP_FRAMES`` unless it sets them; any other spec is unchanged."""
+def builtin_scene_spec(spec: str, frames: int | None) -> str:
+    """The source spec that plays ``frames`` frames (None: the default) of the built-in world: a
+    room spec gets ``frames=N`` (default :data:`BUILTIN_LAP_FRAMES`) and ``lap=BUILTIN_LAP_FRAMES``
+    unless it sets them; a building spec gets ``frames=N`` only when N is given (its walk has its
+    own frame count); any other spec is unchanged."""
     scheme, _sep, rest = spec.strip().partition(":")
     if scheme.lower() != "synthetic":
         return spec
+    world, rest = split_world(rest)
     options = parse_key_values(rest, scheme="synthetic")
-    options.setdefault("frames", str(frames))
+    if world == "building":
+        if frames is not None:
+            options.setdefault("frames", str(frames))
+        return "synthetic:" + ",".join(["building", *(f"{k}={v}" for k, v in options.items())])
+    options.setdefault("frames", str(frames if frames is not None else BUILTIN_LAP_FRAMES))
     options.setdefault("lap", str(BUILTIN_LAP_FRAMES))
     return "synthetic:" + ",".join(f"{k}={v}" for k, v in options.items())
+
+
+def frames_to_play(spec: str, frames: int | None) -> int:
+    """``--frames``, or without it: the walk's frame count for a building spec (opened here: the
+    plan and the walk, no rendering), else :data:`BUILTIN_LAP_FRAMES`."""
+    if frames is not None:
+        return frames
+    scheme, _sep, rest = spec.strip().partition(":")
+    if scheme.lower() == "synthetic" and split_world(rest)[0] == "building":
+        from openfusion.sources.registry import open_source
+
+        return len(open_source(spec))
+    return BUILTIN_LAP_FRAMES
 
 
 def shortfall_note(summary: RunSummary) -> str | None:
@@ -439,9 +464,11 @@ class RunCommand:
     def add_arguments(parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--out", type=Path, default=Path("out"), help="output folder (default ./out)")
         parser.add_argument("--map", dest="map_id", default="demo", help="map id (default demo)")
-        parser.add_argument("--frames", type=int, default=BUILTIN_LAP_FRAMES,
+        parser.add_argument("--frames", type=int, default=None,
                             help=f"frames to play (default {BUILTIN_LAP_FRAMES}); one lap of the built-in room is "
-                            f"{BUILTIN_LAP_FRAMES} frames, more frames walk it again; a shorter source plays what it has")
+                            f"{BUILTIN_LAP_FRAMES} frames, more frames walk it again; synthetic:building walks its "
+                            "route once in N frames (default: its own, a frame every 0.3 m or 20 degrees); "
+                            "a shorter source plays what it has")
         parser.add_argument("--query", dest="queries", action="append", default=None,
                             help="example query (repeatable; default a few furniture queries)")
         parser.add_argument("--top-k", type=int, default=3, help="regions per query (default 3)")
@@ -475,7 +502,7 @@ class RunCommand:
         """The validated run config (bad values are refused here, before any process starts)."""
         validate_map_id(args.map_id)
         _check_out_dir(args.out)
-        if args.frames <= 0:
+        if args.frames is not None and args.frames <= 0:
             raise UsageError(f"--frames must be positive, got {args.frames}")
         if not 0 <= args.encoder_workers <= MAX_ENCODER_WORKERS:
             raise UsageError(f"--encoder-workers must be between 0 and {MAX_ENCODER_WORKERS}, got {args.encoder_workers}")
@@ -506,8 +533,10 @@ class RunCommand:
         # The source's form (scheme, path, options): the bridge would refuse it only after the other
         # services had started.
         check_source_spec(config.bridge.source)
-        # The built-in room plays --frames frames (laps of BUILTIN_LAP_FRAMES); other sources stop there.
+        # The built-in room plays --frames frames (laps of BUILTIN_LAP_FRAMES), the building its walk;
+        # other sources stop there.
         config.bridge.source = builtin_scene_spec(config.bridge.source, args.frames)
+        args.frames = frames_to_play(config.bridge.source, args.frames)
         config.bridge.max_frames = args.frames
         return config
 

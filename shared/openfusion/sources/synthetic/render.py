@@ -33,6 +33,24 @@ class RenderedView:
     view_cos: np.ndarray  # (h, w) float32
 
 
+def objects_mesh(objects: list[WorldObject]) -> o3d.geometry.TriangleMesh:
+    """All parts of ``objects`` as one legacy Open3D mesh with vertex colors (for viewing)."""
+    verts, tris, colors = [], [], []
+    offset = 0
+    for obj in objects:
+        for part in obj.parts:
+            verts.append(part.vertices)
+            tris.append(part.triangles + offset)
+            colors.append(np.broadcast_to(np.asarray(part.rgb, dtype=np.float64), part.vertices.shape))
+            offset += len(part.vertices)
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(np.concatenate(verts)), o3d.utility.Vector3iVector(np.concatenate(tris))
+    )
+    mesh.vertex_colors = o3d.utility.Vector3dVector(np.concatenate(colors))
+    mesh.compute_triangle_normals()
+    return mesh
+
+
 class SceneRenderer:
     """The world's triangles in one ``RaycastingScene`` with the shading tables of each triangle."""
 
