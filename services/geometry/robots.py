@@ -21,10 +21,15 @@ import numpy as np
 
 from openfusion.frame import Frame
 from openfusion.mapping import SemanticVolume
-from openfusion.mapping.robot_join import backproject_depth, depth_points, recheck, register_submap
+from openfusion.mapping.robot_join import (
+    backproject_depth,
+    depth_points,
+    recheck,
+    register_submap,
+    view_conflict,
+)
 from openfusion.mapping.robot_streams import RobotStream, RobotStreams
 from openfusion.wire.counters import GeometryCounter
-
 
 
 class MapOwner(Protocol):
@@ -92,7 +97,8 @@ class RobotJoiner:
             self._rechecks = [r for r in self._rechecks if r.robot is not robot] + [job]
             self._cond.notify_all()
 
-    def stop(self, timeout_s: float = 5.0) -> None:
+    def stop(self, timeout_s: float = 60.0) -> None:
+        """Stop the thread after the step in hand (a registration may take seconds)."""
         with self._cond:
             self._stopping = True
             self._cond.notify_all()
@@ -101,16 +107,22 @@ class RobotJoiner:
 
     # ------------------------------------------------------------------ the thread
     def _run(self) -> None:
+        # Lock order: the service's map lock is never taken while holding _cond (the frame thread
+        # queues re-checks with the map lock held).
         while True:
+            due = self._due()
             with self._cond:
-                while not self._stopping and not self._rechecks and not self._due():
-                    self._cond.wait(1.0)
                 if self._stopping:
                     return
+                if not due and not self._rechecks:
+                    self._cond.wait(1.0)
+                    continue
                 rechecks, self._rechecks = self._rechecks, []
             for job in rechecks:
                 self._guarded(self._recheck, job)
-            for robot in self._due():
+            for robot in due:
+                if self._stopping:
+                    return
                 self._guarded(self._attempt, robot)
 
     def _due(self) -> list[RobotStream]:
@@ -143,11 +155,21 @@ class RobotJoiner:
             robot.join_attempts += 1
             submap = robot.submap.points.copy()
             map_points = service.volume.extract_points().points.astype(np.float64)
+            views = _spread([held.frame for held in robot.held], self.robots.params.join_conflict_views)
         guess = robot.spec.T_map_odom if robot.spec.mode == "guess" else None
+        params = self.robots.params
+
+        def render_depth(T_map_cam: np.ndarray, K) -> np.ndarray:  # noqa: ANN001
+            with service._lock:
+                return service.volume.render(T_map_cam, K).depth_m
+
+        def conflict(T_map_odom: np.ndarray) -> float:
+            return view_conflict(views, T_map_odom, render_depth, tolerance_m=params.join_conflict_tolerance_m)
+
         try:
             # A search tries the identity too: poses are often in the map's frame already (a site map).
-            found = register_submap(submap, map_points, self.robots.params, guess=guess,
-                                    extra_starts=[np.eye(4)] if guess is None else ())
+            found = register_submap(submap, map_points, params, guess=guess,
+                                    extra_starts=[np.eye(4)] if guess is None else (), conflict=conflict)
         finally:
             robot.attempt_pending = False
         robot.last_registration = found
@@ -186,3 +208,11 @@ class RobotJoiner:
             logger.info("geometry: robot %s re-checked: %s", robot.name, outcome)
         elif outcome.startswith("refused"):
             logger.info("geometry: robot %s re-check not applied: %s", robot.name, outcome)
+
+
+def _spread(frames: list[Frame], count: int) -> list[Frame]:
+    """At most ``count`` of ``frames``, evenly spread (first and last included)."""
+    if len(frames) <= count:
+        return list(frames)
+    picks = np.linspace(0, len(frames) - 1, count).round().astype(int)
+    return [frames[i] for i in picks]

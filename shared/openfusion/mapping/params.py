@@ -311,6 +311,15 @@ class JoinParams(ConfigSection):
         description="...and the fit constrains every direction: the weakest translation and rotation direction "
         "of the point-to-plane information holds at least this share of the strongest (a bare corridor "
         "does not fix the position along it)")
+    join_max_conflict: float = Field(
+        0.03, ge=0, le=1,
+        description="...and the robot's views do not contradict the map: of the pixels where both have a "
+        "surface, at most this share has the map's surface in front of what the robot saw (it looked through "
+        "a wall of the map: misaligned)")
+    join_conflict_tolerance_m: float = Field(
+        0.1, gt=0, description="a map surface nearer than the robot's depth by more than this is a contradiction")
+    join_conflict_views: int = Field(
+        8, ge=1, description="held frames (spread over the hold) a candidate alignment is checked against")
     join_recheck_every: int = Field(
         30, ge=0, description="re-check a joined robot's transform against the map every this many of its frames "
         "(0 = never)")

@@ -43,7 +43,7 @@ reaches mapped space; a map frame that is not gravity-aligned needs a guess.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,7 +52,7 @@ from scipy.ndimage import binary_dilation
 from scipy.signal import fftconvolve
 from scipy.spatial import cKDTree
 
-from openfusion.frame import CameraIntrinsics, Frame
+from openfusion.frame import CameraIntrinsics, Frame, resize_nearest
 from openfusion.mapping.params import JoinParams
 from openfusion.poses import check_pose
 
@@ -308,14 +308,39 @@ def _decide(fit: _Fit, runner_up: float, params: JoinParams) -> str:
 
 
 # ------------------------------------------------------------------ registration
+def view_conflict(frames: Sequence[Frame], T_map_odom: np.ndarray,
+                  render_depth: Callable[[np.ndarray, CameraIntrinsics], np.ndarray], *,
+                  tolerance_m: float, downscale: int = 4) -> float:
+    """The share of pixels, over ``frames`` seen through ``T_map_odom``, where the map has a
+    surface clearly in front of what the robot saw (``render_depth`` of the map at the frame's map
+    pose is shorter than the observed depth by more than ``tolerance_m``): the robot looked through
+    where the map says a wall is. Aligned, that does not happen (a static scene); misaligned, it
+    does wherever a wall of the map falls into the robot's free space. Pixels where either depth is
+    missing, or where the robot sees something nearer than the map (a new object, or a part of the
+    map not seen yet), count for neither side. 0.0 when no pixel is comparable."""
+    conflicts = compared = 0
+    for frame in frames:
+        K = frame.intrinsics
+        small = K.scaled(max(1, K.width_px // downscale), max(1, K.height_px // downscale))
+        observed = resize_nearest(frame.depth_m(), (small.height_px, small.width_px))
+        rendered = render_depth(np.asarray(T_map_odom, np.float64) @ np.asarray(frame.T_world_cam, np.float64), small)
+        both = (observed > 0) & np.isfinite(observed) & (rendered > 0) & np.isfinite(rendered)
+        compared += int(both.sum())
+        conflicts += int((both & (rendered < observed - tolerance_m)).sum())
+    return conflicts / compared if compared else 0.0
+
+
 def register_submap(submap_points: np.ndarray, map_points: np.ndarray, params: JoinParams, *,
-                    guess: np.ndarray | None = None, extra_starts: Sequence[np.ndarray] = ()) -> Registration:
+                    guess: np.ndarray | None = None, extra_starts: Sequence[np.ndarray] = (),
+                    conflict: Callable[[np.ndarray], float] | None = None) -> Registration:
     """Register a submap (points in the robot's odometry frame) to the map's surface points.
 
     ``guess``: ``T_map_odom`` to start ICP from (method ``icp``); None searches globally (method
     ``global``, gravity-aligned frames), with ``extra_starts`` as more candidates (each competes
-    with the search's: the ambiguity rule holds for all). The result says whether it is accepted
-    and why not."""
+    with the search's: the ambiguity rule holds for all). ``conflict``: the share of the submap's
+    views that a candidate contradicts (:func:`view_conflict`); a candidate over
+    ``join_max_conflict`` is out (rule 5) before the best and its runner-up are chosen. The result
+    says whether it is accepted and why not."""
     if guess is not None:
         guess = check_pose(guess, what="guess (T_map_odom)")
     cell = params.join_voxel_m
@@ -344,10 +369,26 @@ def register_submap(submap_points: np.ndarray, map_points: np.ndarray, params: J
         if _distinct(T, [other for _, other in coarse]):
             coarse.append((_fit(src_pts, src_normals, tgt_pts, tgt_normals, tree, T, params).fitness, T))
     coarse.sort(key=lambda item: -item[0])
+    refused: list[tuple[float, float]] = []  # (fitness, conflict) of candidates rule 5 took out
     fits: list[tuple[_Fit, np.ndarray]] = []
-    for _fitness, T in coarse[:2]:  # the best two, finely: the answer and its runner-up
+    for fitness, T in coarse:
+        if len(fits) == 2:  # the answer and its runner-up
+            break
         T = _icp(fine_source, fine_target, T, cell / 2.0, scales=(1.5,))
+        if not _distinct(T, [other for _, other in fits]):
+            continue
+        if conflict is not None:
+            share = conflict(T)
+            if share > params.join_max_conflict:
+                refused.append((fitness, share))
+                continue
         fits.append((_fit(src_pts, src_normals, tgt_pts, tgt_normals, tree, T, params), T))
+    if not fits:
+        fitness, share = refused[0] if refused else (0.0, 0.0)
+        reason = (f"every alignment contradicts the robot's views (the best fitting one, {fitness:.2f}, has the "
+                  f"map's surface in front of {share:.0%} of what it saw)")
+        T = starts[0] if starts else np.eye(4)
+        return Registration(T, 0.0, float("inf"), 0.0, 0.0, method, False, reason, n_src, n_tgt)
     fits.sort(key=lambda item: -item[0].fitness)
     best, T_best = fits[0]
     runner_up = fits[1][0].fitness if len(fits) > 1 else 0.0
