@@ -500,9 +500,20 @@ def _progress(source: FrameSource, *, enabled: bool) -> Any:
     return tqdm(total=total, desc=f"bridge {source.name}", unit="frame")
 
 
+def bridge_name(robot: str) -> str:
+    """The bridge's service name (health key, process, log): ``bridge`` for the default robot,
+    ``bridge-ROBOT`` for the others (one bridge per robot on a map)."""
+    return "bridge" if robot == DEFAULT_ROBOT else f"bridge-{robot}"
+
+
+def _instance_name(config: BridgeConfig) -> str:
+    return bridge_name(config.bridge.robot)
+
+
 DEFINITION = ServiceDefinition(
     name="bridge",
     help="publish RGB-D frames from a dataset, the synthetic scene, a recording or live sensors",
     config_model=BridgeConfig,
     build=BridgeService,
+    instance_name=_instance_name,
 )

@@ -155,7 +155,7 @@ class RobotJoiner:
             robot.join_attempts += 1
             submap = robot.submap.points.copy()
             map_points = service.volume.extract_points().points.astype(np.float64)
-            views = _spread([held.frame for held in robot.held], self.robots.params.join_conflict_views)
+            views = _spread(robot.submap.frames, self.robots.params.join_conflict_views)
         guess = robot.spec.T_map_odom if robot.spec.mode == "guess" else None
         params = self.robots.params
 

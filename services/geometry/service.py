@@ -335,7 +335,7 @@ class GeometryService(DictionaryFollower):
             return
         for r in [robot] if robot is not None else self.robots.announcements_due():
             r.announce_due = False
-            playback, held = r.holds()
+            playback, held = r.announcement()
             try:
                 self._progress_pub.put(GeometryProgress(
                     frame_id=-1, stamp_ns=0, integrated=False, frames_integrated=self.frames_integrated, queued=0,
@@ -368,7 +368,7 @@ class GeometryService(DictionaryFollower):
         frame = msg.to_frame()
         if robot.state == "held":  # into its submap and hold, never into the map (robot_streams)
             with self._lock:
-                robot.hold(frame, playback=msg.playback, frame_id=msg.frame_id)
+                robot.hold(frame, playback=msg.playback, frame_id=msg.frame_id, prev_frame_id=msg.prev_frame_id)
                 robot.took(playback=msg.playback, frame_id=msg.frame_id)
             self._count(GeometryCounter.FRAMES_HELD)
             self._acknowledge(msg, integrated=False)

@@ -284,14 +284,19 @@ class JoinParams(ConfigSection):
         0.05, gt=0, le=0.5,
         description="registration grid: clouds are thinned to one point per cell and the global search "
         "correlates floor-plan cells of this size")
+    join_submap_frames: int = Field(
+        40, ge=1, description="a held robot's submap is its last this many frames (a robot that started in "
+        "unmapped space joins once its recent frames are in mapped space)")
     join_min_submap_frames: int = Field(
         12, ge=1, description="frames a held robot's submap needs before the first registration attempt")
     join_min_submap_points: int = Field(
         1500, ge=10, description="thinned points a submap needs before a registration attempt")
     join_attempt_every: int = Field(
         10, ge=1, description="while a robot is held, try to join it again every this many of its frames")
+    join_idle_attempt_s: float = Field(
+        2.0, gt=0, description="...or sooner, when the held robot sent no frame for this long (its playback ended)")
     join_max_held_frames: int = Field(
-        150, ge=1,
+        100, ge=1,
         description="frames of a held robot kept to be integrated once it joins (memory bound: older ones are "
         "dropped from the hold; a playback replays them after the join, a live robot loses them, counted)")
     join_min_fitness: float = Field(

@@ -42,6 +42,7 @@ reaches mapped space; a map frame that is not gravity-aligned needs a guess.
 
 from __future__ import annotations
 
+import collections
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -126,31 +127,44 @@ def thin(points: np.ndarray, cell_m: float) -> np.ndarray:
 
 
 class Submap:
-    """A robot's frames as points in its own odometry frame, thinned to one per ``cell_m`` cell
-    (bounded memory however long the robot is held)."""
+    """A robot's last ``window_frames`` frames as points in its own odometry frame, thinned to one
+    per ``cell_m`` cell. A window, not everything since the start: a robot that started in a room
+    the map has not seen joins once its recent frames are in mapped space (its first frames would
+    only lower the fit), and memory stays bounded however long it is held."""
 
-    def __init__(self, cell_m: float, *, stride_px: int = 4) -> None:
+    def __init__(self, cell_m: float, *, window_frames: int = 40, stride_px: int = 4) -> None:
         self.cell_m = cell_m
         self.stride_px = stride_px
-        self.num_frames = 0
-        self._points = np.zeros((0, 3), np.float64)
+        self.num_frames = 0  # every frame added since the last clear
+        self._window: collections.deque[tuple[Frame, np.ndarray]] = collections.deque(maxlen=window_frames)
+        self._points: np.ndarray | None = None
 
     @property
     def points(self) -> np.ndarray:
+        """The window's points, thinned (computed once per change)."""
+        if self._points is None:
+            parts = [pts for _frame, pts in self._window]
+            self._points = thin(np.concatenate(parts), self.cell_m) if parts else np.zeros((0, 3), np.float64)
         return self._points
 
+    @property
+    def frames(self) -> list[Frame]:
+        """The frames in the window, oldest first."""
+        return [frame for frame, _pts in self._window]
+
     def __len__(self) -> int:
-        return len(self._points)
+        return len(self.points)
 
     def add(self, frame: Frame) -> None:
         """Add one frame at its own (odometry) pose."""
-        new = backproject_depth(frame, stride_px=self.stride_px)
-        self._points = thin(np.concatenate([self._points, new]), self.cell_m)
+        self._window.append((frame, thin(backproject_depth(frame, stride_px=self.stride_px), self.cell_m)))
+        self._points = None
         self.num_frames += 1
 
     def clear(self) -> None:
         self.num_frames = 0
-        self._points = np.zeros((0, 3), np.float64)
+        self._window.clear()
+        self._points = None
 
 
 # ------------------------------------------------------------------ building blocks

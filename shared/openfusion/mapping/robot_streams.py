@@ -58,6 +58,7 @@ import dataclasses
 import enum
 import logging
 import re
+import time
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -144,6 +145,7 @@ class HeldFrame:
     frame: Frame
     playback: str
     frame_id: int
+    prev_frame_id: int | None  # the frame its playback published before it (None: live)
 
 
 class RobotStream:
@@ -161,15 +163,17 @@ class RobotStream:
         self.map_last_frame_id: int | None = None
         self.waiting = True  # an announcement is due until the next frame comes in order
         self.announce_due = False  # one is due now (out of order, or a join that asks for a replay)
+        self.replay_after: tuple[str, int] | None = None  # a join's replay for the semantic service
         self.resume = 1
         # Join.
         self.state: Literal["joined", "held"] = "held"
         self.anchor = False
         self.T_map_odom = np.array(spec.T_map_odom, np.float64)
-        self.submap = Submap(params.join_voxel_m)
+        self.submap = Submap(params.join_voxel_m, window_frames=params.join_submap_frames)
         self.held: collections.deque[HeldFrame] = collections.deque()
         self.hold_overflowed = False  # frames were taken but not kept in the hold
         self.frames_since_attempt = 0
+        self.last_held_at_s = 0.0  # time.monotonic() of the last frame held
         self.attempt_pending = False
         self.last_registration: Registration | None = None
         self.join_method = ""
@@ -228,31 +232,52 @@ class RobotStream:
         self.map_last_frame_id = frame_id
 
     def holds(self) -> tuple[str, int]:
-        """(playback, frame id) of the last frame held, for announcements."""
+        """(playback, frame id) of the last frame held, for acknowledgements."""
         return self.playback, NO_FRAME_ID if self.last_taken is None else self.last_taken
+
+    def announcement(self) -> tuple[str, int]:
+        """(playback, frame id) to announce: after a join, the frame before the first held one, so
+        the bridge replays the held frames (geometry drops them as duplicates; the semantic service
+        sees them again, now that their robot is in the map's frame); else :meth:`holds`."""
+        if self.replay_after is not None:
+            replay, self.replay_after = self.replay_after, None
+            return replay
+        return self.holds()
 
     # ------------------------------------------------------------------ join
     def to_map(self, frame: Frame) -> Frame:
         """The frame with its pose in the map's frame."""
         return dataclasses.replace(frame, T_world_cam=self.T_map_odom @ np.asarray(frame.T_world_cam, np.float64))
 
-    def hold(self, frame: Frame, *, playback: str, frame_id: int) -> None:
+    def hold(self, frame: Frame, *, playback: str, frame_id: int, prev_frame_id: int | None = None) -> None:
         """A frame of a held robot: into its submap, and into the hold while there is room."""
         self.submap.add(frame)
         self.frames_since_attempt += 1
+        self.last_held_at_s = time.monotonic()
         if len(self.held) < self.params.join_max_held_frames and not self.hold_overflowed:
-            self.held.append(HeldFrame(frame, playback, frame_id))
+            self.held.append(HeldFrame(frame, playback, frame_id, prev_frame_id))
         else:
             self.hold_overflowed = True
             if not playback:  # a live frame: lost (a playback's are replayed after the join)
                 self.skipped["held_dropped"] += 1
 
-    def attempt_due(self) -> bool:
-        """A held robot's submap is ready for a (new) registration attempt."""
-        return (self.state == "held" and not self.attempt_pending
-                and self.submap.num_frames >= self.params.join_min_submap_frames
-                and len(self.submap) >= self.params.join_min_submap_points
-                and (self.join_attempts == 0 or self.frames_since_attempt >= self.params.join_attempt_every))
+    def attempt_due(self, now_s: float | None = None) -> bool:
+        """A held robot's submap is ready for a (new) registration attempt: enough frames, and new
+        ones since the last attempt (``join_attempt_every`` of them, or any when the robot has sent
+        nothing for ``join_idle_attempt_s``: a playback that ended, a robot that stopped)."""
+        if (self.state != "held" or self.attempt_pending
+                or self.submap.num_frames < self.params.join_min_submap_frames
+                or len(self.submap) < self.params.join_min_submap_points):
+            return False
+        if self.join_attempts == 0 or self.frames_since_attempt >= self.params.join_attempt_every:
+            return True
+        now = time.monotonic() if now_s is None else now_s
+        return self.frames_since_attempt > 0 and now - self.last_held_at_s >= self.params.join_idle_attempt_s
+
+    @property
+    def join_pending(self) -> bool:
+        """A registration of this held robot runs or is due (a run is not finished while one is)."""
+        return self.state == "held" and (self.attempt_pending or self.attempt_due())
 
     def join(self, T_map_odom: np.ndarray, *, method: str, registration: Registration | None = None) -> list[HeldFrame]:
         """Joined with ``T_map_odom``: returns the held frames to integrate (in order). After it,
@@ -264,6 +289,13 @@ class RobotStream:
         frames = list(self.held)
         self.held.clear()
         self.submap.clear()
+        first = frames[0] if frames else None
+        if first is not None and first.playback and first.prev_frame_id is not None:
+            # The semantic service skipped these frames while the robot was held: its bridge replays
+            # them (announced from the frame before the first one; geometry drops them as duplicates).
+            self.replay_after = (first.playback, first.prev_frame_id)
+            self.resume += 1
+            self.announce_due = True
         if self.hold_overflowed:
             # The chain goes back to the last frame kept: its bridge replays the ones after it.
             last = frames[-1] if frames else None
@@ -271,8 +303,9 @@ class RobotStream:
             self.playback = last.playback if last is not None else self.map_playback
             if self.playback:
                 self.waiting = True
-                self.resume += 1
-                self.announce_due = True
+                if not self.announce_due:  # the replay above goes back further already
+                    self.resume += 1
+                    self.announce_due = True
             self.hold_overflowed = False
         return frames
 
@@ -323,6 +356,7 @@ class RobotStream:
             "join_attempts": self.join_attempts,
             "join_reason": reg.reason if reg is not None else "",
             "corrections": self.corrections,
+            "join_pending": self.join_pending,
         }
 
 

@@ -56,6 +56,7 @@ class RobotStatus(Record):
     join_attempts: int = Field(0, ge=0)
     join_reason: str = ""
     corrections: int = Field(0, ge=0)
+    join_pending: bool = False  # held, and a registration runs or is due
 
 
 class HealthStats(Message):
