@@ -163,8 +163,11 @@ class RobotJoiner:
             with service._lock:
                 return service.volume.render(T_map_cam, K).depth_m
 
+        # A surface of the map is only as sharp as its truncation band: beyond it is a contradiction.
+        tolerance_m = params.join_conflict_tolerance_m + service.volume.params.trunc_m
+
         def conflict(T_map_odom: np.ndarray) -> float:
-            return view_conflict(views, T_map_odom, render_depth, tolerance_m=params.join_conflict_tolerance_m)
+            return view_conflict(views, T_map_odom, render_depth, tolerance_m=tolerance_m)
 
         try:
             # A search tries the identity too: poses are often in the map's frame already (a site map).

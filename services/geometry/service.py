@@ -366,18 +366,18 @@ class GeometryService(DictionaryFollower):
             self._acknowledge(msg, integrated=False)
             return
         frame = msg.to_frame()
-        if robot.state == "held":  # into its submap and hold, never into the map (robot_streams)
-            with self._lock:
+        with self._lock:  # the join (another thread) changes the state under this lock
+            robot.took(playback=msg.playback, frame_id=msg.frame_id)
+            held = robot.state == "held"
+            if held:  # into its submap and hold, never into the map (robot_streams)
                 robot.hold(frame, playback=msg.playback, frame_id=msg.frame_id, prev_frame_id=msg.prev_frame_id)
-                robot.took(playback=msg.playback, frame_id=msg.frame_id)
+            elif robot.recheck_due():
+                self.joiner.queue_recheck(robot, frame)
+        if held:
             self._count(GeometryCounter.FRAMES_HELD)
             self._acknowledge(msg, integrated=False)
             self.joiner.wake()
             return
-        with self._lock:
-            robot.took(playback=msg.playback, frame_id=msg.frame_id)
-            if robot.recheck_due():
-                self.joiner.queue_recheck(robot, frame)
         integrated = self._integrate(robot, frame, playback=msg.playback)
         self._acknowledge(msg, integrated=integrated)
 

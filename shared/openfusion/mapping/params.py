@@ -322,7 +322,8 @@ class JoinParams(ConfigSection):
         "surface, at most this share has the map's surface in front of what the robot saw (it looked through "
         "a wall of the map: misaligned)")
     join_conflict_tolerance_m: float = Field(
-        0.1, gt=0, description="a map surface nearer than the robot's depth by more than this is a contradiction")
+        0.1, gt=0, description="a map surface nearer than the robot's depth by more than this plus the map's "
+        "truncation distance (the band its surfaces are sharp to) is a contradiction")
     join_conflict_views: int = Field(
         8, ge=1, description="held frames (spread over the hold) a candidate alignment is checked against")
     join_recheck_every: int = Field(

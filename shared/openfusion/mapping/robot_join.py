@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -62,7 +63,9 @@ logger = logging.getLogger(__name__)
 _REG = o3d.pipelines.registration
 YAW_STEP_DEG = 1.0  # the global search's yaw grid
 HORIZONTAL_NORMAL_Z = 0.8  # a surface whose normal has |z| at least this is horizontal (floor, ceiling, table)
-_CANDIDATES = 10  # distinct candidates refined by ICP in a global search
+_CANDIDATES = 24  # distinct candidates of a global search (checked against the views when they are given)
+_ICP_CANDIDATES = 8  # of those, the best this many are refined by ICP
+_START_CONFLICT_FACTOR = 4.0  # a start may contradict the views this many times join_max_conflict
 _DISTINCT_YAW_DEG = 10.0
 _DISTINCT_TRANSLATION_M = 0.3
 
@@ -339,9 +342,23 @@ def view_conflict(frames: Sequence[Frame], T_map_odom: np.ndarray,
         observed = resize_nearest(frame.depth_m(), (small.height_px, small.width_px))
         rendered = render_depth(np.asarray(T_map_odom, np.float64) @ np.asarray(frame.T_world_cam, np.float64), small)
         both = (observed > 0) & np.isfinite(observed) & (rendered > 0) & np.isfinite(rendered)
+        both &= ~_depth_edges(observed, tolerance_m)  # a pixel off at an outline is resolution, not misalignment
         compared += int(both.sum())
         conflicts += int((both & (rendered < observed - tolerance_m)).sum())
     return conflicts / compared if compared else 0.0
+
+
+def _depth_edges(depth_m: np.ndarray, step_m: float) -> np.ndarray:
+    """Pixels next to a depth step larger than ``step_m`` (or a missing depth) in their 3x3 block."""
+    valid = (depth_m > 0) & np.isfinite(depth_m)
+    filled = np.where(valid, depth_m, np.nan)
+    padded = np.pad(filled, 1, mode="edge")
+    h, w = depth_m.shape
+    blocks = np.stack([padded[dy:dy + h, dx:dx + w] for dy in range(3) for dx in range(3)])
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN blocks: no depth around, masked anyway
+        spread = np.nanmax(blocks, axis=0) - np.nanmin(blocks, axis=0)
+    return ~(np.isfinite(spread) & (spread <= step_m)) | ~np.all(np.isfinite(blocks), axis=0)
 
 
 def register_submap(submap_points: np.ndarray, map_points: np.ndarray, params: JoinParams, *,
@@ -377,8 +394,15 @@ def register_submap(submap_points: np.ndarray, map_points: np.ndarray, params: J
         starts = [np.asarray(guess, np.float64)]
     else:
         starts = _global_candidates(source, target, params) + [check_pose(T, what="start") for T in extra_starts]
+        if conflict is not None:
+            # Views first (a few small renders each): a start that contradicts them by far is out
+            # before it costs an ICP. Loose, as a start is still centimetres off.
+            starts = [T for T in starts if conflict(T) <= _START_CONFLICT_FACTOR * params.join_max_conflict]
+            if not starts:
+                reason = "every alignment the search found contradicts the robot's views"
+                return Registration(np.eye(4), 0.0, float("inf"), 0.0, 0.0, method, False, reason, n_src, n_tgt)
     coarse: list[tuple[float, np.ndarray]] = []
-    for start in starts:
+    for start in starts[:_ICP_CANDIDATES]:
         T = _icp(source, target, start, cell, scales=(3.0, 1.5))
         if _distinct(T, [other for _, other in coarse]):
             coarse.append((_fit(src_pts, src_normals, tgt_pts, tgt_normals, tree, T, params).fitness, T))

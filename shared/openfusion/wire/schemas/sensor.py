@@ -35,6 +35,8 @@ class RgbdFrame(PinholeMessage):
 
     schema_name: ClassVar[str] = "sensor.rgbd"
     schema_version: ClassVar[int] = 3
+    #: recordings of v2 frames (before robots) still replay: their robot is the default one
+    reads_versions: ClassVar[tuple[int, ...]] = (2,)
 
     frame_id: int = Field(ge=0)
     stamp_ns: int = Field(ge=0)
