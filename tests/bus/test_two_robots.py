@@ -113,6 +113,7 @@ def test_a_held_robots_renders_are_refused_and_its_updates_dropped(building) -> 
         geo.close()
 
 
+@pytest.mark.slow  # a registration attempt every 10 frames until it joins: ~30 s on 2 cores
 def test_a_robot_that_starts_in_an_unseen_room_is_held_until_it_reaches_mapped_space() -> None:
     b = SyntheticBuilding(0, rooms=2)
     walk = {"width_px": 160, "height_px": 120, "revisit": 0}
