@@ -162,3 +162,29 @@ def test_a_map_from_before_robots_is_the_default_robots() -> None:
     empty = RobotStreams()
     empty.restore({"frames_integrated": 0}, default_robot="robot0")
     assert len(empty) == 0
+
+
+def test_health_carries_each_robot_and_the_health_command_prints_them() -> None:
+    """What geometry reports per robot validates as the wire's RobotStatus, and `openfusion health`
+    prints a row per robot: joined with its transform, held with why."""
+    from openfusion.app.bus_cmds import robots_table
+    from openfusion.mapping.robot_join import Registration
+    from openfusion.wire.schemas import HealthStats
+
+    streams = RobotStreams()
+    streams.get("robot0", map_empty=True)
+    held = streams.get("robot1", map_empty=True)
+    held.join_attempts = 2
+    held.last_registration = Registration(np.eye(4), 0.19, 0.01, 0.0, 0.2, "global", False,
+                                          "fitness 0.19 < 0.35 (too little of the submap is on the map)", 10, 10)
+    fixed = RobotStreams(specs=parse_robot_frames("robot2=fixed:1.5,-2,0,90")).get("robot2", map_empty=False)
+    robots = {r.name: r.status() for r in (*streams, fixed)}
+    stats = HealthStats(service="geometry", map_id="m", pid=1, uptime_s=1.0, fps=0.0, latency_ms_p50=0.0,
+                        latency_ms_p99=0.0, drops=0, errors=0, robots=robots)
+    assert stats.robots["robot1"].state == "held" and stats.robots["robot2"].join_method == "fixed"
+    table = robots_table({"geometry": stats}).splitlines()
+    assert table[0].split()[:4] == ["robot", "state", "integrated", "held"]
+    row = {line.split()[0]: line for line in table[1:]}
+    assert "anchor" in row["robot0"] and "2 attempt(s): fitness 0.19 < 0.35" in row["robot1"]
+    assert row["robot2"].split()[7:11] == ["1.500", "-2.000", "0.000", "90.00"]
+    assert robots_table({}) == ""
