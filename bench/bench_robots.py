@@ -135,9 +135,10 @@ def record(frames: list, path: Path) -> None:
             recorder.write(f)
 
 
-def run(out: Path, sources: list[str], *, robot_frames: str, voxel_m: float) -> dict:
+def run(out: Path, sources: list[str], *, robot_frames: str, voxel_m: float, frames: int) -> dict:
     cmd = [sys.executable, "-m", "openfusion.app.cli", "run", "--out", str(out), "--quiet", "--query", "chair",
-           "--rate-hz", "0", "--timeout-s", "3600", "--set", f"geometry.voxel_size_m={voxel_m}"]
+           "--rate-hz", "0", "--timeout-s", "3600", "--set", f"geometry.voxel_size_m={voxel_m}",
+           "--frames", str(frames)]
     for spec in sources:
         cmd += ["--source", spec]
     if robot_frames:
@@ -224,9 +225,11 @@ def runs_table(quick: bool) -> None:
     cases = [
         ("one robot, route a then route b", [f"replay:{one}"], "", None),
         ("two robots, poses in one frame", [f"{spec},route={route_a}", f"{spec},route={route_b},name=robot1"],
-         "robot1=fixed", np.eye(4)),
+         "robot0=fixed;robot1=fixed", np.eye(4)),
+        # robot0 holds the map's frame (fixed), whichever robot's frame comes first; robot1 is searched.
         ("two robots, robot 1 0.30 m / 5 deg off, no guess", [f"{spec},route={route_a}",
-                                                                f"replay:{offset_b},name=robot1"], "", T_MAP_ODOM),
+                                                                f"replay:{offset_b},name=robot1"], "robot0=fixed",
+         T_MAP_ODOM),
     ]
     print(f"### One robot or two on the building ({rooms} rooms, routes {route_a} and {route_b}, {size}, "
           f"{voxel_m * 100:.0f} cm voxels, gt encoder, {os.cpu_count()} cores)\n")
@@ -236,7 +239,8 @@ def runs_table(quick: bool) -> None:
     print("|---|---|---:|---:|---:|---:|---:|---|---|---:|")
     base_points = None
     for i, (name, sources, frames, truth) in enumerate(cases):
-        summary = run(work / f"run{i}", sources, robot_frames=frames, voxel_m=voxel_m)
+        summary = run(work / f"run{i}", sources, robot_frames=frames, voxel_m=voxel_m,
+                      frames=len(walk_a) + len(walk_b))
         robots = summary["robots"]
         T_used = None
         if "robot1" in robots:

@@ -45,7 +45,8 @@ class GeometrySection(VolumeParams, JoinParams):
     robot_frames: str = Field(
         "", description="how each robot's odometry frame joins the map's: 'ROBOT=fixed|guess|search[:x,y,z,yaw_deg]' "
         "entries separated by ';' (metres, degrees; fixed: joined at once; guess: ICP from it; search: global "
-        "registration). Robots not named: search. The first robot on an empty map anchors it")
+        "registration). Robots not named: search. Robots given as fixed define the map's frame; without one, the first "
+        "robot on an empty map anchors it")
 
     @field_validator("robot_frames")
     @classmethod

@@ -3,7 +3,7 @@ exactly once, and a SIGKILL of geometry mid-run resumes both robots' streams fro
 (each bridge replays what its robot's chain lacks; neither robot's frames disturb the other's).
 
 Two robots walk different rooms of a two-room building (a shared corridor) with poses in one frame
-(``robot1=fixed``: joining by registration is covered without processes in
+(both ``fixed``: joining by registration is covered without processes in
 tests/bus/test_two_robots.py, and at full size in the slow tests below). Small frames (160x120),
 4 cm voxels and a 1 s checkpoint period keep the fast one within the default suite's budget.
 
@@ -37,7 +37,7 @@ def _robots_integrated(health: dict, at_least: int) -> bool:
 def test_two_robots_each_frame_once_and_both_resume_after_geometry_is_killed(tmp_path: Path) -> None:
     run = BackgroundRun(tmp_path, "--source", f"{ROOM},route=0", "--source", f"{ROOM},route=1,name=robot1",
                         "--rate-hz", "8", "--query", "chair", "--set", "supervision.checkpoint_period_s=1",
-                        "--set", "geometry.voxel_size_m=0.04", "--set", "geometry.robot_frames=robot1=fixed",
+                        "--set", "geometry.voxel_size_m=0.04", "--set", "geometry.robot_frames=robot0=fixed;robot1=fixed",
                         "--restart-backoff-s", "0.2", name="robots")
     try:
         def checkpointed_and_past_it(h: dict) -> bool:
@@ -61,7 +61,7 @@ def test_two_robots_each_frame_once_and_both_resume_after_geometry_is_killed(tmp
         assert robot["frames_published"] == robot["frames_integrated"] == FRAMES, (name, robot)
     assert summary["frames_integrated"] == 2 * FRAMES
     assert summary["frames_replayed"] >= 1  # what the crash lost of at least one robot, sent again
-    assert robots["robot1"]["join_method"] == "fixed" and robots["robot0"]["join_method"] == "anchor"
+    assert robots["robot1"]["join_method"] == robots["robot0"]["join_method"] == "fixed"
     saved = load_map(run.out / "map")
     assert {name: entry["last_frame_id"] for name, entry in saved.meta["robots"].items()} == {
         "robot0": FRAMES - 1, "robot1": FRAMES - 1}

@@ -64,14 +64,23 @@ def test_live_gaps_are_counted_per_robot() -> None:
     assert (a.frames_gap, b.frames_gap) == (3, 8)
 
 
+def test_fixed_robots_define_the_maps_frame_and_nobody_else_anchors_it() -> None:
+    streams = RobotStreams(specs=parse_robot_frames("f=fixed"))
+    first = streams.get("a", map_empty=True)  # first, but the fixed robot holds the map's frame
+    assert first.state == "held" and not first.anchor
+    assert streams.get("f", map_empty=True).state == "joined"
+
+
 def test_the_first_robot_anchors_an_empty_map_others_are_held_fixed_ones_joined() -> None:
-    streams = RobotStreams(specs=parse_robot_frames("c=fixed:1,2,0,90"))
+    streams = RobotStreams(specs=parse_robot_frames("c=guess:1,2,0,90"))
     first = streams.get("a", map_empty=True)
     assert first.state == "joined" and first.anchor and first.join_method == "anchor"
     second = streams.get("b", map_empty=True)  # the map is empty, but a already anchors it
     assert second.state == "held" and not second.anchor
-    fixed = streams.get("c", map_empty=False)
-    assert fixed.state == "joined" and fixed.join_method == "fixed"
+    guessed = streams.get("c", map_empty=False)
+    assert guessed.state == "held"
+    fixed = RobotStreams(specs=parse_robot_frames("c=fixed:1,2,0,90")).get("c", map_empty=True)
+    assert fixed.state == "joined" and fixed.join_method == "fixed" and not fixed.anchor
     moved = fixed.to_map(FRAMES[0])
     np.testing.assert_allclose(moved.T_world_cam, yaw_transform(1, 2, 0, 90) @ FRAMES[0].T_world_cam)
     assert streams.get("d", map_empty=False).state == "held"  # a map loaded from disk: nothing anchors

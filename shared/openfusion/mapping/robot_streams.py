@@ -22,8 +22,9 @@ Join (:mod:`openfusion.mapping.robot_join`)
     ``search``                 held, then registered by the global search (the identity is tried
                                as one more candidate): no guess at all. The default.
 
-    The first robot on an empty map (no joined robot, no surface) has nothing to register to: it
-    anchors the map at its transform (its guess, or identity), whatever its mode. A held robot's
+    Robots given as ``fixed`` define the map's frame. Without one, the first robot on an empty map
+    (no joined robot, no surface) has nothing to register to: it anchors the map at its transform
+    (its guess, or identity), whatever its mode. A held robot's
     frames go into its *submap* (points in its own frame, for registration) and, up to
     ``join_max_held_frames``, into a hold; none of them reaches the shared map until the robot is
     joined, so nothing is fused misaligned. When a registration is accepted the held frames are
@@ -382,7 +383,9 @@ class RobotStreams:
             return stream
         spec = self.specs.get(name, RobotFrameSpec())
         stream = self.robots[name] = RobotStream(name, spec, self.params)
-        anchor = map_empty and not any(r.state == "joined" for r in self.robots.values())
+        # Robots given as fixed define the map's frame; without one, the first robot on an empty map does.
+        anchor = (map_empty and not any(r.state == "joined" for r in self.robots.values())
+                  and not any(s.mode == "fixed" for s in self.specs.values()))
         if spec.mode == "fixed" or anchor:
             stream.anchor = anchor
             stream.join(spec.T_map_odom, method="anchor" if anchor else "fixed")
