@@ -22,6 +22,7 @@ import numpy as np
 from openfusion.frame import Frame
 from openfusion.mapping import SemanticVolume
 from openfusion.mapping.robot_join import (
+    Submap,
     backproject_depth,
     depth_points,
     recheck,
@@ -127,6 +128,8 @@ class RobotJoiner:
 
     def _due(self) -> list[RobotStream]:
         with self.service._lock:
+            if self.service.volume.num_blocks == 0:
+                return []  # nothing mapped yet to register to
             return [robot for robot in self.robots.held if robot.attempt_due()]
 
     def _guarded(self, step: Callable, arg: object) -> None:
@@ -146,18 +149,30 @@ class RobotJoiner:
             self._attempt(robot)
 
     def _attempt(self, robot: RobotStream) -> None:
+        """Register the held robot's recent frames, and (each attempt another) a stretch of its
+        hold's older frames: a robot that walked through mapped space earlier and is now somewhere
+        the map has not seen (a playback that ran ahead of the others) still joins on those."""
         service = self.service
+        params = self.robots.params
         with service._lock:
             if robot.state != "held":
                 return
             robot.attempt_pending = True
             robot.frames_since_attempt = 0
             robot.join_attempts += 1
-            submap = robot.submap.points.copy()
+            windows = [(robot.submap.points.copy(), robot.submap.frames)]
+            recent = {id(frame) for frame in robot.submap.frames}
+            older = [held.frame for held in robot.held if id(held.frame) not in recent]
+            size = params.join_submap_frames
+            if older:
+                chunks = [older[i:i + size] for i in range(0, len(older), size)]
+                chunk = chunks[(robot.join_attempts - 1) % len(chunks)]
+                window = Submap(params.join_voxel_m, window_frames=size)
+                for frame in chunk:
+                    window.add(frame)
+                windows.append((window.points, window.frames))
             map_points = service.volume.extract_points().points.astype(np.float64)
-            views = _spread(robot.submap.frames, self.robots.params.join_conflict_views)
         guess = robot.spec.T_map_odom if robot.spec.mode == "guess" else None
-        params = self.robots.params
 
         def render_depth(T_map_cam: np.ndarray, K) -> np.ndarray:  # noqa: ANN001
             with service._lock:
@@ -165,16 +180,24 @@ class RobotJoiner:
 
         # A surface of the map is only as sharp as its truncation band: beyond it is a contradiction.
         tolerance_m = params.join_conflict_tolerance_m + service.volume.params.trunc_m
-
-        def conflict(T_map_odom: np.ndarray) -> float:
-            return view_conflict(views, T_map_odom, render_depth, tolerance_m=tolerance_m)
-
+        found = None
         try:
-            # A search tries the identity too: poses are often in the map's frame already (a site map).
-            found = register_submap(submap, map_points, params, guess=guess,
-                                    extra_starts=[np.eye(4)] if guess is None else (), conflict=conflict)
+            for points, frames in windows:
+                views = _spread(frames, params.join_conflict_views)
+
+                def conflict(T_map_odom: np.ndarray, views: list = views) -> float:
+                    return view_conflict(views, T_map_odom, render_depth, tolerance_m=tolerance_m)
+
+                # A search tries the identity too: poses are often in the map's frame already (a site map).
+                tried = register_submap(points, map_points, params, guess=guess,
+                                        extra_starts=[np.eye(4)] if guess is None else (), conflict=conflict)
+                found = found or tried  # the recent window's reason is the one reported when none joins
+                if tried.accepted:
+                    found = tried
+                    break
         finally:
             robot.attempt_pending = False
+        assert found is not None
         robot.last_registration = found
         service._count(GeometryCounter.JOIN_ATTEMPTS)
         if not found.accepted:
