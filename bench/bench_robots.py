@@ -47,6 +47,9 @@ from openfusion.sources.synthetic.source import BuildingSource
 T_MAP_ODOM = yaw_transform(0.25, -0.15, 0.05, 5.0)  # 0.30 m, 5 degrees
 T_ODOM_MAP = np.linalg.inv(T_MAP_ODOM)
 ROOT = Path(__file__).resolve().parents[1]
+#: Each robot's camera rate in the runs: slow enough that the semantic service (latest frame only)
+#: fuses every frame on 2 cores, so runs differ by what the robots saw, not by which frames it took.
+RATE_HZ = 3.0
 
 
 def offset(frames: list) -> list:
@@ -138,7 +141,7 @@ def record(frames: list, path: Path) -> None:
 def run(out: Path, sources: list[str], *, robot_frames: str, voxel_m: float, frames: int | None) -> dict:
     """``openfusion run`` of the sources; ``frames``: --frames (None: each building source walks its route)."""
     cmd = [sys.executable, "-m", "openfusion.app.cli", "run", "--out", str(out), "--quiet", "--query", "chair",
-           "--rate-hz", "0", "--timeout-s", "3600", "--set", f"geometry.voxel_size_m={voxel_m}"]
+           "--rate-hz", str(RATE_HZ), "--timeout-s", "3600", "--set", f"geometry.voxel_size_m={voxel_m}"]
     if frames is not None:
         cmd += ["--frames", str(frames)]
     for spec in sources:

@@ -130,7 +130,8 @@ class RobotJoiner:
         with self.service._lock:
             if self.service.volume.num_blocks == 0:
                 return []  # nothing mapped yet to register to
-            return [robot for robot in self.robots.held if robot.attempt_due()]
+            blocks = self.service.volume.num_blocks
+            return [robot for robot in self.robots.held if robot.attempt_due(map_blocks=blocks)]
 
     def _guarded(self, step: Callable, arg: object) -> None:
         try:
@@ -157,16 +158,14 @@ class RobotJoiner:
         with service._lock:
             if robot.state != "held":
                 return
-            robot.attempt_pending = True
-            robot.frames_since_attempt = 0
-            robot.join_attempts += 1
+            robot.attempted(map_blocks=service.volume.num_blocks)
             windows = [(robot.submap.points.copy(), robot.submap.frames)]
             recent = {id(frame) for frame in robot.submap.frames}
             older = [held.frame for held in robot.held if id(held.frame) not in recent]
             size = params.join_submap_frames
             if older:
                 chunks = [older[i:i + size] for i in range(0, len(older), size)]
-                chunk = chunks[(robot.join_attempts - 1) % len(chunks)]
+                chunk = chunks[(robot.stretches_tried - 1) % len(chunks)]
                 window = Submap(params.join_voxel_m, window_frames=size)
                 for frame in chunk:
                     window.add(frame)

@@ -448,7 +448,7 @@ class GeometryService(DictionaryFollower):
             status = {}
             for robot in robots:
                 robot.queued = queued.get(robot.name, 0)
-                status[robot.name] = robot.status()
+                status[robot.name] = robot.status(map_blocks=self.volume.num_blocks)
         if self._runner is not None:
             self._runner.stats.set(GeometryCounter.ROBOTS, len(robots))
             self._runner.stats.set(GeometryCounter.ROBOTS_HELD, sum(r.state == "held" for r in robots))

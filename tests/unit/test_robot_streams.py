@@ -94,7 +94,7 @@ def test_a_held_robot_keeps_its_frames_for_the_join_and_a_full_hold_replays_the_
         assert b.admit(playback="pb", frame_id=frame.frame_id, prev_frame_id=frame.frame_id - 1) is Admission.TAKE
         b.hold(frame, playback="pb", frame_id=frame.frame_id, prev_frame_id=frame.frame_id - 1)
         b.took(playback="pb", frame_id=frame.frame_id)
-    assert len(b.held) == 3 and b.hold_overflowed and b.attempt_due()
+    assert len(b.held) == 3 and b.hold_overflowed and b.attempt_due(map_blocks=100)
     assert b.skipped["held_dropped"] == 0  # a playback's frames past the hold are replayed, not lost
     T = yaw_transform(0.3, 0, 0, 5)
     frames = b.join(T, method="global")
@@ -197,3 +197,31 @@ def test_health_carries_each_robot_and_the_health_command_prints_them() -> None:
     assert "anchor" in row["robot0"] and "2 attempt(s): fitness 0.19 < 0.35" in row["robot1"]
     assert row["robot2"].split()[7:11] == ["1.500", "-2.000", "0.000", "90.00"]
     assert robots_table({}) == ""
+
+
+def test_an_idle_held_robot_is_tried_again_when_the_map_grows_and_over_its_whole_hold() -> None:
+    """A held robot that sends nothing more (its playback ran ahead and ended) is tried again once
+    idle: on each stretch of its hold, and again whenever the map has grown by a tenth; never in a
+    loop when nothing changed."""
+    params = JoinParams(join_min_submap_frames=2, join_min_submap_points=10, join_submap_frames=2,
+                        join_attempt_every=100, join_idle_attempt_s=1.0)
+    streams = RobotStreams(params)
+    streams.get("a", map_empty=True)
+    b = streams.get("b", map_empty=True)
+    for frame in FRAMES[:6]:  # window: the last 2; hold: all 6, so two stretches outside the window
+        b.hold(frame, playback="pb", frame_id=frame.frame_id, prev_frame_id=frame.frame_id - 1)
+    now = b.last_held_at_s
+    assert b.hold_stretches == 2
+    assert b.attempt_due(map_blocks=100, now_s=now)  # the first attempt comes at once
+    tried = []
+    for _ in range(5):
+        later = max(b.last_held_at_s, b.last_attempt_at_s) + 1.5
+        if not b.attempt_due(map_blocks=100, now_s=later):
+            break
+        b.attempted(map_blocks=100)
+        b.attempt_pending = False
+        tried.append(b.stretches_tried)
+    assert tried == [1, 2]  # the recent window with stretch 1, then stretch 2; then nothing changed
+    later = b.last_attempt_at_s + 1.5
+    assert not b.attempt_due(map_blocks=105, now_s=later)  # grew by less than a tenth
+    assert b.attempt_due(map_blocks=120, now_s=later)  # grew: again

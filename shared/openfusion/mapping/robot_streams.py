@@ -175,6 +175,9 @@ class RobotStream:
         self.hold_overflowed = False  # frames were taken but not kept in the hold
         self.frames_since_attempt = 0
         self.last_held_at_s = 0.0  # time.monotonic() of the last frame held
+        self.last_attempt_at_s = 0.0
+        self.map_blocks_at_attempt = 0  # the map's size at the last attempt
+        self.stretches_tried = 0  # stretches of the hold tried since the map or the robot last changed
         self.attempt_pending = False
         self.last_registration: Registration | None = None
         self.join_method = ""
@@ -262,10 +265,12 @@ class RobotStream:
             if not playback:  # a live frame: lost (a playback's are replayed after the join)
                 self.skipped["held_dropped"] += 1
 
-    def attempt_due(self, now_s: float | None = None) -> bool:
+    def attempt_due(self, *, map_blocks: int, now_s: float | None = None) -> bool:
         """A held robot's submap is ready for a (new) registration attempt: enough frames, and new
-        ones since the last attempt (``join_attempt_every`` of them, or any when the robot has sent
-        nothing for ``join_idle_attempt_s``: a playback that ended, a robot that stopped)."""
+        ones since the last attempt (``join_attempt_every`` of them); or the robot has sent nothing
+        for ``join_idle_attempt_s`` (a playback that ended, a robot that stopped) and since its last
+        attempt it sent a frame, or the map (``map_blocks``) grew by a tenth, or a stretch of its
+        hold was not tried yet against the map as it is now (each attempt tries the next one)."""
         if (self.state != "held" or self.attempt_pending
                 or self.submap.num_frames < self.params.join_min_submap_frames
                 or len(self.submap) < self.params.join_min_submap_points):
@@ -273,12 +278,30 @@ class RobotStream:
         if self.join_attempts == 0 or self.frames_since_attempt >= self.params.join_attempt_every:
             return True
         now = time.monotonic() if now_s is None else now_s
-        return self.frames_since_attempt > 0 and now - self.last_held_at_s >= self.params.join_idle_attempt_s
+        if now - max(self.last_held_at_s, self.last_attempt_at_s) < self.params.join_idle_attempt_s:
+            return False
+        grew = map_blocks > self.map_blocks_at_attempt * 1.1
+        return self.frames_since_attempt > 0 or grew or self.stretches_tried < self.hold_stretches
 
     @property
-    def join_pending(self) -> bool:
+    def hold_stretches(self) -> int:
+        """Stretches of ``join_submap_frames`` frames of the hold outside the submap's window."""
+        window = self.params.join_submap_frames
+        return max(0, -(-(len(self.held) - window) // window))
+
+    def attempted(self, *, map_blocks: int) -> None:
+        """An attempt starts (on the map as it is now)."""
+        self.attempt_pending = True
+        grew = map_blocks > self.map_blocks_at_attempt * 1.1
+        self.stretches_tried = 1 if grew or self.frames_since_attempt > 0 else self.stretches_tried + 1
+        self.frames_since_attempt = 0
+        self.join_attempts += 1
+        self.map_blocks_at_attempt = map_blocks
+        self.last_attempt_at_s = time.monotonic()
+
+    def join_pending(self, *, map_blocks: int) -> bool:
         """A registration of this held robot runs or is due (a run is not finished while one is)."""
-        return self.state == "held" and (self.attempt_pending or self.attempt_due())
+        return self.state == "held" and (self.attempt_pending or self.attempt_due(map_blocks=map_blocks))
 
     def join(self, T_map_odom: np.ndarray, *, method: str, registration: Registration | None = None) -> list[HeldFrame]:
         """Joined with ``T_map_odom``: returns the held frames to integrate (in order). After it,
@@ -338,7 +361,7 @@ class RobotStream:
         return f"corrected by {metres * 100:.1f} cm / {degrees:.2f} deg"
 
     # ------------------------------------------------------------------ report
-    def status(self) -> dict[str, Any]:
+    def status(self, *, map_blocks: int = 0) -> dict[str, Any]:
         """What health and run.json report (:class:`openfusion.wire.schemas.admin.RobotStatus` fields)."""
         reg = self.last_registration
         return {
@@ -357,7 +380,7 @@ class RobotStream:
             "join_attempts": self.join_attempts,
             "join_reason": reg.reason if reg is not None else "",
             "corrections": self.corrections,
-            "join_pending": self.join_pending,
+            "join_pending": self.join_pending(map_blocks=map_blocks),
         }
 
 
