@@ -27,6 +27,7 @@ from openfusion.mapping.robot_join import (
     depth_points,
     recheck,
     register_submap,
+    thin,
     view_conflict,
 )
 from openfusion.mapping.robot_streams import RobotStream, RobotStreams
@@ -91,9 +92,13 @@ class RobotJoiner:
             self._cond.notify_all()
 
     def queue_recheck(self, robot: RobotStream, frame: Frame) -> None:
-        """Call with the service's lock held, before ``frame`` is integrated."""
-        job = _Recheck(robot, backproject_depth(frame), rendered_map_points(self.service, robot, frame),
-                       robot.T_map_odom.copy())
+        """Call with the service's lock held, before ``frame`` is integrated: the robot's recent
+        frames (this one last) and the map seen from their poses."""
+        frames = [*robot.recent, frame]
+        frame_points = thin(np.concatenate([backproject_depth(f) for f in frames]), self.robots.params.join_voxel_m / 2)
+        map_points = thin(np.concatenate([rendered_map_points(self.service, robot, f) for f in frames]),
+                          self.robots.params.join_voxel_m / 2)
+        job = _Recheck(robot, frame_points, map_points, robot.T_map_odom.copy())
         with self._cond:
             self._rechecks = [r for r in self._rechecks if r.robot is not robot] + [job]
             self._cond.notify_all()

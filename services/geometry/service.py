@@ -371,8 +371,10 @@ class GeometryService(DictionaryFollower):
             held = robot.state == "held"
             if held:  # into its submap and hold, never into the map (robot_streams)
                 robot.hold(frame, playback=msg.playback, frame_id=msg.frame_id, prev_frame_id=msg.prev_frame_id)
-            elif robot.recheck_due():
-                self.joiner.queue_recheck(robot, frame)
+            else:
+                if robot.recheck_due():
+                    self.joiner.queue_recheck(robot, frame)
+                robot.recent.append(frame)
         if held:
             self._count(GeometryCounter.FRAMES_HELD)
             self._acknowledge(msg, integrated=False)

@@ -127,11 +127,15 @@ def test_a_recheck_corrects_within_its_bounds_only() -> None:
     b = streams.get("b", map_empty=False)
     b.join(np.eye(4), method="icp")
     assert b.apply_recheck(_registration(yaw_transform(0.003, 0, 0, 0.05))) == "kept"
-    assert b.apply_recheck(_registration(yaw_transform(0.05, 0, 0, 0.5))).startswith("corrected by 5.0 cm")
-    np.testing.assert_allclose(b.T_map_odom, yaw_transform(0.05, 0, 0, 0.5))
+    # One re-check alone does not move the transform; the next one agreeing does.
+    assert b.apply_recheck(_registration(yaw_transform(0.05, 0, 0, 0.5))).startswith("pending: 5.0 cm")
+    np.testing.assert_array_equal(b.T_map_odom, np.eye(4))
+    assert b.apply_recheck(_registration(yaw_transform(0.02, 0, 0, 0))).startswith("pending")  # disagrees
+    assert b.apply_recheck(_registration(yaw_transform(0.024, 0, 0, 0.05))).startswith("corrected by 2.4 cm")
+    np.testing.assert_allclose(b.T_map_odom, yaw_transform(0.024, 0, 0, 0.05))
     assert b.apply_recheck(_registration(yaw_transform(1.0, 0, 0, 0))).startswith("refused: a correction of")
     assert b.apply_recheck(_registration(np.eye(4), accepted=False)) == "refused: fitness too low"
-    np.testing.assert_allclose(b.T_map_odom, yaw_transform(0.05, 0, 0, 0.5))
+    np.testing.assert_allclose(b.T_map_odom, yaw_transform(0.024, 0, 0, 0.05))
     assert b.corrections == 1
 
 

@@ -329,6 +329,9 @@ class JoinParams(ConfigSection):
     join_recheck_every: int = Field(
         30, ge=0, description="re-check a joined robot's transform against the map every this many of its frames "
         "(0 = never)")
+    join_recheck_frames: int = Field(
+        8, ge=1, description="a re-check registers the robot's last this many frames against the map seen from "
+        "their poses")
     join_recheck_min_correction_m: float = Field(
         0.01, ge=0, description="a re-check changes the transform only for a correction of at least this "
         "(or join_recheck_min_correction_deg)")

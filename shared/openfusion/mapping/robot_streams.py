@@ -184,6 +184,8 @@ class RobotStream:
         self.join_attempts = 0
         self.corrections = 0
         self.frames_since_recheck = 0
+        self.proposed_correction: np.ndarray | None = None  # a re-check's transform, waiting for the next one
+        self.recent: collections.deque[Frame] = collections.deque(maxlen=params.join_recheck_frames)
         # Counts.
         self.frames_taken = 0
         self.frames_integrated = 0
@@ -345,9 +347,12 @@ class RobotStream:
         return True
 
     def apply_recheck(self, found: Registration) -> str:
-        """Take a re-check's transform when it is accepted and its correction within bounds;
-        returns what was done (for the log): ``corrected``, ``kept`` or ``refused: ...``."""
+        """Take a re-check's transform when it is accepted, its correction within bounds, and the
+        re-check before it proposed the same (within the smallest correction): one re-check is a
+        few frames, and a jump one of them alone proposes is more likely noise than drift. Returns
+        what was done (for the log): ``corrected``, ``kept``, ``pending`` or ``refused: ...``."""
         p = self.params
+        proposed, self.proposed_correction = self.proposed_correction, None
         if not found.accepted:
             return f"refused: {found.reason}"
         metres, degrees = pose_difference(self.T_map_odom, found.T_map_odom)
@@ -356,6 +361,9 @@ class RobotStream:
                     f"({p.join_recheck_max_correction_m * 100:.0f} cm / {p.join_recheck_max_correction_deg:.1f} deg)")
         if metres < p.join_recheck_min_correction_m and degrees < p.join_recheck_min_correction_deg:
             return "kept"
+        if proposed is None or _apart(proposed, found.T_map_odom, p):
+            self.proposed_correction = found.T_map_odom
+            return f"pending: {metres * 100:.1f} cm / {degrees:.2f} deg, applied if the next re-check agrees"
         self.T_map_odom = found.T_map_odom
         self.corrections += 1
         return f"corrected by {metres * 100:.1f} cm / {degrees:.2f} deg"
@@ -467,3 +475,9 @@ class RobotStreams:
                 T = np.asarray(values, np.float64).reshape(4, 4) if values is not None else spec.T_map_odom
                 stream.join(T, method=str(entry.get("join_method") or "restored"))
             self.robots[stream.name] = stream
+
+
+def _apart(T_a: np.ndarray, T_b: np.ndarray, params: JoinParams) -> bool:
+    """Two transforms differ by at least the smallest correction a re-check applies."""
+    metres, degrees = pose_difference(T_a, T_b)
+    return metres >= params.join_recheck_min_correction_m or degrees >= params.join_recheck_min_correction_deg
