@@ -36,10 +36,12 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
+from openfusion.frame import Frame
 from openfusion.mapping import SemanticVolume, VolumeParams
 from openfusion.mapping import robot_join as rj
 from openfusion.mapping.params import JoinParams
 from openfusion.mapping.robot_streams import yaw_transform
+from openfusion.sources.base import IndexedFrameSource
 from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld
 from openfusion.sources.synthetic.building import SyntheticBuilding
 from openfusion.sources.synthetic.source import BuildingSource
@@ -130,12 +132,27 @@ def join_table(quick: bool) -> None:
 
 
 # ------------------------------------------------------------------------------------------- runs
-def record(frames: list, path: Path) -> None:
-    from openfusion.sources.record import FrameRecorder
+class _Frames(IndexedFrameSource):
+    """Frames in memory as an indexed source (what the ScanNet writer records)."""
 
-    with FrameRecorder(path) as recorder:
-        for f in frames:
-            recorder.write(f)
+    def __init__(self, frames: list) -> None:
+        super().__init__("bench-frames")
+        self.frames = frames
+
+    def _num_items(self) -> int:
+        return len(self.frames)
+
+    def _load(self, index: int) -> Frame:
+        return self.frames[index]
+
+
+def record(frames: list, path: Path) -> str:
+    """The frames as a ScanNet-layout scene (a playback the bridge can replay from any frame, with
+    instance images for the gt encoder); its source spec."""
+    from openfusion.sources.scannet_writer import write_scannet_layout
+
+    write_scannet_layout(_Frames(frames), path, color_format="png", ground_truth_spacing_m=None)
+    return f"scannet:{path}"
 
 
 def run(out: Path, sources: list[str], *, robot_frames: str, voxel_m: float, frames: int | None) -> dict:
@@ -220,20 +237,19 @@ def runs_table(quick: bool) -> None:
     walk_a = list(BuildingSource(building, route=list(range(routes[0][0], routes[0][-1] + 1)), revisit=0,
                                  width_px=wh["width"], height_px=wh["height"]))
     work = Path(tempfile.mkdtemp(prefix="bench_robots_"))
-    one = work / "one.ofrec"  # one robot: route a, then route b (ids and stamps go on)
-    shift = len(walk_a)
-    record(walk_a + [dataclasses.replace(f, frame_id=f.frame_id + shift, stamp_ns=f.stamp_ns + walk_a[-1].stamp_ns
-                                         + 33_333_333) for f in walk_b], one)
-    offset_b = work / "b_offset.ofrec"
-    record(offset(walk_b), offset_b)
+    shift = len(walk_a)  # one robot: route a, then route b (ids and stamps go on)
+    one = record(walk_a + [dataclasses.replace(f, frame_id=f.frame_id + shift,
+                                               stamp_ns=f.stamp_ns + walk_a[-1].stamp_ns + 33_333_333)
+                           for f in walk_b], work / "scene0000_00")
+    offset_b = record(offset(walk_b), work / "scene0001_00")
     spec = f"synthetic:building,rooms={rooms},revisit=0,{size}"
     cases = [
-        ("one robot, route a then route b", [f"replay:{one}"], "", None),
+        ("one robot, route a then route b", [one], "", None),
         ("two robots, poses in one frame", [f"{spec},route={route_a}", f"{spec},route={route_b},name=robot1"],
          "robot0=fixed;robot1=fixed", np.eye(4)),
         # robot0 holds the map's frame (fixed), whichever robot's frame comes first; robot1 is searched.
         ("two robots, robot 1 0.30 m / 5 deg off, no guess", [f"{spec},route={route_a}",
-                                                                f"replay:{offset_b},name=robot1"], "robot0=fixed",
+                                                                f"{offset_b},name=robot1"], "robot0=fixed",
          T_MAP_ODOM),
     ]
     print(f"### One robot or two on the building ({rooms} rooms, routes {route_a} and {route_b}, {size}, "
