@@ -16,6 +16,7 @@ from openfusion.config import ServiceConfig
 from openfusion.mapping import VolumeParams
 from openfusion.mapping.params import JoinParams
 from openfusion.mapping.queries import RegionTable
+from openfusion.wire.limits import MAX_SURFACE_POINTS
 from openfusion.wire.schemas import RegionSummaryReply
 
 logger = logging.getLogger("openfusion.services.geometry.service")
@@ -31,7 +32,8 @@ class GeometrySection(VolumeParams, JoinParams):
     frame_queue_size: int = Field(
         64, gt=0, description="frames waiting for integration; when full the oldest is dropped and counted"
     )
-    max_points_reply: int = Field(500_000, gt=0, description="most surface points or mesh vertices in one reply")
+    max_points_reply: int = Field(MAX_SURFACE_POINTS, gt=0, le=MAX_SURFACE_POINTS,
+                                  description="most surface points or mesh vertices in one reply")
     max_render_pixels: int = Field(640 * 480, gt=0, description="largest render request (width x height)")
     merge_on_save: bool = Field(
         True, description="before a save on control/save, ask the semantic service for a merge pass"

@@ -15,15 +15,19 @@
 | ``…/control/{save,load,reset}`` | queryable (admin) | ControlRequest → ControlReply |
 | ``…/semantic/merge`` | queries before ``control/save`` and the final save | MergeRequest → MergeReply |
 | ``…/semantic/dictionary`` | queries on a gap in the deltas (resync) | DictionaryRequest → DictionarySnapshot |
-| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC), ``voxels_relabelled``, ``save_merges``, ``save_merge_failures``, ``dictionary_resyncs`` |
+| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC), ``voxels_relabelled``, ``save_merges``, ``save_merge_failures``, ``dictionary_resyncs``; the map's size and memory: ``num_blocks`` (all), ``resident_blocks``, ``resident_mb``, ``tiles_paged_out``, ``tiles_paged_in``, ``checkpoint_last_s``, ``checkpoint_last_tiles``, ``saving``, ``rss_mb``, ``rss_peak_mb``, ``rss_anon_peak_mb`` (:mod:`.memory`) |
 
-Checkpoints go to ``{map_dir}/{map_id}`` every ``checkpoint_period_s`` (when something changed;
-without region summaries, which would cost a surface read-out under the lock integration waits
-on), on ``control/save`` and on shutdown (both with summaries); :func:`~openfusion.mapping.save_map` writes them atomically and keeps
-the one before as ``map.ofz.prev.npz``. On start the service loads the newest checkpoint, or the
-previous one when the newest is corrupt or missing (:func:`~openfusion.mapping.load_latest_map`,
-one warning line; both unreadable: the service does not start rather than map over them), so a
-restart loses nothing that was saved. Each checkpoint's meta records ``frames_integrated`` and
+Checkpoints go to the tile store ``{map_dir}/{map_id}/map.ofz`` every ``checkpoint_period_s``
+(when something changed; without region summaries, which would cost a surface read-out under the
+lock integration waits on), on ``control/save`` and on shutdown (both with summaries). They are
+incremental (:mod:`.checkpoints`, :mod:`openfusion.mapping.mapstore`): the tiles changed since the
+last one are copied under the lock, then encoded and committed in one LMDB transaction while
+integration goes on, so their cost follows what changed, and a crash at any instant leaves the
+last committed checkpoint whole. With ``memory_budget_mb`` the least recently observed tiles
+are paged out to the same store and read back when a frame or a render reaches them. On start
+the service loads its checkpoint (an older ``map.ofz.npz`` one too, or its ``.prev`` when it is
+corrupt: :func:`~openfusion.mapping.load_latest_map`; unreadable: the service does not start
+rather than map over it), so a restart loses nothing that was saved. Each checkpoint's meta records ``frames_integrated`` and
 ``last_frame_id`` (the id of the last frame integrated into it); after a load or save the service
 exposes it as :attr:`GeometryService.checkpoint_last_frame_id` and the health counter
 ``checkpoint_last_frame_id`` (-1: none). A checkpoint that fails with an ``OSError`` (disk full,
@@ -82,18 +86,18 @@ from openfusion.mapping import (
     MapFormatError,
     RegionDictionary,
     RenderedView,
-    SemanticVolume,
-    load_latest_map,
-    load_map,
     save_map,
 )
-from openfusion.mapping.mapfile import previous_map_path, resolve_map_path
+from openfusion.mapping.mapfile import resolve_map_path
+from openfusion.mapping.mapstore import checkpoint as checkpoint_store
 from openfusion.mapping.merging import block_contacts
 from openfusion.mapping.queries import RegionTable
 from openfusion.mapping.robot_streams import Admission, RobotStream, RobotStreams, parse_robot_frames
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
+from openfusion.services.geometry import checkpoints
 from openfusion.services.geometry.dictionary_follower import DictionaryFollower
+from openfusion.services.geometry.memory import MemoryPeaks, publish_map_size
 from openfusion.services.geometry.robots import RobotJoiner
 from openfusion.services.geometry.section import GeometryConfig, SummaryCache
 from openfusion.services.geometry.section import (
@@ -172,7 +176,11 @@ class GeometryService(DictionaryFollower):
         self.config = config
         self.section = config.geometry
         self._lock = threading.RLock()
-        self.volume = SemanticVolume(self.section.volume_params())
+        self.checkpoint_dir: Path | None = (
+            self.section.map_dir / config.map_id if self.section.map_dir is not None else None
+        )
+        load = self.section.load_on_start and self.checkpoint_dir is not None and _has_checkpoint(self.checkpoint_dir)
+        self.volume = checkpoints.new_volume(self.section.volume_params(), None if load else self.checkpoint_dir)
         self.replica = DictionaryReplica()
         self.frames_integrated = 0
         self.updates_applied = 0
@@ -191,9 +199,8 @@ class GeometryService(DictionaryFollower):
         self._summary_lock = threading.Lock()
         self._dirty = False
         self._last_checkpoint = time.monotonic()
-        self.checkpoint_dir: Path | None = (
-            self.section.map_dir / config.map_id if self.section.map_dir is not None else None
-        )
+        self.saving = False
+        self._memory = MemoryPeaks()
         self._runner: ServiceRunner | None = None
         self._frames_sub: Subscriber[RgbdFrame] | None = None
         self._progress_pub: Publisher | None = None
@@ -202,8 +209,8 @@ class GeometryService(DictionaryFollower):
         self.integrate_busy_s = 0.0
         self._recent_renders: OrderedDict[tuple[str, int], RenderedView] = OrderedDict()  # (robot, frame id) -> render
         self.joiner = RobotJoiner(self, integrate_held=self._integrate_held)
-        if self.section.load_on_start and self.checkpoint_dir is not None and _has_checkpoint(self.checkpoint_dir):
-            self._load(self.checkpoint_dir, fallback=True, restore_counts=True)
+        if load:
+            self._load(self.checkpoint_dir, fallback=True, restore_counts=True)  # type: ignore[arg-type]
 
     # ----------------------------------------------------------- the first robot's chain (one robot: the map's)
     def _first_robot(self) -> RobotStream | None:
@@ -236,11 +243,26 @@ class GeometryService(DictionaryFollower):
     def _load(self, path: Path, *, fallback: bool = False, restore_counts: bool = False) -> None:
         """Load a map file; ``fallback``: a checkpoint of ours, the ``.prev`` one when the newest is bad;
         ``restore_counts``: (a restart) take ``frames_integrated`` and ``integrate_busy_s`` from it."""
-        loaded = (load_latest_map if fallback else load_map)(path, device=self.section.device)
+        params = self.section.volume_params()
+        own = self.checkpoint_dir is not None and Path(path).resolve() == self.checkpoint_dir.resolve()
+        if not own:
+            checkpoints.validate(path)  # a bad map is refused before the current one is let go
+        with self._lock:
+            # The checkpoint folder's store is reopened (own) or replaced (a copy of the other map).
+            self.volume.close()
+            try:
+                loaded = (checkpoints.load_own(path, params, fallback=fallback) if own
+                          else checkpoints.load_other(path, params, self.checkpoint_dir))
+            except BaseException:
+                self.volume = checkpoints.reopen(params, self.checkpoint_dir)
+                self._map_changed(reset_keys=True)
+                raise
         if restore_counts:
             self.frames_integrated = int(loaded.meta.get("frames_integrated") or 0)
             self.integrate_busy_s = float(loaded.meta.get("integrate_busy_s") or 0.0)
         with self._lock:
+            if self.volume is not loaded.volume:
+                self.volume.close()
             self.volume = loaded.volume
             has_semantics = loaded.dictionary.embedding_space != NO_EMBEDDING_SPACE
             self.replica.reset(loaded.dictionary if has_semantics else None)
@@ -259,57 +281,97 @@ class GeometryService(DictionaryFollower):
         )
 
     def save(self, path: Path | None = None, *, summary: bool = True) -> Path:
-        """Save the map (atomically) to ``path`` or the checkpoint folder. ``summary=False`` (the
-        periodic checkpoints) leaves out the region summaries, which cost a surface read-out
-        under the lock integration waits on; a save asked for on ``control/save`` stores them."""
+        """Save the map to ``path`` or checkpoint it into the checkpoint folder's store. ``summary=False``
+        (the periodic checkpoints) leaves out the region summaries, which cost a surface read-out
+        under the lock integration waits on; a save asked for on ``control/save`` stores them. A
+        checkpoint holds the lock only while it copies the changed tiles (module docstring)."""
         target = path or self.checkpoint_dir
         if target is None:
             raise RequestError(
                 "no_map_dir", "no path given and the geometry service has no map_dir configured"
             )
-        with self._lock:
+        own = self.checkpoint_dir is not None and Path(target).resolve() == self.checkpoint_dir.resolve()
+        started = time.monotonic()
+        held = [True]
+
+        def release() -> None:
+            if held[0]:
+                held[0] = False
+                self._lock.release()
+
+        self._lock.acquire()
+        self._set_saving(True)
+        try:
             # A geometry-only map (semantics off) is saved with an empty placeholder dictionary.
             dictionary = self.replica.dictionary or RegionDictionary(NO_EMBEDDING_SPACE, 1)
             # The region table of this very map version when a query already had it computed (a
-            # surface read-out saved); else save_map reads the surface out once.
+            # surface read-out saved); else the save reads the surface out once.
             cached = self._summary
             regions = cached.table if cached is not None and cached.map_version == self.map_version else None
+            if regions is None and summary:
+                # Read the surface out here rather than inside the save, and keep the table: the
+                # queries that follow a save (the end of `openfusion run`) are answered from it
+                # instead of each asking for a whole-map read-out (tens of seconds on a floor).
+                pts = self.volume.extract_points()
+                regions = RegionTable.of_points(pts.keys, pts.points)
+                horizon = max(self._key_horizon, int(regions.keys[-1]) + 1 if len(regions) else 0)
+                self._summary = SummaryCache(self.map_version, horizon, regions)
             first = self._first_robot()
             # The map's chain for readers from before robots: its first robot's.
             last = None if first is None else first.map_last_frame_id
-            try:
-                written = save_map(
-                    target,
-                    self.volume,
-                    dictionary,
-                    meta={
-                        "map_id": self.config.map_id,
-                        "frames_integrated": self.frames_integrated,
-                        "integrate_busy_s": self.integrate_busy_s,
-                        "last_frame_id": last,
-                        "playback": "" if first is None else first.map_playback,
-                        **self.robots.to_meta(),
-                    },
-                    regions=regions,
-                    summary=summary or regions is not None,
-                )
-            except OSError as exc:
-                # Disk full, read-only folder...: save_map left the files as they were and no
-                # temporary file; the map stays in memory and the next period tries again.
-                self._last_checkpoint = time.monotonic()
-                self.checkpoint_failures += 1
-                self._count(GeometryCounter.CHECKPOINT_FAILURES)
-                failed = resolve_map_path(target)
-                reason = exc.strerror or str(exc)
-                logger.error("geometry: checkpoint to %s failed: %s; the map is kept in memory", failed, reason)
-                raise CheckpointFailed(failed, reason) from exc
-            self._dirty = False
-            self.checkpoint_last_frame_id = last
+            meta = {
+                "map_id": self.config.map_id,
+                "frames_integrated": self.frames_integrated,
+                "integrate_busy_s": self.integrate_busy_s,
+                "last_frame_id": last,
+                "playback": "" if first is None else first.map_playback,
+                **self.robots.to_meta(),  # each robot's chain and transform, in the same snapshot
+            }
+            self._dirty = False  # a change after the snapshot sets it again
+            tiles = 0
+            if own and self.volume.store is not None:
+                info = checkpoint_store(self.volume, dictionary, meta, regions=regions,
+                                        summary=summary or regions is not None, on_snapshot=release)
+                written, tiles = self.volume.store.path, int(info["tiles"])
+            else:
+                written = save_map(target, self.volume, dictionary, meta=meta, regions=regions,
+                                   summary=summary or regions is not None)
+        except OSError as exc:
+            # Disk full, read-only folder...: the store (or file) is as it was before; the map
+            # stays in memory and the next period tries again.
+            self._dirty = True
+            self._last_checkpoint = time.monotonic()
+            self.checkpoint_failures += 1
+            self._count(GeometryCounter.CHECKPOINT_FAILURES)
+            failed = resolve_map_path(target)
+            reason = exc.strerror or str(exc)
+            logger.error("geometry: checkpoint to %s failed: %s; the map is kept in memory", failed, reason)
+            raise CheckpointFailed(failed, reason) from exc
+        except BaseException:
+            self._dirty = True  # not saved: the next period tries again
+            raise
+        finally:
+            release()
+            self._set_saving(False)
+        self.checkpoint_last_frame_id = last
         self._last_checkpoint = time.monotonic()
         self._count(GeometryCounter.CHECKPOINTS)
         self._set_checkpoint_frame()
-        logger.info("geometry: saved map to %s (last frame %s)", written, "none" if last is None else last)
-        return written
+        if self._runner is not None:
+            self._runner.stats.set(GeometryCounter.CHECKPOINT_LAST_S, self._last_checkpoint - started)
+            self._runner.stats.set(GeometryCounter.CHECKPOINT_LAST_TILES, tiles)
+        logger.info("geometry: saved map to %s (last frame %s, %d tiles written, %.2f s)", written,
+                    "none" if last is None else last, tiles, self._last_checkpoint - started)
+        return Path(written)
+
+    def _set_saving(self, saving: bool) -> None:
+        self.saving = saving
+        if self._runner is not None:
+            self._runner.stats.set(GeometryCounter.SAVING, 1 if saving else 0)
+
+    def _set_memory_stats(self) -> None:
+        if self._runner is not None:
+            publish_map_size(self._runner.stats, self.volume)
 
     def _set_checkpoint_frame(self) -> None:
         if self._runner is not None:
@@ -427,7 +489,7 @@ class GeometryService(DictionaryFollower):
             self._runner.stats.set(GeometryCounter.INTEGRATE_BUSY_S, self.integrate_busy_s)
             self._runner.stats.set(GeometryCounter.LAST_INTEGRATED_AT_S, ended)
             self._runner.stats.set(GeometryCounter.FRAMES_INTEGRATED, self.frames_integrated)
-            self._runner.stats.set(GeometryCounter.NUM_BLOCKS, self.volume.num_blocks)
+            self._set_memory_stats()
             self._runner.stats.set(GeometryCounter.LAST_FRAME_ID, frame.frame_id)
         return True
 
@@ -608,7 +670,8 @@ class GeometryService(DictionaryFollower):
                 raise RequestError("bad_map", str(exc)) from exc
             return ControlReply(ok=True, message=f"loaded {path}")
         with self._lock:
-            self.volume = SemanticVolume(self.section.volume_params())
+            self.volume.close()
+            self.volume = checkpoints.new_volume(self.section.volume_params(), self.checkpoint_dir, fresh=True)
             self.replica.reset(None)
             self.frames_integrated = 0
             self.robots = RobotStreams(self.section.join_params(), parse_robot_frames(self.section.robot_frames))
@@ -636,7 +699,7 @@ class GeometryService(DictionaryFollower):
             runner.queryable(endpoint, lambda req, action=action: self.handle_control(req, action=action))
         runner.stats.set(GeometryCounter.FRAMES_INTEGRATED, self.frames_integrated)
         runner.stats.set(GeometryCounter.INTEGRATE_BUSY_S, self.integrate_busy_s)
-        runner.stats.set(GeometryCounter.NUM_BLOCKS, self.volume.num_blocks)
+        self._set_memory_stats()
         runner.stats.set(GeometryCounter.CHECKPOINT_FAILURES, self.checkpoint_failures)
         for name in (GeometryCounter.FRAMES_DUPLICATE, GeometryCounter.FRAMES_OUT_OF_ORDER):
             runner.stats.set(name, 0)
@@ -651,6 +714,7 @@ class GeometryService(DictionaryFollower):
     def loop(self, runner: ServiceRunner) -> None:
         period = self.section.checkpoint_period_s
         while not runner.wait(min(period, 1.0) if period > 0 else 1.0):
+            self._memory.sample_into(runner.stats)
             if self.waiting_for_frames:  # until each robot's next playback frame comes in order
                 self.announce()
             if (
@@ -677,11 +741,12 @@ class GeometryService(DictionaryFollower):
         if self._dirty and self.checkpoint_dir is not None:
             with contextlib.suppress(CheckpointFailed):  # logged by save()
                 self.save()  # with summaries: this one is what `query --map-dir` reads after a stop
+        self.volume.close()
 
 
 def _has_checkpoint(path: Path) -> bool:
-    """A checkpoint (the newest or the one before it) is at ``path``."""
-    return resolve_map_path(path).exists() or previous_map_path(path).exists()
+    """A checkpoint (a committed tile store, or a version-1 file or the one before it) is at ``path``."""
+    return checkpoints.has_checkpoint(path)
 
 
 DEFINITION = ServiceDefinition(

@@ -60,6 +60,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--width", type=int, default=None, help="synthetic image width (default 640)")
     parser.add_argument("--height", type=int, default=None, help="synthetic image height (default 480)")
     parser.add_argument("--voxel-size", type=float, default=None, help="voxel size in metres (default 0.02)")
+    parser.add_argument("--memory-budget-mb", type=float, default=None,
+                        help="map with a memory budget: tiles paged out to a scratch tile store (default none)")
     parser.add_argument(
         "--semantic-every", type=int, default=None, help="semantic step every k-th frame (default 1)"
     )
@@ -133,8 +135,15 @@ def config_from_args(args: argparse.Namespace) -> EvalConfig:
         v = getattr(args, opt)
         if v is not None:
             overrides[key] = v
+    volume_changes: dict[str, float] = {}
     if args.voxel_size is not None:
-        overrides["volume"] = base.volume.with_changes(voxel_size_m=args.voxel_size)
+        volume_changes["voxel_size_m"] = args.voxel_size
+    if getattr(args, "memory_budget_mb", None) is not None:
+        if args.memory_budget_mb <= 0:
+            raise UsageError(f"--memory-budget-mb must be positive, got {args.memory_budget_mb:g}")
+        volume_changes["memory_budget_mb"] = args.memory_budget_mb
+    if volume_changes:
+        overrides["volume"] = base.volume.with_changes(**volume_changes)
     if overrides["exclude_background"] and not overrides["background_classes"]:
         raise UsageError("--exclude-background needs at least one class in --background-classes")
     return replace(base, **overrides)

@@ -36,7 +36,10 @@ service, ``--restart-backoff-s``, doubled for each restart; :mod:`openfusion.app
 last frame it holds, the bridge replays the frames after it, and geometry ignores frames it
 already holds, so every frame is integrated exactly once (README, "Crash-proof mapping").
 Past the restart limit the run fails as without supervision, but first saves the map geometry
-holds (when it is alive) and writes ``run.json`` with the ``error``.
+holds (when it is alive) and writes ``run.json`` with the ``error``. ``run.json``'s ``map_saved``
+says where the map went on every path that saved one (done, interrupted, failed after saving);
+the progress line and ``run.json`` count semantic frames the same way across restarts
+(:func:`progress_counts`).
 
 Settings: one :class:`~openfusion.app.run_config.RunConfig` (every service's section), validated
 before anything starts, written to ``OUT/run-config.json`` and read by every service.
@@ -59,8 +62,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from pydantic import ValidationError
-
+from openfusion.app.end_of_run import fetch_mesh, save_and_wait
 from openfusion.app.launcher import Cluster, RunError, StopSignals, wait_for_services
 from openfusion.app.outputs import open_rerun, say_progress, surface_mesh, write_query_outputs
 from openfusion.app.run_config import RUN_FLAGS, SECTION_MODELS, RunConfig, write_service_config
@@ -75,7 +77,7 @@ from openfusion.sources.synthetic_spec import split_world
 from openfusion.wire.counters import BridgeCounter, CommonCounter, GeometryCounter, SemanticCounter
 from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
 from openfusion.wire.keys import validate_map_id
-from openfusion.wire.schemas import TextQuery
+from openfusion.wire.limits import LimitError, check_text, check_top_k
 from openfusion.wire.schemas.base import check_robot_name
 
 logger = logging.getLogger(__name__)
@@ -235,14 +237,17 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
     stats: dict[str, Any] = {}
     carried: dict[str, dict[str, float]] = {}
     map_dir = out / "map"
+    saved_to: str | None = None  # where the map went, once saved (run.json's map_saved)
 
     def summary_now(error: str | None = None) -> RunSummary:
-        return RunSummary.from_health(
+        summary = RunSummary.from_health(
             _with_carried(stats, carried), source=config.bridge.source, encoder=config.semantic.encoder, noise=config.semantic.noise,
             semantic_every=config.semantic.every_k, wall_s=time.monotonic() - started,
             frames_requested=sum(config.robot_frames.values()) if config.robots else config.bridge.max_frames,
             interrupted=signals.requested is not None, robot_sources=config.robot_sources(),
             restarts=cluster.restarts, error=error, encoder_workers=args.encoder_workers)
+        summary.map_saved = saved_to
+        return summary
 
     try:
         stats = _follow_progress(args, client, cluster, signals, stats, carried)
@@ -255,7 +260,10 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
             (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
             raise signals.interrupted("no frame was integrated yet; nothing saved")
     _say(args, "saving the map")
-    client.control("save", str(map_dir.resolve()))
+    geometry = cluster.processes.get("geometry")
+    save_and_wait(client, map_dir, say=lambda line: _say(args, line),
+                  alive=lambda: geometry is not None and geometry.alive())
+    saved_to = str(map_dir.resolve())
     replies = []
     for text in args.queries:
         if signals.requested:
@@ -266,11 +274,10 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
         summary = summary_now()
         (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
         raise signals.interrupted(f"saved the map of {summary.frames_integrated} integrated frames to {map_dir}")
-    mesh = client.mesh()
-    write_query_outputs(out, replies, (mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys),
-                        say=say_progress(args.quiet))
+    mesh = fetch_mesh(client, map_dir, say=lambda line: _say(args, line))  # too large for a reply: from OUT/map
+    write_query_outputs(out, replies, mesh, say=say_progress(args.quiet))
     if rerun is not None:
-        rerun.log_mesh(surface_mesh(mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys))
+        rerun.log_mesh(mesh if not isinstance(mesh, tuple) else surface_mesh(*mesh))
         for text, _space, hits in replies:
             rerun.log_query(text, hits)
     return summary_now()
@@ -284,7 +291,7 @@ def _save_what_is_left(args: argparse.Namespace, client: Any, cluster: Cluster, 
     if geometry is not None and geometry.alive() and summary.frames_integrated > 0:
         try:
             client.control("save", str(map_dir.resolve()))
-            summary.map_saved = True
+            summary.map_saved = str(map_dir.resolve())
             _say(args, f"saved the map of {summary.frames_integrated} integrated frames to {map_dir}")
         except Exception as exc:  # noqa: BLE001 - the run's own error is what the user must see
             logger.warning("could not save the map after the run failed: %s", exc)
@@ -330,6 +337,14 @@ def _carry_over(stats: dict[str, Any], fresh: dict[str, Any], carried: dict[str,
         into = carried.setdefault(name, {})
         for counter in counters:
             into[counter] = into.get(counter, 0.0) + old.counter(counter)
+
+
+def progress_counts(stats: dict[str, Any]) -> dict[str, int]:
+    """The progress line's semantic counts, from the stats run.json is made of (with the counts of
+    earlier processes of a restarted service added: :func:`_with_carried`), so the line ends on
+    the ``semantic_frames`` that run.json says."""
+    return {"semantic": int(_counter(stats, "semantic", SemanticCounter.SEMANTIC_FRAMES)),
+            "regions": int(_counter(stats, "semantic", SemanticCounter.REGIONS))}
 
 
 def _with_carried(stats: dict[str, Any], carried: dict[str, dict[str, float]]) -> dict[str, Any]:
@@ -391,14 +406,14 @@ def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
                 stable_since = None
             cluster.check_alive()
             fresh = collect_health(client.session, client.keys, timeout_s=1.0)
-            _carry_over(stats, fresh, {} if carried is None else carried)
+            carried = {} if carried is None else carried
+            _carry_over(stats, fresh, carried)
             stats.update(fresh)
             integrated = _counter(stats, "geometry", GeometryCounter.FRAMES_INTEGRATED)
             refused = (_counter(stats, "geometry", GeometryCounter.CAPACITY_REFUSED)
                        + _counter(stats, "geometry", GeometryCounter.FRAMES_FAILED))
             bar.n = int(integrated)
-            bar.set_postfix(semantic=int(_counter(stats, "semantic", SemanticCounter.SEMANTIC_FRAMES)),
-                            regions=int(_counter(stats, "semantic", SemanticCounter.REGIONS)))
+            bar.set_postfix(**progress_counts(_with_carried(stats, carried)))
             bar.refresh()
             bridges = bridge_names(cluster)
             done = playback_stopped or all(_counter(stats, b, BridgeCounter.PLAYBACK_DONE) >= 1 for b in bridges)
@@ -489,15 +504,14 @@ def _check_out_dir(out: Path) -> None:
 
 
 def _check_queries(queries: Sequence[str], top_k: int) -> None:
-    """Refuse example queries the query service would refuse (empty text, ``--top-k`` out of range)
-    with the limits of its request message, before the scene is mapped."""
+    """Refuse example queries the query service would refuse (empty or too long a text, ``--top-k``
+    out of range) with the one set of limits (:mod:`openfusion.wire.limits`), before the scene is mapped."""
     for text in queries:
         try:
-            TextQuery(text=text, top_k=top_k, with_points=True, max_points=QUERY_MAX_POINTS)
-        except ValidationError as exc:
-            err = exc.errors(include_url=False)[0]
-            flag = {"text": "--query", "top_k": "--top-k"}.get(str(err["loc"][0]), str(err["loc"][0]))
-            raise UsageError(f"{flag} {err['input']!r}: {err['msg'][:1].lower()}{err['msg'][1:]}") from None
+            check_text(text)
+        except LimitError as exc:
+            raise UsageError(f"--query {text[:40]!r}: {exc}") from None
+    check_top_k(top_k, name="--top-k")
 
 
 def _check_text_encoder(config: RunConfig) -> None:

@@ -32,6 +32,7 @@ from openfusion.services.semantic.service import SemanticSection
 #: The section fields ``openfusion run`` offers as flags (everything else: ``--set`` or ``--config``).
 RUN_FLAGS: dict[str, list[str]] = {
     "bridge": ["rate_hz"],  # --source is the run's own (repeatable: one bridge per robot)
+    "geometry": ["memory_budget_mb"],
     "semantic": ["encoder", "noise", "every_k", "encoder_delay_ms"],
     "query": ["text_encoder"],
     "supervision": ["max_restarts", "restart_backoff_s"],

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, ValidationInfo, field_validator
 
 from openfusion.mapping.pipeline import PipelineStats, reconstruction_rates
 from openfusion.wire.counters import (
@@ -106,8 +106,13 @@ class RunSummary(BaseModel):
     announced the last frame its checkpoint holds (not in ``frames_published``, which counts each
     frame once); ``frames_duplicate``: frames geometry received and dropped because it already held
     them. ``frames_integrated`` counts each frame once, restarts or not. ``error``: the run failed
-    (a service died past the restart limit, a timeout) and ``map_saved`` says whether the map of
-    the frames integrated by then was saved to ``map_dir`` anyway.
+    (a service died past the restart limit, a timeout).
+
+    ``map_saved``: where the map went (the absolute path of the map folder, ``OUT/map``) on every
+    path that saved one: a finished run, an interrupted one, one that failed after saving what
+    geometry held; null when no map was saved (nothing integrated yet, or the run failed before it
+    could save). ``semantic_frames`` adds up over restarts of the semantic service, as the
+    progress line does. A ``run.json`` written before (``map_saved`` true or false) still loads.
     """
 
     mode: Literal["services", "in-process"]
@@ -146,9 +151,22 @@ class RunSummary(BaseModel):
     frames_replayed: int = 0
     frames_duplicate: int = 0
     error: str | None = None
-    map_saved: bool | None = None
+    map_saved: str | None = None
+    #: geometry's memory (MiB): its grid's voxel buffers (the memory budget when one is set) and the
+    #: peaks of its resident memory, sampled once a second (RSS; RssAnon without mapped file pages)
+    geometry_grid_mb: float | None = None
+    geometry_rss_peak_mb: float | None = None
+    geometry_rss_anon_peak_mb: float | None = None
     #: each robot's stream by robot name (one robot: ``robot0``, or ``--robot``); README "Several robots"
     robots: dict[str, RobotRun] = Field(default_factory=dict)
+
+    @field_validator("map_saved", mode="before")
+    @classmethod
+    def _legacy_map_saved(cls, value: object, info: ValidationInfo) -> object:
+        """``run.json`` before issue 32: ``true`` (saved to ``map_dir``) or ``false``/null (not saved)."""
+        if isinstance(value, bool):
+            return info.data.get("map_dir", "map") if value else None
+        return value
 
     @classmethod
     def from_health(
@@ -203,13 +221,16 @@ class RunSummary(BaseModel):
             frames_encoded_per_worker={k.removeprefix(ENCODED_BY_PREFIX): int(v) for k, v in
                                        (stats["semantic"].counters.items() if "semantic" in stats else [])
                                        if k.startswith(ENCODED_BY_PREFIX)},
+            geometry_grid_mb=_round(c("geometry", GeometryCounter.RESIDENT_MB)),
+            geometry_rss_peak_mb=_round(c("geometry", GeometryCounter.RSS_PEAK_MB)),
+            geometry_rss_anon_peak_mb=_round(c("geometry", GeometryCounter.RSS_ANON_PEAK_MB)),
             semantic_rate_hz=_round(_rate(c("semantic", SemanticCounter.SEMANTIC_FRAMES),
                                           c("semantic", SemanticCounter.FIRST_FUSED_AT_S),
                                           c("semantic", SemanticCounter.LAST_FUSED_AT_S))),
             restarts=dict(restarts or {}),
             frames_replayed=int(c("bridge", BridgeCounter.FRAMES_REPLAYED)),
             frames_duplicate=int(c("geometry", GeometryCounter.FRAMES_DUPLICATE)),
-            error=error, map_saved=False if error else None,
+            error=error,
             robots=_robots(stats, robot_sources or {_DEFAULT_ROBOT: source}),
         )
 

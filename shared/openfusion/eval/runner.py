@@ -50,6 +50,7 @@ from openfusion.eval.scenes import SceneSpec, check_scene_inputs, open_scene
 from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume
 from openfusion.mapping.merging import EmptyRegions, MergeSchedule, merge_regions
 from openfusion.mapping.params import MatchParams, MergeParams, VolumeParams
+from openfusion.mapping.storage import SEMANTIC_BYTES_PER_VOXEL
 
 logger = logging.getLogger(__name__)
 
@@ -325,9 +326,10 @@ def evaluate_scene(
     )
 
     # ---- memory + query time of the region map
-    n_blocks = int(volume.num_blocks)
+    n_blocks = int(volume.num_blocks_total)
     d = region_emb.shape[1] if region_emb.ndim == 2 else 0
-    voxel_sem_bytes = n_blocks * config.volume.block_resolution**3 * (4 + 4)  # key int32 + conf float32
+    # key slot uint16 + conf uint16 (compact voxels, openfusion.mapping.storage)
+    voxel_sem_bytes = n_blocks * config.volume.block_resolution**3 * SEMANTIC_BYTES_PER_VOXEL
     dict_bytes = len(region_keys) * (d * 4 + 4 + 8)  # embedding + count + key
     q = class_emb[:1]
     memory = {

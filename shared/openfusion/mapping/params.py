@@ -53,10 +53,18 @@ class VolumeParams(ConfigSection):
         16384,
         ge=1,
         description=(
-            "blocks allocated at start: 16384 blocks of 8^3 voxels x 28 B = 230 MiB, a furnished room at 2 cm. "
-            "The grid doubles when full and each doubling copies every block while integration waits (~0.5 s), "
-            "so a map starts big enough for a room"
+            "blocks allocated at start without a memory budget: 16384 blocks of 8^3 voxels x 16 B = 128 MiB, a "
+            "furnished room at 2 cm (the grid doubles when full)"
         ),
+    )
+    memory_budget_mb: float | None = Field(
+        None,
+        gt=0,
+        description="resident voxel memory in MiB (none = everything stays resident): the grid is allocated once at "
+        "this size and the least recently observed tiles are paged out to the tile store, and back in when seen again",
+    )
+    tile_blocks: int = Field(
+        8, ge=1, le=64, description="blocks per tile edge: tiles are what is paged, checkpointed and stored (8: 1.28 m)"
     )
     max_blocks: int | None = Field(
         None, ge=1, description="block budget; none = grow. A frame needing more is refused or clipped (when_full)"

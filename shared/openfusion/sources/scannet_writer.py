@@ -24,6 +24,9 @@ absolute error well under 1 level, see tests/test_sources_scannet.py).
 
 The scene is written into a temporary sibling folder and renamed into place at the end, so a
 failure never leaves a half-written scene behind.
+
+Command: ``python -m openfusion.sources.record_scannet SPEC OUT_DIR`` writes any source spec this way
+(:mod:`openfusion.sources.record_scannet`).
 """
 
 from __future__ import annotations
@@ -281,3 +284,4 @@ def _write_ground_truth(path: Path, world, spacing_m: float) -> int:  # noqa: AN
         },
     )
     return len(gt.points)
+

@@ -50,10 +50,12 @@ from pydantic import BaseModel, ValidationError
 from pydantic_core import PydanticCustomError, core_schema
 
 from openfusion.errors import OpenFusionError
+from openfusion.wire.limits import MAX_MESSAGE_BYTES
 from openfusion.wire.message import Message, message_class
 
-DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
-"""Largest payload :func:`encode` writes and :func:`decode` reads unless told otherwise."""
+DEFAULT_MAX_MESSAGE_BYTES = MAX_MESSAGE_BYTES
+"""Largest payload :func:`encode` writes and :func:`decode` reads unless told otherwise
+(:data:`openfusion.wire.limits.MAX_MESSAGE_BYTES`)."""
 
 DEFAULT_MAX_ARRAY_ELEMENTS = 32 * 1024 * 1024
 """Most elements one array may have on the wire unless told otherwise (per array)."""

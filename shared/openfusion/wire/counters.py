@@ -75,6 +75,16 @@ class GeometryCounter(StrEnum):
     JOIN_RECHECKS = "join_rechecks"  # re-checks of joined robots' transforms
     JOIN_CORRECTIONS = "join_corrections"  # re-checks that changed a transform
     UPDATES_DROPPED_NOT_JOINED = "updates_dropped_not_joined"  # semantic updates of a robot not joined (none written)
+    RESIDENT_BLOCKS = "resident_blocks"  # blocks in RAM (num_blocks counts the whole map: resident + paged out)
+    RESIDENT_MB = "resident_mb"  # MiB of the grid's voxel buffers (its capacity: allocated and touched at once)
+    TILES_PAGED_OUT = "tiles_paged_out"  # tiles that left RAM for the tile store (memory budget)
+    TILES_PAGED_IN = "tiles_paged_in"  # tiles read back before a frame or a render reached them
+    CHECKPOINT_LAST_S = "checkpoint_last_s"  # seconds the last checkpoint took (snapshot to commit)
+    CHECKPOINT_LAST_TILES = "checkpoint_last_tiles"  # tiles it encoded (those changed since the one before)
+    SAVING = "saving"  # 1 while a save (control/save) is being written
+    RSS_MB = "rss_mb"  # the process's resident memory, sampled once a second
+    RSS_PEAK_MB = "rss_peak_mb"  # ... its largest sample
+    RSS_ANON_PEAK_MB = "rss_anon_peak_mb"  # largest sample of RssAnon (without the store's mapped file pages)
 
 
 class SemanticCounter(StrEnum):

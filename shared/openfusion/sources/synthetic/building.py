@@ -9,11 +9,12 @@ rooms of a route (:mod:`~openfusion.sources.synthetic.walk`). The plan is
 :mod:`~openfusion.sources.synthetic.floorplan`'s.
 
 Rendering
-    All of the building's triangles are in one Embree scene (``render.SceneRenderer``, as the room):
-    Embree's BVH already skips what a ray does not come near, and a frame costs its pixels' shading,
-    not the building's size (``bench/bench_building_render.py`` measures it against the room,
-    per number of rooms). Nothing is culled by hand, so a building frame is exactly the
-    render of the whole building.
+    Only what the camera can see: each room and the corridor is a cell with its own Embree scene,
+    and a view is cast into the camera's cell and on through the doorways it sees
+    (:mod:`~openfusion.sources.synthetic.portals`), so a frame costs about what a frame of the
+    built-in room costs whatever the number of rooms (``bench/bench_building_render.py``: per
+    number of rooms, against the room in the same run). ``render_whole`` casts into the whole
+    building at once (the reference the tests compare with); ``cast`` (ground truth) always does.
 
 Ground truth
     As the room's: labelled points sampled on every surface, kept when seen from a viewpoint, where
@@ -33,7 +34,8 @@ import open3d as o3d
 from openfusion.frame import CameraIntrinsics
 from openfusion.sources.synthetic.floorplan import build_floorplan
 from openfusion.sources.synthetic.furniture import WorldObject
-from openfusion.sources.synthetic.render import RenderedView, SceneRenderer, objects_mesh
+from openfusion.sources.synthetic.portals import PORTAL_MARGIN_M, Portal, PortalRenderer
+from openfusion.sources.synthetic.render import RenderedView, objects_mesh
 from openfusion.sources.synthetic.surface import GroundTruthSurface, room_viewpoints, sample_surface
 from openfusion.sources.synthetic.walk import (
     START_X_M,
@@ -60,7 +62,7 @@ class SyntheticBuilding:
         self.categories: dict[int, str] = {o.instance_id: o.category for o in self.objects}
         self.rooms = self.plan.rooms
         self.height_m = self.plan.height_m
-        self._renderer: SceneRenderer | None = None
+        self._renderer: PortalRenderer | None = None
         self._gt_cache: dict[tuple[float, bool], GroundTruthSurface] = {}
         self._visits: dict[int, np.ndarray] = {}
 
@@ -88,23 +90,43 @@ class SyntheticBuilding:
 
     # ----------------------------------------------------------------------- ray casting
 
-    def _scene_renderer(self) -> SceneRenderer:
+    def _scene_renderer(self) -> PortalRenderer:
         if self._renderer is None:
-            self._renderer = SceneRenderer(self.objects)
+            cells = [self.plan.corridor_instance_ids] + [room.instance_ids for room in self.rooms]
+            portals = [Portal(room.portal_quad(), (0, 1 + room.index)) for room in self.rooms]
+            self._renderer = PortalRenderer(self.objects, cells, portals, self.cell_of)
         return self._renderer
+
+    def cell_of(self, xyz: np.ndarray) -> int | None:
+        """The cell a camera at ``xyz`` is in: 0 the corridor, 1 + k room k (or its doorway); None
+        within :data:`~.portals.PORTAL_MARGIN_M` of a doorway's portal or outside every cell."""
+        x, y = float(xyz[0]), float(xyz[1])
+        for room in self.rooms:
+            a, b = room.doorway_x_m
+            if a - PORTAL_MARGIN_M <= x <= b + PORTAL_MARGIN_M and abs(y - room.portal_y_m) <= PORTAL_MARGIN_M:
+                return None
+            if room.contains((x, y)):
+                return 1 + room.index
+        x0, y0, x1, y1 = self.plan.corridor_rect_m
+        return 0 if x0 <= x <= x1 and y0 <= y <= y1 else None
 
     @property
     def scene(self) -> o3d.t.geometry.RaycastingScene:
-        """The cached ``RaycastingScene`` (all triangles in one geometry; built on first use)."""
+        """The whole building's ``RaycastingScene`` (all triangles in one geometry; built on first use)."""
         return self._scene_renderer().scene
 
     def cast(self, origins: np.ndarray, directions: np.ndarray) -> dict[str, np.ndarray]:
-        """Cast rays; see :meth:`SyntheticWorld.cast`."""
+        """Cast rays into the whole building; see :meth:`SyntheticWorld.cast`."""
         return self._scene_renderer().cast(origins, directions)
 
     def render(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> RenderedView:
-        """Noise-free render from ``T_world_cam`` (OpenCV camera axes)."""
+        """Noise-free render from ``T_world_cam`` (OpenCV camera axes), cast into the camera's room
+        or corridor and on through doorways (:mod:`~openfusion.sources.synthetic.portals`)."""
         return self._scene_renderer().render(T_world_cam, intrinsics)
+
+    def render_whole(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> RenderedView:
+        """The same view cast into the whole building at once (the reference :meth:`render` agrees with)."""
+        return self._scene_renderer().render_whole(T_world_cam, intrinsics)
 
     # ---------------------------------------------------------------------------- camera
 

@@ -72,6 +72,28 @@ class BuildingRoom:
     rect_m: tuple[float, float, float, float]  # interior floor (x0, y0, x1, y1)
     door_x_m: float  # the doorway's centre along the corridor
     instance_ids: tuple[int, ...]
+    portal_y_m: float  # the plane of the corridor's wall the doorway opens in (the room's cell starts there)
+
+    @property
+    def doorway_x_m(self) -> tuple[float, float]:
+        """The doorway's opening along the corridor (m)."""
+        return (self.door_x_m - DOORWAY_WIDTH_M / 2, self.door_x_m + DOORWAY_WIDTH_M / 2)
+
+    def portal_quad(self) -> np.ndarray:
+        """(4, 3) the doorway's opening in the corridor's wall, floor (less the walls' overlap) to lintel."""
+        a, b = self.doorway_x_m
+        y = self.portal_y_m
+        return np.array([[a, y, -_E], [b, y, -_E], [b, y, DOORWAY_HEIGHT_M], [a, y, DOORWAY_HEIGHT_M]])
+
+    def contains(self, xy: np.ndarray) -> bool:
+        """``xy`` lies in the room or in its doorway (the wall's thickness, between the jambs)."""
+        x, y = float(xy[0]), float(xy[1])
+        x0, y0, x1, y1 = self.rect_m
+        if x0 <= x <= x1 and y0 <= y <= y1:
+            return True
+        a, b = self.doorway_x_m
+        lo, hi = (self.portal_y_m, y0) if self.side == "north" else (y1, self.portal_y_m)
+        return a <= x <= b and lo < y < hi
 
     @property
     def inward_y(self) -> float:
@@ -162,8 +184,9 @@ class DoorwayRoomLayout(RoomLayout):
         a, b = self.doorway_m
         t, dh = WALL_THICKNESS_M, DOORWAY_HEIGHT_M
         wall0 = wall_with_openings((0.0, 0.0), (1.0, 0.0), (-_E, W + _E), H, (0.0, 1.0), [(a, b, dh)])
-        # the reveal: both jambs and the lintel through the wall, a little past both faces
-        y0, y1 = -t - _E, _E
+        # the reveal: both jambs and the lintel through the wall, from the corridor's face (the
+        # doorway's portal, where the room's cell ends) to a little past the room's
+        y0, y1 = -t, _E
         wall0 += [
             facing_quad([[a, y0, -_E], [a, y1, -_E], [a, y1, dh], [a, y0, dh]], (1, 0, 0)),
             facing_quad([[b, y0, -_E], [b, y1, -_E], [b, y1, dh], [b, y0, dh]], (-1, 0, 0)),
@@ -171,8 +194,8 @@ class DoorwayRoomLayout(RoomLayout):
         ]
         self._build_room([wall0, *self.wall_quads()[1:]])
         floor = next(o for o in self.objects if o.category == "floor")
-        # the threshold: the room's floor through the doorway, up to the corridor's floor
-        threshold = facing_quad([[a, -t + _E, 0.0], [b, -t + _E, 0.0], [b, 0.0, 0.0], [a, 0.0, 0.0]], (0, 0, 1))
+        # the threshold: the room's floor through the doorway, up to the corridor's (which ends there)
+        threshold = facing_quad([[a, -t, 0.0], [b, -t, 0.0], [b, 0.0, 0.0], [a, 0.0, 0.0]], (0, 0, 1))
         floor.parts.append(Part(*_quad(threshold), _PALETTE["floor"], "planks"))
 
     def add_door(self, rng: np.random.Generator) -> WorldObject:
@@ -258,7 +281,9 @@ def build_floorplan(seed: int, rooms: int) -> Floorplan:
             quads = wall_with_openings((0.0, y), (1.0, 0.0), (s_lo, s_hi), H, (0.0, normal), openings)
             new("wall", [Part(*_quad(q), wall_rgb, "paint") for q in quads])
         for category, z, nz, texture in (("floor", 0.0, 1.0, "planks"), ("ceiling", H, -1.0, "paint")):
-            q = facing_quad([[s_lo, -_E, z], [s_hi, -_E, z], [s_hi, Cw + _E, z], [s_lo, Cw + _E, z]], (0, 0, nz))
+            # exactly between the walls (which reach past floor and ceiling): nothing of the corridor
+            # lies beyond a doorway's portal
+            q = facing_quad([[s_lo, 0.0, z], [s_hi, 0.0, z], [s_hi, Cw, z], [s_lo, Cw, z]], (0, 0, nz))
             new(category, [Part(*_quad(q), _PALETTE[category], texture)])
     new("wall", [Part(*_quad(q), wall_rgb, "paint") for q in wall_with_openings((L, 0.0), (0.0, 1.0), (-_E, Cw + _E), H, (-1.0, 0.0), [])])
     _decorate_corridor(np.random.default_rng([seed, 33, 3]), new, L, Cw, cuts, doors, n_bays)
@@ -278,9 +303,8 @@ def build_floorplan(seed: int, rooms: int) -> Floorplan:
             moved = _moved(obj, len(objects) + 1, R2, t2)
             objects.append(moved)
             ids.append(moved.instance_id)
-        placed.append(
-            BuildingRoom(k, "north" if k % 2 == 0 else "south", tuple(float(v) for v in rect), float(doors[k]), tuple(ids))
-        )
+        placed.append(BuildingRoom(k, "north" if k % 2 == 0 else "south", tuple(float(v) for v in rect), float(doors[k]),
+                                   tuple(ids), Cw if k % 2 == 0 else 0.0))
     return Floorplan(H, Cw, L, tuple(placed), corridor_ids, objects)
 
 

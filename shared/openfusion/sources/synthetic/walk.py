@@ -93,15 +93,17 @@ class RoomGrid:
         xs = x0 + (np.arange(self.shape[0]) + 0.5) * GRID_M
         ys = y0 + (np.arange(self.shape[1]) + 0.5) * GRID_M
         free = np.ones(self.shape, dtype=bool)
-        for fx0, fy0, fx1, fy1 in footprints:
-            ix = (xs >= fx0) & (xs <= fx1)
-            iy = (ys >= fy0) & (ys <= fy1)
+        half = GRID_M / 2
+        for fx0, fy0, fx1, fy1 in footprints:  # every cell a footprint touches, however thin
+            ix = (xs + half >= fx0) & (xs - half <= fx1)
+            iy = (ys + half >= fy0) & (ys - half <= fy1)
             free[np.ix_(ix, iy)] = False
         padded = np.zeros((self.shape[0] + 2, self.shape[1] + 2), dtype=bool)  # walls all round
         padded[1:-1, 1:-1] = free
         # distance between cell centres, less a cell: never more than the true clearance
         self.clearance_m = ndimage.distance_transform_edt(padded)[1:-1, 1:-1] * GRID_M - GRID_M
         self.walkable = self.clearance_m >= ROBOT_CLEARANCE_M
+        self._csr = None  # the walkable cells' graph, built on the first shortest path
 
     def cell(self, p: np.ndarray) -> tuple[int, int]:
         i, j = np.floor((np.asarray(p, dtype=np.float64) - self.origin) / GRID_M).astype(int)
@@ -134,9 +136,9 @@ class RoomGrid:
     def shortest_path(self, a: np.ndarray, b: np.ndarray) -> list[np.ndarray] | None:
         """Points from ``a`` to ``b`` (both walkable) along walkable cells, pulled straight where
         the line stays clear; None when ``b`` cannot be reached."""
-        graph = getattr(self, "_csr", None)
-        if graph is None:
-            graph = self._csr = self._graph()
+        if self._csr is None:
+            self._csr = self._graph()
+        graph = self._csr
         ca, cb = self.cell(a), self.cell(b)
         ia, ib = ca[0] * self.shape[1] + ca[1], cb[0] * self.shape[1] + cb[1]
         dist, pred = dijkstra(graph, directed=False, indices=ia, return_predecessors=True)
@@ -217,11 +219,10 @@ def room_visit(plan: Floorplan, room: BuildingRoom, footprints: Sequence[tuple[f
         order = order[order.index(first) :] + order[: order.index(first)]
         stops = [entry] + [spots[k] for k in order] + [entry]
         path: list[np.ndarray] = [entry]
-        for a, b in zip(stops[:-1], stops[1:], strict=True):
-            leg = grid.shortest_path(a, b)
-            if leg is None:  # cannot happen for reachable spots; skip rather than walk through
-                continue
-            path.extend(leg[1:])
+        for stop in stops[1:]:
+            leg = grid.shortest_path(path[-1], stop)
+            if leg is not None:  # always, for spots in the entry's component; never a jump
+                path.extend(leg[1:])
         dense = _densify(path)
         walked = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense, axis=0), axis=1))])
         yaw = yaw_in
