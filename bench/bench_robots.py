@@ -24,7 +24,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import subprocess
@@ -36,26 +35,25 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from openfusion.frame import Frame
 from openfusion.mapping import SemanticVolume, VolumeParams
 from openfusion.mapping import robot_join as rj
 from openfusion.mapping.params import JoinParams
-from openfusion.mapping.robot_streams import yaw_transform
-from openfusion.sources.base import IndexedFrameSource
 from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld
 from openfusion.sources.synthetic.building import SyntheticBuilding
 from openfusion.sources.synthetic.source import BuildingSource
+from openfusion.testing.robots import (
+    T_MAP_ODOM,
+    building_map_quality,
+    off_surface_share,
+    offset,
+    one_after_the_other,
+    record_scene,
+)
 
-T_MAP_ODOM = yaw_transform(0.25, -0.15, 0.05, 5.0)  # 0.30 m, 5 degrees
-T_ODOM_MAP = np.linalg.inv(T_MAP_ODOM)
 ROOT = Path(__file__).resolve().parents[1]
 #: Each robot's camera rate in the runs: slow enough that the semantic service (latest frame only)
 #: fuses every frame on 2 cores, so runs differ by what the robots saw, not by which frames it took.
 RATE_HZ = 3.0
-
-
-def offset(frames: list) -> list:
-    return [dataclasses.replace(f, T_world_cam=T_ODOM_MAP @ f.T_world_cam) for f in frames]
 
 
 # ---------------------------------------------------------------------------------------- joining
@@ -132,29 +130,6 @@ def join_table(quick: bool) -> None:
 
 
 # ------------------------------------------------------------------------------------------- runs
-class _Frames(IndexedFrameSource):
-    """Frames in memory as an indexed source (what the ScanNet writer records)."""
-
-    def __init__(self, frames: list) -> None:
-        super().__init__("bench-frames")
-        self.frames = frames
-
-    def _num_items(self) -> int:
-        return len(self.frames)
-
-    def _load(self, index: int) -> Frame:
-        return self.frames[index]
-
-
-def record(frames: list, path: Path) -> str:
-    """The frames as a ScanNet-layout scene (a playback the bridge can replay from any frame, with
-    instance images for the gt encoder); its source spec."""
-    from openfusion.sources.scannet_writer import write_scannet_layout
-
-    write_scannet_layout(_Frames(frames), path, color_format="png", ground_truth_spacing_m=None)
-    return f"scannet:{path}"
-
-
 def run(out: Path, sources: list[str], *, robot_frames: str, voxel_m: float, frames: int | None) -> dict:
     """``openfusion run`` of the sources; ``frames``: --frames (None: each building source walks its route)."""
     cmd = [sys.executable, "-m", "openfusion.app.cli", "run", "--out", str(out), "--quiet", "--query", "chair",
@@ -174,57 +149,6 @@ def run(out: Path, sources: list[str], *, robot_frames: str, voxel_m: float, fra
     return summary
 
 
-def quality(map_dir: Path, building: SyntheticBuilding, robot1_frames: list | None, T_map_odom: np.ndarray | None,
-            truth: np.ndarray | None, voxel_m: float) -> dict:
-    from openfusion.encoders import make_text_encoder
-    from openfusion.eval.ground_truth import synthetic_ground_truth
-    from openfusion.eval.metrics import compute_metrics
-    from openfusion.eval.point_labels import region_counts
-    from openfusion.eval.protocol import (
-        classify_embeddings,
-        confusion_for_points,
-        ground_truth_labels_for,
-        labels_from_region_keys,
-    )
-    from openfusion.mapping import load_map
-
-    loaded = load_map(map_dir)
-    gt = synthetic_ground_truth(building, spacing_m=0.05)
-    surface = loaded.volume.extract_points()
-    points = np.asarray(surface.points, np.float64)
-    text = make_text_encoder("minilm")
-    class_emb = np.asarray(text.encode(list(gt.class_names)), np.float32)
-    region_cls = classify_embeddings(np.asarray(loaded.dictionary.unit_embeddings(), np.float32), class_emb)
-    pred = labels_from_region_keys(np.asarray(surface.keys, np.int64), np.asarray(loaded.dictionary.keys, np.int64),
-                                   region_cls)
-    gt_labels, _ = ground_truth_labels_for(points, gt)
-    metrics = compute_metrics(confusion_for_points(pred, gt_labels, gt.class_names))
-    counts = region_counts(np.asarray(surface.keys), gt, None)
-    out = {"points": len(points), "f_mIoU": metrics.f_mIoU, "mAcc": metrics.mAcc,
-           "regions_per_object": counts["regions_100_per_object"], "far_share": float("nan"),
-           "far_share_truth": float("nan")}
-    if robot1_frames is not None and T_map_odom is not None:
-        # Robot 1's surface through the transform in use (its frames alone, fused as geometry
-        # fuses them) against the true surface, and the same through the true transform: a wall
-        # fused twice shows as the first share over the second.
-        out["far_share"] = far_share(robot1_frames, T_map_odom, gt, voxel_m)
-        out["far_share_truth"] = far_share(robot1_frames, truth, gt, voxel_m)
-    return out
-
-
-def far_share(frames: list, T_map_odom: np.ndarray, gt: object, voxel_m: float) -> float:
-    """Share of the surface of ``frames`` (fused through ``T_map_odom``) farther than two voxels
-    from the ground-truth mesh."""
-    from openfusion.eval.geometry import mesh_distances
-
-    volume = SemanticVolume(VolumeParams(voxel_size_m=voxel_m, initial_block_count=16384))
-    for f in frames:
-        volume.integrate(dataclasses.replace(f, T_world_cam=T_map_odom @ f.T_world_cam))
-    points = volume.extract_points().points.astype(np.float64)
-    distances = mesh_distances(points, np.asarray(gt.mesh_vertices), np.asarray(gt.mesh_triangles))  # type: ignore[attr-defined]
-    return float((distances > 2 * voxel_m).mean())
-
-
 def runs_table(quick: bool) -> None:
     rooms, size = (2, "width=160,height=120") if quick else (4, "width=320,height=240")
     route_a, route_b = ("0", "1") if quick else ("0-1", "2-3")
@@ -237,11 +161,8 @@ def runs_table(quick: bool) -> None:
     walk_a = list(BuildingSource(building, route=list(range(routes[0][0], routes[0][-1] + 1)), revisit=0,
                                  width_px=wh["width"], height_px=wh["height"]))
     work = Path(tempfile.mkdtemp(prefix="bench_robots_"))
-    shift = len(walk_a)  # one robot: route a, then route b (ids and stamps go on)
-    one = record(walk_a + [dataclasses.replace(f, frame_id=f.frame_id + shift,
-                                               stamp_ns=f.stamp_ns + walk_a[-1].stamp_ns + 33_333_333)
-                           for f in walk_b], work / "scene0000_00")
-    offset_b = record(offset(walk_b), work / "scene0001_00")
+    one = record_scene(one_after_the_other(walk_a, walk_b), work / "scene0000_00")  # one robot: a, then b
+    offset_b = record_scene(offset(walk_b), work / "scene0001_00")
     spec = f"synthetic:building,rooms={rooms},revisit=0,{size}"
     cases = [
         ("one robot, route a then route b", [one], "", None),
@@ -266,8 +187,12 @@ def runs_table(quick: bool) -> None:
         T_used = None
         if "robot1" in robots:
             T_used = np.asarray(robots["robot1"]["T_map_odom"], np.float64).reshape(4, 4)
-        q = quality(work / f"run{i}" / "map", building, walk_b if i == 1 else offset(walk_b) if i == 2 else None,
-                    T_used, truth, voxel_m)
+        q = building_map_quality(work / f"run{i}" / "map", building)
+        q["far_share"] = q["far_share_truth"] = float("nan")
+        if T_used is not None and truth is not None:
+            b_frames = walk_b if i == 1 else offset(walk_b)
+            q["far_share"] = off_surface_share(b_frames, T_used, building, voxel_m)
+            q["far_share_truth"] = off_surface_share(b_frames, truth, building, voxel_m)
         base_points = base_points or q["points"]
         per = ", ".join(f"{k} {v['frames_integrated']}" for k, v in robots.items())
         err = "-"
