@@ -80,6 +80,7 @@ import numpy as np
 import zenoh
 
 from openfusion.bus import Publisher, RequestError, ServiceRunner, Subscriber
+from openfusion.frame import Frame
 from openfusion.mapping import (
     CapacityError,
     MapFormatError,
@@ -91,12 +92,14 @@ from openfusion.mapping import (
 from openfusion.mapping.mapfile import resolve_map_path
 from openfusion.mapping.mapstore import checkpoint as checkpoint_store
 from openfusion.mapping.queries import RegionTable
+from openfusion.mapping.robot_streams import Admission, RobotStream, RobotStreams, parse_robot_frames
 from openfusion.mapping.tilestore import STORE_DIR_NAME
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
 from openfusion.services.geometry import checkpoints
 from openfusion.services.geometry.dictionary_follower import DictionaryFollower
 from openfusion.services.geometry.memory import MemoryPeaks, publish_map_size
+from openfusion.services.geometry.robots import RobotJoiner
 from openfusion.services.geometry.section import GeometryConfig, SummaryCache
 from openfusion.services.geometry.section import (
     GeometrySection as GeometrySection,  # re-exported: the config's section
@@ -134,6 +137,7 @@ from openfusion.wire.schemas import (
     RgbdFrame,
     SemanticUpdate,
 )
+from openfusion.wire.schemas.base import DEFAULT_ROBOT
 
 logger = logging.getLogger(__name__)
 
@@ -185,8 +189,11 @@ class GeometryService(DictionaryFollower):
         self.replica = DictionaryReplica()
         self.frames_integrated = 0
         self.updates_applied = 0
-        self.last_frame_id: int | None = None  # the last frame taken (integrated, or refused for capacity)
-        # The last frame id recorded in the newest checkpoint this service loaded or saved.
+        # Each robot's stream: chain, join, counts (openfusion.mapping.robot_streams).
+        self.robots = RobotStreams(self.section.join_params(), parse_robot_frames(self.section.robot_frames))
+        self._robot_sources: dict[bytes, str] = {}  # frame publisher (one bridge per robot) -> robot
+        self.last_integrated_frame_id: int | None = None  # of any robot
+        # The last frame id recorded in the newest checkpoint this service loaded or saved (first robot's).
         self.checkpoint_last_frame_id: int | None = None
         self.checkpoint_failures = 0
         # Bumped by every change of the map (frames, updates, merges, load, reset): region
@@ -207,16 +214,40 @@ class GeometryService(DictionaryFollower):
         self._runner: ServiceRunner | None = None
         self._frames_sub: Subscriber[RgbdFrame] | None = None
         self._progress_pub: Publisher | None = None
-        # Resume (module docstring): this process's name, the number of its last announcement, and
-        # whether it waits for the playback frame after last_frame_id.
+        # Resume (module docstring): this process's name; chains and announcements are per robot.
         self.incarnation = uuid.uuid4().hex[:16]
-        self.playback = ""  # the playback whose frames up to last_frame_id this map holds
-        self.resume = 1
-        self.waiting_for_frames = True
         self.integrate_busy_s = 0.0
-        self._recent_renders: OrderedDict[int, RenderedView] = OrderedDict()  # frame id -> render
+        self._recent_renders: OrderedDict[tuple[str, int], RenderedView] = OrderedDict()  # (robot, frame id) -> render
+        self.joiner = RobotJoiner(self, integrate_held=self._integrate_held)
         if load:
             self._load(self.checkpoint_dir, fallback=True, restore_counts=True)  # type: ignore[arg-type]
+
+    # ----------------------------------------------------------- the first robot's chain (one robot: the map's)
+    def _first_robot(self) -> RobotStream | None:
+        return next(iter(self.robots), None)
+
+    @property
+    def last_frame_id(self) -> int | None:
+        """The last frame taken of the map's first robot (one robot: the map's chain)."""
+        robot = self._first_robot()
+        return None if robot is None else robot.last_taken
+
+    @property
+    def playback(self) -> str:
+        robot = self._first_robot()
+        return "" if robot is None else robot.playback
+
+    @property
+    def waiting_for_frames(self) -> bool:
+        """Some robot waits for the playback frame after the last one it holds."""
+        return any(robot.waiting for robot in self.robots)
+
+    def _map_empty(self) -> bool:
+        return self.volume.num_blocks == 0
+
+    def _robot(self, name: str) -> RobotStream:
+        with self._lock:
+            return self.robots.get(name, map_empty=self._map_empty())
 
     # ------------------------------------------------------------------ state changes
     def _load(self, path: Path, *, fallback: bool = False, restore_counts: bool = False) -> None:
@@ -236,8 +267,6 @@ class GeometryService(DictionaryFollower):
                 self.volume = checkpoints.reopen(params, self.checkpoint_dir)
                 self._map_changed(reset_keys=True)
                 raise
-        last = loaded.meta.get("last_frame_id")
-        self.playback = str(loaded.meta.get("playback") or "")
         if restore_counts:
             self.frames_integrated = int(loaded.meta.get("frames_integrated") or 0)
             self.integrate_busy_s = float(loaded.meta.get("integrate_busy_s") or 0.0)
@@ -247,7 +276,9 @@ class GeometryService(DictionaryFollower):
             self.volume = loaded.volume
             has_semantics = loaded.dictionary.embedding_space != NO_EMBEDDING_SPACE
             self.replica.reset(loaded.dictionary if has_semantics else None)
-            self.last_frame_id = self.checkpoint_last_frame_id = int(last) if last is not None else None
+            self.robots.restore(loaded.meta, default_robot=DEFAULT_ROBOT)
+            first = self._first_robot()
+            self.checkpoint_last_frame_id = None if first is None else first.map_last_frame_id
             self._map_changed(reset_keys=True)
             self._dirty = False
         self._set_checkpoint_frame()
@@ -278,14 +309,18 @@ class GeometryService(DictionaryFollower):
 
         def state() -> tuple[RegionDictionary, dict[str, object]]:
             """The checkpoint's instant (called holding the lock): what it holds, and the map clean."""
-            captured["last"] = self.last_frame_id
+            first = self._first_robot()
+            # The map's chain for readers from before robots: its first robot's.
+            last = None if first is None else first.map_last_frame_id
+            captured["last"] = last
             self._dirty = False  # a change after this sets it again
             meta = {
                 "map_id": self.config.map_id,
                 "frames_integrated": self.frames_integrated,
                 "integrate_busy_s": self.integrate_busy_s,
-                "last_frame_id": self.last_frame_id,
-                "playback": self.playback,
+                "last_frame_id": last,
+                "playback": "" if first is None else first.map_playback,
+                **self.robots.to_meta(),  # each robot's chain and transform, in the same snapshot
             }
             # A geometry-only map (semantics off) is saved with an empty placeholder dictionary.
             return self.replica.dictionary or RegionDictionary(NO_EMBEDDING_SPACE, 1), meta
@@ -378,81 +413,100 @@ class GeometryService(DictionaryFollower):
             self._runner.stats.incr(name, by)
 
     # ---------------------------------------------------------------------- handlers
-    def _admit(self, msg: RgbdFrame) -> bool:
-        """Whether to take this frame (module docstring, "Resume"); a playback frame already held or
-        out of order is counted here (and an announcement sent for the latter)."""
-        held = NO_FRAME_ID if self.last_frame_id is None else self.last_frame_id
-        if msg.prev_frame_id is None:  # live: as it comes; count the ids that never arrived
-            if self.last_frame_id is not None and msg.frame_id > held + 1:
-                self._count(GeometryCounter.FRAMES_GAP, msg.frame_id - held - 1)
-            self.waiting_for_frames = False
-            return True
-        if msg.playback != self.playback:  # another playback: it starts at its first frame
-            if msg.prev_frame_id == NO_FRAME_ID:
-                self.playback = msg.playback
-                self.waiting_for_frames = False
-                return True
-            held = NO_FRAME_ID
-        elif msg.frame_id <= held:
-            self._count(GeometryCounter.FRAMES_DUPLICATE)
-            logger.debug("geometry: frame %d dropped: already held (last %d)", msg.frame_id, held)
-            return False
-        if msg.prev_frame_id != held:
-            self._count(GeometryCounter.FRAMES_OUT_OF_ORDER)
-            if not self.waiting_for_frames:
-                self.waiting_for_frames = True
-                self.resume += 1
-                logger.warning("geometry: frame %d follows frame %d, but the last frame held is %d; asking for "
-                               "the frames after it", msg.frame_id, msg.prev_frame_id, held)
-                self.announce()
-            return False
-        self.waiting_for_frames = False
-        return True
-
-    def announce(self) -> None:
-        """Publish where playback should continue (``resume`` announcement on ``geometry/progress``)."""
+    def announce(self, robot: RobotStream | None = None) -> None:
+        """Publish where a robot's playback should continue (``resume`` announcement on
+        ``geometry/progress``), for ``robot`` or for every robot that waits for frames."""
         if self._progress_pub is None:
             return
-        held = NO_FRAME_ID if self.last_frame_id is None else self.last_frame_id
-        try:
-            self._progress_pub.put(GeometryProgress(
-                frame_id=-1, stamp_ns=0, integrated=False, frames_integrated=self.frames_integrated, queued=0,
-                incarnation=self.incarnation, holds_playback=self.playback, holds_frame_id=held,
-                resume=self.resume))
-        except zenoh.ZError as exc:  # repeated every second while waiting
-            logger.warning("geometry: resume announcement not published: %s", exc)
+        for r in [robot] if robot is not None else self.robots.announcements_due():
+            r.announce_due = False
+            playback, held = r.announcement()
+            try:
+                self._progress_pub.put(GeometryProgress(
+                    frame_id=-1, stamp_ns=0, integrated=False, frames_integrated=self.frames_integrated, queued=0,
+                    incarnation=self.incarnation, holds_playback=playback, holds_frame_id=held, resume=r.resume,
+                    robot=r.name))
+            except zenoh.ZError as exc:  # repeated every second while waiting
+                logger.warning("geometry: resume announcement for robot %s not published: %s", r.name, exc)
+
+    def announce_robots(self) -> None:
+        """Announce for the robots that need one now (a join that asks for a replay)."""
+        with self._lock:
+            due = [r for r in self.robots if r.announce_due]
+        for robot in due:
+            self.announce(robot)
 
     def on_frame(self, msg: RgbdFrame) -> None:
-        if not self._admit(msg):
+        robot = self._robot(msg.robot)
+        self._note_queue(robot)
+        gaps = robot.frames_gap
+        admission = robot.admit(playback=msg.playback, frame_id=msg.frame_id, prev_frame_id=msg.prev_frame_id)
+        if robot.frames_gap > gaps:
+            self._count(GeometryCounter.FRAMES_GAP, robot.frames_gap - gaps)
+        if admission is not Admission.TAKE:
+            self._count(GeometryCounter.FRAMES_DUPLICATE if admission is Admission.DUPLICATE
+                        else GeometryCounter.FRAMES_OUT_OF_ORDER)
+            if robot.announce_due:
+                self.announce(robot)
             self._acknowledge(msg, integrated=False)
             return
+        frame = msg.to_frame()
+        with self._lock:  # the join (another thread) changes the state under this lock
+            robot.took(playback=msg.playback, frame_id=msg.frame_id)
+            held = robot.state == "held"
+            if held:  # into its submap and hold, never into the map (robot_streams)
+                robot.hold(frame, playback=msg.playback, frame_id=msg.frame_id, prev_frame_id=msg.prev_frame_id)
+            else:
+                if robot.recheck_due():
+                    self.joiner.queue_recheck(robot, frame)
+                robot.recent.append(frame)
+        if held:
+            self._count(GeometryCounter.FRAMES_HELD)
+            self._acknowledge(msg, integrated=False)
+            self.joiner.wake()
+            return
+        integrated = self._integrate(robot, frame, playback=msg.playback)
+        self._acknowledge(msg, integrated=integrated)
+
+    def _note_queue(self, robot: RobotStream) -> None:
+        """Which publisher is this robot's, and how long its frame waited (health: queued, lag)."""
+        sub = self._frames_sub
+        if sub is None:
+            return
+        self._robot_sources[sub.current_source] = robot.name
+        robot.lag_s = max(0.0, time.monotonic() - sub.current_arrival_s)
+
+    def _integrate(self, robot: RobotStream, frame: Frame, *, playback: str) -> bool:
+        """Integrate one of a joined robot's frames through its transform; a frame that fails is
+        logged, counted and taken as done (a replay never retries it). True when integrated."""
         started = time.monotonic()
         try:
-            frame = msg.to_frame()
             with self._lock:
-                self.volume.integrate(frame)
+                self.volume.integrate(robot.to_map(frame))
                 self.frames_integrated += 1
-                self.last_frame_id = frame.frame_id
+                robot.frames_integrated += 1
+                robot.in_map(playback=playback, frame_id=frame.frame_id)
+                self.last_integrated_frame_id = frame.frame_id
                 self._map_changed()
                 self._dirty = True
         except CapacityError as exc:
-            logger.warning("geometry: frame %d refused: %s", msg.frame_id, exc)
-            self.last_frame_id = msg.frame_id  # taken: the playback goes on after it
+            logger.warning("geometry: frame %d of robot %s refused: %s", frame.frame_id, robot.name, exc)
+            robot.in_map(playback=playback, frame_id=frame.frame_id)  # taken: the playback goes on after it
+            robot.skipped["capacity"] += 1
             self._count(GeometryCounter.CAPACITY_REFUSED)
-            self._acknowledge(msg, integrated=False)
-            return
+            return False
         except Exception:  # anything else on this one frame: logged, counted, taken (a replay never retries it)
-            logger.exception("geometry: frame %d (%s) failed to integrate and was skipped", msg.frame_id, msg.source)
-            self.last_frame_id = msg.frame_id
+            logger.exception("geometry: frame %d of robot %s (%s) failed to integrate and was skipped",
+                             frame.frame_id, robot.name, frame.source)
+            robot.in_map(playback=playback, frame_id=frame.frame_id)
+            robot.skipped["failed"] += 1
             self._count(GeometryCounter.FRAMES_FAILED)
             if self._runner is not None:
                 self._runner.stats.add_error()
-            self._acknowledge(msg, integrated=False)
-            return
+            return False
         ended = time.monotonic()
         elapsed = ended - started
         self.integrate_busy_s += elapsed
-        self._acknowledge(msg, integrated=True)
         if self._runner is not None:
             self._runner.stats.record(elapsed)
             self._runner.stats.set(GeometryCounter.INTEGRATE_BUSY_S, self.integrate_busy_s)
@@ -460,28 +514,69 @@ class GeometryService(DictionaryFollower):
             self._runner.stats.set(GeometryCounter.FRAMES_INTEGRATED, self.frames_integrated)
             self._set_memory_stats()
             self._runner.stats.set(GeometryCounter.LAST_FRAME_ID, frame.frame_id)
+        return True
+
+    def _integrate_held(self, robot: RobotStream, frames: list) -> None:
+        """A robot just joined: its held frames, in order, through the transform found (the
+        joiner calls this with the lock held)."""
+        for held in frames:
+            self._integrate(robot, held.frame, playback=held.playback)
+
+    def robot_status(self) -> dict[str, dict]:
+        """Each robot's stream for health (:class:`~openfusion.wire.schemas.admin.RobotStatus`)."""
+        queued: dict[str, int] = {}
+        if self._frames_sub is not None:
+            for source, (n, _oldest) in self._frames_sub.queued_by_source().items():
+                name = self._robot_sources.get(source)
+                if name is not None:
+                    queued[name] = queued.get(name, 0) + n
+        with self._lock:
+            robots = list(self.robots)
+            status = {}
+            for robot in robots:
+                robot.queued = queued.get(robot.name, 0)
+                status[robot.name] = robot.status(map_blocks=self.volume.num_blocks)
+        if self._runner is not None:
+            self._runner.stats.set(GeometryCounter.ROBOTS, len(robots))
+            self._runner.stats.set(GeometryCounter.ROBOTS_HELD, sum(r.state == "held" for r in robots))
+        return status
 
     def _acknowledge(self, msg: RgbdFrame, *, integrated: bool) -> None:
-        """Tell the bridge this frame left the queue (its flow control waits for this)."""
+        """Tell the robot's bridge this frame left the queue (its flow control waits for this)."""
         if self._progress_pub is None:
             return
         queued = self._frames_sub.queued if self._frames_sub is not None else 0
+        robot = self.robots.robots.get(msg.robot)
+        playback, held = robot.holds() if robot is not None else ("", NO_FRAME_ID)
         try:
-            held = NO_FRAME_ID if self.last_frame_id is None else self.last_frame_id
             self._progress_pub.put(GeometryProgress(frame_id=msg.frame_id, stamp_ns=msg.stamp_ns, integrated=integrated,
                                                     frames_integrated=self.frames_integrated, queued=queued,
-                                                    incarnation=self.incarnation, holds_playback=self.playback,
-                                                    holds_frame_id=held))
+                                                    incarnation=self.incarnation, holds_playback=playback,
+                                                    holds_frame_id=held, robot=msg.robot))
         except zenoh.ZError as exc:  # the map is fine; the bridge falls back to open loop
             logger.warning("geometry: progress for frame %d not published: %s", msg.frame_id, exc)
+
+    def _map_pose(self, robot_name: str, T_odom_cam: np.ndarray) -> np.ndarray:
+        """A robot's pose in the map's frame; a robot not joined yet is refused (``robot_not_joined``)."""
+        robot = self._robot(robot_name)
+        if robot.state != "joined":
+            raise RequestError("robot_not_joined", f"robot {robot_name!r} is not joined to the map's frame yet "
+                               f"({robot.submap.num_frames} frames in its submap)")
+        return robot.T_map_odom @ np.asarray(T_odom_cam, np.float64)
 
     def on_update(self, msg: SemanticUpdate) -> None:
         check_update(msg)
         with self._lock:  # resolved and applied under the lock on_delta relabels under: no orphan keys
+            robot = self._robot(msg.robot)
+            if robot.state != "joined":  # its render was refused: no update should come; nothing is written
+                logger.warning("geometry: semantic update of frame %d of robot %s dropped: the robot is not joined",
+                               msg.frame_id, msg.robot)
+                self._count(GeometryCounter.UPDATES_DROPPED_NOT_JOINED)
+                return
             key_map = self.replica.resolve_keys(msg.key_map)  # planned before a merge this replica has seen
             update = self.volume.apply_update(
-                msg.T_world_cam, msg.intrinsics, key_map, msg.conf_map, observed_depth_m=msg.depth_m,
-                rendered=self._recent_renders.pop(msg.frame_id, None),
+                robot.T_map_odom @ msg.T_world_cam, msg.intrinsics, key_map, msg.conf_map,
+                observed_depth_m=msg.depth_m, rendered=self._recent_renders.pop((msg.robot, msg.frame_id), None),
             )
             self.updates_applied += 1
             self._map_changed()
@@ -502,11 +597,11 @@ class GeometryService(DictionaryFollower):
                 f"render of {req.width_px}x{req.height_px} exceeds max_render_pixels={self.section.max_render_pixels}",
             )
         with self._lock:
-            view = self.volume.render(req.T_world_cam, req.intrinsics)
+            view = self.volume.render(self._map_pose(req.robot, req.T_world_cam), req.intrinsics)
             # The semantic service's update for this frame comes next, at the same pose and size:
             # it writes through these ray hits instead of casting again (the volume checks the
             # pose, the size and that the grid's buffers have not moved since).
-            self._recent_renders[req.frame_id] = view
+            self._recent_renders[(req.robot, req.frame_id)] = view
             while len(self._recent_renders) > RECENT_RENDERS:
                 self._recent_renders.popitem(last=False)
         return RenderReply(
@@ -603,8 +698,7 @@ class GeometryService(DictionaryFollower):
             self.volume = checkpoints.new_volume(self.section.volume_params(), self.checkpoint_dir, fresh=True)
             self.replica.reset(None)
             self.frames_integrated = 0
-            self.last_frame_id = None
-            self.playback = ""
+            self.robots = RobotStreams(self.section.join_params(), parse_robot_frames(self.section.robot_frames))
             self._map_changed(reset_keys=True)
             self._dirty = True
         return ControlReply(ok=True, message="map reset")
@@ -613,7 +707,10 @@ class GeometryService(DictionaryFollower):
     def setup(self, runner: ServiceRunner) -> None:
         self._runner = runner
         self._progress_pub = runner.publisher(GEOMETRY_PROGRESS)
-        self._frames_sub = runner.subscriber(SENSOR_RGBD, self.on_frame, queue_size=self.section.frame_queue_size)
+        # One queue per robot's bridge, served in turn: one robot's backlog never starves another.
+        self._frames_sub = runner.subscriber(SENSOR_RGBD, self.on_frame, queue_size=self.section.frame_queue_size,
+                                             fair=True)
+        runner.stats.robots_provider = self.robot_status
         runner.subscriber(SEMANTIC_UPDATE, self.on_update, queue_size=64)
         runner.subscriber(DICTIONARY_DELTA, self.on_delta, queue_size=256)
         runner.queryable(GEOMETRY_RENDER, self.handle_render)
@@ -632,14 +729,17 @@ class GeometryService(DictionaryFollower):
             runner.stats.set(name, 0)
         if self.last_frame_id is not None:
             runner.stats.set(GeometryCounter.LAST_FRAME_ID, self.last_frame_id)
+        for name in (GeometryCounter.FRAMES_HELD, GeometryCounter.JOIN_ATTEMPTS, GeometryCounter.ROBOTS_JOINED):
+            runner.stats.set(name, 0)
         self._set_checkpoint_frame()
         self._memory.start(runner.stats)
-        self.announce()
+        self.announce()  # every robot the checkpoint holds: where its playback continues
+        self.joiner.start()
 
     def loop(self, runner: ServiceRunner) -> None:
         period = self.section.checkpoint_period_s
         while not runner.wait(min(period, 1.0) if period > 0 else 1.0):
-            if self.waiting_for_frames:  # until the next playback frame comes in order
+            if self.waiting_for_frames:  # until each robot's next playback frame comes in order
                 self.announce()
             if (
                 period > 0
@@ -682,6 +782,7 @@ class GeometryService(DictionaryFollower):
             logger.exception("geometry: reading out settled tiles failed")
 
     def close(self) -> None:
+        self.joiner.stop()
         self._memory.stop()
         # The session is closed by now: this last checkpoint is saved without a merge pass.
         if self._dirty and self.checkpoint_dir is not None:

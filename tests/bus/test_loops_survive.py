@@ -37,7 +37,7 @@ def test_a_frame_that_fails_to_integrate_is_skipped_once_and_the_next_one_integr
     monkeypatch.setattr(geo.volume, "integrate", poison)
     with caplog.at_level(logging.ERROR):
         geo.on_frame(_msg(FRAMES[1], 0))
-    assert "geometry: frame 1 (synthetic" in caplog.text and "RuntimeError: bad voxel block" in caplog.text
+    assert "geometry: frame 1 of robot robot0 (synthetic" in caplog.text and "RuntimeError: bad voxel block" in caplog.text
     assert runner.counter(GeometryCounter.FRAMES_FAILED) == 1 and runner.stats.errors == 1
     geo.on_frame(_msg(FRAMES[1], 0))  # replayed: already taken, not retried
     geo.on_frame(_msg(FRAMES[2], 1))

@@ -230,8 +230,13 @@ def test_frame_splits_into_rgbd_without_instance_and_instance_frame_and_joins_ba
     assert rgbd.to_frame().instance is None
     assert m.InstanceFrame.from_frame(rgbd.to_frame()) is None  # nothing to send without an image
     other = m.InstanceFrame(**_replace(inst, stamp_ns=6))
-    with pytest.raises(ValueError, match="instance image of frame 1 \\(stamp 6 ns\\) joined to frame 1 \\(stamp 5 ns\\)"):
+    with pytest.raises(ValueError, match="instance image of frame 1 \\(stamp 6 ns, robot robot0\\) joined to frame 1 "
+                                         "\\(stamp 5 ns, robot robot0\\)"):
         rgbd.to_frame(other)
+    # Frame ids are per robot: another robot's frame 1 (same stamp) is another frame.
+    assert not m.InstanceFrame(**_replace(inst, robot="robot1")).belongs_to(rgbd)
+    with pytest.raises(ValueError, match="robot robot1\\) joined to frame 1"):
+        rgbd.to_frame(m.InstanceFrame(**_replace(inst, robot="robot1")))
     small = m.InstanceFrame(**_replace(inst, instance=_i32(5, 8)))
     with pytest.raises(ValueError, match="instance is 8x5 but the intrinsics are for 8x6"):
         rgbd.to_frame(small)

@@ -71,12 +71,14 @@ from openfusion.bus import collect_health, free_loopback_port, open_session
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings, add_section_options, config_from_args
 from openfusion.errors import UsageError
+from openfusion.services.bridge.service import BridgeSection, bridge_name
 from openfusion.sources.registry import check_source_spec, describe_source, parse_key_values
 from openfusion.sources.synthetic_spec import split_world
 from openfusion.wire.counters import BridgeCounter, CommonCounter, GeometryCounter, SemanticCounter
 from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
 from openfusion.wire.keys import validate_map_id
 from openfusion.wire.limits import LimitError, check_text, check_top_k
+from openfusion.wire.schemas.base import check_robot_name
 
 logger = logging.getLogger(__name__)
 
@@ -227,7 +229,11 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
                       SERVICE_START_TIMEOUT_S, should_stop=lambda: signals.requested is not None)
     if signals.requested:
         raise signals.interrupted("stopped before playback started; nothing to save")
-    cluster.start("bridge")
+    for robot, spec in config.robots.items():  # several robots: one bridge each
+        cluster.start(bridge_name(robot), ["--source", spec, "--robot", robot, "--max-frames",
+                                           str(config.robot_frames[robot])], service="bridge")
+    if not config.robots:
+        cluster.start("bridge")
     stats: dict[str, Any] = {}
     carried: dict[str, dict[str, float]] = {}
     map_dir = out / "map"
@@ -237,7 +243,8 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
         summary = RunSummary.from_health(
             _with_carried(stats, carried), source=config.bridge.source, encoder=config.semantic.encoder, noise=config.semantic.noise,
             semantic_every=config.semantic.every_k, wall_s=time.monotonic() - started,
-            frames_requested=config.bridge.max_frames, interrupted=signals.requested is not None,
+            frames_requested=sum(config.robot_frames.values()) if config.robots else config.bridge.max_frames,
+            interrupted=signals.requested is not None, robot_sources=config.robot_sources(),
             restarts=cluster.restarts, error=error, encoder_workers=args.encoder_workers)
         summary.map_saved = saved_to
         return summary
@@ -393,7 +400,8 @@ def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
                 if not args.quiet:
                     bar.write(f"{signals.requested}: stopping playback; finishing the frames in flight, then saving the "
                               "map (press Ctrl-C again to abort)", file=sys.stderr)
-                cluster.stop("bridge")
+                for name in bridge_names(cluster):
+                    cluster.stop(name)
                 playback_stopped = True
                 stable_since = None
             cluster.check_alive()
@@ -407,11 +415,16 @@ def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
             bar.n = int(integrated)
             bar.set_postfix(**progress_counts(_with_carried(stats, carried)))
             bar.refresh()
-            done = playback_stopped or _counter(stats, "bridge", BridgeCounter.PLAYBACK_DONE) >= 1
-            published = _counter(stats, "bridge", BridgeCounter.FRAMES_PUBLISHED)
+            bridges = bridge_names(cluster)
+            done = playback_stopped or all(_counter(stats, b, BridgeCounter.PLAYBACK_DONE) >= 1 for b in bridges)
+            published = sum(_counter(stats, b, BridgeCounter.FRAMES_PUBLISHED) for b in bridges)
+            # Frames of robots not joined yet wait in their submaps: taken, not integrated (yet).
+            refused += _held_now(stats)
             key = (integrated, refused, _counter(stats, "semantic", SemanticCounter.SEMANTIC_FRAMES),
                    _counter(stats, "geometry", GeometryCounter.UPDATES_APPLIED), *cluster.restarts.values())
-            if done and integrated + refused >= published and _current(stats, cluster):
+            if done and _joins_pending(stats):  # a held robot may still join: its frames would go in
+                stable_since = None
+            elif done and integrated + refused >= published and _current(stats, cluster):
                 if key == last_key and stable_since is not None and time.monotonic() - stable_since > SETTLE_S:
                     break
                 if key != last_key or stable_since is None:
@@ -424,6 +437,55 @@ def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
     finally:  # the bar ends its line whatever ends the wait (an error, a second Ctrl-C)
         bar.close()
     return stats
+
+
+def bridge_names(cluster: Cluster) -> list[str]:
+    """The run's bridges (one per robot: ``bridge``, ``bridge-ROBOT``)."""
+    return [name for name in cluster.processes if name == "bridge" or name.startswith("bridge-")] or ["bridge"]
+
+
+def _held_now(stats: dict[str, Any]) -> float:
+    """Frames of held robots waiting in geometry's holds now (taken, not in the map yet)."""
+    geometry = stats.get("geometry")
+    return float(sum(r.frames_held for r in geometry.robots.values())) if geometry is not None else 0.0
+
+
+def _joins_pending(stats: dict[str, Any]) -> bool:
+    """A held robot's registration runs or is due in geometry."""
+    geometry = stats.get("geometry")
+    return geometry is not None and any(r.join_pending for r in geometry.robots.values())
+
+
+def split_robot_name(spec: str) -> tuple[str, str | None]:
+    """A ``--source`` spec and the robot name its ``name=ROBOT`` option gives (the option removed;
+    None without one): ``synthetic:building,route=0-3,name=alpha`` -> (``synthetic:building,route=0-3``,
+    ``alpha``)."""
+    scheme, colon, rest = spec.partition(":")
+    items = rest.split(",") if colon else spec.split(",")[1:]
+    head = scheme if colon else spec.split(",")[0]
+    names = [item.strip()[len("name="):] for item in items if item.strip().startswith("name=")]
+    if len(names) > 1:
+        raise UsageError(f"--source {spec!r}: name= is given {len(names)} times")
+    kept = ",".join(item for item in items if not item.strip().startswith("name="))
+    return (f"{head}:{kept}" if kept else head), (names[0] if names else None)
+
+
+def robot_sources(specs: Sequence[str], *, default_robot: str) -> dict[str, str]:
+    """Robot name -> source spec of the ``--source`` options: ``name=`` names a robot, the others are
+    ``robot0``, ``robot1``, ... by position (the first one, unnamed, is ``default_robot``)."""
+    robots: dict[str, str] = {}
+    for i, spec in enumerate(specs):
+        plain, name = split_robot_name(spec)
+        name = name if name is not None else (default_robot if i == 0 else f"robot{i}")
+        try:
+            check_robot_name(name)
+        except ValueError as exc:
+            raise UsageError(f"--source {spec!r}: {exc}") from None
+        if name in robots:
+            raise UsageError(f"--source {spec!r}: robot {name!r} has a source already (one bridge per robot; "
+                             "name= names them)")
+        robots[name] = plain
+    return robots
 
 
 def _check_out_dir(out: Path) -> None:
@@ -477,6 +539,10 @@ class RunCommand:
     @staticmethod
     def add_arguments(parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--out", type=Path, default=Path("out"), help="output folder (default ./out)")
+        parser.add_argument("--source", dest="sources", action="append", default=None, metavar="SPEC",
+                            help="frame source: " + str(BridgeSection.model_fields["source"].description) + ". Repeat "
+                            "it for several robots in one map (one bridge each; ',name=ROBOT' names one, else "
+                            "robot0, robot1, ...; README 'Several robots')")
         parser.add_argument("--map", dest="map_id", default="demo", help="map id (default demo)")
         parser.add_argument("--frames", type=int, default=None,
                             help=f"frames to play (default {BUILTIN_LAP_FRAMES}); one lap of the built-in room is "
@@ -544,14 +610,23 @@ class RunCommand:
         config = config_from_args(args, RunConfig, sections=list(RUN_FLAGS))
         config.map_id = args.map_id
         _check_text_encoder(config)
-        # The source's form (scheme, path, options): the bridge would refuse it only after the other
-        # services had started.
-        check_source_spec(config.bridge.source)
-        # The built-in room plays --frames frames (laps of BUILTIN_LAP_FRAMES), the building its walk;
-        # other sources stop there.
-        config.bridge.source = builtin_scene_spec(config.bridge.source, args.frames)
-        args.frames = frames_to_play(config.bridge.source, args.frames)
-        config.bridge.max_frames = args.frames
+        sources = robot_sources(args.sources or [config.bridge.source], default_robot=config.bridge.robot)
+        if len(sources) > 1 and args.in_process:
+            raise UsageError("--in-process plays one source; several --source need the services (one bridge each)")
+        frames: dict[str, int] = {}
+        for robot, spec in sources.items():
+            # The source's form (scheme, path, options): the bridge would refuse it only after the other
+            # services had started.
+            check_source_spec(spec)
+            # The built-in room plays --frames frames (laps of BUILTIN_LAP_FRAMES), the building its walk;
+            # other sources stop there.
+            sources[robot] = builtin_scene_spec(spec, args.frames)
+            frames[robot] = frames_to_play(sources[robot], args.frames)
+        (config.bridge.robot, config.bridge.source), *_others = sources.items()
+        config.robots = sources if len(sources) > 1 else {}
+        config.robot_frames = frames if len(sources) > 1 else {}
+        args.frames = sum(frames.values())  # the progress bar's total
+        config.bridge.max_frames = frames[config.bridge.robot]
         return config
 
     @staticmethod
