@@ -36,6 +36,7 @@ import numpy as np
 from openfusion.encoders import make_text_encoder
 from openfusion.encoders.captions import region_text_embeddings
 from openfusion.eval.classes import NYU40_CLASSES
+from openfusion.mapping.match_figures import DEFAULT_TOP_K, HitFigures, evaluate_hits
 from openfusion.mapping.query_head import query_head
 from openfusion.mapping.relevancy import (
     CALIBRATIONS,
@@ -43,6 +44,7 @@ from openfusion.mapping.relevancy import (
     calibration_for,
     evaluate_match,
     margins,
+    match_mask,
     relevancy_texts,
     text_margins,
 )
@@ -65,6 +67,12 @@ DEVELOPMENT: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {
 #: Judged lists (written blind before the method was measured on them, never chosen on).
 JUDGED: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {"HELD_OUT_8": HELD_OUT_8}
 DEV_POOL = tuple(q for wl in DEVELOPMENT.values() for q in wl)
+#: The columns of the hits table: the five lists written before the blind ones (pooled; v9's
+#: share was not chosen on any list), then each blind list (never tuned on).
+HIT_COLUMNS: dict[str, tuple[tuple[str, tuple[str, ...]], ...]] = {
+    "CAL..HO4 pooled": CALIBRATION + HELD_OUT + HELD_OUT_2 + HELD_OUT_3 + HELD_OUT_4,
+    "HELD_OUT_5": HELD_OUT_5, "HELD_OUT_6": HELD_OUT_6, "HELD_OUT_7": HELD_OUT_7, "HELD_OUT_8": HELD_OUT_8,
+}
 MARGINS = np.round(np.arange(-0.3, 0.9, 0.0025), 4)
 CATS = list(CATEGORIES)
 #: v3 as it was shipped: chosen on the first three lists (margins per space).
@@ -118,7 +126,14 @@ class Space:
         return evaluate_match(word_list, q, CATS, self.regions(), self.vectors(list(cal.negatives)),
                               temperature=cal.temperature, threshold=cal.threshold,
                               query_category_vectors=self.vectors(list(cal.query_categories)),
-                              head_name_cos=cal.head_name_cos, part_vectors=self.parts(word_list))
+                              head_name_cos=cal.head_name_cos, part_vectors=self.parts(word_list),
+                              best_share=cal.best_share)
+
+    def hits(self, word_list, cal: SpaceCalibration, top_k: int = DEFAULT_TOP_K) -> HitFigures:  # noqa: ANN001
+        """Hit precision / recall / clean answers of ``match`` over the ``top_k`` returned hits."""
+        cosines, m = margin_matrix(self, cal, word_list)
+        return evaluate_hits(word_list, cosines, m, CATS, threshold=cal.threshold, temperature=cal.temperature,
+                             best_share=cal.best_share, top_k=top_k)
 
 
 def margin_matrix(space: Space, cal: SpaceCalibration, word_list=DEV_POOL, queries=None):  # noqa: ANN001, ANN201
@@ -136,18 +151,24 @@ def margin_matrix(space: Space, cal: SpaceCalibration, word_list=DEV_POOL, queri
     return q @ _unit(r).T, m
 
 
-def counts(cosines: np.ndarray, margins: np.ndarray, grid: np.ndarray, word_list=DEV_POOL):  # noqa: ANN001, ANN201
+def counts(cosines: np.ndarray, margins: np.ndarray, grid: np.ndarray, word_list=DEV_POOL,  # noqa: ANN001, ANN201
+           best_share: float | None = None):
     """(right answers, answers with a match, positives) on ``word_list`` for every margin of
     ``grid`` at once, scored as :func:`evaluate_match` scores (the first region by cosine whose
-    margin reaches the threshold): along each query's cosine order the running maximum of the
-    margins says where the first match is for any threshold (hand-written because evaluating 480
-    thresholds one by one takes minutes on a busy machine)."""
+    margin reaches the threshold, and with ``best_share`` that share of the text's best margin):
+    along each query's cosine order the running maximum of the margins says where the first match
+    is for any threshold (hand-written because evaluating 480 thresholds one by one takes minutes
+    on a busy machine)."""
     correct = np.zeros(len(grid))
     reported = np.zeros(len(grid))
     positives = 0
     for i, (_text, wanted) in enumerate(word_list):
         order = np.argsort(-cosines[i], kind="stable")
-        running = np.maximum.accumulate(margins[i, order])
+        row = margins[i, order]
+        if best_share is not None:  # below the share of the best: never a match, whatever the threshold
+            best = row.max()
+            row = np.where(row >= (best * best_share if best > 0 else best) - 1e-12, row, -np.inf)
+        running = np.maximum.accumulate(row)
         first = np.searchsorted(running, grid, side="left")  # index into order; len(order): no match
         reported += first < len(order)
         right = np.array([CATS[order[j]] in wanted for j in range(len(order))] + [False])
@@ -156,9 +177,10 @@ def counts(cosines: np.ndarray, margins: np.ndarray, grid: np.ndarray, word_list
     return correct, reported, positives
 
 
-def sweep(cosines: np.ndarray, margins: np.ndarray, grid: np.ndarray, word_list=DEV_POOL):  # noqa: ANN001, ANN201
+def sweep(cosines: np.ndarray, margins: np.ndarray, grid: np.ndarray, word_list=DEV_POOL,  # noqa: ANN001, ANN201
+          best_share: float | None = None):
     """(precision, recall) on ``word_list`` for every margin of ``grid`` (:func:`counts`)."""
-    correct, reported, positives = counts(cosines, margins, grid, word_list)
+    correct, reported, positives = counts(cosines, margins, grid, word_list, best_share)
     return np.where(reported > 0, correct / np.maximum(reported, 1), 1.0), correct / positives
 
 
@@ -172,7 +194,7 @@ def _choose(precision: np.ndarray, recall: np.ndarray) -> int:
 
 def calibrate(space: Space, cal: SpaceCalibration) -> float:
     """The margin chosen on the development lists pooled (module docstring)."""
-    precision, recall = sweep(*margin_matrix(space, cal), MARGINS)
+    precision, recall = sweep(*margin_matrix(space, cal), MARGINS, best_share=cal.best_share)
     i = _choose(precision, recall)
     m = float(MARGINS[i])
     figures = space.figures(DEV_POOL, replace(cal, threshold=_margin_to_threshold(m, cal.temperature)))
@@ -248,7 +270,7 @@ def ceiling(space: Space, cal: SpaceCalibration, word_list) -> tuple[float, floa
     wanted = [w for _, w in word_list]
     pos = [i for i, w in enumerate(wanted) if w]
     top1 = float(np.mean([CATS[int(np.argmax(cosines[i]))] in wanted[i] for i in pos]))
-    precision, recall = sweep(cosines, m, MARGINS, word_list)
+    precision, recall = sweep(cosines, m, MARGINS, word_list, cal.best_share)
     ok = precision >= 0.95
     return top1, float(recall[ok].max()) if ok.any() else 0.0
 
@@ -365,6 +387,36 @@ def _short(name: str) -> str:
     return {"CALIBRATION": "cal", "HELD_OUT": "ho1"}.get(name, name.lower().replace("held_out_", "ho"))
 
 
+def hit_alternatives(space: Space, stored: SpaceCalibration) -> None:
+    """``match`` over the returned hits (top 5) of rules measured while v9 was chosen: the share
+    of the best (v9's rule) over a grid, an additive gap to the best margin, and the map's other
+    regions as negatives (a region matches when the query describes it better than the region
+    that describes it best among the others, and beats the threshold)."""
+    print("  match over the top 5 hits, v8's threshold (hit P / R / clean; the non-blind lists pooled, then each "
+          "blind list):")
+
+    def show(label: str, rule) -> None:  # noqa: ANN001
+        cells = []
+        for wl in HIT_COLUMNS.values():
+            cosines, m = margin_matrix(space, stored, wl)
+            f = evaluate_hits(wl, cosines, m, CATS, threshold=stored.threshold, temperature=stored.temperature,
+                              best_share=None, mask=rule(cosines, m))
+            cells.append(f"{f.hit_precision:.3f} {f.recall:.3f} {f.clean:.3f}")
+        print(f"    {label:<44} " + "  ".join(cells))
+
+    t = stored.margin
+    for share in (None, 0.5, 0.6, 0.65, 0.7, 0.75, 0.8, 0.9, 1.0):
+        show(f"share of the best {share}", lambda c, m, s=share: np.stack([match_mask(
+            row, threshold=stored.threshold, temperature=stored.temperature, best_share=s) for row in m]))
+    for gap in (0.05, 0.08, 0.1, 0.15, 0.2):
+        show(f"within {gap} of the best margin", lambda c, m, g=gap: (m >= t) & (m >= m.max(1, keepdims=True) - g))
+    r = _unit(space.regions())
+    others = r @ r.T
+    np.fill_diagonal(others, -1.0)
+    best_other = others.max(0)  # how well the closest other region describes each region
+    show("the map's other regions as negatives", lambda c, m: (m >= t) & (c > best_other[None, :]))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--encoders", default="minilm,hash")
@@ -376,33 +428,38 @@ def main() -> None:
     columns = {**DEVELOPMENT, **JUDGED}
     print("development: " + ", ".join(f"{name} ({len(wl)})" for name, wl in DEVELOPMENT.items()) +
           "; judged: " + (", ".join(f"{name} ({len(wl)})" for name, wl in JUDGED.items()) or "none") +
-          f"; {len(CATEGORIES)} categories; threshold: the best F1 on the development lists pooled")
+          f"; {len(CATEGORIES)} categories; threshold: the best F1 on the development lists pooled "
+          "(v9 keeps v8's); first match by cosine")
     print(f"{'space':<18} {'method':<22} {'T':>5} {'margin':>7} {'stored':>7}  {'cv P':>6} {'cv R':>6}  "
           f"{'dev P':>6} {'dev R':>6}  " + "  ".join(f"{_short(n) + ' P':>6} {_short(n) + ' R':>6}" for n in columns))
     ceilings: list[str] = []
+    hit_rows: list[str] = []
     for name in args.encoders.split(","):
         space = Space(name)
         named = space.view(captioned=False)
         stored = calibration_for(space.encoder.embedding_space)
-        v3 = replace(stored, head_name_cos=None)
+        v8 = replace(stored, best_share=None)  # v9 is v8 and the share of the best
+        v3 = replace(v8, head_name_cos=None)
         rows: list[tuple[str, SpaceCalibration, bool, Space]] = [  # (method, calibration, choose its margin, regions)
-            ("v8 (library)", stored, True, space), ("v8 regions, no head", v3, True, space),
+            ("v9 (library)", stored, False, space), ("v8 (v9 without share)", v8, True, space),
+            ("v8 regions, no head", v3, True, space),
             ("plain LERF, v8 regions", replace(v3, query_categories=()), True, space)]
         for label, table, head in (("v7 as shipped", V7_SHIPPED_MARGIN, 0.8), ("v3 as shipped", V3_SHIPPED_MARGIN, None)):
             if space.encoder.embedding_space in table:
                 m = table[space.encoder.embedding_space]
-                rows.append((label, replace(stored, head_name_cos=head,
+                rows.append((label, replace(v8, head_name_cos=head,
                                             threshold=_margin_to_threshold(m, stored.temperature)), False, named))
         for method, cal, choose, regions in rows:
             if choose:
                 margin = calibrate(regions, cal)
-                if cal is not stored:
-                    cal = replace(cal, threshold=_margin_to_threshold(margin, cal.temperature))
+                if cal is v8:
+                    assert abs(margin - stored.margin) < 1e-3, "v9 keeps v8's threshold: the best F1 of v8"
+                cal = replace(cal, threshold=_margin_to_threshold(margin, cal.temperature))
                 cv = "{:>6.3f} {:>6.3f}".format(*cross_validated(regions, cal))
             else:
                 margin, cv = cal.margin, f"{'-':>6} {'-':>6}"
             known = "" if regions.encoder.embedding_space in CALIBRATIONS else " (not in CALIBRATIONS)"
-            stored_m = f"{cal.margin:>+7.4f}" if cal is stored else f"{'':>7}"
+            stored_m = f"{stored.margin:>+7.4f}" if method.startswith(("v9", "v8 (")) else f"{'':>7}"
             figures = {n: regions.figures(wl, cal) for n, wl in columns.items()}
             lists = "  ".join(_pr(f) for f in (regions.figures(DEV_POOL, cal), *figures.values()))
             print(f"{regions.encoder.embedding_space:<18} {method:<22} {cal.temperature:>5.2f} {margin:>+7.4f} "
@@ -414,13 +471,26 @@ def main() -> None:
             for list_name, wl in JUDGED.items():
                 top1, best = ceiling(regions, cal, wl)
                 ceilings.append(f"| {regions.encoder.embedding_space} | {method} | {list_name} | {top1:.3f} | {best:.3f} |")
+            if method.startswith(("v9", "v8 (", "v7")):
+                hits = [regions.hits(wl, cal) for wl in HIT_COLUMNS.values()]
+                hit_rows.append(f"| {regions.encoder.embedding_space} | {method} | " + " | ".join(
+                    f"{h.hit_precision:.3f} / {h.recall:.3f} / {h.clean:.3f}" for h in hits) + " |")
+                if args.failures and cal is stored:
+                    for list_name, wl in HIT_COLUMNS.items():
+                        for text, bad in regions.hits(wl, cal).wrong:
+                            print(f"    {list_name} wrongly matched: {text!r} -> {', '.join(bad)}")
         if args.alternatives:
-            caption_alternatives(space, stored)
-            alternatives(named, replace(stored, head_name_cos=0.8))
+            hit_alternatives(space, v8)
+            caption_alternatives(space, v8)
+            alternatives(named, replace(v8, head_name_cos=0.8))
     print("\nwhat no threshold can beat on the judged lists: positives whose closest region is right (recall's "
           "bound), best recall at precision >= 0.95 over all thresholds")
     print("| space | method | list | closest region right | best recall at P >= 0.95 |\n|---|---|---|---|---|")
     print("\n".join(ceilings))
+    print(f"\nmatch over every returned hit (top {DEFAULT_TOP_K}): hit precision / recall / clean answers "
+          "(openfusion.mapping.match_figures)")
+    print("| space | method | " + " | ".join(HIT_COLUMNS) + " |\n|---|---|" + "---|" * len(HIT_COLUMNS))
+    print("\n".join(hit_rows))
 
 
 if __name__ == "__main__":

@@ -62,7 +62,7 @@ import time
 import uuid
 from typing import Any
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from openfusion.bus import Publisher, ServiceRunner
 from openfusion.bus.flow_control import InFlightWindow
@@ -75,6 +75,7 @@ from openfusion.wire.codec import EncodeError
 from openfusion.wire.counters import BridgeCounter
 from openfusion.wire.endpoints import GEOMETRY_PROGRESS, SENSOR_INSTANCE, SENSOR_RGBD
 from openfusion.wire.schemas import GeometryProgress, InstanceFrame, RgbdFrame
+from openfusion.wire.schemas.base import DEFAULT_ROBOT, check_robot_name
 
 logger = logging.getLogger(__name__)
 
@@ -114,6 +115,15 @@ class BridgeSection(ConfigSection):
         "", max_length=64, description="name of this playback (none = a new one); a bridge restarted with the same "
         "name continues it: geometry drops the frames it already holds"
     )
+    robot: str = Field(
+        DEFAULT_ROBOT, description="the robot whose frames these are (one bridge per robot; frame ids, chains, flow "
+        "control and the odometry frame are per robot)"
+    )
+
+    @field_validator("robot")
+    @classmethod
+    def _robot_name(cls, value: str) -> str:
+        return check_robot_name(value)
 
 
 class BridgeConfig(ServiceConfig):
@@ -167,6 +177,7 @@ class BridgeService:
     def __init__(self, config: BridgeConfig, *, source: FrameSource | None = None) -> None:
         self.config = config
         self.section = config.bridge
+        self.robot = self.section.robot
         self.source = source if source is not None else open_source(self.section.source)
         #: A live source's frame budget (per pass) counts published frames, as a rate drops some; a
         #: playback's is the source's own.
@@ -200,7 +211,8 @@ class BridgeService:
         import zenoh
 
         congestion = zenoh.CongestionControl.BLOCK if self.blocking else zenoh.CongestionControl.DROP
-        logger.info("bridge: %s source %s: %s", "live" if self.source.live else "playback", self.source.name,
+        logger.info("bridge: robot %s, %s source %s: %s", self.robot, "live" if self.source.live else "playback",
+                    self.source.name,
                     f"blocks when congested, at most {self.window.limit} frames ahead of geometry"
                     if self.window is not None else "blocks when congested" if self.blocking
                     else "never blocks (frames may be dropped under congestion)")
@@ -240,7 +252,10 @@ class BridgeService:
             self._rewind_to = target
 
     def on_progress(self, msg: GeometryProgress) -> None:
-        """An acknowledgement (flow control) and/or a resume announcement of geometry."""
+        """An acknowledgement (flow control) and/or a resume announcement of geometry, about this
+        bridge's robot (another robot's are another bridge's business)."""
+        if msg.robot != self.robot:
+            return
         if self.window is not None and msg.frame_id >= 0:
             self.window.acknowledge(msg.frame_id, msg.stamp_ns)
         if msg.resume > 0 and self.replayable:
@@ -288,8 +303,9 @@ class BridgeService:
         assert self._pub is not None and self._instance_pub is not None
         started = time.monotonic()
         try:
-            rgbd = RgbdFrame.from_frame(frame, with_instance=False, playback=self.playback, prev_frame_id=prev_frame_id)
-            instance = InstanceFrame.from_frame(frame)
+            rgbd = RgbdFrame.from_frame(frame, with_instance=False, playback=self.playback, prev_frame_id=prev_frame_id,
+                                        robot=self.robot)
+            instance = InstanceFrame.from_frame(frame, robot=self.robot)
             # The instance image goes first, so a subscriber that has the frame has it too.
             if instance is not None:
                 self._instance_pub.put(instance)
@@ -484,9 +500,20 @@ def _progress(source: FrameSource, *, enabled: bool) -> Any:
     return tqdm(total=total, desc=f"bridge {source.name}", unit="frame")
 
 
+def bridge_name(robot: str) -> str:
+    """The bridge's service name (health key, process, log): ``bridge`` for the default robot,
+    ``bridge-ROBOT`` for the others (one bridge per robot on a map)."""
+    return "bridge" if robot == DEFAULT_ROBOT else f"bridge-{robot}"
+
+
+def _instance_name(config: BridgeConfig) -> str:
+    return bridge_name(config.bridge.robot)
+
+
 DEFINITION = ServiceDefinition(
     name="bridge",
     help="publish RGB-D frames from a dataset, the synthetic scene, a recording or live sensors",
     config_model=BridgeConfig,
     build=BridgeService,
+    instance_name=_instance_name,
 )

@@ -10,19 +10,21 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from openfusion.config import ServiceConfig
 from openfusion.mapping import VolumeParams
+from openfusion.mapping.params import JoinParams
 from openfusion.mapping.queries import RegionTable
+from openfusion.wire.limits import MAX_SURFACE_POINTS
 from openfusion.wire.schemas import RegionSummaryReply
 
 logger = logging.getLogger("openfusion.services.geometry.service")
 
 
-class GeometrySection(VolumeParams):
+class GeometrySection(VolumeParams, JoinParams):
     """The geometry service's settings: every volume parameter (:class:`VolumeParams`, declared
-    there once) plus the service's own."""
+    there once), how robots' frames join the map's (:class:`JoinParams`) plus the service's own."""
 
     map_dir: Path | None = Field(None, description="checkpoint folder (the map is saved to MAP_DIR/MAP_ID)")
     checkpoint_period_s: float = Field(30.0, ge=0, description="seconds between checkpoints (0 = only on control/save)")
@@ -30,7 +32,8 @@ class GeometrySection(VolumeParams):
     frame_queue_size: int = Field(
         64, gt=0, description="frames waiting for integration; when full the oldest is dropped and counted"
     )
-    max_points_reply: int = Field(500_000, gt=0, description="most surface points or mesh vertices in one reply")
+    max_points_reply: int = Field(MAX_SURFACE_POINTS, gt=0, le=MAX_SURFACE_POINTS,
+                                  description="most surface points or mesh vertices in one reply")
     max_render_pixels: int = Field(640 * 480, gt=0, description="largest render request (width x height)")
     merge_on_save: bool = Field(
         True, description="before a save on control/save, ask the semantic service for a merge pass"
@@ -41,6 +44,19 @@ class GeometrySection(VolumeParams):
     regions_min_interval_s: float = Field(
         0.5, ge=0, description="a changed map's region summaries are recomputed at most this often (unless fresh)"
     )
+    robot_frames: str = Field(
+        "", description="how each robot's odometry frame joins the map's: 'ROBOT=fixed|guess|search[:x,y,z,yaw_deg]' "
+        "entries separated by ';' (metres, degrees; fixed: joined at once; guess: ICP from it; search: global "
+        "registration). Robots not named: search. Robots given as fixed define the map's frame; without one, the first "
+        "robot on an empty map anchors it")
+
+    @field_validator("robot_frames")
+    @classmethod
+    def _robot_frames(cls, value: str) -> str:
+        from openfusion.mapping.robot_streams import parse_robot_frames
+
+        parse_robot_frames(value)  # a clear error at start-up, naming the entry
+        return value
 
     @model_validator(mode="before")
     @classmethod
@@ -55,6 +71,9 @@ class GeometrySection(VolumeParams):
 
     def volume_params(self) -> VolumeParams:
         return VolumeParams.from_section(self)
+
+    def join_params(self) -> JoinParams:
+        return JoinParams.from_section(self)
 
 
 class GeometryConfig(ServiceConfig):

@@ -15,15 +15,19 @@
 | ``…/control/{save,load,reset}`` | queryable (admin) | ControlRequest → ControlReply |
 | ``…/semantic/merge`` | queries before ``control/save`` and the final save | MergeRequest → MergeReply |
 | ``…/semantic/dictionary`` | queries on a gap in the deltas (resync) | DictionaryRequest → DictionarySnapshot |
-| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC), ``voxels_relabelled``, ``save_merges``, ``save_merge_failures``, ``dictionary_resyncs`` |
+| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC), ``voxels_relabelled``, ``save_merges``, ``save_merge_failures``, ``dictionary_resyncs``; the map's size and memory: ``num_blocks`` (all), ``resident_blocks``, ``resident_mb``, ``tiles_paged_out``, ``tiles_paged_in``, ``checkpoint_last_s``, ``checkpoint_last_tiles``, ``saving``, ``rss_mb``, ``rss_peak_mb``, ``rss_anon_peak_mb`` (:mod:`.memory`) |
 
-Checkpoints go to ``{map_dir}/{map_id}`` every ``checkpoint_period_s`` (when something changed;
-without region summaries, which would cost a surface read-out under the lock integration waits
-on), on ``control/save`` and on shutdown (both with summaries); :func:`~openfusion.mapping.save_map` writes them atomically and keeps
-the one before as ``map.ofz.prev.npz``. On start the service loads the newest checkpoint, or the
-previous one when the newest is corrupt or missing (:func:`~openfusion.mapping.load_latest_map`,
-one warning line; both unreadable: the service does not start rather than map over them), so a
-restart loses nothing that was saved. Each checkpoint's meta records ``frames_integrated`` and
+Checkpoints go to the tile store ``{map_dir}/{map_id}/map.ofz`` every ``checkpoint_period_s``
+(when something changed; without region summaries, which would cost a surface read-out under the
+lock integration waits on), on ``control/save`` and on shutdown (both with summaries). They are
+incremental (:mod:`.checkpoints`, :mod:`openfusion.mapping.mapstore`): the tiles changed since the
+last one are copied under the lock, then encoded and committed in one LMDB transaction while
+integration goes on, so their cost follows what changed, and a crash at any instant leaves the
+last committed checkpoint whole. With ``memory_budget_mb`` the least recently observed tiles
+are paged out to the same store and read back when a frame or a render reaches them. On start
+the service loads its checkpoint (an older ``map.ofz.npz`` one too, or its ``.prev`` when it is
+corrupt: :func:`~openfusion.mapping.load_latest_map`; unreadable: the service does not start
+rather than map over it), so a restart loses nothing that was saved. Each checkpoint's meta records ``frames_integrated`` and
 ``last_frame_id`` (the id of the last frame integrated into it); after a load or save the service
 exposes it as :attr:`GeometryService.checkpoint_last_frame_id` and the health counter
 ``checkpoint_last_frame_id`` (-1: none). A checkpoint that fails with an ``OSError`` (disk full,
@@ -76,22 +80,26 @@ import numpy as np
 import zenoh
 
 from openfusion.bus import Publisher, RequestError, ServiceRunner, Subscriber
+from openfusion.frame import Frame
 from openfusion.mapping import (
     CapacityError,
     MapFormatError,
     RegionDictionary,
     RenderedView,
     SemanticVolume,
-    load_latest_map,
-    load_map,
     save_map,
 )
-from openfusion.mapping.mapfile import previous_map_path, resolve_map_path
-from openfusion.mapping.merging import block_contacts
+from openfusion.mapping.mapfile import resolve_map_path
+from openfusion.mapping.mapstore import checkpoint as checkpoint_store
 from openfusion.mapping.queries import RegionTable
+from openfusion.mapping.robot_streams import Admission, RobotStream, RobotStreams, parse_robot_frames
+from openfusion.mapping.tilestore import STORE_DIR_NAME
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
+from openfusion.services.geometry import checkpoints
 from openfusion.services.geometry.dictionary_follower import DictionaryFollower
+from openfusion.services.geometry.memory import MemoryPeaks, publish_map_size
+from openfusion.services.geometry.robots import RobotJoiner
 from openfusion.services.geometry.section import GeometryConfig, SummaryCache
 from openfusion.services.geometry.section import (
     GeometrySection as GeometrySection,  # re-exported: the config's section
@@ -129,6 +137,7 @@ from openfusion.wire.schemas import (
     RgbdFrame,
     SemanticUpdate,
 )
+from openfusion.wire.schemas.base import DEFAULT_ROBOT
 
 logger = logging.getLogger(__name__)
 
@@ -159,6 +168,10 @@ def check_update(msg: SemanticUpdate) -> None:
 
 #: Renders kept for the semantic updates that follow them (the pool applies results in frame order).
 RECENT_RENDERS = 2
+#: A tile unchanged this long has settled: its region-summary part is read out as idle work.
+SETTLE_S = 5.0
+#: Idle read-out per turn of the service loop (about once a second), at least one chunk.
+IDLE_READOUT_S = 0.5
 
 
 class GeometryService(DictionaryFollower):
@@ -168,12 +181,19 @@ class GeometryService(DictionaryFollower):
         self.config = config
         self.section = config.geometry
         self._lock = threading.RLock()
-        self.volume = SemanticVolume(self.section.volume_params())
+        self.checkpoint_dir: Path | None = (
+            self.section.map_dir / config.map_id if self.section.map_dir is not None else None
+        )
+        load = self.section.load_on_start and self.checkpoint_dir is not None and _has_checkpoint(self.checkpoint_dir)
+        self.volume = checkpoints.new_volume(self.section.volume_params(), None if load else self.checkpoint_dir)
         self.replica = DictionaryReplica()
         self.frames_integrated = 0
         self.updates_applied = 0
-        self.last_frame_id: int | None = None  # the last frame taken (integrated, or refused for capacity)
-        # The last frame id recorded in the newest checkpoint this service loaded or saved.
+        # Each robot's stream: chain, join, counts (openfusion.mapping.robot_streams).
+        self.robots = RobotStreams(self.section.join_params(), parse_robot_frames(self.section.robot_frames))
+        self._robot_sources: dict[bytes, str] = {}  # frame publisher (one bridge per robot) -> robot
+        self.last_integrated_frame_id: int | None = None  # of any robot
+        # The last frame id recorded in the newest checkpoint this service loaded or saved (first robot's).
         self.checkpoint_last_frame_id: int | None = None
         self.checkpoint_failures = 0
         # Bumped by every change of the map (frames, updates, merges, load, reset): region
@@ -182,40 +202,83 @@ class GeometryService(DictionaryFollower):
         self._key_horizon = 0
         self._summary: SummaryCache | None = None
         self._summary_lock = threading.Lock()
+        #: Held by a save, a load and a reset: a load or reset waits for a save to end (a save
+        #: holds the volume lock only for its copies, so they would otherwise overlap).
+        self._swap_lock = threading.Lock()
+        #: (monotonic s, the volume's change clock) of recent loop turns: which tiles have settled.
+        self._change_marks: list[tuple[float, int]] = []
         self._dirty = False
         self._last_checkpoint = time.monotonic()
-        self.checkpoint_dir: Path | None = (
-            self.section.map_dir / config.map_id if self.section.map_dir is not None else None
-        )
+        self.saving = False
+        self._memory = MemoryPeaks()
         self._runner: ServiceRunner | None = None
         self._frames_sub: Subscriber[RgbdFrame] | None = None
         self._progress_pub: Publisher | None = None
-        # Resume (module docstring): this process's name, the number of its last announcement, and
-        # whether it waits for the playback frame after last_frame_id.
+        # Resume (module docstring): this process's name; chains and announcements are per robot.
         self.incarnation = uuid.uuid4().hex[:16]
-        self.playback = ""  # the playback whose frames up to last_frame_id this map holds
-        self.resume = 1
-        self.waiting_for_frames = True
         self.integrate_busy_s = 0.0
-        self._recent_renders: OrderedDict[int, RenderedView] = OrderedDict()  # frame id -> render
-        if self.section.load_on_start and self.checkpoint_dir is not None and _has_checkpoint(self.checkpoint_dir):
-            self._load(self.checkpoint_dir, fallback=True, restore_counts=True)
+        self._recent_renders: OrderedDict[tuple[str, int], RenderedView] = OrderedDict()  # (robot, frame id) -> render
+        self.joiner = RobotJoiner(self, integrate_held=self._integrate_held)
+        if load:
+            self._load(self.checkpoint_dir, fallback=True, restore_counts=True)  # type: ignore[arg-type]
+
+    # ----------------------------------------------------------- the first robot's chain (one robot: the map's)
+    def _first_robot(self) -> RobotStream | None:
+        return next(iter(self.robots), None)
+
+    @property
+    def last_frame_id(self) -> int | None:
+        """The last frame taken of the map's first robot (one robot: the map's chain)."""
+        robot = self._first_robot()
+        return None if robot is None else robot.last_taken
+
+    @property
+    def playback(self) -> str:
+        robot = self._first_robot()
+        return "" if robot is None else robot.playback
+
+    @property
+    def waiting_for_frames(self) -> bool:
+        """Some robot waits for the playback frame after the last one it holds."""
+        return any(robot.waiting for robot in self.robots)
+
+    def _map_empty(self) -> bool:
+        return self.volume.num_blocks == 0
+
+    def _robot(self, name: str) -> RobotStream:
+        with self._lock:
+            return self.robots.get(name, map_empty=self._map_empty())
 
     # ------------------------------------------------------------------ state changes
     def _load(self, path: Path, *, fallback: bool = False, restore_counts: bool = False) -> None:
         """Load a map file; ``fallback``: a checkpoint of ours, the ``.prev`` one when the newest is bad;
         ``restore_counts``: (a restart) take ``frames_integrated`` and ``integrate_busy_s`` from it."""
-        loaded = (load_latest_map if fallback else load_map)(path, device=self.section.device)
-        last = loaded.meta.get("last_frame_id")
-        self.playback = str(loaded.meta.get("playback") or "")
+        params = self.section.volume_params()
+        own = self.checkpoint_dir is not None and Path(path).resolve() == self.checkpoint_dir.resolve()
+        if not own:
+            checkpoints.validate(path)  # a bad map is refused before the current one is let go
+        with self._lock:
+            # The checkpoint folder's store is reopened (own) or replaced (a copy of the other map).
+            self.volume.close()
+            try:
+                loaded = (checkpoints.load_own(path, params, fallback=fallback) if own
+                          else checkpoints.load_other(path, params, self.checkpoint_dir))
+            except BaseException:
+                self.volume = checkpoints.reopen(params, self.checkpoint_dir)
+                self._map_changed(reset_keys=True)
+                raise
         if restore_counts:
             self.frames_integrated = int(loaded.meta.get("frames_integrated") or 0)
             self.integrate_busy_s = float(loaded.meta.get("integrate_busy_s") or 0.0)
         with self._lock:
+            if self.volume is not loaded.volume:
+                self.volume.close()
             self.volume = loaded.volume
             has_semantics = loaded.dictionary.embedding_space != NO_EMBEDDING_SPACE
             self.replica.reset(loaded.dictionary if has_semantics else None)
-            self.last_frame_id = self.checkpoint_last_frame_id = int(last) if last is not None else None
+            self.robots.restore(loaded.meta, default_robot=DEFAULT_ROBOT)
+            first = self._first_robot()
+            self.checkpoint_last_frame_id = None if first is None else first.map_last_frame_id
             self._map_changed(reset_keys=True)
             self._dirty = False
         self._set_checkpoint_frame()
@@ -228,40 +291,62 @@ class GeometryService(DictionaryFollower):
         )
 
     def save(self, path: Path | None = None, *, summary: bool = True) -> Path:
-        """Save the map (atomically) to ``path`` or the checkpoint folder. ``summary=False`` (the
-        periodic checkpoints) leaves out the region summaries, which cost a surface read-out
-        under the lock integration waits on; a save asked for on ``control/save`` stores them."""
+        """Save the map to ``path`` or checkpoint it into the checkpoint folder's store. ``summary=False``
+        (the periodic checkpoints) leaves out the region summaries unless they are at hand for this
+        map version; a save asked for on ``control/save`` stores them (kept per tile: only tiles
+        changed since they were last read out are read again, :mod:`openfusion.mapping.tilereadouts`).
+        Integration goes on while a checkpoint writes: the lock is held for a slice's copy and the
+        checkpoint's last step (:mod:`openfusion.mapping.mapstore`), whose instant the checkpoint's
+        meta (``last_frame_id``...) describes."""
         target = path or self.checkpoint_dir
         if target is None:
             raise RequestError(
                 "no_map_dir", "no path given and the geometry service has no map_dir configured"
             )
-        with self._lock:
+        own = self.checkpoint_dir is not None and Path(target).resolve() == self.checkpoint_dir.resolve()
+        started = time.monotonic()
+        captured: dict[str, int | None] = {}
+
+        def state() -> tuple[RegionDictionary, dict[str, object]]:
+            """The checkpoint's instant (called holding the lock): what it holds, and the map clean."""
+            first = self._first_robot()
+            # The map's chain for readers from before robots: its first robot's.
+            last = None if first is None else first.map_last_frame_id
+            captured["last"] = last
+            self._dirty = False  # a change after this sets it again
+            meta = {
+                "map_id": self.config.map_id,
+                "frames_integrated": self.frames_integrated,
+                "integrate_busy_s": self.integrate_busy_s,
+                "last_frame_id": last,
+                "playback": "" if first is None else first.map_playback,
+                **self.robots.to_meta(),  # each robot's chain and transform, in the same snapshot
+            }
             # A geometry-only map (semantics off) is saved with an empty placeholder dictionary.
-            dictionary = self.replica.dictionary or RegionDictionary(NO_EMBEDDING_SPACE, 1)
-            # The region table of this very map version when a query already had it computed (a
-            # surface read-out saved); else save_map reads the surface out once.
-            cached = self._summary
-            regions = cached.table if cached is not None and cached.map_version == self.map_version else None
-            last = self.last_frame_id
+            return self.replica.dictionary or RegionDictionary(NO_EMBEDDING_SPACE, 1), meta
+
+        with self._swap_lock:  # a load or reset waits for the save (the volume stays the same)
+            self._set_saving(True)
             try:
-                written = save_map(
-                    target,
-                    self.volume,
-                    dictionary,
-                    meta={
-                        "map_id": self.config.map_id,
-                        "frames_integrated": self.frames_integrated,
-                        "integrate_busy_s": self.integrate_busy_s,
-                        "last_frame_id": last,
-                        "playback": self.playback,
-                    },
-                    regions=regions,
-                    summary=summary or regions is not None,
-                )
+                with self._lock:
+                    volume, version = self.volume, self.map_version
+                regions = self._regions_for_save(volume, version, compute=summary)
+                tiles = 0
+                store = volume.store
+                if store is not None and (own or Path(target).suffix != ".npz"):
+                    info = checkpoint_store(volume, None, None, regions=regions, summary=regions is not None,
+                                            lock=self._lock, state=state)
+                    tiles = int(info["tiles"])
+                    written = store.path if own else store.copy_to(Path(target) / STORE_DIR_NAME)
+                else:  # no store of its own (no map_dir), or a version-1 file named: under the lock
+                    with self._lock:
+                        dictionary, meta = state()
+                        written = save_map(target, volume, dictionary, meta=meta, regions=regions,
+                                           summary=regions is not None)
             except OSError as exc:
-                # Disk full, read-only folder...: save_map left the files as they were and no
-                # temporary file; the map stays in memory and the next period tries again.
+                # Disk full, read-only folder...: the store (or file) is as it was before; the map
+                # stays in memory and the next period tries again.
+                self._dirty = True
                 self._last_checkpoint = time.monotonic()
                 self.checkpoint_failures += 1
                 self._count(GeometryCounter.CHECKPOINT_FAILURES)
@@ -269,13 +354,47 @@ class GeometryService(DictionaryFollower):
                 reason = exc.strerror or str(exc)
                 logger.error("geometry: checkpoint to %s failed: %s; the map is kept in memory", failed, reason)
                 raise CheckpointFailed(failed, reason) from exc
-            self._dirty = False
-            self.checkpoint_last_frame_id = last
+            except BaseException:
+                self._dirty = True  # not saved: the next period tries again
+                raise
+            finally:
+                self._set_saving(False)
+        last = captured.get("last")
+        self.checkpoint_last_frame_id = last
         self._last_checkpoint = time.monotonic()
         self._count(GeometryCounter.CHECKPOINTS)
         self._set_checkpoint_frame()
-        logger.info("geometry: saved map to %s (last frame %s)", written, "none" if last is None else last)
-        return written
+        if self._runner is not None:
+            self._runner.stats.set(GeometryCounter.CHECKPOINT_LAST_S, self._last_checkpoint - started)
+            self._runner.stats.set(GeometryCounter.CHECKPOINT_LAST_TILES, tiles)
+        logger.info("geometry: saved map to %s (last frame %s, %d tiles written, %.2f s)", written,
+                    "none" if last is None else last, tiles, self._last_checkpoint - started)
+        return Path(written)
+
+    def _regions_for_save(self, volume: SemanticVolume, version: int, *, compute: bool) -> RegionTable | None:
+        """The region table a save stores: the cached one of this map version, else (``compute``)
+        the volume's, kept as the cache (the queries after a save, e.g. the end of ``openfusion
+        run``, are answered from it)."""
+        cached = self._summary
+        if cached is not None and cached.map_version == version:
+            return cached.table
+        if not compute:
+            return None
+        table = volume.region_table(lock=self._lock)
+        horizon = max(self._key_horizon, int(table.keys[-1]) + 1 if len(table) else 0)
+        with self._lock:
+            if self.volume is volume:
+                self._summary = SummaryCache(version, horizon, table)
+        return table
+
+    def _set_saving(self, saving: bool) -> None:
+        self.saving = saving
+        if self._runner is not None:
+            self._runner.stats.set(GeometryCounter.SAVING, 1 if saving else 0)
+
+    def _set_memory_stats(self) -> None:
+        if self._runner is not None:
+            publish_map_size(self._runner.stats, self.volume)
 
     def _set_checkpoint_frame(self) -> None:
         if self._runner is not None:
@@ -294,110 +413,170 @@ class GeometryService(DictionaryFollower):
             self._runner.stats.incr(name, by)
 
     # ---------------------------------------------------------------------- handlers
-    def _admit(self, msg: RgbdFrame) -> bool:
-        """Whether to take this frame (module docstring, "Resume"); a playback frame already held or
-        out of order is counted here (and an announcement sent for the latter)."""
-        held = NO_FRAME_ID if self.last_frame_id is None else self.last_frame_id
-        if msg.prev_frame_id is None:  # live: as it comes; count the ids that never arrived
-            if self.last_frame_id is not None and msg.frame_id > held + 1:
-                self._count(GeometryCounter.FRAMES_GAP, msg.frame_id - held - 1)
-            self.waiting_for_frames = False
-            return True
-        if msg.playback != self.playback:  # another playback: it starts at its first frame
-            if msg.prev_frame_id == NO_FRAME_ID:
-                self.playback = msg.playback
-                self.waiting_for_frames = False
-                return True
-            held = NO_FRAME_ID
-        elif msg.frame_id <= held:
-            self._count(GeometryCounter.FRAMES_DUPLICATE)
-            logger.debug("geometry: frame %d dropped: already held (last %d)", msg.frame_id, held)
-            return False
-        if msg.prev_frame_id != held:
-            self._count(GeometryCounter.FRAMES_OUT_OF_ORDER)
-            if not self.waiting_for_frames:
-                self.waiting_for_frames = True
-                self.resume += 1
-                logger.warning("geometry: frame %d follows frame %d, but the last frame held is %d; asking for "
-                               "the frames after it", msg.frame_id, msg.prev_frame_id, held)
-                self.announce()
-            return False
-        self.waiting_for_frames = False
-        return True
-
-    def announce(self) -> None:
-        """Publish where playback should continue (``resume`` announcement on ``geometry/progress``)."""
+    def announce(self, robot: RobotStream | None = None) -> None:
+        """Publish where a robot's playback should continue (``resume`` announcement on
+        ``geometry/progress``), for ``robot`` or for every robot that waits for frames."""
         if self._progress_pub is None:
             return
-        held = NO_FRAME_ID if self.last_frame_id is None else self.last_frame_id
-        try:
-            self._progress_pub.put(GeometryProgress(
-                frame_id=-1, stamp_ns=0, integrated=False, frames_integrated=self.frames_integrated, queued=0,
-                incarnation=self.incarnation, holds_playback=self.playback, holds_frame_id=held,
-                resume=self.resume))
-        except zenoh.ZError as exc:  # repeated every second while waiting
-            logger.warning("geometry: resume announcement not published: %s", exc)
+        for r in [robot] if robot is not None else self.robots.announcements_due():
+            r.announce_due = False
+            playback, held = r.announcement()
+            try:
+                self._progress_pub.put(GeometryProgress(
+                    frame_id=-1, stamp_ns=0, integrated=False, frames_integrated=self.frames_integrated, queued=0,
+                    incarnation=self.incarnation, holds_playback=playback, holds_frame_id=held, resume=r.resume,
+                    robot=r.name))
+            except zenoh.ZError as exc:  # repeated every second while waiting
+                logger.warning("geometry: resume announcement for robot %s not published: %s", r.name, exc)
+
+    def announce_robots(self) -> None:
+        """Announce for the robots that need one now (a join that asks for a replay)."""
+        with self._lock:
+            due = [r for r in self.robots if r.announce_due]
+        for robot in due:
+            self.announce(robot)
 
     def on_frame(self, msg: RgbdFrame) -> None:
-        if not self._admit(msg):
+        robot = self._robot(msg.robot)
+        self._note_queue(robot)
+        gaps = robot.frames_gap
+        admission = robot.admit(playback=msg.playback, frame_id=msg.frame_id, prev_frame_id=msg.prev_frame_id)
+        if robot.frames_gap > gaps:
+            self._count(GeometryCounter.FRAMES_GAP, robot.frames_gap - gaps)
+        if admission is not Admission.TAKE:
+            self._count(GeometryCounter.FRAMES_DUPLICATE if admission is Admission.DUPLICATE
+                        else GeometryCounter.FRAMES_OUT_OF_ORDER)
+            if robot.announce_due:
+                self.announce(robot)
             self._acknowledge(msg, integrated=False)
             return
+        frame = msg.to_frame()
+        with self._lock:  # the join (another thread) changes the state under this lock
+            robot.took(playback=msg.playback, frame_id=msg.frame_id)
+            held = robot.state == "held"
+            if held:  # into its submap and hold, never into the map (robot_streams)
+                robot.hold(frame, playback=msg.playback, frame_id=msg.frame_id, prev_frame_id=msg.prev_frame_id)
+            else:
+                if robot.recheck_due():
+                    self.joiner.queue_recheck(robot, frame)
+                robot.recent.append(frame)
+        if held:
+            self._count(GeometryCounter.FRAMES_HELD)
+            self._acknowledge(msg, integrated=False)
+            self.joiner.wake()
+            return
+        integrated = self._integrate(robot, frame, playback=msg.playback)
+        self._acknowledge(msg, integrated=integrated)
+
+    def _note_queue(self, robot: RobotStream) -> None:
+        """Which publisher is this robot's, and how long its frame waited (health: queued, lag)."""
+        sub = self._frames_sub
+        if sub is None:
+            return
+        self._robot_sources[sub.current_source] = robot.name
+        robot.lag_s = max(0.0, time.monotonic() - sub.current_arrival_s)
+
+    def _integrate(self, robot: RobotStream, frame: Frame, *, playback: str) -> bool:
+        """Integrate one of a joined robot's frames through its transform; a frame that fails is
+        logged, counted and taken as done (a replay never retries it). True when integrated."""
         started = time.monotonic()
         try:
-            frame = msg.to_frame()
             with self._lock:
-                self.volume.integrate(frame)
+                self.volume.integrate(robot.to_map(frame))
                 self.frames_integrated += 1
-                self.last_frame_id = frame.frame_id
+                robot.frames_integrated += 1
+                robot.in_map(playback=playback, frame_id=frame.frame_id)
+                self.last_integrated_frame_id = frame.frame_id
                 self._map_changed()
                 self._dirty = True
         except CapacityError as exc:
-            logger.warning("geometry: frame %d refused: %s", msg.frame_id, exc)
-            self.last_frame_id = msg.frame_id  # taken: the playback goes on after it
+            logger.warning("geometry: frame %d of robot %s refused: %s", frame.frame_id, robot.name, exc)
+            robot.in_map(playback=playback, frame_id=frame.frame_id)  # taken: the playback goes on after it
+            robot.skipped["capacity"] += 1
             self._count(GeometryCounter.CAPACITY_REFUSED)
-            self._acknowledge(msg, integrated=False)
-            return
+            return False
         except Exception:  # anything else on this one frame: logged, counted, taken (a replay never retries it)
-            logger.exception("geometry: frame %d (%s) failed to integrate and was skipped", msg.frame_id, msg.source)
-            self.last_frame_id = msg.frame_id
+            logger.exception("geometry: frame %d of robot %s (%s) failed to integrate and was skipped",
+                             frame.frame_id, robot.name, frame.source)
+            robot.in_map(playback=playback, frame_id=frame.frame_id)
+            robot.skipped["failed"] += 1
             self._count(GeometryCounter.FRAMES_FAILED)
             if self._runner is not None:
                 self._runner.stats.add_error()
-            self._acknowledge(msg, integrated=False)
-            return
+            return False
         ended = time.monotonic()
         elapsed = ended - started
         self.integrate_busy_s += elapsed
-        self._acknowledge(msg, integrated=True)
         if self._runner is not None:
             self._runner.stats.record(elapsed)
             self._runner.stats.set(GeometryCounter.INTEGRATE_BUSY_S, self.integrate_busy_s)
             self._runner.stats.set(GeometryCounter.LAST_INTEGRATED_AT_S, ended)
             self._runner.stats.set(GeometryCounter.FRAMES_INTEGRATED, self.frames_integrated)
-            self._runner.stats.set(GeometryCounter.NUM_BLOCKS, self.volume.num_blocks)
+            self._set_memory_stats()
             self._runner.stats.set(GeometryCounter.LAST_FRAME_ID, frame.frame_id)
+        return True
+
+    def _integrate_held(self, robot: RobotStream, frames: list) -> None:
+        """A robot just joined: its held frames, in order, through the transform found (the
+        joiner calls this with the lock held)."""
+        for held in frames:
+            self._integrate(robot, held.frame, playback=held.playback)
+
+    def robot_status(self) -> dict[str, dict]:
+        """Each robot's stream for health (:class:`~openfusion.wire.schemas.admin.RobotStatus`)."""
+        queued: dict[str, int] = {}
+        if self._frames_sub is not None:
+            for source, (n, _oldest) in self._frames_sub.queued_by_source().items():
+                name = self._robot_sources.get(source)
+                if name is not None:
+                    queued[name] = queued.get(name, 0) + n
+        with self._lock:
+            robots = list(self.robots)
+            status = {}
+            for robot in robots:
+                robot.queued = queued.get(robot.name, 0)
+                status[robot.name] = robot.status(map_blocks=self.volume.num_blocks)
+        if self._runner is not None:
+            self._runner.stats.set(GeometryCounter.ROBOTS, len(robots))
+            self._runner.stats.set(GeometryCounter.ROBOTS_HELD, sum(r.state == "held" for r in robots))
+        return status
 
     def _acknowledge(self, msg: RgbdFrame, *, integrated: bool) -> None:
-        """Tell the bridge this frame left the queue (its flow control waits for this)."""
+        """Tell the robot's bridge this frame left the queue (its flow control waits for this)."""
         if self._progress_pub is None:
             return
         queued = self._frames_sub.queued if self._frames_sub is not None else 0
+        robot = self.robots.robots.get(msg.robot)
+        playback, held = robot.holds() if robot is not None else ("", NO_FRAME_ID)
         try:
-            held = NO_FRAME_ID if self.last_frame_id is None else self.last_frame_id
             self._progress_pub.put(GeometryProgress(frame_id=msg.frame_id, stamp_ns=msg.stamp_ns, integrated=integrated,
                                                     frames_integrated=self.frames_integrated, queued=queued,
-                                                    incarnation=self.incarnation, holds_playback=self.playback,
-                                                    holds_frame_id=held))
+                                                    incarnation=self.incarnation, holds_playback=playback,
+                                                    holds_frame_id=held, robot=msg.robot))
         except zenoh.ZError as exc:  # the map is fine; the bridge falls back to open loop
             logger.warning("geometry: progress for frame %d not published: %s", msg.frame_id, exc)
+
+    def _map_pose(self, robot_name: str, T_odom_cam: np.ndarray) -> np.ndarray:
+        """A robot's pose in the map's frame; a robot not joined yet is refused (``robot_not_joined``)."""
+        robot = self._robot(robot_name)
+        if robot.state != "joined":
+            raise RequestError("robot_not_joined", f"robot {robot_name!r} is not joined to the map's frame yet "
+                               f"({robot.submap.num_frames} frames in its submap)")
+        return robot.T_map_odom @ np.asarray(T_odom_cam, np.float64)
 
     def on_update(self, msg: SemanticUpdate) -> None:
         check_update(msg)
         with self._lock:  # resolved and applied under the lock on_delta relabels under: no orphan keys
+            robot = self._robot(msg.robot)
+            if robot.state != "joined":  # its render was refused: no update should come; nothing is written
+                logger.warning("geometry: semantic update of frame %d of robot %s dropped: the robot is not joined",
+                               msg.frame_id, msg.robot)
+                self._count(GeometryCounter.UPDATES_DROPPED_NOT_JOINED)
+                return
             key_map = self.replica.resolve_keys(msg.key_map)  # planned before a merge this replica has seen
             update = self.volume.apply_update(
-                msg.T_world_cam, msg.intrinsics, key_map, msg.conf_map, observed_depth_m=msg.depth_m,
-                rendered=self._recent_renders.pop(msg.frame_id, None),
+                robot.T_map_odom @ msg.T_world_cam, msg.intrinsics, key_map, msg.conf_map,
+                observed_depth_m=msg.depth_m, rendered=self._recent_renders.pop((msg.robot, msg.frame_id), None),
             )
             self.updates_applied += 1
             self._map_changed()
@@ -418,16 +597,16 @@ class GeometryService(DictionaryFollower):
                 f"render of {req.width_px}x{req.height_px} exceeds max_render_pixels={self.section.max_render_pixels}",
             )
         with self._lock:
-            view = self.volume.render(req.T_world_cam, req.intrinsics)
+            T_map_cam = self._map_pose(req.robot, req.T_world_cam)
+            view = self.volume.render(T_map_cam, req.intrinsics)
             # The semantic service's update for this frame comes next, at the same pose and size:
             # it writes through these ray hits instead of casting again (the volume checks the
             # pose, the size and that the grid's buffers have not moved since).
-            self._recent_renders[req.frame_id] = view
+            self._recent_renders[(req.robot, req.frame_id)] = view
             while len(self._recent_renders) > RECENT_RENDERS:
                 self._recent_renders.popitem(last=False)
-        return RenderReply(
-            frame_id=req.frame_id, key_map=view.key_map, conf_map=view.conf_map, depth_m=view.depth_m
-        )
+        return RenderReply(frame_id=req.frame_id, key_map=view.key_map, conf_map=view.conf_map, depth_m=view.depth_m,
+                           T_map_cam=T_map_cam)
 
     def _points_cap(self, requested: int | None) -> int:
         cap = self.section.max_points_reply
@@ -459,9 +638,9 @@ class GeometryService(DictionaryFollower):
                 )
             ):
                 with self._lock:
-                    version, horizon = self.map_version, self._key_horizon
-                    pts = self.volume.extract_points()
-                table = RegionTable.of_points(pts.keys, pts.points)
+                    volume, version, horizon = self.volume, self.map_version, self._key_horizon
+                # Per tile, only changed tiles read out again; the lock is held for each chunk's copy.
+                table = volume.region_table(lock=self._lock)
                 if len(table):  # keys present in the map (e.g. loaded from a checkpoint) are covered too
                     horizon = max(horizon, int(table.keys[-1]) + 1)
                 cached = self._summary = SummaryCache(version, horizon, table)
@@ -469,9 +648,9 @@ class GeometryService(DictionaryFollower):
 
     def handle_contacts(self, req: RegionContactsRequest) -> RegionContactsReply:
         with self._lock:
-            version = self.map_version
-            coords, keys = self.volume.labelled_blocks()
-        c = block_contacts(coords, keys, radius_vox=req.radius_vox)  # outside the lock: integration goes on
+            volume, version = self.volume, self.map_version
+        # Per tile, only tiles changed since the last pass counted again (copies under the lock).
+        c = volume.region_contacts(radius_vox=req.radius_vox, lock=self._lock)
         return RegionContactsReply(map_version=version, keys=c.keys.astype(np.int32), surface_voxels=c.surface_voxels,
                                    pair_a=c.pair_a.astype(np.int32), pair_b=c.pair_b.astype(np.int32),
                                    contact_a=c.contact_a, contact_b=c.contact_b)
@@ -509,16 +688,17 @@ class GeometryService(DictionaryFollower):
             if path is None or not (_has_checkpoint(path) if own else resolve_map_path(path).exists()):
                 raise RequestError("not_found", f"no map at {path}")
             try:
-                self._load(path, fallback=own)
+                with self._swap_lock:
+                    self._load(path, fallback=own)
             except MapFormatError as exc:
                 raise RequestError("bad_map", str(exc)) from exc
             return ControlReply(ok=True, message=f"loaded {path}")
-        with self._lock:
-            self.volume = SemanticVolume(self.section.volume_params())
+        with self._swap_lock, self._lock:
+            self.volume.close()
+            self.volume = checkpoints.new_volume(self.section.volume_params(), self.checkpoint_dir, fresh=True)
             self.replica.reset(None)
             self.frames_integrated = 0
-            self.last_frame_id = None
-            self.playback = ""
+            self.robots = RobotStreams(self.section.join_params(), parse_robot_frames(self.section.robot_frames))
             self._map_changed(reset_keys=True)
             self._dirty = True
         return ControlReply(ok=True, message="map reset")
@@ -527,7 +707,10 @@ class GeometryService(DictionaryFollower):
     def setup(self, runner: ServiceRunner) -> None:
         self._runner = runner
         self._progress_pub = runner.publisher(GEOMETRY_PROGRESS)
-        self._frames_sub = runner.subscriber(SENSOR_RGBD, self.on_frame, queue_size=self.section.frame_queue_size)
+        # One queue per robot's bridge, served in turn: one robot's backlog never starves another.
+        self._frames_sub = runner.subscriber(SENSOR_RGBD, self.on_frame, queue_size=self.section.frame_queue_size,
+                                             fair=True)
+        runner.stats.robots_provider = self.robot_status
         runner.subscriber(SEMANTIC_UPDATE, self.on_update, queue_size=64)
         runner.subscriber(DICTIONARY_DELTA, self.on_delta, queue_size=256)
         runner.queryable(GEOMETRY_RENDER, self.handle_render)
@@ -540,19 +723,23 @@ class GeometryService(DictionaryFollower):
             runner.queryable(endpoint, lambda req, action=action: self.handle_control(req, action=action))
         runner.stats.set(GeometryCounter.FRAMES_INTEGRATED, self.frames_integrated)
         runner.stats.set(GeometryCounter.INTEGRATE_BUSY_S, self.integrate_busy_s)
-        runner.stats.set(GeometryCounter.NUM_BLOCKS, self.volume.num_blocks)
+        self._set_memory_stats()
         runner.stats.set(GeometryCounter.CHECKPOINT_FAILURES, self.checkpoint_failures)
         for name in (GeometryCounter.FRAMES_DUPLICATE, GeometryCounter.FRAMES_OUT_OF_ORDER):
             runner.stats.set(name, 0)
         if self.last_frame_id is not None:
             runner.stats.set(GeometryCounter.LAST_FRAME_ID, self.last_frame_id)
+        for name in (GeometryCounter.FRAMES_HELD, GeometryCounter.JOIN_ATTEMPTS, GeometryCounter.ROBOTS_JOINED):
+            runner.stats.set(name, 0)
         self._set_checkpoint_frame()
-        self.announce()
+        self._memory.start(runner.stats)
+        self.announce()  # every robot the checkpoint holds: where its playback continues
+        self.joiner.start()
 
     def loop(self, runner: ServiceRunner) -> None:
         period = self.section.checkpoint_period_s
         while not runner.wait(min(period, 1.0) if period > 0 else 1.0):
-            if self.waiting_for_frames:  # until the next playback frame comes in order
+            if self.waiting_for_frames:  # until each robot's next playback frame comes in order
                 self.announce()
             if (
                 period > 0
@@ -571,17 +758,42 @@ class GeometryService(DictionaryFollower):
                     self.checkpoint_failures += 1
                     self._count(GeometryCounter.CHECKPOINT_FAILURES)
                     runner.stats.add_error()
+            self._read_out_settled_tiles()
+
+    def _read_out_settled_tiles(self) -> None:
+        """Idle work: read out the region-summary parts of tiles nothing changed for
+        :data:`SETTLE_S` (a room the camera left), at most :data:`IDLE_READOUT_S` per turn, so a
+        save or a region query has only the recent tiles left to read (a floor's final save read
+        the whole map out: 50-150 s). Tiles the camera is working on are left for later."""
+        with self._lock:
+            volume = self.volume
+            now = time.monotonic()
+            self._change_marks.append((now, volume.change_clock))
+        marks = [m for m in self._change_marks if now - m[0] <= 2 * SETTLE_S]
+        self._change_marks = marks
+        settled = [clock for t, clock in marks if now - t >= SETTLE_S]
+        if not settled:
+            return
+        try:
+            with self._swap_lock:
+                if self.volume is volume:
+                    volume.refresh_region_table(settled_clock=settled[-1], lock=self._lock, max_s=IDLE_READOUT_S)
+        except Exception:  # idle work: a failure here only leaves the work to the next save
+            logger.exception("geometry: reading out settled tiles failed")
 
     def close(self) -> None:
+        self.joiner.stop()
+        self._memory.stop()
         # The session is closed by now: this last checkpoint is saved without a merge pass.
         if self._dirty and self.checkpoint_dir is not None:
             with contextlib.suppress(CheckpointFailed):  # logged by save()
                 self.save()  # with summaries: this one is what `query --map-dir` reads after a stop
+        self.volume.close()
 
 
 def _has_checkpoint(path: Path) -> bool:
-    """A checkpoint (the newest or the one before it) is at ``path``."""
-    return resolve_map_path(path).exists() or previous_map_path(path).exists()
+    """A checkpoint (a committed tile store, or a version-1 file or the one before it) is at ``path``."""
+    return checkpoints.has_checkpoint(path)
 
 
 DEFINITION = ServiceDefinition(

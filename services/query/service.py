@@ -41,8 +41,9 @@ MiniLM forward gains little from a second thread and loses a lot when the other 
 the cores busy). One query text takes the MiniLM encoder's single-text path (tokenize +
 forward, see ``openfusion.encoders.text_minilm``); a batch (``query/text_batch``) embeds all its
 texts in one encoder call and, with ``with_points``, asks geometry once for the points of every
-text's regions. Each text of a batch is held to ``max_text_chars``; the whole reply to the
-message-size limit (``reply_too_large``).
+text's regions. Text length, ``top_k`` and points are held to :mod:`openfusion.wire.limits` (the
+one set every surface uses; refused ``too_large`` with its one line, naming which text of a batch);
+the whole reply to the message-size limit (``reply_too_large``).
 """
 
 from __future__ import annotations
@@ -65,6 +66,7 @@ from openfusion.mapping.answers import (
     RankedRegion,
     TextAnswer,
     answer_text,
+    pool_size,
     texts_to_embed,
     texts_to_rank,
 )
@@ -74,6 +76,7 @@ from openfusion.mapping.relations import Nearby, RegionBoxes, parse_relation_que
 from openfusion.mapping.relevancy import RelevancyScorer
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
+from openfusion.wire import limits
 from openfusion.wire.counters import QueryCounter
 from openfusion.wire.endpoints import (
     DICTIONARY_DELTA,
@@ -114,9 +117,6 @@ class QuerySection(QueryParams):
     model_path: str | None = Field(None, description="model of the clip-regions / onnx text encoder")
     device: str = Field("auto", description="text encoder device: auto, cpu or cuda")
     torch_threads: int = Field(1, ge=0, description="intra-op threads of a torch text encoder (0 = torch's default)")
-    max_text_chars: int = Field(512, gt=0, description="longest query text")
-    max_top_k: int = Field(100, gt=0, description="most regions one query may ask for")
-    max_points_reply: int = Field(200_000, gt=0, description="most points in one reply")
     geometry_timeout_s: float = Field(5.0, gt=0, description="wait this long for geometry's summaries or points")
     resync_period_s: float = Field(5.0, gt=0, description="without a dictionary, ask the semantic service this often")
     summary_max_age_s: float = Field(2.0, gt=0, description="a region summary used in a reply is at most this old")
@@ -321,13 +321,13 @@ class QueryService:
             )
 
     def _check_limits(self, top_k: int, max_points: int) -> None:
-        if top_k > self.section.max_top_k:
-            raise RequestError("too_large", f"top_k={top_k} exceeds max_top_k={self.section.max_top_k}")
-        if max_points > self.section.max_points_reply:
-            raise RequestError(
-                "too_large",
-                f"max_points={max_points} exceeds max_points_reply={self.section.max_points_reply}",
-            )
+        """The request's ``top_k`` and ``max_points`` within :mod:`openfusion.wire.limits` (the
+        schema checks them when a message is decoded; a handler called directly is held to them too)."""
+        try:
+            limits.check_top_k(top_k)
+            limits.check_max_points(max_points)
+        except limits.LimitError as exc:
+            raise RequestError("too_large", str(exc)) from None
 
     def _points_of(self, keys: list[int] | None, max_points: int) -> PointsReply | None:
         if self._runner is None or (keys is not None and not keys):
@@ -417,7 +417,8 @@ class QueryService:
         # the X of "X next to Y" looks at more candidates; the head rule's parts are scored, never ranked
         targets = {rq.target for rq in map(parse_relation_query, queries) if rq is not None}
         candidates = {text: self.replica.top_k(vectors[text], candidates_for(
-            top_k + RELATION_CANDIDATES if text in targets else max(top_k, MAX_ANCHORS))) for text in texts_to_rank(queries)}
+            top_k + RELATION_CANDIDATES if text in targets else pool_size(max(top_k, MAX_ANCHORS))))
+            for text in texts_to_rank(queries)}
         summaries = self._summaries_for(sorted({k for ranked in candidates.values() for k, _ in ranked}))
         least = self.section.min_region_points
         usable = {text: drop_empty_regions(ranked, summaries, min_points=least) for text, ranked in candidates.items()}
@@ -435,7 +436,7 @@ class QueryService:
         keys = sorted({r.key for a in answers for r in a.regions})
         points = None
         if with_points:  # the points themselves: only geometry has them (box and count from them too)
-            points = self._points_of(keys, self.section.max_points_reply)
+            points = self._points_of(keys, limits.MAX_QUERY_POINTS)
         named = set(keys) | {n.key for a in answers for r in a.regions for n in r.nearby} | {
             k for a in answers for k in a.anchors}
         labels = self.replica.labels_for(sorted(named))
@@ -455,17 +456,16 @@ class QueryService:
         ]
 
     def _check_text(self, text: str, which: str = "") -> None:
-        if len(text) > self.section.max_text_chars:
-            raise RequestError(
-                "too_large",
-                f"text {which}of {len(text)} characters exceeds max_text_chars={self.section.max_text_chars}",
-            )
+        try:
+            limits.check_text(text, which=which)
+        except limits.LimitError as exc:
+            raise RequestError("too_large", str(exc)) from None
 
     def _answer_texts(self, texts: list[str], req: TextQuery | TextQueryBatch, *, numbered: bool) -> list[QueryReply]:
         """Every text checked first (``numbered``: errors say which of a batch), all embedded in ONE
         encoder call, each ranked: what a text query and a batch of them both do."""
         for i, text in enumerate(texts):
-            self._check_text(text, f"{i + 1} (of {len(texts)}) " if numbered else "")
+            self._check_text(text, f"text {i + 1} of {len(texts)} " if numbered else "")
         self._check_limits(req.top_k, req.max_points)
         space = self._check_space(req.embedding_space)
         self._check_text_space(space)
@@ -522,7 +522,7 @@ class QueryService:
         started = time.monotonic()
         self._check_limits(req.top_k, req.max_points)
         space = self._check_space(None)
-        points = self._points_of(None, self.section.max_points_reply)
+        points = self._points_of(None, limits.MAX_QUERY_POINTS)
         if points is None:
             raise RequestError("no_geometry", "the geometry service did not answer: is it running?")
         dist = np.linalg.norm(points.points.astype(np.float64) - req.point_world[None, :], axis=1)

@@ -95,6 +95,7 @@ class CandidateFeeder:
         instance_wait_s: float,
         render_timeout_s: float,
         on_no_instance: Any,
+        on_no_render: Any,
     ) -> None:
         self.frames = frames
         self.window = window
@@ -104,6 +105,7 @@ class CandidateFeeder:
         self.instance_wait_s = instance_wait_s
         self.render_timeout_s = render_timeout_s
         self.on_no_instance = on_no_instance  # (runner, msg): counts and logs a frame without its instance image
+        self.on_no_render = on_no_render  # (runner, robot, frame id, QueryError): counts and logs an unscored frame
         self.handled = HandledFrames()
 
     def run(self, runner: ServiceRunner) -> None:
@@ -139,9 +141,8 @@ class CandidateFeeder:
         started = time.monotonic()
         try:
             evidence = self._prepare(runner, msg)
-        except QueryError as exc:  # geometry did not answer the render: the frame cannot be scored
-            logger.warning("semantic: frame %d not scored: %s", msg.frame_id, exc)
-            stats.incr(SemanticCounter.SKIPPED_NO_RENDER)
+        except QueryError as exc:  # no render (geometry gone, or the robot not joined yet): not scored
+            self.on_no_render(runner, msg.robot, msg.frame_id, exc)
             self.finish(runner, msg)
             return
         change = self.window.offer(evidence, Pending(msg, instance))
@@ -152,6 +153,7 @@ class CandidateFeeder:
     def _prepare(self, runner: ServiceRunner, msg: RgbdFrame) -> Any:
         def render(T_world_cam: Any, K_small: CameraIntrinsics) -> Any:
             return runner.call(GEOMETRY_RENDER, RenderRequest(frame_id=msg.frame_id, T_world_cam=T_world_cam,
+                                                              robot=msg.robot,
                                                               **RenderRequest.intrinsics_fields(K_small)),
                                timeout_s=self.render_timeout_s)
 

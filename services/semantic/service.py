@@ -98,6 +98,7 @@ from openfusion.wire.schemas import (
     RgbdFrame,
     SemanticUpdate,
 )
+from openfusion.wire.schemas.base import DEFAULT_ROBOT
 
 logger = logging.getLogger(__name__)
 
@@ -242,15 +243,17 @@ class SemanticService:
         runner.stats.incr(SemanticCounter.ENCODER_CALLS)
         obs = self.encoder.encode(frame)
         runner.stats.incr(SemanticCounter.ENCODER_REGIONS, len(obs.conf_maps))
-        self.apply_observation(runner, frame, obs, started)
+        self.apply_observation(runner, frame, obs, started, robot=msg.robot)
 
-    def apply_observation(self, runner: ServiceRunner, frame: Frame, obs: RegionObservation, started: float) -> None:
-        """Render the map at the frame's pose, match, update the dictionary, send the update."""
+    def apply_observation(self, runner: ServiceRunner, frame: Frame, obs: RegionObservation, started: float, *,
+                          robot: str = DEFAULT_ROBOT) -> None:
+        """Render the map at the frame's pose, match, update the dictionary, send the update.
+        ``robot``: whose frame it is (its pose is in that robot's odometry frame; geometry joins it)."""
         h, w = obs.conf_maps.shape[1:] if obs.conf_maps.ndim == 3 else self.encoder.output_size(
             frame.intrinsics.height_px, frame.intrinsics.width_px)
         K_small = frame.intrinsics.scaled(w, h)
         reply = runner.call(GEOMETRY_RENDER, RenderRequest(frame_id=frame.frame_id, T_world_cam=frame.T_world_cam,
-                                                           **RenderRequest.intrinsics_fields(K_small)),
+                                                           robot=robot, **RenderRequest.intrinsics_fields(K_small)),
                             timeout_s=self.section.render_timeout_s)
         rendered = RenderedView(key_map=reply.key_map, conf_map=reply.conf_map, depth_m=reply.depth_m)
         depth_m = resize_nearest(frame.depth_m(), (h, w)).astype(np.float32)
@@ -265,7 +268,7 @@ class SemanticService:
             self._update_pub.put(SemanticUpdate(
                 frame_id=frame.frame_id, T_world_cam=frame.T_world_cam, **SemanticUpdate.intrinsics_fields(K_small),
                 key_map=planned.key_map, conf_map=planned.conf_map,
-                new_keys=np.array([key for _, key in planned.new_keys], np.int32), depth_m=depth_m))
+                new_keys=np.array([key for _, key in planned.new_keys], np.int32), depth_m=depth_m, robot=robot))
         stats = runner.stats
         stats.record(time.monotonic() - started)
         stats.incr(SemanticCounter.SEMANTIC_FRAMES)
@@ -355,14 +358,17 @@ class SemanticService:
         # latest: the newest frame only; every: a queue (a slower encoder drops the oldest, counted);
         # coverage: a queue the size of the window, emptied by the scoring thread
         mode = self.select_params.select
+        # Coverage and every: a queue per robot's bridge served in turn (fair), so one robot's backlog
+        # never keeps another's frames from being scored; coverage then picks across robots by gain.
         self._frames = (runner.subscriber(SENSOR_RGBD, latest_only=True) if mode == "latest" else
                         runner.subscriber(SENSOR_RGBD, queue_size=EVERY_QUEUE if mode == "every"
-                                          else self.select_params.select_window))
+                                          else self.select_params.select_window, fair=True))
         if self._scorer is not None:
             self._feeder = CandidateFeeder(
                 frames=self._frames, window=CandidateWindow(self._scorer), scorer=self._scorer,
                 accept=self.switch.accept, instances=self._instances, instance_wait_s=self.section.instance_wait_s,
-                render_timeout_s=self.section.render_timeout_s, on_no_instance=self._skip_without_instance)
+                render_timeout_s=self.section.render_timeout_s, on_no_instance=self._skip_without_instance,
+                on_no_render=self._skip_no_render)
             runner.stats.set(SemanticCounter.SKIPPED_NO_GAIN, 0)
         if self.section.encoder_pool:
             assert runner.session is not None
@@ -440,8 +446,7 @@ class SemanticService:
         try:
             self.process(runner, msg, instance)
         except QueryError as exc:  # geometry did not answer (or refused) the render request
-            logger.warning("semantic: frame %d skipped: %s", msg.frame_id, exc)
-            runner.stats.incr(SemanticCounter.SKIPPED_NO_RENDER)
+            self._skip_no_render(runner, msg.robot, msg.frame_id, exc)
         except Exception:  # the encoder, a step or the bus failed on this frame: logged, counted, next frame
             logger.exception("semantic: frame %d failed and was skipped", msg.frame_id)
             runner.stats.incr(SemanticCounter.FRAMES_FAILED)
@@ -584,18 +589,28 @@ class SemanticService:
             obs = RegionObservation(conf_maps=result.reply.conf_maps, embeddings=result.reply.embeddings,
                                     embedding_space=result.reply.embedding_space)
             obs.validate(dim=self.dictionary.dim)
-            self.apply_observation(runner, result.request.to_frame(), obs, time.monotonic())
+            self.apply_observation(runner, result.request.to_frame(), obs, time.monotonic(),
+                                   robot=result.request.robot)
             self._last_applied = result.seq
             runner.stats.incr(ENCODED_BY_PREFIX + result.worker_id)
         except QueryError as exc:
-            logger.warning("semantic: frame %d skipped: %s", frame_id, exc)
-            runner.stats.incr(SemanticCounter.SKIPPED_NO_RENDER)
+            self._skip_no_render(runner, result.request.robot, frame_id, exc)
         except Exception:  # a bad result or a failed step: logged, counted, next result
             logger.exception("semantic: the pool's result for frame %d failed and was skipped", frame_id)
             runner.stats.incr(SemanticCounter.FRAMES_FAILED)
             runner.stats.add_error()
         finally:
             self._frame_done(runner, frame_id, result.request.stamp_ns)
+
+    def _skip_no_render(self, runner: ServiceRunner, robot: str, frame_id: int, exc: QueryError) -> None:
+        """Geometry gave no render: a robot not joined to the map yet (counted apart, expected while
+        its submap grows), or no answer / another refusal (a warning)."""
+        if exc.code == "robot_not_joined":
+            logger.debug("semantic: frame %d of robot %s skipped: %s", frame_id, robot, exc)
+            runner.stats.incr(SemanticCounter.SKIPPED_ROBOT_HELD)
+            return
+        logger.warning("semantic: frame %d of robot %s skipped: %s", frame_id, robot, exc)
+        runner.stats.incr(SemanticCounter.SKIPPED_NO_RENDER)
 
     def _skip_without_instance(self, runner: ServiceRunner, msg: RgbdFrame) -> None:
         runner.stats.incr(SemanticCounter.SKIPPED_NO_INSTANCE)

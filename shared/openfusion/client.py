@@ -22,7 +22,11 @@ in [0, 1] and ``match`` (:mod:`openfusion.mapping.relevancy`), its box and centr
 :attr:`QueryReply.matched` says whether any hit is a match, ``QueryReply.relation`` how a
 relation query was read (X, relation, Y and the Y regions used).
 
-Every call is a Zenoh ``get`` with a timeout; a refusal or a service that does not answer
+A value past a limit of :mod:`openfusion.wire.limits` (a text over 512 characters, ``top_k``
+outside 1..100, ``max_points`` outside 1..200,000) raises :class:`openfusion.wire.limits.LimitError`
+(a :class:`~openfusion.errors.UserError`) before anything is sent, with the one line every surface
+gives; any other value a request schema refuses raises a :class:`~openfusion.errors.UserError`
+naming it. Every call is a Zenoh ``get`` with a timeout; a refusal or a service that does not answer
 raises :class:`openfusion.bus.QueryError` with the service's reason. Keys, message types and
 owners come from :mod:`openfusion.wire.endpoints`.
 """
@@ -34,10 +38,12 @@ from typing import TypeVar
 
 import numpy as np
 import zenoh
+from pydantic import ValidationError
 
 from openfusion.bus import QueryError, call, collect_health, live_services, open_session
 from openfusion.config import ServiceConfig, ZenohSettings
-from openfusion.errors import UsageError
+from openfusion.errors import UsageError, UserError
+from openfusion.wire import limits
 from openfusion.wire.endpoints import (
     CONTROL,
     GEOMETRY_MESH,
@@ -70,7 +76,8 @@ from openfusion.wire.schemas import (
     TextQuery,
     TextQueryBatch,
 )
-from openfusion.wire.schemas.query import MAX_BATCH_TEXTS
+
+MAX_BATCH_TEXTS = limits.MAX_BATCH_TEXTS
 
 Q = TypeVar("Q", bound=Message)
 R = TypeVar("R", bound=Message)
@@ -124,8 +131,10 @@ class OpenFusionClient:
         max_points: int = 20_000,
         embedding_space: str | None = None,
     ) -> QueryReply:
-        request = TextQuery(text=text, top_k=top_k, with_points=with_points, max_points=max_points,
-                            embedding_space=embedding_space)
+        limits.check_text(text)
+        _check_options(top_k, max_points)
+        request = _request(TextQuery, text=text, top_k=top_k, with_points=with_points, max_points=max_points,
+                           embedding_space=embedding_space)
         return self._call(QUERY_TEXT, request)
 
     def query_texts(
@@ -141,11 +150,14 @@ class OpenFusionClient:
         (``query/text_batch``, the texts embedded in one encoder call) per
         :data:`~openfusion.wire.schemas.query.MAX_BATCH_TEXTS` (64) texts. No texts, no call."""
         texts = list(texts)
+        for i, text in enumerate(texts):
+            limits.check_text(text, which=f"text {i + 1} of {len(texts)} " if len(texts) > 1 else "")
+        _check_options(top_k, max_points)
         replies: list[QueryReply] = []
         for start in range(0, len(texts), MAX_BATCH_TEXTS):
             chunk = texts[start : start + MAX_BATCH_TEXTS]
-            request = TextQueryBatch(texts=chunk, top_k=top_k, with_points=with_points, max_points=max_points,
-                                     embedding_space=embedding_space)
+            request = _request(TextQueryBatch, texts=chunk, top_k=top_k, with_points=with_points,
+                               max_points=max_points, embedding_space=embedding_space)
             reply = self._call(QUERY_TEXT_BATCH, request)
             if len(reply.replies) != len(chunk):
                 raise QueryError(QUERY_TEXT_BATCH.key(self.keys), "bad_reply:count",
@@ -156,15 +168,17 @@ class OpenFusionClient:
     def query_image(
         self, image_rgb: np.ndarray, *, top_k: int = 5, with_points: bool = False, max_points: int = 20_000
     ) -> QueryReply:
-        request = ImageQuery(image=np.ascontiguousarray(image_rgb, np.uint8), top_k=top_k, with_points=with_points,
-                             max_points=max_points)
+        _check_options(top_k, max_points)
+        request = _request(ImageQuery, image=np.ascontiguousarray(image_rgb, np.uint8), top_k=top_k,
+                           with_points=with_points, max_points=max_points)
         return self._call(QUERY_IMAGE, request)
 
     def query_point(
         self, point_world: Sequence[float], *, radius_m: float = 0.1, top_k: int = 5, with_points: bool = False
     ) -> QueryReply:
-        request = PointQuery(point_world=np.asarray(point_world, np.float64), radius_m=radius_m, top_k=top_k,
-                             with_points=with_points)
+        limits.check_top_k(top_k)
+        request = _request(PointQuery, point_world=np.asarray(point_world, np.float64), radius_m=radius_m,
+                           top_k=top_k, with_points=with_points)
         return self._call(QUERY_POINT, request)
 
     # geometry
@@ -200,3 +214,20 @@ class OpenFusionClient:
 
 def _key_list(keys: Sequence[int] | None) -> list[int] | None:
     return list(keys) if keys is not None else None
+
+
+def _check_options(top_k: int, max_points: int) -> None:
+    limits.check_top_k(top_k)
+    limits.check_max_points(max_points)
+
+
+def _request(model: type[Q], **fields: object) -> Q:
+    """``model(**fields)``; a value its schema refuses is a :class:`UserError` naming it (one line,
+    no pydantic traceback)."""
+    try:
+        return model(**fields)
+    except ValidationError as exc:
+        first = exc.errors()[0] if exc.errors() else {}
+        where = ".".join(str(p) for p in first.get("loc", ())) or model.__name__
+        message = str(first.get("msg", exc)).removeprefix("Value error, ")
+        raise UserError(f"{where}: {message}" if where not in message else message) from None

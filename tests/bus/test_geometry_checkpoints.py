@@ -1,7 +1,7 @@
-"""The geometry service's checkpoints, its logic called directly (no Zenoh session): the newest
-checkpoint falls back to the previous one on start, the last integrated frame id round-trips,
-and a full or read-only disk leaves the service mapping in memory with the failure counted and
-``control/save`` answered with an error naming the path.
+"""The geometry service's checkpoints, its logic called directly (no Zenoh session): the last
+integrated frame id and every block round-trip through the tile store, a corrupt tile stops the
+start, an older checkpoint file still loads, and a full disk leaves the service mapping in memory
+with the failure counted and ``control/save`` answered with an error naming the store.
 
 A stand-in runner (:class:`_Runner`: real :class:`ServiceStats`, no bus) lets the health
 counters and the periodic checkpoint loop run as they do in the service. ``CheckpointFailed`` is
@@ -9,19 +9,19 @@ a ``RequestError``: a queryable answers it with ``reply_err`` (its code and reas
 
 from __future__ import annotations
 
-import errno
 import logging
-import os
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import lmdb
 import numpy as np
 import pytest
 
 from openfusion.bus.stats import ServiceStats
-from openfusion.mapping import load_map, mapfile, previous_map_path
+from openfusion.mapping import MapFormatError, RegionDictionary, load_map, save_map
 from openfusion.mapping.mapfile import MAP_FILE_NAME
+from openfusion.mapping.tilestore import TileStore
 from openfusion.services.geometry.service import (
     CheckpointFailed,
     GeometryConfig,
@@ -92,10 +92,11 @@ def map_dir(tmp_path: Path) -> Iterator[Path]:
             p.chmod(0o755)  # a read-only test folder must not stop tmp_path's clean-up
 
 
-def test_last_frame_id_round_trips_and_a_corrupt_checkpoint_falls_back_on_start(map_dir: Path, caplog) -> None:  # noqa: ANN001
+def test_last_frame_id_round_trips_and_a_corrupt_tile_stops_the_start(map_dir: Path) -> None:
     """Each checkpoint records the id of the last frame integrated into it; a new service reads
-    it back (attribute + health counter). With the newest checkpoint corrupted, the service
-    starts from the previous one, says so in one line, and reports that one's frame id."""
+    it back (attribute + health counter) with every block. A tile whose bytes were flipped on disk
+    is refused at start with a MapFormatError naming the store (the service does not map over a
+    corrupt map)."""
     geo, runner = _service(map_dir)
     assert geo.checkpoint_last_frame_id is None and runner.counter(GeometryCounter.CHECKPOINT_LAST_FRAME_ID) == -1
     _integrate(geo, FRAMES[:2])
@@ -105,61 +106,68 @@ def test_last_frame_id_round_trips_and_a_corrupt_checkpoint_falls_back_on_start(
     assert "saved to" in _save(geo)
     assert runner.counter(GeometryCounter.CHECKPOINT_LAST_FRAME_ID) == FRAMES[3].frame_id
     assert runner.counter(GeometryCounter.CHECKPOINTS) == 2
-    target = map_dir / "ckpt" / MAP_FILE_NAME
-    assert load_map(target).meta["last_frame_id"] == FRAMES[3].frame_id
-    assert load_map(target).meta["frames_integrated"] == 4
+    folder = map_dir / "ckpt"
+    assert load_map(folder).meta["last_frame_id"] == FRAMES[3].frame_id
+    assert load_map(folder).meta["frames_integrated"] == 4
+    arrays = geo.volume.to_arrays()
+    geo.close()
 
     restarted, runner2 = _service(map_dir, load=True)
     assert restarted.checkpoint_last_frame_id == restarted.last_frame_id == FRAMES[3].frame_id
     assert runner2.counter(GeometryCounter.CHECKPOINT_LAST_FRAME_ID) == FRAMES[3].frame_id
-    assert restarted.volume.num_blocks == geo.volume.num_blocks
+    assert restarted.volume.num_blocks_total == len(arrays["block_coords"])
+    restored = restarted.volume.to_arrays()
+    o1, o2 = np.lexsort(arrays["block_coords"].T), np.lexsort(restored["block_coords"].T)
+    for name, arr in arrays.items():
+        np.testing.assert_array_equal(arr[o1], restored[name][o2])
+    restarted.close()
 
-    data = bytearray(target.read_bytes())
-    mid = len(data) // 2
-    data[mid : mid + 16] = bytes(b ^ 0xFF for b in data[mid : mid + 16])
-    target.write_bytes(bytes(data))
-    with caplog.at_level(logging.WARNING):
-        fallback, runner3 = _service(map_dir, load=True)
-    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
-    assert len(warnings) == 1, warnings
-    assert warnings[0].startswith(f"checkpoint {target} is corrupt (")
-    assert warnings[0].endswith(f"); loading the previous one {previous_map_path(target)} "
-                                "(the corrupt file is kept as map.ofz.corrupt.npz)")
-    assert fallback.checkpoint_last_frame_id == FRAMES[1].frame_id
-    assert runner3.counter(GeometryCounter.CHECKPOINT_LAST_FRAME_ID) == FRAMES[1].frame_id
-    assert load_map(previous_map_path(target)).volume.num_blocks == fallback.volume.num_blocks
+    with TileStore(folder / "map.ofz") as store:  # flip bytes inside one committed tile
+        tile, blob = next(store.iter_committed())
+        bad = bytearray(blob)
+        bad[len(bad) // 2] ^= 0xFF
+        entry = store.committed_entry_key(tile)
+        with store.env.begin(write=True, db=store._tiles) as txn:
+            txn.put(entry, bytes(bad))
+    with pytest.raises(MapFormatError, match="map.ofz tile"):
+        _service(map_dir, load=True)
 
 
-def _read_only(folder: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """Make ``folder`` read-only. As root (how these tests run in CI containers) chmod 0o555 does
-    not stop writes; then the read-only file system is simulated: creating the temporary file
-    raises ``OSError(EROFS)``, what a read-only mount answers."""
-    folder.chmod(0o555)
-    probe = folder / ".probe"
-    try:
-        probe.write_bytes(b"")
-    except PermissionError:
-        return  # not root: the chmod does it
-    probe.unlink()
-
-    def refuse(*_args: object, **_kwargs: object) -> None:
-        raise OSError(errno.EROFS, "Read-only file system", str(folder))
-
-    monkeypatch.setattr(mapfile.tempfile, "mkstemp", refuse)
+def test_a_version_1_checkpoint_still_loads_and_the_next_one_is_a_store(map_dir: Path) -> None:
+    """A checkpoint written by an older build (``map.ofz.npz``) is loaded on start; the next
+    checkpoint writes the tile store with every block, and a restart then reads the store."""
+    geo, _ = _service(map_dir)
+    _integrate(geo, FRAMES[:3])
+    folder = map_dir / "ckpt"
+    save_map(folder / MAP_FILE_NAME, geo.volume, RegionDictionary("none", 1),
+             meta={"last_frame_id": FRAMES[2].frame_id, "frames_integrated": 3})
+    n_blocks = geo.volume.num_blocks
+    geo.volume.close()
+    old, _ = _service(map_dir, load=True)
+    assert old.last_frame_id == FRAMES[2].frame_id and old.volume.num_blocks == n_blocks
+    _integrate(old, FRAMES[3:4])
+    _save(old)
+    assert (folder / "map.ofz" / "data.mdb").is_file()
+    total = old.volume.num_blocks_total
+    old.close()
+    new, _ = _service(map_dir, load=True)
+    assert new.last_frame_id == FRAMES[3].frame_id and new.volume.num_blocks_total == total
+    new.close()
 
 
 def _assert_failed_save(geo: GeometryService, folder: Path, reason: str) -> None:
     with pytest.raises(CheckpointFailed) as info:
         _save(geo)
     assert info.value.code == "checkpoint_failed"
-    assert str(folder / MAP_FILE_NAME) in info.value.reason and reason in info.value.reason
+    assert str(folder / "map.ofz") in info.value.reason and reason in info.value.reason
 
 
-def test_read_only_folder_keeps_mapping_in_memory(map_dir: Path, monkeypatch: pytest.MonkeyPatch, caplog) -> None:  # noqa: ANN001
-    """A checkpoint into a read-only folder: control/save is refused naming the path and the
-    reason, one error line is logged, ``checkpoint_failures`` counts it (the periodic loop's try
-    too), the in-memory map is untouched, frames keep being integrated, the last good checkpoint
-    stays loadable, and saving works again once the folder is writable."""
+def test_a_failed_commit_keeps_mapping_in_memory(map_dir: Path, monkeypatch: pytest.MonkeyPatch, caplog) -> None:  # noqa: ANN001
+    """The store cannot be written (disk full, simulated inside LMDB's transaction): control/save is
+    refused naming the store and the reason, one error line is logged, ``checkpoint_failures``
+    counts it (the periodic loop's try too), the in-memory map is untouched, frames keep being
+    integrated, the last good checkpoint stays loadable, and the next checkpoint after the disk
+    has room writes every tile the failed ones did not."""
     geo, runner = _service(map_dir, period_s=0.001)
     _integrate(geo, FRAMES[:2])
     _save(geo)
@@ -167,11 +175,14 @@ def test_read_only_folder_keeps_mapping_in_memory(map_dir: Path, monkeypatch: py
     folder = map_dir / "ckpt"
     arrays, version = geo.volume.to_arrays(), geo.map_version
 
-    _read_only(folder, monkeypatch)
+    def disk_full(*_args: object, **_kwargs: object) -> None:
+        raise lmdb.DiskError("mdb_txn_commit: No space left on device")
+
+    monkeypatch.setattr(TileStore, "_commit", disk_full)
     with caplog.at_level(logging.ERROR):
-        _assert_failed_save(geo, folder, "Read-only file system" if os.geteuid() == 0 else "Permission denied")
+        _assert_failed_save(geo, folder, "No space left on device")
     errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
-    assert len(errors) == 1 and errors[0].startswith(f"geometry: checkpoint to {folder / MAP_FILE_NAME} failed: ")
+    assert len(errors) == 1 and errors[0].startswith(f"geometry: checkpoint to {folder / 'map.ofz'} failed: ")
     assert runner.counter(GeometryCounter.CHECKPOINT_FAILURES) == 1
     loop_runner = _Runner(iterations=1)
     loop_runner.stats = runner.stats
@@ -184,40 +195,16 @@ def test_read_only_folder_keeps_mapping_in_memory(map_dir: Path, monkeypatch: py
         np.testing.assert_array_equal(arr, arrays[name])
     _integrate(geo, FRAMES[3:4])
     assert geo.frames_integrated == 4 and geo.last_frame_id == FRAMES[3].frame_id
-    assert sorted(os.listdir(folder)) == [MAP_FILE_NAME]
     assert load_map(folder).meta["last_frame_id"] == FRAMES[1].frame_id
 
     monkeypatch.undo()
-    folder.chmod(0o755)
     _save(geo)
-    assert load_map(folder).meta["last_frame_id"] == FRAMES[3].frame_id
     assert runner.counter(GeometryCounter.CHECKPOINTS) == 2
-
-
-def test_disk_full_mid_write_leaves_no_temp_file(map_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """The disk fills half-way through writing a checkpoint (simulated: the write stops at half the
-    file and raises ENOSPC): refused with the reason, no temporary file left, both earlier
-    checkpoints intact."""
-    geo, runner = _service(map_dir)
-    _integrate(geo, FRAMES[:1])
-    _save(geo)
-    _integrate(geo, FRAMES[1:2])
-    _save(geo)
-    folder = map_dir / "ckpt"
-    before = {p.name: p.read_bytes() for p in folder.iterdir()}
-    real_savez = np.savez
-
-    def half_then_full(fh, **arrays) -> None:  # noqa: ANN001
-        real_savez(fh, **arrays)
-        fh.truncate(fh.tell() // 2)
-        raise OSError(errno.ENOSPC, "No space left on device")
-
-    monkeypatch.setattr(np, "savez", half_then_full)
-    _integrate(geo, FRAMES[2:3])
-    _assert_failed_save(geo, folder, "No space left on device")
-    monkeypatch.undo()
-    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
-    assert runner.counter(GeometryCounter.CHECKPOINT_FAILURES) == 1
-    assert runner.counter(GeometryCounter.CHECKPOINT_LAST_FRAME_ID) == FRAMES[1].frame_id
-    assert load_map(folder).meta["last_frame_id"] == FRAMES[1].frame_id
-    assert load_map(previous_map_path(folder)).meta["last_frame_id"] == FRAMES[0].frame_id
+    final = geo.volume.to_arrays()
+    geo.close()
+    loaded = load_map(folder)
+    assert loaded.meta["last_frame_id"] == FRAMES[3].frame_id
+    restored = loaded.volume.to_arrays()
+    o1, o2 = np.lexsort(final["block_coords"].T), np.lexsort(restored["block_coords"].T)
+    for name, arr in final.items():
+        np.testing.assert_array_equal(arr[o1], restored[name][o2])

@@ -37,7 +37,7 @@ def test_a_frame_that_fails_to_integrate_is_skipped_once_and_the_next_one_integr
     monkeypatch.setattr(geo.volume, "integrate", poison)
     with caplog.at_level(logging.ERROR):
         geo.on_frame(_msg(FRAMES[1], 0))
-    assert "geometry: frame 1 (synthetic" in caplog.text and "RuntimeError: bad voxel block" in caplog.text
+    assert "geometry: frame 1 of robot robot0 (synthetic" in caplog.text and "RuntimeError: bad voxel block" in caplog.text
     assert runner.counter(GeometryCounter.FRAMES_FAILED) == 1 and runner.stats.errors == 1
     geo.on_frame(_msg(FRAMES[1], 0))  # replayed: already taken, not retried
     geo.on_frame(_msg(FRAMES[2], 1))
@@ -58,7 +58,7 @@ def test_a_checkpoint_that_raises_leaves_the_loop_running(tmp_path: Path, monkey
         calls["n"] += 1
         raise ValueError("cannot pack the dictionary")
 
-    monkeypatch.setattr("openfusion.services.geometry.service.save_map", broken)
+    monkeypatch.setattr("openfusion.services.geometry.service.checkpoint_store", broken)
     waits = {"n": 0}
 
     def wait(_timeout_s: float | None = None) -> bool:

@@ -4,9 +4,11 @@ trip per 64 texts. The handler is called directly first (no bus), then through a
 session with the query service on a ServiceRunner in this process (hash text encoder, no model;
 the dictionary and region summaries are given to it, so no semantic or geometry service runs).
 
-Bad input tried: a batch with one text over ``max_text_chars`` (refused naming which text), a
-``top_k`` over ``max_top_k``, another embedding space, no dictionary yet; empty, oversize and
-too-long batches are refused by the schema (tests/unit/test_messages.py)."""
+Bad input tried: a batch with one text over the text limit (refused naming which text), a ``top_k``
+over the limit (openfusion.wire.limits: the handler is held to them for a message built without
+validation, the client refuses them before sending, and a foreign client's message that carries
+them is refused by the schema with the same line), another embedding space, no dictionary yet;
+empty, oversize and too-long batches are refused by the schema (tests/unit/test_messages.py)."""
 
 from __future__ import annotations
 
@@ -15,7 +17,7 @@ import time
 import numpy as np
 import pytest
 
-from openfusion.bus import QueryError, RequestError, open_session
+from openfusion.bus import QueryError, RequestError, call, open_session
 from openfusion.client import OpenFusionClient
 from openfusion.encoders import make_text_encoder
 from openfusion.mapping import RegionDictionary
@@ -26,6 +28,7 @@ from openfusion.testing.bus import ServiceThread, free_port, loopback_config, un
 from openfusion.testing.encoders import CountingTextEncoder
 from openfusion.wire.counters import QueryCounter
 from openfusion.wire.endpoints import QUERY_TEXT_BATCH
+from openfusion.wire.limits import LimitError
 from openfusion.wire.schemas import (
     PointsReply,
     QueryBatchReply,
@@ -123,9 +126,10 @@ def test_a_batch_with_points_asks_geometry_once_for_the_regions_of_every_text(mo
 @pytest.mark.parametrize(
     ("config", "request_", "code", "reason"),
     [
-        ({"max_text_chars": 10}, TextQueryBatch(texts=["chair", "a long description of a chair"]), "too_large",
-         "text 2 (of 2) of 29 characters exceeds max_text_chars=10"),
-        ({"max_top_k": 3}, TextQueryBatch(texts=["chair", "lamp"], top_k=4), "too_large", "top_k=4 exceeds max_top_k=3"),
+        ({}, TextQueryBatch.model_construct(texts=["chair", "x" * 600]), "too_large",
+         "the query text 2 of 2 has 600 characters; the limit is 512"),
+        ({}, TextQueryBatch.model_construct(texts=["chair", "lamp"], top_k=101), "too_large",
+         "top_k must be from 1 to 100, got 101"),
         ({}, TextQueryBatch(texts=["chair"], embedding_space="clip-vit-b-32"), "embedding_space_mismatch",
          "'clip-vit-b-32' but the map is in 'hash-trigram-"),
     ],
@@ -151,7 +155,7 @@ def test_the_client_asks_several_texts_in_one_round_trip_per_64() -> None:
     port = free_port()
     base = loopback_config(map_id, listen=[port]).model_dump()
     config = QueryConfig.model_validate({**base, "query": {"text_encoder": "hash", "summary_max_age_s": 3600,
-                                                            "summary_refresh_s": 3600, "max_text_chars": 64}})
+                                                            "summary_refresh_s": 3600}})
     with ServiceThread(_service(config), config, "query") as query:
         client = OpenFusionClient(open_session(loopback_config(map_id, connect=[port])), config.keys, timeout_s=20.0,
                                   owns_session=True)
@@ -174,7 +178,17 @@ def test_the_client_asks_several_texts_in_one_round_trip_per_64() -> None:
             assert [r.query for r in replies] == many
             assert all(r.regions[0].label == n for n, r in zip(many, replies, strict=True) if n != "lamp")
             assert client.query_texts([]) == []
+            encoder.calls.clear()
+            with pytest.raises(LimitError, match="the query text 2 of 2 has 600 characters; the limit is 512"):
+                client.query_texts(["chair", "x" * 600])
+            with pytest.raises(LimitError, match="top_k must be from 1 to 100, got 1000000000"):
+                client.query_text("chair", top_k=1_000_000_000)
+            assert encoder.calls == []  # refused before anything was sent
+            # a foreign client that sends them anyway: refused by the schema, with the same line
             with pytest.raises(QueryError) as info:
-                client.query_texts(["chair", "x" * 65])
-            assert info.value.code == "too_large" and "text 2 (of 2)" in info.value.reason
+                call(client.session, config.keys, QUERY_TEXT_BATCH,
+                     TextQueryBatch.model_construct(texts=["chair", "x" * 600]), timeout_s=20.0)
+            assert info.value.code.startswith("bad_request")
+            assert "the query text 2 of 2 has 600 characters; the limit is 512" in info.value.reason
             assert info.value.key == QUERY_TEXT_BATCH.key(config.keys)
+            assert encoder.calls == []

@@ -136,14 +136,13 @@ def test_a_query_reports_the_same_box_in_process_and_through_the_query_service()
 def test_geometry_summary_is_cached_per_map_version_and_recomputed_after_changes() -> None:
     geo = _geometry(max_key=16, frames=FRAMES[:3], regions_min_interval_s=0.0)
     calls = []
-    extract = geo.volume.extract_points
+    table = geo.volume.region_table
 
-    def counting(*args: object, **kwargs: object) -> object:
-        if not args and kwargs.get("keys") is None:  # the whole map (what a summary needs)
-            calls.append(1)
-        return extract(*args, **kwargs)
+    def counting(*args: object, **kwargs: object) -> object:  # the whole map's summary, per tile
+        calls.append(1)
+        return table(*args, **kwargs)
 
-    geo.volume.extract_points = counting  # type: ignore[method-assign]
+    geo.volume.region_table = counting  # type: ignore[method-assign]
     first = geo.handle_regions(RegionSummaryRequest())
     again = geo.handle_regions(RegionSummaryRequest(keys=[int(first.keys[0])]))
     assert len(calls) == 1, "an unchanged map must be answered from the cache"

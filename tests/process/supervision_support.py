@@ -39,13 +39,13 @@ def _cmdlines() -> list[tuple[int, list[str]]]:
 class BackgroundRun:
     """``openfusion run --out OUT --map <unique> ARGS`` in the background (stderr in a file)."""
 
-    def __init__(self, tmp_path: Path, *args: str, name: str = "run") -> None:
+    def __init__(self, tmp_path: Path, *args: str, name: str = "run", quiet: bool = True) -> None:
         self.out = tmp_path / name
         self.map_id = unique_map_id(name)
         self.err_path = tmp_path / f"{name}-stderr.txt"
         self._err = self.err_path.open("w")
         self.proc = subprocess.Popen(
-            [*OPENFUSION, "run", "--out", str(self.out), "--map", self.map_id, "--quiet", *args],
+            [*OPENFUSION, "run", "--out", str(self.out), "--map", self.map_id, *(["--quiet"] if quiet else []), *args],
             stdout=subprocess.PIPE, stderr=self._err, text=True, cwd=ROOT, env=subprocess_env(HF_HUB_OFFLINE="1"))
         self.session: Any = None
 
@@ -88,10 +88,12 @@ class BackgroundRun:
         os.kill(pid, signal.SIGKILL)
         wait_until(lambda: self.service_pid(service) != pid, timeout_s=60)
 
-    def finish(self, timeout_s: float = 600.0) -> dict[str, Any]:
-        """Wait for the run to end (exit 0 asserted); its run.json."""
+    def finish(self, timeout_s: float = 600.0, *, returncode: int = 0) -> dict[str, Any]:
+        """Wait for the run to end (exit ``returncode`` asserted); its run.json."""
         stdout, _ = self.proc.communicate(timeout=timeout_s)
-        assert self.proc.returncode == 0, self.stderr()[-4000:]
+        assert self.proc.returncode == returncode, self.stderr()[-4000:]
+        if returncode:
+            return json.loads((self.out / "run.json").read_text())
         summary = json.loads((self.out / "run.json").read_text())
         assert json.loads(stdout) == summary
         return summary

@@ -85,7 +85,7 @@ def test_bad_values_are_refused_before_anything_starts(tmp_path: Path) -> None:
     out = tmp_path / "out"
     cases = [
         (["run", "--source", f"scannet:{tmp_path}/missing"], f"scannet source: {tmp_path}/missing does not exist"),
-        (["run", "--top-k", "0"], "--top-k 0: input should be greater than 0"),
+        (["run", "--top-k", "0"], "--top-k must be from 1 to 100, got 0"),
     ]
     for args, text in cases:
         proc = _run(*args, "--map", map_id, "--out", str(out), "--quiet")

@@ -58,6 +58,7 @@ def test_embedded_run_maps_the_scene_over_the_bus_and_answers_queries(tmp_path: 
     summary = json.loads((out / "run.json").read_text())
     assert summary["frames_read"] == 40 and summary["frames_integrated"] == 40
     assert summary["frames_skipped"] == {}
+    assert summary["map_saved"] == str((out / "map").resolve())  # where the map went
     # The semantic service takes the latest frame only, so how many of the 40 it encodes depends on
     # the machine's speed (4 under a full load): the test asks for semantics, and the chair below.
     assert 1 <= summary["semantic_frames"] <= 40 and summary["regions"] > 5

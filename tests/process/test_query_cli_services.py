@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from openfusion.app.outputs import region_record
+from openfusion.bus import RequestError
 from openfusion.encoders import make_text_encoder
 from openfusion.mapping import RegionDictionary
 from openfusion.services.query.service import QueryConfig, QueryService, RegionSummaries
@@ -99,3 +100,41 @@ def test_a_query_of_running_services_prints_its_answer_and_nothing_else(service)
     listed = _query(service, *texts, "--top-k", "2", "--json")
     assert listed.count("\n") == 1 and json.loads(listed) == objects
     assert [o["regions"][0]["label"] for o in objects] == texts
+
+
+def _refused(service: tuple[ServiceThread, int], *args: str) -> str:
+    """The one stderr line of ``openfusion query ARGS`` against the service; it must exit 2 with
+    nothing on stdout and no traceback."""
+    thread, port = service
+    proc = subprocess.run(
+        [*OPENFUSION, "query", *args, *loopback_args(thread.runner.config.map_id, connect=[port])],
+        capture_output=True, text=True, timeout=120, cwd=ROOT, env=subprocess_env(),
+    )
+    assert proc.returncode == 2 and proc.stdout == "", (proc.returncode, proc.stdout, proc.stderr)
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    assert lines[0].startswith("openfusion query: error: "), lines[0]
+    return lines[0].removeprefix("openfusion query: error: ")
+
+
+def test_a_value_past_a_limit_is_one_line_and_exit_2_wherever_it_is_caught(service, monkeypatch) -> None:
+    """Issue 32: `--top-k 1000000000` (or 20000) printed a pydantic traceback and exited 1, while
+    -1 and 0 gave one line and exit 2; a 600-character text was refused by the service (exit 1) and
+    a 5000-character one by the command (exit 2). Now every value past a limit of
+    openfusion.wire.limits is one line and exit 2, the same line the page and the Python client
+    give, before anything reaches the service; and a refusal of the service itself for a limit
+    (code too_large, as an older service with other limits would answer) is exit 2 too."""
+    thread, _port = service
+    before = thread.counter(QueryCounter.QUERIES)
+    for top_k in ("1000000000", "20000", "101", "0", "-1"):
+        assert _refused(service, "chair", "--top-k", top_k) == f"--top-k must be from 1 to 100, got {top_k}"
+    for n in (513, 600, 5000):
+        assert _refused(service, "x" * n) == f"the query text has {n} characters; the limit is 512"
+    assert _refused(service, "chair", "x" * 600) == "the query text 2 of 2 has 600 characters; the limit is 512"
+    assert thread.counter(QueryCounter.QUERIES) == before  # nothing reached the service
+
+    def tighter(top_k: int, max_points: int) -> None:
+        raise RequestError("too_large", "top_k must be from 1 to 3, got 5")
+
+    monkeypatch.setattr(thread.app, "_check_limits", tighter)
+    assert _refused(service, "chair", "--top-k", "5") == "top_k must be from 1 to 3, got 5"

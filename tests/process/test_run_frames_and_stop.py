@@ -139,6 +139,7 @@ def test_ctrl_c_saves_the_map_of_what_was_integrated(run, tmp_path: Path) -> Non
     summary = json.loads((r.out / "run.json").read_text())
     assert summary["interrupted"] is True and summary["frames_requested"] == 400
     assert summary["frames_integrated"] == saved >= 4 and summary["frames_played"] >= saved
+    assert summary["map_saved"] == str((r.out / "map").resolve())  # it was null though the map was saved
     assert not (r.out / "queries.json").exists()  # the example queries were skipped
     assert r.proc.stdout.read() == ""
     assert processes_mentioning(r.map_id) == []
@@ -187,6 +188,7 @@ def test_ctrl_c_in_process_stops_at_the_next_frame_and_saves_the_map(tmp_path: P
     last = err_path.read_text().replace("\r", "\n").strip().splitlines()[-1]
     summary = json.loads((out / "run.json").read_text())
     assert summary["interrupted"] is True and summary["mode"] == "in-process"
+    assert summary["map_saved"] == str((out / "map").resolve())
     assert 3 <= summary["frames_integrated"] == summary["frames_played"] < 400
     assert last == f"openfusion run: interrupted: saved the map of {summary['frames_integrated']} integrated frames " \
         f"to {out}/map", last

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from openfusion.bus import Queryable, ServiceRunner, open_session
+from openfusion.bus import Queryable, QueryError, ServiceRunner, open_session
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.encoders import make_text_encoder
@@ -41,6 +41,7 @@ from openfusion.services.query.service import QueryConfig, QuerySection, QuerySe
 from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld
 from openfusion.testing.bus import free_port, subprocess_env, unique_map_id, wait_until
 from openfusion.wire.endpoints import SEMANTIC_DICTIONARY
+from openfusion.wire.limits import MAX_TEXT_CHARS
 from openfusion.wire.schemas import DictionaryRequest, RgbdFrame, SemanticUpdate
 
 ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
@@ -128,6 +129,9 @@ def running_map() -> Iterator[Map]:
             dictionary.add(TEXT.encode([name])[0], label=name)
         semantic = open_session(ServiceConfig(**cfg("client")))
         closers.append(semantic.close)
+        # a service that is alive and has published no stats yet (as one that just started): its badge
+        token = semantic.liveliness().declare_token(ServiceConfig(**cfg("client")).keys.liveliness("semantic"))
+        closers.append(token.undeclare)
         qbl = Queryable(semantic, SEMANTIC_DICTIONARY.key(ServiceConfig(**cfg("client")).keys), DictionaryRequest,
                         lambda _r: dictionary.snapshot())
         closers.append(qbl.close)
@@ -142,7 +146,13 @@ def running_map() -> Iterator[Map]:
         qrunner.ready()
         client = OpenFusionClient.from_config(ServiceConfig(**cfg("client")), timeout_s=30.0)
         closers.append(client.close)
-        wait_until(lambda: client.query_text("chair", top_k=1).regions, timeout_s=60)
+        def answered() -> bool:  # the services may take longer than one query's timeout to come up under load
+            try:
+                return bool(client.query_text("chair", top_k=1).regions)
+            except QueryError:
+                return False
+
+        wait_until(answered, timeout_s=120)
         yield Map(map_id, endpoint, client, geometry)
     finally:
         for close in reversed(closers):
@@ -227,6 +237,59 @@ def test_a_query_typed_into_the_page_lists_and_highlights_the_chair_and_a_script
             assert page.locator("script").count() == scripts_before
             assert "alert(1)" in page.inner_text("#query-echo")
             assert dialogs == [] and errors == []
+        finally:
+            browser.close()
+
+
+def test_the_page_clears_answers_on_an_error_fits_its_table_and_says_when_a_service_has_no_stats(
+    running_map: Map, web_page: str
+) -> None:
+    """Issue 32: the input box takes the query limit from the server (512 characters); the answers
+    table fits the side panel (no cell past its edge, no horizontal scroll); a query the server
+    refuses (600 characters, pasted past the box's limit) shows the server's one line and leaves no
+    answers of the query before on screen, nothing highlighted; a live service that has published
+    no stats yet reads "no stats yet", not an empty figure."""
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        try:
+            page = browser.new_page(viewport={"width": 1280, "height": 720})
+            errors: list[str] = []
+            page.on("pageerror", lambda exc: errors.append(str(exc)))
+            page.goto(web_page)
+            page.wait_for_selector("body[data-ready=true]", timeout=60_000)
+            assert page.eval_on_selector("#query-text", "e => e.maxLength") == MAX_TEXT_CHARS
+            badge = page.locator('#health li[data-service="semantic"]')
+            badge.wait_for(timeout=30_000)
+            assert badge.text_content() == "semantic no stats yet" and "alive" in (badge.get_attribute("class") or "")
+            for li in page.locator("#health li").all():
+                assert "–" not in (li.text_content() or ""), li.text_content()
+
+            page.fill("#query-text", "chair")
+            page.click("#query-button")
+            page.wait_for_selector("#answer-rows tr.selected", timeout=60_000)
+            fit = page.evaluate("""() => {
+                const side = document.getElementById("side").getBoundingClientRect();
+                const cells = [...document.querySelectorAll("#answers th, #answers td")];
+                return {past: cells.filter((c) => c.getBoundingClientRect().right > side.right + 0.5).length,
+                        scroll: document.getElementById("side").scrollWidth - document.getElementById("side").clientWidth,
+                        boxes: document.querySelectorAll("#answer-rows td.box").length};
+            }""")
+            assert fit["boxes"] > 0 and fit["past"] == 0 and fit["scroll"] <= 0, fit
+            viewer = page.locator("#viewer")
+            assert viewer.get_attribute("data-highlight-key") != ""
+
+            long_text = "x" * 600
+            page.eval_on_selector("#query-text", "e => e.removeAttribute('maxlength')")
+            page.fill("#query-text", long_text)
+            page.click("#query-button")
+            page.wait_for_selector("#status.error", timeout=60_000)
+            assert page.text_content("#status") == f"the query text has 600 characters; the limit is {MAX_TEXT_CHARS}"
+            assert page.locator("#answer-rows tr").count() == 0
+            assert page.locator("#answers").is_hidden() and page.locator("#query-echo").is_hidden()
+            assert viewer.get_attribute("data-highlight-key") == ""
+            assert errors == []
         finally:
             browser.close()
 

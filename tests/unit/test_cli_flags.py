@@ -138,7 +138,9 @@ def test_valid_combinations_next_to_the_refused_ones_still_pass(tmp_path) -> Non
     several = _parsed(["query", "--map-dir", str(tmp_path), "--verbose", "--json", "chair", "table", "lamp"])
     _check_query_options(several)
     assert several.text == ["chair", "table", "lamp"] and several.verbose
-    _check_query_options(_parsed(["query", "--connect", "tcp/127.0.0.1:7447", "chair", "x" * 4096]))
+    # at the limits (openfusion.wire.limits), in both modes
+    _check_query_options(_parsed(["query", "--connect", "tcp/127.0.0.1:7447", "--top-k", "100", "chair", "x" * 512]))
+    _check_query_options(_parsed(["query", "--map-dir", str(tmp_path), "--top-k", "100", "x" * 512]))
     args = _parsed(["render", "--map-dir", str(tmp_path), "--out", str(tmp_path / "x.png"), "--query", "chair",
                     "--top-k", "2", "--text-encoder", "minilm"])
     check_colour_arguments(args)

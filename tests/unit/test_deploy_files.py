@@ -166,6 +166,23 @@ def test_gpu_override_reserves_a_gpu_for_semantic_only() -> None:
 # --------------------------------------------------------------------------- two-host example
 
 
+def test_robots_override_adds_a_bridge_per_robot_named_as_its_health_key() -> None:
+    """docker-compose.robots.yml: a second bridge for robot1 whose health check requires the name the
+    bridge reports under (bridge-robot1), and geometry told how robot1's frame joins the map's
+    (bad input guarded: a robot_frames value geometry would refuse at start-up)."""
+    from openfusion.mapping.robot_streams import parse_robot_frames
+    from openfusion.services.bridge.service import bridge_name
+
+    merged = load_compose(ROOT / "docker-compose.yml", ROOT / "docker-compose.robots.yml")
+    second = merged["services"]["bridge-robot1"]
+    robot = option(second["command"], "--robot")
+    assert robot == "robot1" and bridge_name(robot) == "bridge-robot1"
+    assert second["healthcheck"]["test"][-1] == bridge_name(robot)
+    assert "--robot" not in merged["services"]["bridge"]["command"]  # robot0: health key "bridge"
+    frames = merged["services"]["geometry"]["environment"]["OPENFUSION_GEOMETRY__ROBOT_FRAMES"]
+    assert set(parse_robot_frames(frames)) == {"robot1"}
+
+
 def test_two_host_example_splits_services_and_uses_tls_identities() -> None:
     """Bad input guarded: semantic on both hosts or none, a plain-tcp link between hosts, a
     service using another identity's credentials, a GPU box started without ROBOT_HOST, a
@@ -383,6 +400,7 @@ def test_compose_commands_parse_with_cli(capsys: pytest.CaptureFixture[str]) -> 
     files = [
         (ROOT / "docker-compose.yml", {}),
         (ROOT / "docker-compose.gpu.yml", {}),
+        (ROOT / "docker-compose.robots.yml", {}),
         (TWO_HOST / "robot.compose.yml", {}),
         (TWO_HOST / "gpu.compose.yml", {"ROBOT_HOST": "robot.local"}),
         (ROOT / "deploy" / "pool" / "gpu-workers.compose.yml", {"ROUTER_HOST": "robot.local"}),

@@ -74,12 +74,13 @@ def _temps(folder: Path) -> list[str]:
 
 
 def test_save_keeps_the_previous_checkpoint(maps, tmp_path: Path) -> None:  # noqa: ANN001
-    """The first save makes one file; each later one moves the file it replaces to ``.prev``."""
+    """Version-1 files (an ``.npz`` path): the first save makes one file; each later one moves the
+    file it replaces to ``.prev``. (Version-2 stores keep no ``.prev``: mapfile's docstring.)"""
     (v1, d1), _ = maps
     folder = tmp_path / "site"
-    target = save_map(folder, v1, d1, {"v": 1})
+    target = save_map(folder / MAP_FILE_NAME, v1, d1, {"v": 1})
     assert os.listdir(folder) == [MAP_FILE_NAME]
-    _two_checkpoints(maps, folder)
+    _two_checkpoints(maps, folder / MAP_FILE_NAME)
     assert previous_map_path(folder) == folder / "map.ofz.prev.npz"
     assert sorted(os.listdir(folder)) == ["map.ofz.npz", "map.ofz.prev.npz"]
     assert load_map(target).meta["v"] == 2 and load_map(previous_map_path(target)).meta["v"] == 1

@@ -73,11 +73,14 @@ def answers(volume: SemanticVolume, dictionary: RegionDictionary) -> list[tuple]
     return out
 
 
-def test_save_load_round_trip_gives_identical_answers(mapper: SemanticMapper, tmp_path: Path) -> None:
+@pytest.mark.parametrize("version", [1, 2])
+def test_save_load_round_trip_gives_identical_answers(mapper: SemanticMapper, tmp_path: Path, version: int) -> None:
     """Everything survives: arrays, parameters, dictionary (keys, means, counts, labels, version),
-    meta; queries, segmentation and renders from the loaded map equal the original's."""
-    written = save_map(tmp_path / "site", mapper.volume, mapper.dictionary, {"map_id": "lab-1", "frames": 2})
-    assert written == tmp_path / "site" / MAP_FILE_NAME
+    meta; queries, segmentation and renders from the loaded map equal the original's. Version 2
+    (a tile store folder, the default) and version 1 (an ``.npz`` path) alike."""
+    target = tmp_path / "site" if version == 2 else tmp_path / "site" / MAP_FILE_NAME
+    written = save_map(target, mapper.volume, mapper.dictionary, {"map_id": "lab-1", "frames": 2})
+    assert written == (tmp_path / "site" / "map.ofz" if version == 2 else target)
     loaded = load_map(tmp_path / "site")
     assert loaded.meta["map_id"] == "lab-1" and loaded.meta["frames"] == 2
     assert loaded.volume.params == mapper.volume.params

@@ -286,13 +286,13 @@ def test_apply_update_rule_through_the_volume(volume: SemanticVolume) -> None:
         assert stats.voxels_switched == 0 and stats.voxels_weakened > 0
         r = vol.render(POSES[0], K_SMALL)
         assert (r.key_map[seen] == 4).mean() > 0.95
-        np.testing.assert_allclose(np.median(r.conf_map[:, :70][seen[:, :70]]), weakened_to, atol=1e-5)
+        np.testing.assert_allclose(np.median(r.conf_map[:, :70][seen[:, :70]]), weakened_to, atol=3e-5)  # conf stored as uint16: 1.5e-5 per write
     stats = vol.apply_update(POSES[0], K_SMALL, left, 0.95 * ones)
     assert stats.voxels_switched > 0
     r = vol.render(POSES[0], K_SMALL)
     assert (r.key_map[:, :70][seen[:, :70]] == 9).mean() > 0.95
     assert (r.key_map[:, 90:][seen[:, 90:]] == 4).mean() > 0.95
-    np.testing.assert_allclose(np.median(r.conf_map[:, :70][seen[:, :70]]), 3 * 0.95 / 4 - 0.7, atol=1e-5)
+    np.testing.assert_allclose(np.median(r.conf_map[:, :70][seen[:, :70]]), 3 * 0.95 / 4 - 0.7, atol=3e-5)
 
 
 def test_occluded_region_is_not_updated(scene: AnalyticScene) -> None:

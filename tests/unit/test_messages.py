@@ -230,8 +230,13 @@ def test_frame_splits_into_rgbd_without_instance_and_instance_frame_and_joins_ba
     assert rgbd.to_frame().instance is None
     assert m.InstanceFrame.from_frame(rgbd.to_frame()) is None  # nothing to send without an image
     other = m.InstanceFrame(**_replace(inst, stamp_ns=6))
-    with pytest.raises(ValueError, match="instance image of frame 1 \\(stamp 6 ns\\) joined to frame 1 \\(stamp 5 ns\\)"):
+    with pytest.raises(ValueError, match="instance image of frame 1 \\(stamp 6 ns, robot robot0\\) joined to frame 1 "
+                                         "\\(stamp 5 ns, robot robot0\\)"):
         rgbd.to_frame(other)
+    # Frame ids are per robot: another robot's frame 1 (same stamp) is another frame.
+    assert not m.InstanceFrame(**_replace(inst, robot="robot1")).belongs_to(rgbd)
+    with pytest.raises(ValueError, match="robot robot1\\) joined to frame 1"):
+        rgbd.to_frame(m.InstanceFrame(**_replace(inst, robot="robot1")))
     small = m.InstanceFrame(**_replace(inst, instance=_i32(5, 8)))
     with pytest.raises(ValueError, match="instance is 8x5 but the intrinsics are for 8x6"):
         rgbd.to_frame(small)
@@ -274,14 +279,19 @@ def _replace(msg: m.Message, **changes: Any) -> dict[str, Any]:
         ("semantic.merge_reply", {"regions_merged": -1}, "greater than or equal to 0"),
         ("semantic.dictionary_delta", {"merged_into": np.array([2], np.int32)}, "one entry per removed key"),
         ("semantic.dictionary_delta", {"prev_version": 10}, "greater than prev_version"),
-        ("query.text", {"text": ""}, "at least 1 character"),
-        ("query.text", {"top_k": 0}, "greater than 0"),
-        ("query.text_batch", {"texts": []}, "at least 1 item"),
-        ("query.text_batch", {"texts": ["chair"] * 65}, "at most 64 items"),
-        ("query.text_batch", {"texts": ["chair", ""]}, r"texts\.1\n.*at least 1 character"),
-        ("query.text_batch", {"texts": ["x" * 4097]}, r"texts\.0\n.*at most 4096 characters"),
+        # the limits of openfusion.wire.limits, with the lines every surface gives
+        ("query.text", {"text": ""}, "the query text is empty"),
+        ("query.text", {"text": "x" * 513}, "the query text has 513 characters; the limit is 512"),
+        ("query.text", {"top_k": 0}, "top_k must be from 1 to 100, got 0"),
+        ("query.text", {"top_k": 101}, "top_k must be from 1 to 100, got 101"),
+        ("query.text", {"max_points": 200_001}, "max_points must be from 1 to 200,000, got 200001"),
+        ("query.text_batch", {"texts": []}, "a batch holds 1 to 64 texts, got 0"),
+        ("query.text_batch", {"texts": ["chair"] * 65}, "a batch holds 1 to 64 texts, got 65"),
+        ("query.text_batch", {"texts": ["chair", ""]}, "the query text 2 of 2 is empty"),
+        ("query.text_batch", {"texts": ["x" * 600]}, "the query text has 600 characters; the limit is 512"),
         ("query.text_batch", {"texts": "chair"}, "valid list"),
-        ("query.text_batch", {"top_k": 0}, "greater than 0"),
+        ("query.text_batch", {"top_k": 0}, "top_k must be from 1 to 100, got 0"),
+        ("query.point", {"top_k": 10_000}, "top_k must be from 1 to 100, got 10000"),
         ("query.batch_reply", {"replies": [{"embedding_space": "s", "query": "q", "regions": 3}]},
          r"replies\.0\.regions"),
         ("query.image", {"image": np.zeros((0, 5, 3), np.uint8)}, "must not be empty"),

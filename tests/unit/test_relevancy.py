@@ -21,7 +21,9 @@ import pytest
 
 from openfusion.encoders import make_text_encoder
 from openfusion.encoders.captions import region_text_embeddings
+from openfusion.mapping.match_figures import evaluate_hits
 from openfusion.mapping.relevancy import (
+    BEST_SHARE,
     CALIBRATIONS,
     DEFAULT_NEGATIVES,
     DEFAULT_QUERY_CATEGORIES,
@@ -31,7 +33,9 @@ from openfusion.mapping.relevancy import (
     SpaceCalibration,
     calibration_for,
     evaluate_match,
+    list_margins,
     margins,
+    match_mask,
     relevancy,
     relevancy_texts,
     text_margins,
@@ -86,10 +90,11 @@ def test_calibrations_are_per_space_and_a_saved_one_wins_only_for_its_space_and_
     assert minilm.phrases == [*DEFAULT_NEGATIVES, *DEFAULT_QUERY_CATEGORIES]
     assert 0.5 < minilm.threshold < 1 and minilm.margin == pytest.approx(0.085, abs=1e-3)
     assert minilm.head_name_cos == HEAD_NAME_COS and CALIBRATIONS["hash-trigram-256"].head_name_cos == HEAD_NAME_COS
+    assert minilm.best_share == BEST_SHARE == CALIBRATIONS["hash-trigram-256"].best_share == 0.7
     assert SpaceCalibration.from_dict(minilm.to_dict()) == replace(minilm, note="")  # a map file keeps all but the note
     other = calibration_for("clip-vit-b-32")  # uncalibrated: plain LERF at 0.5, no text-to-text categories
     assert not other.calibrated and other.threshold == 0.5 and other.embedding_space == "clip-vit-b-32"
-    assert other.query_categories == () and other.head_name_cos is None
+    assert other.query_categories == () and other.head_name_cos is None and other.best_share == BEST_SHARE
     saved = {**minilm.to_dict(), "threshold": 0.9}
     assert calibration_for("minilm-l6-v2", saved).threshold == 0.9
     assert calibration_for("minilm-l6-v2", saved).query_categories == DEFAULT_QUERY_CATEGORIES
@@ -125,6 +130,17 @@ def test_calibrations_are_per_space_and_a_saved_one_wins_only_for_its_space_and_
                   "threshold": threshold}
         assert calibration_for("minilm-l6-v2", record) is minilm and minilm.head_name_cos == HEAD_NAME_COS
         assert f"made for method 'lerf+query-categories+head-{old}'" in caplog.text
+    # a map saved under v8 (no share of the best: "chair" matched the table): ignored the same way
+    caplog.clear()
+    v8 = {**minilm.to_dict(), "method": "lerf+query-categories+head+captions-v8"}
+    del v8["best_share"]
+    assert calibration_for("minilm-l6-v2", v8) is minilm and minilm.best_share == BEST_SHARE
+    assert "made for method 'lerf+query-categories+head+captions-v8'" in caplog.text
+    # a share outside (0, 1] is unreadable
+    caplog.clear()
+    assert calibration_for("minilm-l6-v2", {**minilm.to_dict(), "best_share": 0.0}) is minilm
+    assert calibration_for("minilm-l6-v2", {**minilm.to_dict(), "best_share": 1.5}) is minilm
+    assert "unreadable" in caplog.text
 
 
 def _scene(encoder_name: str, texts: list[str]):  # noqa: ANN202
@@ -197,10 +213,91 @@ def test_the_word_lists_are_disjoint_and_name_only_scene_categories() -> None:
     assert sum(map(len, lists.values())) == len(seen)
 
 
+def test_a_match_is_at_least_the_share_of_the_best_margin() -> None:
+    """v9: among one query's regions, a match beats the threshold AND has at least ``best_share``
+    of the best margin; the best always matches when it beats the threshold; without a share (v8)
+    the threshold alone decides; a best margin <= 0 leaves the best (and its ties) alone."""
+    t = 0.05
+    threshold = 1 / (1 + np.exp(-0.085 / t))  # margin 0.085
+    m = np.array([0.466, 0.413, 0.226, 0.092, 0.05])  # "chair": chair, office chair, sofa, table, floor
+    assert match_mask(m, threshold=threshold, temperature=t, best_share=0.7).tolist() == [
+        True, True, False, False, False]
+    assert match_mask(m, threshold=threshold, temperature=t, best_share=None).tolist() == [
+        True, True, True, True, False]
+    assert match_mask(m[3:], threshold=threshold, temperature=t, best_share=0.7).tolist() == [True, False]
+    assert match_mask(np.array([-0.1, -0.1, -0.2]), threshold=0.0, temperature=t, best_share=0.7).tolist() == [
+        True, True, False]
+    assert match_mask(np.zeros(0), threshold=threshold, temperature=t, best_share=0.7).shape == (0,)
+    scorer = RelevancyScorer.of_vectors(CALIBRATIONS["minilm-l6-v2"], np.eye(10, 8))
+    assert scorer.matches(m).tolist() == [True, True, False, False, False]
+    np.testing.assert_allclose(scorer.relevancy_of(np.array([0.0])), [0.5])
+
+
+#: Hit precision / recall / clean answers of ``match`` over the top 5 hits (MiniLM), v8 then v9,
+#: on the five lists written before the blind ones (pooled) and each blind list: docs/CLI.md
+#: ("v9") and bench/bench_relevancy.py print the same table. v9's share was chosen on the
+#: built-in room (bench/bench_match_rule.py), on no list.
+HITS_V8_V9 = {
+    "CAL..HO4": ((0.573, 0.882, 0.483), (0.916, 0.877, 0.855)),
+    "HELD_OUT_5": ((0.577, 0.771, 0.438), (0.869, 0.752, 0.743)),
+    "HELD_OUT_6": ((0.584, 0.777, 0.466), (0.787, 0.767, 0.709)),
+    "HELD_OUT_7": ((0.647, 0.748, 0.449), (0.852, 0.748, 0.682)),
+    "HELD_OUT_8": ((0.574, 0.800, 0.448), (0.841, 0.790, 0.724)),
+}
+
+
+def test_match_over_every_returned_hit_before_and_after_the_share_of_the_best() -> None:
+    """What a user reads: every hit marked ``match`` among the 5 returned. v8 marked about 4 in
+    10 wrong on every list (furniture words match all the furniture); v9 (share of the best 0.7)
+    keeps recall within 0.02 and raises hit precision by 0.2-0.34 on each list."""
+    cal = calibration_for("minilm-l6-v2")
+    cats = list(CATEGORIES)
+
+    def enc(texts: list[str]) -> np.ndarray:
+        return _encode("minilm", list(texts))
+
+    regions = region_text_embeddings(enc, cats)
+    lists = {"CAL..HO4": CALIBRATION + HELD_OUT + HELD_OUT_2 + HELD_OUT_3 + HELD_OUT_4, "HELD_OUT_5": HELD_OUT_5,
+             "HELD_OUT_6": HELD_OUT_6, "HELD_OUT_7": HELD_OUT_7, "HELD_OUT_8": HELD_OUT_8}
+    texts = list(dict.fromkeys(p for wl in lists.values() for q, _ in wl for p in (q, *relevancy_texts(q))))
+    vectors = dict(zip(texts, enc(texts), strict=True))
+    negatives, categories = enc(list(cal.negatives)), enc(list(cal.query_categories))
+    for name, wl in lists.items():
+        cosines, m = list_margins([q for q, _ in wl], np.stack([vectors[q] for q, _ in wl]), regions, negatives,
+                                  query_category_vectors=categories, head_name_cos=cal.head_name_cos,
+                                  part_vectors=vectors)
+        for share, want in zip((None, cal.best_share), HITS_V8_V9[name], strict=True):
+            f = evaluate_hits(wl, cosines, m, cats, threshold=cal.threshold, temperature=cal.temperature,
+                              best_share=share)
+            assert (f.hit_precision, f.recall, f.clean) == pytest.approx(want, abs=0.002), (name, share)
+        if name == "CAL..HO4":
+            wrong = dict(f.wrong)
+            assert "chair" not in wrong and "something to sit on" not in wrong and "zebra" not in wrong
+    with pytest.raises(ValueError, match="top_k"):
+        evaluate_hits(wl, cosines, m, cats, threshold=0.5, temperature=0.05, best_share=None, top_k=0)
+
+
 def test_the_scorer_needs_one_vector_per_phrase() -> None:
     cal = CALIBRATIONS["minilm-l6-v2"]
     with pytest.raises(ValueError, match="10 phrases but 4 vectors"):
         RelevancyScorer.of_vectors(cal, np.ones((4, 8)))
+
+
+_ENCODERS: dict[str, object] = {}
+_VECTORS: dict[tuple[str, str], np.ndarray] = {}
+
+
+def _encode(encoder_name: str, texts: list[str]) -> np.ndarray:
+    """``texts`` embedded by the named encoder, each text once per test module (MiniLM on the
+    word lists is most of this module's time)."""
+    encoder = _ENCODERS.get(encoder_name)
+    if encoder is None:
+        encoder = _ENCODERS[encoder_name] = make_text_encoder(
+            encoder_name, **({} if encoder_name == "hash" else {"device": "cpu"}))
+    missing = [t for t in dict.fromkeys(texts) if (encoder_name, t) not in _VECTORS]
+    if missing:
+        _VECTORS.update(((encoder_name, t), v) for t, v in zip(missing, encoder.encode(missing), strict=True))
+    return np.stack([_VECTORS[encoder_name, t] for t in texts]) if texts else np.zeros((0, encoder.dim))
 
 
 def _figures(encoder_name: str, word_list):  # noqa: ANN001, ANN202
@@ -208,12 +305,15 @@ def _figures(encoder_name: str, word_list):  # noqa: ANN001, ANN202
     cal = calibration_for(encoder.embedding_space)
     cats = list(CATEGORIES)
     parts = list(dict.fromkeys(p for q, _ in word_list for p in relevancy_texts(q)))
-    return evaluate_match(word_list, encoder.encode([q for q, _ in word_list]), cats,
-                          region_text_embeddings(encoder.encode, cats),
-                          encoder.encode(list(cal.negatives)), temperature=cal.temperature, threshold=cal.threshold,
-                          query_category_vectors=encoder.encode(list(cal.query_categories)),
-                          head_name_cos=cal.head_name_cos, part_vectors=dict(zip(parts, encoder.encode(parts),
-                                                                                 strict=True)))
+
+    def enc(texts: list[str]) -> np.ndarray:
+        return _encode(encoder_name, list(texts))
+
+    return evaluate_match(word_list, enc([q for q, _ in word_list]), cats, region_text_embeddings(enc, cats),
+                          enc(list(cal.negatives)), temperature=cal.temperature, threshold=cal.threshold,
+                          query_category_vectors=enc(list(cal.query_categories)),
+                          head_name_cos=cal.head_name_cos, part_vectors=dict(zip(parts, enc(parts), strict=True)),
+                          best_share=cal.best_share)
 
 
 def _figures_at(encoder_name: str, word_list, precision: float, recall: float):  # noqa: ANN001, ANN202
@@ -236,7 +336,7 @@ def test_match_on_the_minilm_word_lists() -> None:
     sample now): 0.882 / 0.781. The issue's targets (0.95 / 0.90) are missed."""
     dev = _figures_at("minilm", DEV_POOL, 0.902, 0.809)
     for word_list, p, r in ((CALIBRATION, 0.980, 0.960), (HELD_OUT, 0.976, 0.851), (HELD_OUT_2, 0.983, 0.906),
-                            (HELD_OUT_3, 0.878, 0.827), (HELD_OUT_4, 0.880, 0.818), (HELD_OUT_5, 0.898, 0.752),
+                            (HELD_OUT_3, 0.878, 0.827), (HELD_OUT_4, 0.880, 0.818), (HELD_OUT_5, 0.886, 0.743),
                             (HELD_OUT_6, 0.846, 0.748), (HELD_OUT_7, 0.839, 0.682), (HELD_OUT_8, 0.882, 0.781)):
         _figures_at("minilm", word_list, p, r)
     failures = dict(dev.failures)

@@ -87,6 +87,10 @@ def test_a_shorter_source_is_said_and_an_old_run_json_still_loads(tmp_path: Path
     old = _summary().model_dump(exclude={"frames_requested", "frames_played", "interrupted"})
     loaded = RunSummary.model_validate(old)
     assert loaded.frames_requested is None and not loaded.interrupted and shortfall_note(loaded) is None
+    # map_saved was true/false/null before it said where the map went: such a run.json still loads
+    assert RunSummary.model_validate({**old, "map_saved": True}).map_saved == "map"
+    assert RunSummary.model_validate({**old, "map_saved": False}).map_saved is None
+    assert RunSummary.model_validate({**old, "map_saved": "/tmp/out/map"}).map_saved == "/tmp/out/map"
 
 
 class _Proc:
@@ -195,7 +199,7 @@ def test_an_encoder_worker_is_restarted_and_past_the_limit_the_run_goes_on_witho
 
 def test_a_restarted_semantic_services_counts_add_up_in_run_json() -> None:
     """A restarted process counts from 0: run.json adds the last counts of the one before."""
-    from openfusion.app.run import _carry_over, _with_carried
+    from openfusion.app.run import _carry_over, _with_carried, progress_counts
     from openfusion.wire.schemas import HealthStats
 
     def semantic(frames: float, restarts: float) -> HealthStats:
@@ -211,3 +215,5 @@ def test_a_restarted_semantic_services_counts_add_up_in_run_json() -> None:
     stats = {"semantic": semantic(3, 1)}
     assert _with_carried(stats, carried)["semantic"].counter("semantic_frames") == 44
     assert stats["semantic"].counter("semantic_frames") == 3  # the live stats are untouched
+    # the progress line counts what run.json counts (it showed the live process's 3)
+    assert progress_counts(_with_carried(stats, carried))["semantic"] == 44

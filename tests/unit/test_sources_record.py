@@ -94,6 +94,39 @@ def test_truncated_recording_stops_with_a_count(tmp_path: Path, cut: int) -> Non
     assert src.stats.skipped == {"truncated_record": 1}
 
 
+def _as_version_2(payload: bytes) -> bytes:
+    """The frame as a build from before robots wrote it: schema version 2, no ``robot`` field."""
+    import msgpack
+
+    from openfusion.wire.codec import _unpack
+
+    schema, _version, body, arraydata = _unpack(payload)
+    del body["robot"]
+    assert arraydata is not None
+    return msgpack.packb({"arraydata": bytes(arraydata), "schema": schema, "version": 2, "body": body},
+                         use_bin_type=True)
+
+
+def test_a_recording_from_before_robots_still_replays(tmp_path: Path) -> None:
+    """Recordings of v2 frames replay (their robot is the default one); on the bus a v2 frame is
+    still refused as another version (bad input tried: a v2 payload decoded without accept_older)."""
+    from openfusion.wire.codec import DecodeError, decode
+
+    frames = [_frame(i) for i in range(3)]
+    old = [_as_version_2(encode(RgbdFrame.from_frame(f))) for f in frames]
+    from openfusion.sources.record import _HEADER, _LENGTH, FORMAT_VERSION, MAGIC
+
+    path = tmp_path / "old.ofrec"  # written as that build's recorder did (this one records v3 only)
+    path.write_bytes(_HEADER.pack(MAGIC, FORMAT_VERSION, 0) + b"".join(_LENGTH.pack(len(p)) + p for p in old))
+    out = list(ReplaySource(path))
+    assert len(out) == 3
+    for a, b in zip(frames, out, strict=True):
+        _assert_same(a, b)
+    with pytest.raises(DecodeError, match="got version 2"):
+        decode(old[0], expected=RgbdFrame)
+    assert decode(old[0], expected=RgbdFrame, accept_older=True).robot == "robot0"
+
+
 def test_corrupt_record_is_skipped_and_replay_continues(tmp_path: Path) -> None:
     """Bad input: garbage bytes inside record 1 (length intact) -> decode_error, records 0 and 2
     still replay; an absurd length prefix stops replay with corrupt_length."""

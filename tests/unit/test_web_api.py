@@ -10,6 +10,9 @@ from __future__ import annotations
 
 import http.client
 import json
+import socket
+import struct
+import threading
 from types import SimpleNamespace
 from typing import Any
 
@@ -26,6 +29,7 @@ from openfusion.app.web_server import (
 )
 from openfusion.bus import QueryError
 from openfusion.errors import UsageError
+from openfusion.testing.bus import wait_until
 from openfusion.wire.schemas import HealthStats, PointsReply, QueryReply
 from openfusion.wire.schemas.query import MAX_TEXT_CHARS, RegionHit
 
@@ -104,12 +108,17 @@ def test_the_page_and_its_files_are_served_with_their_types_and_a_strict_policy(
     [
         ("/api/query", 400, "the query text is empty"),
         ("/api/query?text=%20%20", 400, "the query text is empty"),
-        (f"/api/query?text={'x' * (MAX_TEXT_CHARS + 1)}", 400, f"longer than a query may carry ({MAX_TEXT_CHARS})"),
+        (f"/api/query?text={'x' * (MAX_TEXT_CHARS + 1)}", 400,
+         f"the query text has {MAX_TEXT_CHARS + 1} characters; the limit is {MAX_TEXT_CHARS}"),
+        (f"/api/query?text={'x' * 600}", 400, "the query text has 600 characters; the limit is 512"),
+        (f"/api/query?text={'x' * 5000}", 400, "the query text has 5000 characters; the limit is 512"),
         ("/api/query?text=chair&text=lamp", 400, "give text once, got it 2 times"),
         ("/api/query?text=%FF%FE", 400, "cannot read the query string"),
         ("/api/query?text=chair&top_k=0", 400, f"top_k must be from 1 to {MAX_TOP_K}, got 0"),
         (f"/api/query?text=chair&top_k={MAX_TOP_K + 1}", 400, f"top_k must be from 1 to {MAX_TOP_K}"),
-        ("/api/query?text=chair&top_k=abc", 400, "top_k must be a whole number from 1 to 20, got 'abc'"),
+        ("/api/query?text=chair&top_k=abc", 400, "top_k must be a whole number from 1 to 100, got 'abc'"),
+        ("/api/query?text=chair&top_k=1000000000", 400, "top_k must be from 1 to 100, got 1000000000"),
+        ("/api/query?text=chair&top_k=-1", 400, "top_k must be a whole number from 1 to 100, got '-1'"),
         ("/api/query?text=chair&top_k=1e3", 400, "top_k must be a whole number"),
         ("/api/query?text=chair&key=openfusion/**", 400, "unknown parameter 'key' (this endpoint takes: text, top_k)"),
         ("/api/points?max_points=100000000", 400, "unknown parameter 'max_points' (this endpoint takes: none)"),
@@ -241,3 +250,138 @@ def test_relevancy_and_match_are_passed_on_when_a_reply_has_them() -> None:
     assert record["relevancy"] == 0.8765 and record["match"] == {"kind": "exact", "margin": None}
     assert record["points"] == []
     json.dumps(record, allow_nan=False)
+
+
+# ------------------------------------------------------------------ hostile and slow clients
+
+
+def _raw(server: QueryPageServer, data: bytes, *, timeout_s: float = 20.0) -> tuple[int, dict[str, str], bytes]:
+    """Send ``data`` on a fresh connection, read the answer to its end: (status, headers, body)."""
+    with socket.create_connection(("127.0.0.1", server.port), timeout=timeout_s) as sock:
+        sock.sendall(data)
+        chunks = []
+        while chunk := sock.recv(65536):
+            chunks.append(chunk)
+    head, _, body = b"".join(chunks).partition(b"\r\n\r\n")
+    status_line, *lines = head.decode("latin-1").split("\r\n")
+    headers = {k.strip().lower(): v.strip() for k, _, v in (line.partition(":") for line in lines)}
+    return int(status_line.split()[1]), headers, body
+
+
+def _closed_by_server(sock: socket.socket, timeout_s: float) -> bool:
+    """Whether the server ends ``sock`` (end of stream or reset) within ``timeout_s``."""
+    sock.settimeout(timeout_s)
+    try:
+        return sock.recv(1) == b""
+    except ConnectionResetError:
+        return True
+    except TimeoutError:
+        return False
+
+
+def test_every_status_the_server_sends_is_json_and_it_keeps_answering(served, caplog) -> None:  # noqa: ANN001
+    """What http.server's parser answers (400, 414, 431, 501, 505) is the page's JSON too; a 1 MB
+    query line gets 414 (not the standard library's HTML page) and the client reads it, not a
+    reset; a failure of the page's own code is a 500 JSON, logged once with its traceback; the
+    next query is answered."""
+    server, backend = served
+    host = f"Host: 127.0.0.1:{server.port}\r\n".encode()
+    line = b"GET /api/query?text=" + b"x" * 1_000_000 + b" HTTP/1.1\r\n" + host + b"\r\n"
+    cases = [
+        (line, 414, "the request line is longer than"),
+        (b"FOO / HTTP/1.1\r\n" + host + b"\r\n", 501, "unsupported method 'FOO'"),
+        (b"TRACE / HTTP/1.1\r\n" + host + b"\r\n", 501, "unsupported method 'TRACE'"),
+        (b"GARBAGE\r\n\r\n", 400, "Bad request"),
+        (b"GET / HTTP/2.0\r\n" + host + b"\r\n", 505, "Invalid HTTP version"),
+        (b"GET / HTTP/1.1\r\n" + host + b"".join(b"X-%d: y\r\n" % i for i in range(120)) + b"\r\n", 431,
+         "Too many headers"),
+    ]
+    for request, status, error in cases:
+        got, headers, body = _raw(server, request)
+        assert got == status and headers["content-type"] == "application/json; charset=utf-8", (status, body[:200])
+        assert error in json.loads(body)["error"], body[:200]
+    assert backend.calls == []
+
+    def broken(text: str, top_k: int) -> dict[str, Any]:
+        raise RuntimeError("a bug")
+
+    backend.query = broken  # type: ignore[method-assign]
+    caplog.set_level("DEBUG", logger="openfusion.app.web_server")
+    status, data = _json(server, "/api/query?text=chair")
+    assert status == 500 and data == {"error": "the page failed: RuntimeError (its log has the details)"}
+    assert [r.exc_info is not None for r in caplog.records if r.levelname == "ERROR"] == [True]
+    assert _json(server, "/api/info")[0] == 200
+
+
+class _SlowBackend(_Backend):
+    """Answers /api/points with a reply too large for the socket buffers, once ``go`` is set."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.asked = threading.Event()
+        self.go = threading.Event()
+
+    def points(self, max_points: int) -> dict[str, Any]:
+        self.asked.set()
+        assert self.go.wait(30)
+        return {"count": 0, "truncated": False, "positions": [0] * 12_000_000, "colors": [], "keys": []}
+
+
+def test_a_client_that_goes_away_is_logged_once_at_debug_without_a_traceback(caplog, capfd) -> None:  # noqa: ANN001
+    """The client resets its connection while the page is writing a large answer: one DEBUG line
+    "went away", no traceback in the log or on stderr, and the page answers the next query."""
+    caplog.set_level("DEBUG", logger="openfusion.app.web_server")
+    backend = _SlowBackend()
+    with QueryPageServer(backend, port=0) as server:
+        sock = socket.create_connection(("127.0.0.1", server.port), timeout=20)
+        sock.sendall(f"GET /api/points HTTP/1.1\r\nHost: 127.0.0.1:{server.port}\r\n\r\n".encode())
+        assert backend.asked.wait(20)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # close = reset
+        sock.close()
+        backend.go.set()
+        wait_until(lambda: server.connection_stats()["gone"] == 1, timeout_s=30,
+                   describe=lambda: str(server.connection_stats()))
+        assert _json(server, "/api/info")[0] == 200
+    gone = [r for r in caplog.records if "went away" in r.getMessage()]
+    assert len(gone) == 1 and gone[0].levelname == "DEBUG"
+    assert not any(r.exc_info for r in caplog.records)
+    assert "Traceback" not in capfd.readouterr().err
+
+
+def test_slow_clients_are_bounded_in_count_and_time_and_the_page_keeps_answering(caplog, capfd) -> None:  # noqa: ANN001
+    """200 connections that send nothing and one that trickles its request a byte at a time: the
+    page holds at most max_connections of them (a new connection takes the place of the one that
+    has waited longest), answers a real query within 1 s while they are open, and closes every one
+    of them by itself within the read timeout (the trickling one too: it never completes its
+    request head in time); no traceback anywhere."""
+    caplog.set_level("DEBUG", logger="openfusion.app.web_server")
+    backend = _Backend()
+    with QueryPageServer(backend, port=0, read_timeout_s=1.5, max_connections=64) as server:
+        idle = [socket.create_connection(("127.0.0.1", server.port), timeout=20) for _ in range(200)]
+        trickle = socket.create_connection(("127.0.0.1", server.port), timeout=20)
+        conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=1.0)  # the 1 s bound
+        conn.request("GET", "/api/query?text=chair")
+        response = conn.getresponse()
+        assert response.status == 200 and json.loads(response.read())["query"] == "chair"
+        conn.close()
+        request = f"GET /api/query?text=lamp HTTP/1.1\r\nHost: 127.0.0.1:{server.port}\r\n\r\n".encode()
+        sent = 0
+        for byte in request:  # one byte per 0.1 s: the head would take 5 s, the page gives it 1.5 s
+            try:
+                trickle.sendall(bytes([byte]))
+            except OSError:  # the page closed it
+                break
+            sent += 1
+            if _closed_by_server(trickle, 0.1):
+                break
+        assert sent < len(request) and _closed_by_server(trickle, 10)
+        assert all(_closed_by_server(sock, 10) for sock in idle)
+        stats = server.connection_stats()
+        assert stats["peak"] <= 64 and stats["timed_out"] + stats["evicted"] >= 201 and stats["refused"] == 0
+        wait_until(lambda: server.connection_stats()["open"] == 0, timeout_s=10,
+                   describe=lambda: str(server.connection_stats()))
+        assert ("query", "chair", 5) in backend.calls and ("query", "lamp", 5) not in backend.calls
+        for sock in [*idle, trickle]:
+            sock.close()
+    assert not any(r.exc_info for r in caplog.records) and not any(r.levelno >= 30 for r in caplog.records)
+    assert "Traceback" not in capfd.readouterr().err

@@ -11,6 +11,7 @@ import time
 from types import FrameType
 from typing import Any
 
+import numpy as np
 import zenoh
 
 from openfusion.bus import collect_health, live_services, open_session
@@ -119,6 +120,10 @@ class HealthCommand:
             print(json.dumps({"map_id": keys.map_id, "prefix": keys.prefix, "services": services}))
         elif live:
             print(_health_table(live, stats))
+            robots = robots_table(stats)
+            if robots:
+                print()
+                print(robots)
         if not live:
             raise ServicesNotAlive(f"no live services on map {keys.map_id!r} (waited {args.timeout:g} s)")
         missing = sorted(set(args.require) - set(live))
@@ -140,4 +145,27 @@ def _health_table(live: list[str], stats: dict[str, Any]) -> str:
                  f"{s.latency_ms_p99:.2f}", str(s.drops), str(s.errors))
             )
     widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
+    return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip() for row in rows)
+
+
+def robots_table(stats: dict[str, Any]) -> str:
+    """Each robot's stream as geometry reports it (README "Several robots"); "" when none does."""
+    geometry = stats.get("geometry")
+    if geometry is None or not geometry.robots:
+        return ""
+    header = ("robot", "state", "integrated", "held", "skipped", "queued", "lag_s", "x_m", "y_m", "z_m", "yaw_deg",
+              "join")
+    rows = [header]
+    for name, r in sorted(geometry.robots.items()):
+        T = np.asarray(r.T_map_odom, np.float64).reshape(4, 4)
+        skipped = ", ".join(f"{reason} {n}" for reason, n in sorted(r.skipped.items())) or "-"
+        if r.state == "held":
+            join = f"{r.join_attempts} attempt(s)" + (f": {r.join_reason}" if r.join_reason else "")
+        else:
+            join = r.join_method + (f" (fitness {r.join_fitness:.2f})" if r.join_fitness else "")
+            join += f", {r.corrections} correction(s)" if r.corrections else ""
+        rows.append((name, r.state, str(r.frames_integrated), str(r.frames_held), skipped, str(r.queued),
+                     f"{r.lag_s:.2f}", f"{T[0, 3]:.3f}", f"{T[1, 3]:.3f}", f"{T[2, 3]:.3f}",
+                     f"{np.degrees(np.arctan2(T[1, 0], T[0, 0])):.2f}", join))
+    widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
     return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip() for row in rows)

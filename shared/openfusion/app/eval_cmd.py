@@ -38,7 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         nargs="+",
         default=["synthetic:seed=1,synthetic:seed=2"],
         metavar="SPEC",
-        help="scenes to evaluate: synthetic[:seed=N[,frames=N,width=W,height=H,noise=0|1]] or scannet:PATH; "
+        help="scenes to evaluate: synthetic[:seed=N[,frames=N,width=W,height=H,noise=0|1]], "
+        "synthetic:building[,rooms=N,route=A-B,revisit=N,seed=N,frames=N,...] (rooms along a corridor; its walk "
+        "sets its frames, not --frames) or scannet:PATH; "
         "comma-separated and/or several arguments (default: synthetic:seed=1,synthetic:seed=2)",
     )
     parser.add_argument("--encoder", default="gt", help="region encoder (default gt: ground-truth regions)")
@@ -60,6 +62,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--width", type=int, default=None, help="synthetic image width (default 640)")
     parser.add_argument("--height", type=int, default=None, help="synthetic image height (default 480)")
     parser.add_argument("--voxel-size", type=float, default=None, help="voxel size in metres (default 0.02)")
+    parser.add_argument("--memory-budget-mb", type=float, default=None,
+                        help="map with a memory budget: tiles paged out to a scratch tile store (default none)")
     parser.add_argument(
         "--semantic-every", type=int, default=None, help="semantic step every k-th frame (default 1)"
     )
@@ -137,8 +141,15 @@ def config_from_args(args: argparse.Namespace) -> EvalConfig:
         v = getattr(args, opt)
         if v is not None:
             overrides[key] = v
+    volume_changes: dict[str, float] = {}
     if args.voxel_size is not None:
-        overrides["volume"] = base.volume.with_changes(voxel_size_m=args.voxel_size)
+        volume_changes["voxel_size_m"] = args.voxel_size
+    if getattr(args, "memory_budget_mb", None) is not None:
+        if args.memory_budget_mb <= 0:
+            raise UsageError(f"--memory-budget-mb must be positive, got {args.memory_budget_mb:g}")
+        volume_changes["memory_budget_mb"] = args.memory_budget_mb
+    if volume_changes:
+        overrides["volume"] = base.volume.with_changes(**volume_changes)
     if getattr(args, "select", None) is not None:
         overrides["select"] = base.select.model_copy(update={"select": args.select})
     if overrides["exclude_background"] and not overrides["background_classes"]:

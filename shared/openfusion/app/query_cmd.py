@@ -15,8 +15,9 @@ text alone prints it::
                   near: on floor (key 2), next to table (key 6, 0.04 m)
 
 ``score`` is the cosine, ``relevancy`` the LERF relevancy in [0, 1] (with query-side contrast
-categories) and ``match`` says the relevancy reaches the embedding space's calibrated threshold
-(:mod:`openfusion.mapping.relevancy`);
+categories) and ``match`` says the hit is what was asked: the relevancy reaches the embedding
+space's calibrated threshold and the hit's margin is at least 0.7 of the text's best in the map
+(:mod:`openfusion.mapping.relevancy`, v9);
 the second line names up to three nearby regions with the hit's relation to each (``on``,
 ``under``, ``above``, ``next to``; :mod:`openfusion.mapping.relations`). A text none of whose
 regions is a match prints one line instead, and the command still exits 0::
@@ -225,14 +226,17 @@ _SAVED_MAP_OPTIONS = (("text_encoder", "--text-encoder"), ("min_region_points", 
 def _check_query_options(args: argparse.Namespace) -> None:
     """Refuse values and combinations the query could not honour, before anything is read or joined."""
     from openfusion.errors import UsageError
+    from openfusion.wire.limits import check_text, check_top_k
 
     empty = [i for i, text in enumerate(args.text) if not text.strip()]
     if empty and len(args.text) == 1:
         raise UsageError("the query text is empty")
     if empty:
         raise UsageError(f"query text {empty[0] + 1} of {len(args.text)} is empty")
-    if args.top_k < 1:
-        raise UsageError(f"--top-k must be >= 1, got {args.top_k}")
+    # the one set of limits (openfusion.wire.limits), in both modes, before anything is read or joined
+    for i, text in enumerate(args.text):
+        check_text(text, which=f"text {i + 1} of {len(args.text)} " if len(args.text) > 1 else "")
+    check_top_k(args.top_k, name="--top-k")
     if args.map_dir is not None:
         given = [flag for attr, flag in _BUS_OPTIONS if getattr(args, attr, None) not in (None, [])]
         if given:
@@ -245,12 +249,6 @@ def _check_query_options(args: argparse.Namespace) -> None:
                              "(--map-dir); a running map's query service has its own (set it on that service)")
         if args.timeout is not None and args.timeout <= 0:
             raise UsageError(f"--timeout must be positive, got {args.timeout:g}")
-        from openfusion.wire.schemas.query import MAX_TEXT_CHARS
-
-        longest = max(args.text, key=len)
-        if len(longest) > MAX_TEXT_CHARS:
-            raise UsageError(f"a query text of {len(longest)} characters is longer than a query may carry "
-                             f"({MAX_TEXT_CHARS})")
     if args.out is not None and not args.out.parent.is_dir():
         raise UsageError(f"--out: folder {args.out.parent} does not exist")
 
@@ -265,7 +263,8 @@ one line naming the PLY of --out; --verbose adds log lines and the libraries' ou
     no match for "zebra" (closest: plant, relevancy 0.01)
   score: cosine; relevancy: [0, 1] against the phrases "object", "things", "stuff",
   "texture" and, query side, the categories "animal", "vehicle", "food", "building",
-  "landscape", "appliance"; match: relevancy reaches the embedding space's calibrated threshold. A TEXT
+  "landscape", "appliance"; match: what was asked (relevancy reaches the embedding space's
+  calibrated threshold and the margin is at least 0.7 of the text's best). A TEXT
   without any match prints the "no match" line (exit status 0).
   "X on|under|above|next to Y" (also: on top of, underneath, beneath, below, over, beside,
   near, by), e.g. "the chair next to the table": X regions in that relation to the best Y
@@ -284,15 +283,16 @@ class QueryCommand:
     @staticmethod
     def add_arguments(parser: argparse.ArgumentParser) -> None:
         from openfusion.mapping.params import default_min_region_points
+        from openfusion.wire.limits import MAX_TEXT_CHARS, MAX_TOP_K
 
         parser.formatter_class = argparse.RawDescriptionHelpFormatter
         parser.epilog = _OUTPUT_HELP
         parser.add_argument("text", nargs="+", metavar="TEXT",
-                            help="what to look for, e.g. 'something to sit on'; several texts (given together) "
-                                 "are answered at once, in one round trip")
+                            help=f"what to look for, e.g. 'something to sit on' (at most {MAX_TEXT_CHARS} "
+                                 "characters); several texts (given together) are answered at once, in one round trip")
         parser.add_argument("--map-dir", type=Path, help="query a saved map folder instead of running services "
                             "(then no option that finds a running map: --map, --connect, --timeout, --config, ...)")
-        parser.add_argument("--top-k", type=int, default=5, help="regions to return (default 5)")
+        parser.add_argument("--top-k", type=int, default=5, help=f"regions to return, 1 to {MAX_TOP_K} (default 5)")
         parser.add_argument("--json", action="store_true",
                             help="print JSON: one object for one TEXT, a list of them for several (see below)")
         parser.add_argument("--out", type=Path, help="write the points of the returned regions (of every text, each "
@@ -337,16 +337,23 @@ def _answer(args: argparse.Namespace) -> list[tuple[str, str, list[Any], Any]]:
         space, answers, relations = _answer_saved_map(args, with_points)
         return [(text, space, regions, relation)
                 for text, regions, relation in zip(texts, answers, relations, strict=True)]
+    from openfusion.bus import QueryError
     from openfusion.client import OpenFusionClient
+    from openfusion.wire.limits import LimitError
 
     config = config_from_args(args)
     setup_logging(config.log_level if args.log_level else verbose_level)
     timeout_s = DEFAULT_TIMEOUT_S if args.timeout is None else args.timeout
     with OpenFusionClient.from_config(config, timeout_s=timeout_s) as client:
-        if len(texts) == 1:  # the one-text endpoint, as always (query services without batches answer it)
-            replies = [client.query_text(texts[0], top_k=args.top_k, with_points=with_points)]
-        else:  # one round trip (up to 64 texts)
-            replies = client.query_texts(texts, top_k=args.top_k, with_points=with_points)
+        try:
+            if len(texts) == 1:  # the one-text endpoint, as always (query services without batches answer it)
+                replies = [client.query_text(texts[0], top_k=args.top_k, with_points=with_points)]
+            else:  # one round trip (up to 64 texts)
+                replies = client.query_texts(texts, top_k=args.top_k, with_points=with_points)
+        except QueryError as exc:
+            if exc.code == "too_large":  # a limit the service holds (an older one may hold others): the user's to fix
+                raise LimitError(exc.reason) from None
+            raise
     return [(text, reply.embedding_space, reply.regions, reply.relation)
             for text, reply in zip(texts, replies, strict=True)]
 

@@ -102,13 +102,16 @@ class RosPublishCommand:
         from openfusion.client import OpenFusionClient
         from openfusion.sources.ros2 import Ros2Publisher
         from openfusion.viz.ros_messages import MARKER_ARRAY, POINTCLOUD2
+        from openfusion.wire.limits import check_max_points, check_text, check_top_k
 
         if any(not t.strip() for t in args.text):
             raise UsageError("a query text is empty")
         if args.every <= 0:
             raise UsageError(f"--every must be positive, got {args.every:g}")
-        if args.top_k < 1:
-            raise UsageError(f"--top-k must be >= 1, got {args.top_k}")
+        for i, text in enumerate(args.text):  # the one set of limits (openfusion.wire.limits), before joining
+            check_text(text, which=f"text {i + 1} of {len(args.text)} " if len(args.text) > 1 else "")
+        check_top_k(args.top_k, name="--top-k")
+        check_max_points(args.max_points, name="--max-points")
         if args.domain_id < 0:
             raise UsageError(f"--domain-id must be >= 0 (the robot's ROS_DOMAIN_ID), got {args.domain_id}")
         config = config_from_args(args)

@@ -15,8 +15,12 @@ page until Ctrl-C.
 Frames: ``--frames N`` plays N frames. The built-in room (``--source synthetic[:...]``) plays N
 frames whatever N is: its camera walks a closed lap of :data:`BUILTIN_LAP_FRAMES` frames and walks it
 again for longer runs (same poses, frame ids and stamps keep increasing); a spec that sets
-``frames=`` or ``lap=`` keeps them. A source with fewer frames plays what it has, and the run says
-so (``played 300 of 2000 frames: the source has 300``) and records it in ``run.json``.
+``frames=`` or ``lap=`` keeps them. The building (``--source synthetic:building,...``) walks its
+route once: ``--frames N`` spreads N frames over the walk (unless the spec sets ``frames=``), and
+without it the walk plays at its own density (a frame every 0.3 m or 20 degrees). Other sources play
+at most ``--frames`` (default :data:`BUILTIN_LAP_FRAMES`). A source with fewer frames plays what it
+has, and the run says so (``played 300 of 2000 frames: the source has 300``) and records it in
+``run.json``.
 
 Stopping: the first SIGINT (Ctrl-C) or SIGTERM stops playback (the bridge), lets geometry and
 semantic finish the frames they already have, saves the map to ``OUT/map``, writes ``run.json``
@@ -32,7 +36,10 @@ service, ``--restart-backoff-s``, doubled for each restart; :mod:`openfusion.app
 last frame it holds, the bridge replays the frames after it, and geometry ignores frames it
 already holds, so every frame is integrated exactly once (README, "Crash-proof mapping").
 Past the restart limit the run fails as without supervision, but first saves the map geometry
-holds (when it is alive) and writes ``run.json`` with the ``error``.
+holds (when it is alive) and writes ``run.json`` with the ``error``. ``run.json``'s ``map_saved``
+says where the map went on every path that saved one (done, interrupted, failed after saving);
+the progress line and ``run.json`` count semantic frames the same way across restarts
+(:func:`progress_counts`).
 
 Settings: one :class:`~openfusion.app.run_config.RunConfig` (every service's section), validated
 before anything starts, written to ``OUT/run-config.json`` and read by every service.
@@ -55,8 +62,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from pydantic import ValidationError
-
+from openfusion.app.end_of_run import fetch_mesh, save_and_wait
 from openfusion.app.launcher import Cluster, RunError, StopSignals, wait_for_services
 from openfusion.app.outputs import open_rerun, say_progress, surface_mesh, write_query_outputs
 from openfusion.app.run_config import RUN_FLAGS, SECTION_MODELS, RunConfig, write_service_config
@@ -65,11 +71,14 @@ from openfusion.bus import collect_health, free_loopback_port, open_session
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings, add_section_options, config_from_args
 from openfusion.errors import UsageError
+from openfusion.services.bridge.service import BridgeSection, bridge_name
 from openfusion.sources.registry import check_source_spec, describe_source, parse_key_values
+from openfusion.sources.synthetic_spec import split_world
 from openfusion.wire.counters import BridgeCounter, CommonCounter, GeometryCounter, SemanticCounter
 from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
 from openfusion.wire.keys import validate_map_id
-from openfusion.wire.schemas import TextQuery
+from openfusion.wire.limits import LimitError, check_text, check_top_k
+from openfusion.wire.schemas.base import check_robot_name
 
 logger = logging.getLogger(__name__)
 
@@ -89,16 +98,36 @@ def _counter(stats: dict[str, Any], service: str, name: str) -> float:
     return s.counter(name) if s is not None else 0.0
 
 
-def builtin_scene_spec(spec: str, frames: int) -> str:
-    """The source spec that plays ``frames`` frames of the built-in room: a ``synthetic`` spec gets
-    ``frames=N`` and ``lap=BUILTIN_LAP_FRAMES`` unless it sets them; any other spec is unchanged."""
+def builtin_scene_spec(spec: str, frames: int | None) -> str:
+    """The source spec that plays ``frames`` frames (None: the default) of the built-in world: a
+    room spec gets ``frames=N`` (default :data:`BUILTIN_LAP_FRAMES`) and ``lap=BUILTIN_LAP_FRAMES``
+    unless it sets them; a building spec gets ``frames=N`` only when N is given (its walk has its
+    own frame count); any other spec is unchanged."""
     scheme, _sep, rest = spec.strip().partition(":")
     if scheme.lower() != "synthetic":
         return spec
+    world, rest = split_world(rest)
     options = parse_key_values(rest, scheme="synthetic")
-    options.setdefault("frames", str(frames))
+    if world == "building":
+        if frames is not None:
+            options.setdefault("frames", str(frames))
+        return "synthetic:" + ",".join(["building", *(f"{k}={v}" for k, v in options.items())])
+    options.setdefault("frames", str(frames if frames is not None else BUILTIN_LAP_FRAMES))
     options.setdefault("lap", str(BUILTIN_LAP_FRAMES))
     return "synthetic:" + ",".join(f"{k}={v}" for k, v in options.items())
+
+
+def frames_to_play(spec: str, frames: int | None) -> int:
+    """``--frames``, or without it: the walk's frame count for a building spec (opened here: the
+    plan and the walk, no rendering), else :data:`BUILTIN_LAP_FRAMES`."""
+    if frames is not None:
+        return frames
+    scheme, _sep, rest = spec.strip().partition(":")
+    if scheme.lower() == "synthetic" and split_world(rest)[0] == "building":
+        from openfusion.sources.registry import open_source
+
+        return len(open_source(spec))
+    return BUILTIN_LAP_FRAMES
 
 
 def shortfall_note(summary: RunSummary) -> str | None:
@@ -200,18 +229,26 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
                       SERVICE_START_TIMEOUT_S, should_stop=lambda: signals.requested is not None)
     if signals.requested:
         raise signals.interrupted("stopped before playback started; nothing to save")
-    cluster.start("bridge")
+    for robot, spec in config.robots.items():  # several robots: one bridge each
+        cluster.start(bridge_name(robot), ["--source", spec, "--robot", robot, "--max-frames",
+                                           str(config.robot_frames[robot])], service="bridge")
+    if not config.robots:
+        cluster.start("bridge")
     stats: dict[str, Any] = {}
     carried: dict[str, dict[str, float]] = {}
     map_dir = out / "map"
+    saved_to: str | None = None  # where the map went, once saved (run.json's map_saved)
 
     def summary_now(error: str | None = None) -> RunSummary:
-        return RunSummary.from_health(
+        summary = RunSummary.from_health(
             _with_carried(stats, carried), source=config.bridge.source, encoder=config.semantic.encoder, noise=config.semantic.noise,
             semantic_every=config.semantic.every_k, wall_s=time.monotonic() - started,
-            frames_requested=config.bridge.max_frames, interrupted=signals.requested is not None,
+            frames_requested=sum(config.robot_frames.values()) if config.robots else config.bridge.max_frames,
+            interrupted=signals.requested is not None, robot_sources=config.robot_sources(),
             restarts=cluster.restarts, error=error, encoder_workers=args.encoder_workers,
             select=config.semantic.select)
+        summary.map_saved = saved_to
+        return summary
 
     try:
         stats = _follow_progress(args, client, cluster, signals, stats, carried)
@@ -224,7 +261,10 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
             (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
             raise signals.interrupted("no frame was integrated yet; nothing saved")
     _say(args, "saving the map")
-    client.control("save", str(map_dir.resolve()))
+    geometry = cluster.processes.get("geometry")
+    save_and_wait(client, map_dir, say=lambda line: _say(args, line),
+                  alive=lambda: geometry is not None and geometry.alive())
+    saved_to = str(map_dir.resolve())
     replies = []
     for text in args.queries:
         if signals.requested:
@@ -235,11 +275,10 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
         summary = summary_now()
         (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
         raise signals.interrupted(f"saved the map of {summary.frames_integrated} integrated frames to {map_dir}")
-    mesh = client.mesh()
-    write_query_outputs(out, replies, (mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys),
-                        say=say_progress(args.quiet))
+    mesh = fetch_mesh(client, map_dir, say=lambda line: _say(args, line))  # too large for a reply: from OUT/map
+    write_query_outputs(out, replies, mesh, say=say_progress(args.quiet))
     if rerun is not None:
-        rerun.log_mesh(surface_mesh(mesh.vertices, mesh.triangles, mesh.vertex_colors, mesh.vertex_keys))
+        rerun.log_mesh(mesh if not isinstance(mesh, tuple) else surface_mesh(*mesh))
         for text, _space, hits in replies:
             rerun.log_query(text, hits)
     return summary_now()
@@ -253,7 +292,7 @@ def _save_what_is_left(args: argparse.Namespace, client: Any, cluster: Cluster, 
     if geometry is not None and geometry.alive() and summary.frames_integrated > 0:
         try:
             client.control("save", str(map_dir.resolve()))
-            summary.map_saved = True
+            summary.map_saved = str(map_dir.resolve())
             _say(args, f"saved the map of {summary.frames_integrated} integrated frames to {map_dir}")
         except Exception as exc:  # noqa: BLE001 - the run's own error is what the user must see
             logger.warning("could not save the map after the run failed: %s", exc)
@@ -299,6 +338,14 @@ def _carry_over(stats: dict[str, Any], fresh: dict[str, Any], carried: dict[str,
         into = carried.setdefault(name, {})
         for counter in counters:
             into[counter] = into.get(counter, 0.0) + old.counter(counter)
+
+
+def progress_counts(stats: dict[str, Any]) -> dict[str, int]:
+    """The progress line's semantic counts, from the stats run.json is made of (with the counts of
+    earlier processes of a restarted service added: :func:`_with_carried`), so the line ends on
+    the ``semantic_frames`` that run.json says."""
+    return {"semantic": int(_counter(stats, "semantic", SemanticCounter.SEMANTIC_FRAMES)),
+            "regions": int(_counter(stats, "semantic", SemanticCounter.REGIONS))}
 
 
 def _with_carried(stats: dict[str, Any], carried: dict[str, dict[str, float]]) -> dict[str, Any]:
@@ -354,25 +401,31 @@ def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
                 if not args.quiet:
                     bar.write(f"{signals.requested}: stopping playback; finishing the frames in flight, then saving the "
                               "map (press Ctrl-C again to abort)", file=sys.stderr)
-                cluster.stop("bridge")
+                for name in bridge_names(cluster):
+                    cluster.stop(name)
                 playback_stopped = True
                 stable_since = None
             cluster.check_alive()
             fresh = collect_health(client.session, client.keys, timeout_s=1.0)
-            _carry_over(stats, fresh, {} if carried is None else carried)
+            carried = {} if carried is None else carried
+            _carry_over(stats, fresh, carried)
             stats.update(fresh)
             integrated = _counter(stats, "geometry", GeometryCounter.FRAMES_INTEGRATED)
             refused = (_counter(stats, "geometry", GeometryCounter.CAPACITY_REFUSED)
                        + _counter(stats, "geometry", GeometryCounter.FRAMES_FAILED))
             bar.n = int(integrated)
-            bar.set_postfix(semantic=int(_counter(stats, "semantic", SemanticCounter.SEMANTIC_FRAMES)),
-                            regions=int(_counter(stats, "semantic", SemanticCounter.REGIONS)))
+            bar.set_postfix(**progress_counts(_with_carried(stats, carried)))
             bar.refresh()
-            done = playback_stopped or _counter(stats, "bridge", BridgeCounter.PLAYBACK_DONE) >= 1
-            published = _counter(stats, "bridge", BridgeCounter.FRAMES_PUBLISHED)
+            bridges = bridge_names(cluster)
+            done = playback_stopped or all(_counter(stats, b, BridgeCounter.PLAYBACK_DONE) >= 1 for b in bridges)
+            published = sum(_counter(stats, b, BridgeCounter.FRAMES_PUBLISHED) for b in bridges)
+            # Frames of robots not joined yet wait in their submaps: taken, not integrated (yet).
+            refused += _held_now(stats)
             key = (integrated, refused, _counter(stats, "semantic", SemanticCounter.SEMANTIC_FRAMES),
                    _counter(stats, "geometry", GeometryCounter.UPDATES_APPLIED), *cluster.restarts.values())
-            if done and integrated + refused >= published and _current(stats, cluster):
+            if done and _joins_pending(stats):  # a held robot may still join: its frames would go in
+                stable_since = None
+            elif done and integrated + refused >= published and _current(stats, cluster):
                 if key == last_key and stable_since is not None and time.monotonic() - stable_since > SETTLE_S:
                     break
                 if key != last_key or stable_since is None:
@@ -385,6 +438,55 @@ def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
     finally:  # the bar ends its line whatever ends the wait (an error, a second Ctrl-C)
         bar.close()
     return stats
+
+
+def bridge_names(cluster: Cluster) -> list[str]:
+    """The run's bridges (one per robot: ``bridge``, ``bridge-ROBOT``)."""
+    return [name for name in cluster.processes if name == "bridge" or name.startswith("bridge-")] or ["bridge"]
+
+
+def _held_now(stats: dict[str, Any]) -> float:
+    """Frames of held robots waiting in geometry's holds now (taken, not in the map yet)."""
+    geometry = stats.get("geometry")
+    return float(sum(r.frames_held for r in geometry.robots.values())) if geometry is not None else 0.0
+
+
+def _joins_pending(stats: dict[str, Any]) -> bool:
+    """A held robot's registration runs or is due in geometry."""
+    geometry = stats.get("geometry")
+    return geometry is not None and any(r.join_pending for r in geometry.robots.values())
+
+
+def split_robot_name(spec: str) -> tuple[str, str | None]:
+    """A ``--source`` spec and the robot name its ``name=ROBOT`` option gives (the option removed;
+    None without one): ``synthetic:building,route=0-3,name=alpha`` -> (``synthetic:building,route=0-3``,
+    ``alpha``)."""
+    scheme, colon, rest = spec.partition(":")
+    items = rest.split(",") if colon else spec.split(",")[1:]
+    head = scheme if colon else spec.split(",")[0]
+    names = [item.strip()[len("name="):] for item in items if item.strip().startswith("name=")]
+    if len(names) > 1:
+        raise UsageError(f"--source {spec!r}: name= is given {len(names)} times")
+    kept = ",".join(item for item in items if not item.strip().startswith("name="))
+    return (f"{head}:{kept}" if kept else head), (names[0] if names else None)
+
+
+def robot_sources(specs: Sequence[str], *, default_robot: str) -> dict[str, str]:
+    """Robot name -> source spec of the ``--source`` options: ``name=`` names a robot, the others are
+    ``robot0``, ``robot1``, ... by position (the first one, unnamed, is ``default_robot``)."""
+    robots: dict[str, str] = {}
+    for i, spec in enumerate(specs):
+        plain, name = split_robot_name(spec)
+        name = name if name is not None else (default_robot if i == 0 else f"robot{i}")
+        try:
+            check_robot_name(name)
+        except ValueError as exc:
+            raise UsageError(f"--source {spec!r}: {exc}") from None
+        if name in robots:
+            raise UsageError(f"--source {spec!r}: robot {name!r} has a source already (one bridge per robot; "
+                             "name= names them)")
+        robots[name] = plain
+    return robots
 
 
 def _check_out_dir(out: Path) -> None:
@@ -403,15 +505,14 @@ def _check_out_dir(out: Path) -> None:
 
 
 def _check_queries(queries: Sequence[str], top_k: int) -> None:
-    """Refuse example queries the query service would refuse (empty text, ``--top-k`` out of range)
-    with the limits of its request message, before the scene is mapped."""
+    """Refuse example queries the query service would refuse (empty or too long a text, ``--top-k``
+    out of range) with the one set of limits (:mod:`openfusion.wire.limits`), before the scene is mapped."""
     for text in queries:
         try:
-            TextQuery(text=text, top_k=top_k, with_points=True, max_points=QUERY_MAX_POINTS)
-        except ValidationError as exc:
-            err = exc.errors(include_url=False)[0]
-            flag = {"text": "--query", "top_k": "--top-k"}.get(str(err["loc"][0]), str(err["loc"][0]))
-            raise UsageError(f"{flag} {err['input']!r}: {err['msg'][:1].lower()}{err['msg'][1:]}") from None
+            check_text(text)
+        except LimitError as exc:
+            raise UsageError(f"--query {text[:40]!r}: {exc}") from None
+    check_top_k(top_k, name="--top-k")
 
 
 def _check_text_encoder(config: RunConfig) -> None:
@@ -439,10 +540,16 @@ class RunCommand:
     @staticmethod
     def add_arguments(parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--out", type=Path, default=Path("out"), help="output folder (default ./out)")
+        parser.add_argument("--source", dest="sources", action="append", default=None, metavar="SPEC",
+                            help="frame source: " + str(BridgeSection.model_fields["source"].description) + ". Repeat "
+                            "it for several robots in one map (one bridge each; ',name=ROBOT' names one, else "
+                            "robot0, robot1, ...; README 'Several robots')")
         parser.add_argument("--map", dest="map_id", default="demo", help="map id (default demo)")
-        parser.add_argument("--frames", type=int, default=BUILTIN_LAP_FRAMES,
+        parser.add_argument("--frames", type=int, default=None,
                             help=f"frames to play (default {BUILTIN_LAP_FRAMES}); one lap of the built-in room is "
-                            f"{BUILTIN_LAP_FRAMES} frames, more frames walk it again; a shorter source plays what it has")
+                            f"{BUILTIN_LAP_FRAMES} frames, more frames walk it again; synthetic:building walks its "
+                            "route once in N frames (default: its own, a frame every 0.3 m or 20 degrees); "
+                            "a shorter source plays what it has")
         parser.add_argument("--query", dest="queries", action="append", default=None,
                             help="example query (repeatable; default a few furniture queries)")
         parser.add_argument("--top-k", type=int, default=3, help="regions per query (default 3)")
@@ -476,7 +583,7 @@ class RunCommand:
         """The validated run config (bad values are refused here, before any process starts)."""
         validate_map_id(args.map_id)
         _check_out_dir(args.out)
-        if args.frames <= 0:
+        if args.frames is not None and args.frames <= 0:
             raise UsageError(f"--frames must be positive, got {args.frames}")
         if not 0 <= args.encoder_workers <= MAX_ENCODER_WORKERS:
             raise UsageError(f"--encoder-workers must be between 0 and {MAX_ENCODER_WORKERS}, got {args.encoder_workers}")
@@ -504,12 +611,23 @@ class RunCommand:
         config = config_from_args(args, RunConfig, sections=list(RUN_FLAGS))
         config.map_id = args.map_id
         _check_text_encoder(config)
-        # The source's form (scheme, path, options): the bridge would refuse it only after the other
-        # services had started.
-        check_source_spec(config.bridge.source)
-        # The built-in room plays --frames frames (laps of BUILTIN_LAP_FRAMES); other sources stop there.
-        config.bridge.source = builtin_scene_spec(config.bridge.source, args.frames)
-        config.bridge.max_frames = args.frames
+        sources = robot_sources(args.sources or [config.bridge.source], default_robot=config.bridge.robot)
+        if len(sources) > 1 and args.in_process:
+            raise UsageError("--in-process plays one source; several --source need the services (one bridge each)")
+        frames: dict[str, int] = {}
+        for robot, spec in sources.items():
+            # The source's form (scheme, path, options): the bridge would refuse it only after the other
+            # services had started.
+            check_source_spec(spec)
+            # The built-in room plays --frames frames (laps of BUILTIN_LAP_FRAMES), the building its walk;
+            # other sources stop there.
+            sources[robot] = builtin_scene_spec(spec, args.frames)
+            frames[robot] = frames_to_play(sources[robot], args.frames)
+        (config.bridge.robot, config.bridge.source), *_others = sources.items()
+        config.robots = sources if len(sources) > 1 else {}
+        config.robot_frames = frames if len(sources) > 1 else {}
+        args.frames = sum(frames.values())  # the progress bar's total
+        config.bridge.max_frames = frames[config.bridge.robot]
         return config
 
     @staticmethod

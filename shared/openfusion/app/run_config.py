@@ -31,7 +31,8 @@ from openfusion.services.semantic.service import SemanticSection
 
 #: The section fields ``openfusion run`` offers as flags (everything else: ``--set`` or ``--config``).
 RUN_FLAGS: dict[str, list[str]] = {
-    "bridge": ["source", "rate_hz"],
+    "bridge": ["rate_hz"],  # --source is the run's own (repeatable: one bridge per robot)
+    "geometry": ["memory_budget_mb"],
     "semantic": ["encoder", "noise", "every_k", "encoder_delay_ms", "select"],
     "query": ["text_encoder"],
     "supervision": ["max_restarts", "restart_backoff_s"],
@@ -66,6 +67,15 @@ class RunConfig(ServiceConfig):
     supervision: SupervisionSection = Field(default_factory=SupervisionSection)
     #: the encoder workers' section (``--encoder-workers``): the semantic section's encoder options
     encoder: EncoderSection = Field(default_factory=EncoderSection)
+    #: several robots (``--source`` given more than once): robot name -> its source, one bridge each
+    #: (empty: one bridge, ``bridge.source`` as ``bridge.robot``)
+    robots: dict[str, str] = Field(default_factory=dict)
+    #: ... and the frames each robot's bridge plays
+    robot_frames: dict[str, int] = Field(default_factory=dict)
+
+    def robot_sources(self) -> dict[str, str]:
+        """Robot name -> source spec of every bridge of the run (one at least)."""
+        return dict(self.robots) or {self.bridge.robot: self.bridge.source}
 
     def use_encoder_pool(self) -> None:
         """Send the semantic service's frames to encoder workers built like its own encoder."""
@@ -81,7 +91,7 @@ SECTION_MODELS = {name: RunConfig.model_fields[name].annotation
 def write_service_config(config: RunConfig, path: Path) -> Path:
     """The config file every service of the run reads (JSON; its Zenoh settings are left out:
     the launcher gives each service its endpoints)."""
-    data = config.model_dump(mode="json", exclude={"zenoh", "supervision"})
+    data = config.model_dump(mode="json", exclude={"zenoh", "supervision", "robots", "robot_frames"})
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(data, indent=2) + "\n")
     return path

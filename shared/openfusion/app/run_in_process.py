@@ -112,6 +112,7 @@ def _run_in_process(args: argparse.Namespace, config: RunConfig, signals: StopSi
         summary = summary_now()
         if summary.frames_integrated:
             save_map(out / "map", result.volume, result.dictionary, meta={"map_id": config.map_id})
+            summary.map_saved = str((out / "map").resolve())
         (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
         if not summary.frames_integrated:
             raise signals.interrupted("no frame was integrated yet; nothing saved")
@@ -135,5 +136,6 @@ def _run_in_process(args: argparse.Namespace, config: RunConfig, signals: StopSi
             rerun.log_query(query, hits)
         rerun.close()
     summary = summary_now()
+    summary.map_saved = str((out / "map").resolve())
     (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
     return summary

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, ValidationInfo, field_validator
 
 from openfusion.mapping.pipeline import PipelineStats, reconstruction_rates
 from openfusion.wire.counters import (
@@ -22,6 +22,7 @@ from openfusion.wire.counters import (
     SemanticCounter,
 )
 from openfusion.wire.schemas import HealthStats
+from openfusion.wire.schemas.base import DEFAULT_ROBOT as _DEFAULT_ROBOT
 
 
 def _round(value: float | None) -> float | None:
@@ -31,6 +32,65 @@ def _round(value: float | None) -> float | None:
 def _rate(frames: float, first_s: float, last_s: float) -> float | None:
     """Frames per second between the first and the last of ``frames`` events (None for < 2)."""
     return (frames - 1) / (last_s - first_s) if frames >= 2 and last_s > first_s else None
+
+
+class RobotRun(BaseModel):
+    """One robot of the run (``run.json`` ``robots``): its source and bridge's counts, and its
+    stream as geometry reports it (:class:`~openfusion.wire.schemas.admin.RobotStatus`): joined or
+    held, frames integrated, frames skipped by reason (the source's, the bridge's and geometry's),
+    lag, and the transform from its odometry frame to the map's in use (row-major 4x4)."""
+
+    source: str = ""
+    state: str = "unknown"
+    frames_read: int = 0
+    frames_published: int = 0
+    frames_integrated: int = 0
+    frames_held: int = 0
+    frames_replayed: int = 0
+    frames_skipped: dict[str, int] = Field(default_factory=dict)
+    lag_s: float = 0.0
+    T_map_odom: list[float] = Field(default_factory=list)
+    join_method: str = ""
+    join_fitness: float = 0.0
+    join_attempts: int = 0
+    corrections: int = 0
+
+
+def _bridges(stats: dict[str, HealthStats]) -> list[str]:
+    """The run's bridges' service names (``bridge``, ``bridge-ROBOT``)."""
+    return sorted(name for name in stats if name == "bridge" or name.startswith("bridge-"))
+
+
+def _robots(stats: dict[str, HealthStats], sources: dict[str, str]) -> dict[str, RobotRun]:
+    """Per robot: its bridge's counts and geometry's view of its stream."""
+    geometry = stats.get("geometry")
+    streams = geometry.robots if geometry is not None else {}
+    robots: dict[str, RobotRun] = {}
+    for name in list(sources) + [r for r in streams if r not in sources]:
+        bridge = stats.get("bridge" if name == _DEFAULT_ROBOT else f"bridge-{name}")
+        counters = bridge.counters if bridge is not None else {}
+        status = streams.get(name)
+        skipped = {k.removeprefix(SKIPPED_PREFIX): int(v) for k, v in counters.items() if k.startswith(SKIPPED_PREFIX)}
+        if status is not None:
+            for reason, n in status.skipped.items():
+                skipped[reason] = skipped.get(reason, 0) + int(n)
+        robots[name] = RobotRun(
+            source=sources.get(name, ""),
+            state=status.state if status is not None else "unknown",
+            frames_read=int(counters.get(BridgeCounter.FRAMES_READ, 0)),
+            frames_published=int(counters.get(BridgeCounter.FRAMES_PUBLISHED, 0)),
+            frames_replayed=int(counters.get(BridgeCounter.FRAMES_REPLAYED, 0)),
+            frames_integrated=status.frames_integrated if status is not None else 0,
+            frames_held=status.frames_held if status is not None else 0,
+            frames_skipped=skipped,
+            lag_s=status.lag_s if status is not None else 0.0,
+            T_map_odom=list(status.T_map_odom) if status is not None else [],
+            join_method=status.join_method if status is not None else "",
+            join_fitness=status.join_fitness if status is not None else 0.0,
+            join_attempts=status.join_attempts if status is not None else 0,
+            corrections=status.corrections if status is not None else 0,
+        )
+    return robots
 
 
 class RunSummary(BaseModel):
@@ -46,8 +106,13 @@ class RunSummary(BaseModel):
     announced the last frame its checkpoint holds (not in ``frames_published``, which counts each
     frame once); ``frames_duplicate``: frames geometry received and dropped because it already held
     them. ``frames_integrated`` counts each frame once, restarts or not. ``error``: the run failed
-    (a service died past the restart limit, a timeout) and ``map_saved`` says whether the map of
-    the frames integrated by then was saved to ``map_dir`` anyway.
+    (a service died past the restart limit, a timeout).
+
+    ``map_saved``: where the map went (the absolute path of the map folder, ``OUT/map``) on every
+    path that saved one: a finished run, an interrupted one, one that failed after saving what
+    geometry held; null when no map was saved (nothing integrated yet, or the run failed before it
+    could save). ``semantic_frames`` adds up over restarts of the semantic service, as the
+    progress line does. A ``run.json`` written before (``map_saved`` true or false) still loads.
     """
 
     mode: Literal["services", "in-process"]
@@ -94,19 +159,39 @@ class RunSummary(BaseModel):
     frames_replayed: int = 0
     frames_duplicate: int = 0
     error: str | None = None
-    map_saved: bool | None = None
+    map_saved: str | None = None
+    #: geometry's memory (MiB): its grid's voxel buffers (the memory budget when one is set) and the
+    #: peaks of its resident memory, sampled once a second (RSS; RssAnon without mapped file pages)
+    geometry_grid_mb: float | None = None
+    geometry_rss_peak_mb: float | None = None
+    geometry_rss_anon_peak_mb: float | None = None
+    #: each robot's stream by robot name (one robot: ``robot0``, or ``--robot``); README "Several robots"
+    robots: dict[str, RobotRun] = Field(default_factory=dict)
+
+    @field_validator("map_saved", mode="before")
+    @classmethod
+    def _legacy_map_saved(cls, value: object, info: ValidationInfo) -> object:
+        """``run.json`` before issue 32: ``true`` (saved to ``map_dir``) or ``false``/null (not saved)."""
+        if isinstance(value, bool):
+            return info.data.get("map_dir", "map") if value else None
+        return value
 
     @classmethod
     def from_health(
         cls, stats: dict[str, HealthStats], *, source: str, encoder: str, noise: str, semantic_every: int, wall_s: float,
         frames_requested: int | None = None, interrupted: bool = False, encoder_workers: int = 0,
-        restarts: dict[str, int] | None = None, error: str | None = None, select: str = "coverage",
+        restarts: dict[str, int] | None = None, error: str | None = None, robot_sources: dict[str, str] | None = None,
+        select: str = "coverage",
     ) -> RunSummary:
         """From the last health stats of the run's services. After an interrupt the bridge was
         stopped and its last stats can lag by a second of frames; playback loses no frame, so every
         frame geometry took (integrated or refused) was published, and that count is used when larger."""
 
+        bridges = _bridges(stats)
+
         def c(service: str, name: str) -> float:
+            if service == "bridge":  # every robot's bridge
+                return sum(stats[b].counter(name) for b in bridges)
             s = stats.get(service)
             return s.counter(name) if s is not None else 0.0
 
@@ -116,9 +201,11 @@ class RunSummary(BaseModel):
             semantic_frames=c("semantic", SemanticCounter.SEMANTIC_FRAMES),
             semantic_s=c("semantic", SemanticCounter.BUSY_S),
         )
-        bridge = stats.get("bridge")
-        skipped = {k.removeprefix(SKIPPED_PREFIX): int(v) for k, v in (bridge.counters.items() if bridge else [])
-                   if k.startswith(SKIPPED_PREFIX)}
+        skipped: dict[str, int] = {}
+        for b in bridges:
+            for k, v in stats[b].counters.items():
+                if k.startswith(SKIPPED_PREFIX):
+                    skipped[k.removeprefix(SKIPPED_PREFIX)] = skipped.get(k.removeprefix(SKIPPED_PREFIX), 0) + int(v)
         published = int(c("bridge", BridgeCounter.FRAMES_PUBLISHED))
         read = int(c("bridge", BridgeCounter.FRAMES_READ))
         if interrupted:
@@ -143,6 +230,9 @@ class RunSummary(BaseModel):
             frames_encoded_per_worker={k.removeprefix(ENCODED_BY_PREFIX): int(v) for k, v in
                                        (stats["semantic"].counters.items() if "semantic" in stats else [])
                                        if k.startswith(ENCODED_BY_PREFIX)},
+            geometry_grid_mb=_round(c("geometry", GeometryCounter.RESIDENT_MB)),
+            geometry_rss_peak_mb=_round(c("geometry", GeometryCounter.RSS_PEAK_MB)),
+            geometry_rss_anon_peak_mb=_round(c("geometry", GeometryCounter.RSS_ANON_PEAK_MB)),
             semantic_rate_hz=_round(_rate(c("semantic", SemanticCounter.SEMANTIC_FRAMES),
                                           c("semantic", SemanticCounter.FIRST_FUSED_AT_S),
                                           c("semantic", SemanticCounter.LAST_FUSED_AT_S))),
@@ -152,7 +242,8 @@ class RunSummary(BaseModel):
             restarts=dict(restarts or {}),
             frames_replayed=int(c("bridge", BridgeCounter.FRAMES_REPLAYED)),
             frames_duplicate=int(c("geometry", GeometryCounter.FRAMES_DUPLICATE)),
-            error=error, map_saved=False if error else None,
+            error=error,
+            robots=_robots(stats, robot_sources or {_DEFAULT_ROBOT: source}),
         )
 
     @classmethod

@@ -18,12 +18,13 @@ DEFAULT_CAPACITY = 32
 
 
 class InstanceBuffer:
-    """The newest ``capacity`` instance messages, looked up by (frame id, stamp).
+    """The newest ``capacity`` instance messages, looked up by (robot, frame id, stamp).
 
     Thread-safe: :meth:`add` runs on a subscriber thread, :meth:`take` on the service loop. The
-    semantic service encodes only the newest frame, so taking one entry also drops every entry
-    that arrived before it (those frames were skipped and will not be asked for). Memory is
-    bounded: past ``capacity`` the oldest entry goes (counted in ``evicted``).
+    semantic service encodes only the newest frame of a robot, so taking one entry also drops every
+    entry of that robot that arrived before it (those frames were skipped and will not be asked
+    for); other robots' entries stay. Memory is bounded: past ``capacity`` the oldest entry goes
+    (counted in ``evicted``).
     """
 
     def __init__(self, capacity: int = DEFAULT_CAPACITY) -> None:
@@ -31,7 +32,7 @@ class InstanceBuffer:
             raise ValueError(f"capacity must be at least 1, got {capacity}")
         self.capacity = capacity
         self.evicted = 0
-        self._entries: collections.OrderedDict[tuple[int, int], InstanceFrame] = collections.OrderedDict()
+        self._entries: collections.OrderedDict[tuple[str, int, int], InstanceFrame] = collections.OrderedDict()
         self._cond = threading.Condition()
 
     def __len__(self) -> int:
@@ -39,7 +40,7 @@ class InstanceBuffer:
             return len(self._entries)
 
     def add(self, msg: InstanceFrame) -> None:
-        key = (msg.frame_id, msg.stamp_ns)
+        key = (msg.robot, msg.frame_id, msg.stamp_ns)
         with self._cond:
             self._entries.pop(key, None)
             self._entries[key] = msg
@@ -51,7 +52,7 @@ class InstanceBuffer:
     def take(self, frame: RgbdFrame, timeout_s: float = 0.0) -> InstanceFrame | None:
         """The instance message of ``frame`` (removed, with everything older), waiting up to
         ``timeout_s`` for it to arrive; None when it did not."""
-        key = (frame.frame_id, frame.stamp_ns)
+        key = (frame.robot, frame.frame_id, frame.stamp_ns)
         deadline = time.monotonic() + max(0.0, timeout_s)
         with self._cond:
             while key not in self._entries:
@@ -59,7 +60,10 @@ class InstanceBuffer:
                 if remaining <= 0:
                     return None
                 self._cond.wait(remaining)
-            while True:
-                k, msg = self._entries.popitem(last=False)
+            for k in list(self._entries):
+                if k[0] != frame.robot:
+                    continue
+                msg = self._entries.pop(k)
                 if k == key:
                     return msg
+            raise AssertionError("unreachable: the key was in the buffer")

@@ -102,6 +102,13 @@ class Subscriber(Generic[M]):
     one, pull messages with :meth:`recv`. ``latest_only`` keeps only the newest sample (the
     queue holds one), ``queue_size`` bounds the queue otherwise; either way the oldest sample
     is discarded and counted when a new one arrives at a full queue.
+
+    ``fair``: one queue of ``queue_size`` per publisher (the sample's source id; one bridge per
+    robot on ``sensor/rgbd``), served in turn: a publisher whose samples come faster than they are
+    handled (a live robot at 30 Hz) loses its own oldest samples, never another's, and each
+    publisher with samples waiting gets every n-th turn of the worker (geometry serves n robots
+    fairly). :attr:`current_source` and :attr:`current_arrival_s` tell a callback whose sample it
+    handles and when it arrived.
     """
 
     def __init__(
@@ -117,6 +124,7 @@ class Subscriber(Generic[M]):
         measure: bool = True,
         max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
         max_array_elements: int = DEFAULT_MAX_ARRAY_ELEMENTS,
+        fair: bool = False,
     ) -> None:
         if queue_size < 1:
             raise ValueError(f"queue_size must be at least 1, got {queue_size}")
@@ -131,7 +139,12 @@ class Subscriber(Generic[M]):
         self._stats = stats
         self._measure = measure
         self._limits = {"max_bytes": max_bytes, "max_array_elements": max_array_elements}
-        self._queue: collections.deque[tuple[Any, float]] = collections.deque()
+        self.fair = fair
+        # Queues by publisher (one queue under b"" unless fair), and the order they are served in.
+        self._queues: dict[bytes, collections.deque[tuple[Any, float]]] = {}
+        self._turns: collections.deque[bytes] = collections.deque()
+        self.current_source = b""
+        self.current_arrival_s = 0.0
         self._cond = threading.Condition()
         self._last_seq: dict[bytes, int] = {}
         self._closed = False
@@ -149,7 +162,13 @@ class Subscriber(Generic[M]):
     def queued(self) -> int:
         """Samples waiting in the queue now."""
         with self._cond:
-            return len(self._queue)
+            return sum(len(q) for q in self._queues.values())
+
+    def queued_by_source(self) -> dict[bytes, tuple[int, float]]:
+        """Per publisher (``fair``; else all under ``b""``): samples waiting and the arrival time
+        (``time.monotonic()``) of the oldest."""
+        with self._cond:
+            return {source: (len(q), q[0][1]) for source, q in self._queues.items() if q}
 
     @property
     def drops(self) -> int:
@@ -175,26 +194,49 @@ class Subscriber(Generic[M]):
             self.arrived += 1
             dropped = gap
             self.dropped_upstream += gap
-            if len(self._queue) >= self.capacity:
-                self._queue.popleft()
+            queue_id = raw[:8] if self.fair else b""
+            queue = self._queues.get(queue_id)
+            if queue is None:
+                queue = self._queues[queue_id] = collections.deque()
+                self._turns.append(queue_id)
+            if len(queue) >= self.capacity:
+                queue.popleft()
                 self.dropped_queue += 1
                 dropped += 1
-            self._queue.append((sample.payload, now))
+            queue.append((sample.payload, now))
             self._cond.notify()
         if dropped and self._stats is not None:
             self._stats.add_drops(dropped)
 
+    def _pop(self) -> tuple[Any, float] | None:
+        """Call with ``_cond`` held: the next sample, taking the publishers in turn; a publisher
+        whose queue is empty leaves the turns (it joins again with its next sample)."""
+        while self._turns:
+            source = self._turns[0]
+            queue = self._queues[source]
+            if not queue:
+                self._turns.popleft()
+                del self._queues[source]
+                continue
+            self._turns.rotate(-1)
+            self.current_source = source
+            return queue.popleft()
+        return None
+
     def _next_payload(self, timeout_s: float | None) -> tuple[Any, float] | None:
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
         with self._cond:
-            while not self._queue:
+            while True:
+                item = self._pop()
+                if item is not None:
+                    self.current_arrival_s = item[1]
+                    return item
                 if self._closed:
                     return None
                 remaining = _POLL_S if deadline is None else min(_POLL_S, deadline - time.monotonic())
                 if remaining <= 0:
                     return None
                 self._cond.wait(remaining)
-            return self._queue.popleft()
 
     def recv(self, timeout_s: float | None = None) -> M | None:
         """The next valid message, or None after ``timeout_s`` (or when closed)."""
@@ -251,7 +293,8 @@ class Subscriber(Generic[M]):
             logger.debug("subscriber %s already undeclared: %s", self.key, exc)
         with self._cond:
             self._closed = True
-            self._queue.clear()
+            self._queues.clear()
+            self._turns.clear()
             self._cond.notify_all()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout_s)

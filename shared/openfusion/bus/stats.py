@@ -6,6 +6,8 @@ import collections
 import os
 import threading
 import time
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -26,6 +28,8 @@ class ServiceStats:
         self.drops = 0
         self.errors = 0
         self.counters: dict[str, float] = {}
+        #: Called by :meth:`snapshot` for :attr:`HealthStats.robots` (geometry: each robot's stream).
+        self.robots_provider: Callable[[], dict[str, Any]] | None = None
 
     def record(self, latency_s: float | None = None) -> None:
         """One item processed (counts towards fps), optionally with its latency in seconds."""
@@ -64,6 +68,7 @@ class ServiceStats:
 
     def snapshot(self, *, service: str, map_id: str) -> HealthStats:
         fps = self.fps()
+        robots = self.robots_provider() if self.robots_provider is not None else {}
         with self._lock:
             lat = np.asarray(self._latencies_ms, dtype=np.float64)
             p50, p99 = (float(np.percentile(lat, 50)), float(np.percentile(lat, 99))) if lat.size else (0.0, 0.0)
@@ -79,4 +84,5 @@ class ServiceStats:
                 drops=self.drops,
                 errors=self.errors,
                 counters=dict(self.counters),
+                robots=robots,
             )

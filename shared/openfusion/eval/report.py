@@ -249,7 +249,7 @@ def render_markdown(results: dict) -> str:
     )  # fmt: skip
     lines.append("")
     lines.append(
-        "Semantic memory: region map = key (int32) + confidence (float32) for every voxel of every allocated "
+        "Semantic memory: region map = key slot (uint16) + confidence (uint16) for every voxel of every allocated "
         "block + the region dictionary; per-point features = one float32 embedding + weight per reconstructed "
         "point; 16 samples per block = key + confidence + position per kept sample + the dictionary. "
         "Geometry (TSDF, weight, color) is the same for all and not counted."

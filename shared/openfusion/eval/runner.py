@@ -51,6 +51,7 @@ from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume
 from openfusion.mapping.merging import EmptyRegions, MergeSchedule, merge_regions
 from openfusion.mapping.params import MatchParams, MergeParams, SelectParams, VolumeParams
 from openfusion.mapping.selection import FrameSelector
+from openfusion.mapping.storage import SEMANTIC_BYTES_PER_VOXEL
 
 logger = logging.getLogger(__name__)
 
@@ -357,9 +358,10 @@ def evaluate_scene(
     )
 
     # ---- memory + query time of the region map
-    n_blocks = int(volume.num_blocks)
+    n_blocks = int(volume.num_blocks_total)
     d = region_emb.shape[1] if region_emb.ndim == 2 else 0
-    voxel_sem_bytes = n_blocks * config.volume.block_resolution**3 * (4 + 4)  # key int32 + conf float32
+    # key slot uint16 + conf uint16 (compact voxels, openfusion.mapping.storage)
+    voxel_sem_bytes = n_blocks * config.volume.block_resolution**3 * SEMANTIC_BYTES_PER_VOXEL
     dict_bytes = len(region_keys) * (d * 4 + 4 + 8)  # embedding + count + key
     q = class_emb[:1]
     memory = {

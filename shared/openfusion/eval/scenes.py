@@ -1,4 +1,9 @@
-"""Scene specs of the evaluation (``synthetic:seed=1``, ``scannet:PATH``) and their sources + ground truth."""
+"""Scene specs of the evaluation (``synthetic:seed=1``, ``synthetic:building,rooms=3``, ``scannet:PATH``)
+and their sources + ground truth.
+
+A building scene (``synthetic:building[,seed=N,rooms=N,route=A-B,revisit=N,frames=N,width=W,height=H,
+noise=0|1]``) walks its route at its own frame density unless the scene sets ``frames=``: the
+evaluation's ``--frames`` (frames of one lap of a room) does not apply to it."""
 
 from __future__ import annotations
 
@@ -15,6 +20,9 @@ logger = logging.getLogger(__name__)
 
 SCENE_KINDS = ("synthetic", "scannet")
 _SYNTHETIC_OPTIONS = {"seed", "frames", "width", "height", "noise"}
+_BUILDING_OPTIONS = _SYNTHETIC_OPTIONS | {"rooms", "route", "revisit"}
+#: The options key that marks a building scene (``synthetic:building``).
+_WORLD = "world"
 
 
 
@@ -32,7 +40,14 @@ class SceneSpec:
     options: dict[str, str] = field(default_factory=dict)
 
     @property
+    def is_building(self) -> bool:
+        return self.kind == "synthetic" and self.options.get(_WORLD) == "building"
+
+    @property
     def name(self) -> str:
+        if self.is_building:
+            extra = "".join(f",{k}={self.options[k]}" for k in ("rooms", "route", "revisit") if k in self.options)
+            return f"synthetic:building,seed={self.seed}{extra}"
         if self.kind == "synthetic":
             return f"synthetic:seed={self.seed}"
         return f"scannet:{Path(self.path or '').name}"
@@ -58,6 +73,8 @@ def parse_scene_specs(texts: Iterable[str]) -> list[SceneSpec]:
                             "scene 'scannet:' needs a path: scannet:/data/scannet/scans/scene0000_00"
                         )
                     raw.append((kind, rest, {}))
+                elif rest.strip().lower() == "building":
+                    raw.append((kind, "", {_WORLD: "building"}))
                 else:
                     raw.append((kind, "", _parse_options(item, rest)))
             elif kind == "synthetic" and not sep:
@@ -70,7 +87,9 @@ def parse_scene_specs(texts: Iterable[str]) -> list[SceneSpec]:
                 )
     specs = []
     for kind, path, opts in raw:
-        if kind == "synthetic":
+        if kind == "synthetic" and opts.get(_WORLD) == "building":
+            specs.append(_building_spec(opts))
+        elif kind == "synthetic":
             unknown = set(opts) - _SYNTHETIC_OPTIONS
             if unknown:
                 raise SceneError(
@@ -93,6 +112,20 @@ def parse_scene_specs(texts: Iterable[str]) -> list[SceneSpec]:
     if dupes:
         raise SceneError(f"scene(s) given twice: {dupes}")
     return specs
+
+
+def _building_spec(opts: dict[str, str]) -> SceneSpec:
+    from openfusion.sources.synthetic_spec import synthetic_options  # light: not the world
+
+    given = {k: v for k, v in opts.items() if k != _WORLD}
+    unknown = set(given) - _BUILDING_OPTIONS
+    if unknown:
+        raise SceneError(f"unknown synthetic:building scene option(s) {sorted(unknown)}; known: {sorted(_BUILDING_OPTIONS)}")
+    try:
+        synthetic_options(given, world="building")
+    except ValueError as exc:
+        raise SceneError(f"bad synthetic:building scene options: {exc}") from None
+    return SceneSpec("synthetic", seed=int(given.pop("seed", "0")), options={_WORLD: "building", **given})
 
 
 def _parse_options(item: str, text: str) -> dict[str, str]:
@@ -144,6 +177,24 @@ def open_scene(
     ``height_px`` with Kinect-like depth noise (``noise=0`` turns depth noise off). ScanNet
     scenes use every k-th frame so that ``frames`` frames span the whole scan.
     """
+    if spec.is_building:
+        from openfusion.sources.synthetic import DEPTH_MIN_M, BuildingSource, SyntheticBuilding
+        from openfusion.sources.synthetic_spec import DEFAULT_ROOMS, synthetic_options
+
+        opts = synthetic_options({k: v for k, v in spec.options.items() if k != _WORLD}, world="building")
+        building = SyntheticBuilding(spec.seed, rooms=opts.get("rooms", DEFAULT_ROOMS))
+        source = BuildingSource(
+            building,
+            opts.get("num_frames"),
+            opts.get("width_px", width_px),
+            opts.get("height_px", height_px),
+            route=opts.get("route"),
+            revisit=opts.get("revisit"),
+            depth_noise=opts.get("depth_noise", True),
+        )
+        gt = synthetic_ground_truth(building, spacing_m=gt_spacing_m, source=spec.name)
+        logger.info("%s: %d frames over %.0f m^2 of floor", spec.name, len(source), building.floor_area_m2)
+        return OpenedScene(spec, source, gt, depth_min_m=DEPTH_MIN_M)
     if spec.kind == "synthetic":
         from openfusion.sources.synthetic import DEPTH_MIN_M, SyntheticSource, SyntheticWorld
 

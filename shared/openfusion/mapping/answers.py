@@ -6,11 +6,14 @@ small to be answers), the regions' embeddings and their boxes; this module does 
 every path answers alike:
 
 - a plain text: regions ranked by cosine ``score``; each gets ``relevancy`` and ``match``
-  (:mod:`openfusion.mapping.relevancy`);
+  (:mod:`openfusion.mapping.relevancy`); ``match`` compares a region with the best of the
+  :data:`MATCH_POOL` regions closest to the text (v9's share of the best), so it is the same
+  whatever ``top_k`` asks for;
 - "X REL Y" (:func:`~openfusion.mapping.relations.parse_relation_query`): X candidates ranked by
   the relation to the best Y matches (:func:`~openfusion.mapping.relations.rank_by_relation`);
   each X hit that stands in the relation names its anchor; ``score``, ``relevancy`` and ``match``
-  are those of X; when no region matches Y the text is answered as a plain query;
+  are those of X (``match`` measured against the best X in the relation); when no region matches
+  Y the text is answered as a plain query;
 - every hit: up to three nearby regions with the hit's relation to each
   (:func:`~openfusion.mapping.relations.nearby_regions`).
 
@@ -41,6 +44,15 @@ from openfusion.mapping.relevancy import RelevancyScorer, relevancy_texts
 MAX_ANCHORS = 3
 #: X candidates a relation query looks at beyond ``top_k``.
 RELATION_CANDIDATES = 32
+#: Regions (closest by cosine) a text is scored against to find its best margin, which ``match``
+#: compares every hit with (:func:`openfusion.mapping.relevancy.match_mask`); ``top_k`` more when
+#: it asks for more. A region's margin rarely beats the top 32 cosines' best from further down.
+MATCH_POOL = 32
+
+
+def pool_size(n: int) -> int:
+    """How many ranked regions to score when ``n`` are wanted (:data:`MATCH_POOL` at least)."""
+    return max(int(n), MATCH_POOL)
 
 Rank = Callable[[np.ndarray, int], list[tuple[int, float]]]
 Embeddings = Callable[[list[int]], np.ndarray]
@@ -89,15 +101,56 @@ def texts_to_embed(texts: Sequence[str]) -> list[str]:
     return list(dict.fromkeys(ranked + [part for text in ranked for part in relevancy_texts(text)]))
 
 
+def _margins(
+    rank: Rank, n: int, text: str, vectors: Mapping[str, np.ndarray], embeddings: Embeddings,
+    scorer: RelevancyScorer,
+) -> tuple[list[tuple[int, float]], np.ndarray]:
+    """The :func:`pool_size` (``n``) regions closest to ``text`` ((key, cosine), best first) and
+    their margins."""
+    ranked = rank(vectors[text], pool_size(n))
+    if not ranked:
+        return [], np.zeros(0)
+    return ranked, scorer.text_margins(text, vectors, embeddings([k for k, _ in ranked]))
+
+
+def _regions(ranked: list[tuple[int, float]], margin: np.ndarray, match: np.ndarray, n: int,
+             scorer: RelevancyScorer) -> list[RankedRegion]:
+    rel = scorer.relevancy_of(margin)
+    return [RankedRegion(int(k), float(s), round(float(r), 4), bool(ok))
+            for (k, s), r, ok in zip(ranked[:n], rel, match, strict=False)]
+
+
 def _scored(
-    ranked: list[tuple[int, float]], text: str, vectors: Mapping[str, np.ndarray], embeddings: Embeddings,
+    rank: Rank, n: int, text: str, vectors: Mapping[str, np.ndarray], embeddings: Embeddings,
     scorer: RelevancyScorer,
 ) -> list[RankedRegion]:
-    if not ranked:
-        return []
-    rel = scorer.text_relevancy(text, vectors, embeddings([k for k, _ in ranked]))
-    return [RankedRegion(int(k), float(s), round(float(r), 4), bool(scorer.is_match(r)))
-            for (k, s), r in zip(ranked, rel, strict=True)]
+    """The ``n`` regions closest to ``text`` with relevancy and match, the match judged among
+    :func:`pool_size` of them."""
+    ranked, margin = _margins(rank, n, text, vectors, embeddings, scorer)
+    return _regions(ranked, margin, scorer.matches(margin), n, scorer)
+
+
+def _relation_candidates(
+    rq: RelationQuery, anchors: list[int], n: int, vectors: Mapping[str, np.ndarray], *, rank: Rank,
+    embeddings: Embeddings, scorer: RelevancyScorer, boxes: RegionBoxes, up_axis: str,
+) -> list[RankedRegion]:
+    """X's ``n`` candidates of "X REL Y", ordered by the relation to ``anchors``, each naming its
+    anchor. ``match``'s best (v9's share) is the best X that stands in the relation ("the chair
+    next to the table" is the chair asked for; another chair is a chair as much as it is), or the
+    best X when none does."""
+    ranked, margin = _margins(rank, n, rq.target, vectors, embeddings, scorer)
+    is_x = scorer.is_match(scorer.relevancy_of(margin))
+    first = rank_by_relation([(k, 0.0, bool(x)) for (k, _), x in zip(ranked, is_x, strict=True)], anchors, boxes,
+                             rq.relation, up_axis=up_axis)
+    holding = {r.key for r in first if r.holds}
+    asked = [m for (k, _), m, x in zip(ranked, margin, is_x, strict=True) if x and k in holding]
+    candidates = _regions(ranked, margin, scorer.matches(margin, best=max(asked) if asked else None), n, scorer)
+    by_key = {c.key: c for c in candidates}
+    order = rank_by_relation([(c.key, c.relevancy, c.match) for c in candidates], anchors, boxes, rq.relation,
+                             up_axis=up_axis)
+    for r in order:
+        by_key[r.key].relation = r.anchor
+    return [by_key[r.key] for r in order]
 
 
 def answer_text(
@@ -113,29 +166,22 @@ def answer_text(
 ) -> TextAnswer:
     """The answer to ``text`` (module docstring). ``vectors``: the embedding of every text of
     :func:`texts_to_embed`; ``rank(vector, n)``: up to ``n`` (key, cosine) best first, regions
-    that are no answers already left out; ``boxes``: every answerable region's box (None: no
+    that are no answers already left out (it is asked for :func:`pool_size` of them); ``boxes``: every answerable region's box (None: no
     relations, no nearby). A relation query whose Y matches no region is answered as a plain
     query (the whole text): "the thing above my head" names no region "my head" to be above."""
     rq = parse_relation_query(text) if boxes is not None else None
     anchors: list[int] = []
     if rq is not None:
-        ys = _scored(rank(vectors[rq.anchor], MAX_ANCHORS), rq.anchor, vectors, embeddings, scorer)
+        ys = _scored(rank, MAX_ANCHORS, rq.anchor, vectors, embeddings, scorer)
         anchors = [y.key for y in ys if y.match]
         if not anchors:
             rq = None
     if rq is None:
-        regions = _scored(rank(vectors[text], top_k), text, vectors, embeddings, scorer)
+        regions = _scored(rank, top_k, text, vectors, embeddings, scorer)
     else:
-        candidates = _scored(rank(vectors[rq.target], top_k + RELATION_CANDIDATES), rq.target, vectors, embeddings,
-                             scorer)
-        by_key = {c.key: c for c in candidates}
-        order = rank_by_relation([(c.key, c.relevancy, c.match) for c in candidates], anchors, boxes, rq.relation,
-                                 up_axis=up_axis)
-        regions = []
-        for r in order[:top_k]:
-            region = by_key[r.key]
-            region.relation = r.anchor
-            regions.append(region)
+        assert boxes is not None  # a relation is parsed only with boxes
+        regions = _relation_candidates(rq, anchors, top_k + RELATION_CANDIDATES, vectors, rank=rank,
+                                       embeddings=embeddings, scorer=scorer, boxes=boxes, up_axis=up_axis)[:top_k]
     if boxes is not None:
         for region in regions:
             region.nearby = nearby_regions(region.key, boxes, up_axis=up_axis)

@@ -32,3 +32,8 @@ class EmbeddingSpaceError(MappingError, UserError):
 
 class StaleVersionError(MappingError):
     """A dictionary delta cannot be produced or applied from the given version: fetch a snapshot."""
+
+
+class StoreWriteError(MappingError, OSError):
+    """The tile store could not be written (disk full, read-only folder, ...): an ``OSError``, so
+    callers that keep the map in memory on a failed save treat it like any other write failure."""

@@ -1,4 +1,13 @@
-"""One self-describing, versioned map file: volume blocks, dictionary, embedding space, parameters.
+"""Map files: one self-describing, versioned map: volume blocks, dictionary, embedding space, parameters.
+
+Format version 2 (written by default since the tile store): a map *folder* holding a tile store,
+``DIR/map.ofz/`` -- :mod:`openfusion.mapping.mapstore` describes it (tiles of compact voxels,
+compressed, incremental checkpoints, crash-safe by LMDB's transactions). :func:`save_map`,
+:func:`load_map`, :func:`load_latest_map` and :func:`load_map_summary` take either version:
+a path ending in ``.npz`` (or a folder holding ``map.ofz.npz`` and no store) is version 1,
+described below, and still loads; ``save_map`` to a ``.npz`` path still writes version 1.
+Version 2 keeps no ``.prev`` copy: an LMDB commit is atomic and its two meta pages already keep
+the previous transaction, and an incremental store has no second full copy to keep.
 
 Format (``FORMAT_VERSION`` 1): an uncompressed ``.npz`` (zip of ``.npy`` arrays, no pickles) with
 
@@ -76,6 +85,7 @@ from openfusion.mapping.errors import MapFormatError
 from openfusion.mapping.params import VolumeParams
 from openfusion.mapping.queries import RegionTable
 from openfusion.mapping.relevancy import calibration_for
+from openfusion.mapping.tilestore import STORE_DIR_NAME, TileStore, find_store
 from openfusion.wire.schemas import DictionarySnapshot
 
 if TYPE_CHECKING:  # Open3D: imported only where a volume is built (load_map), not for summaries
@@ -117,15 +127,33 @@ class MapSummary:
 
 
 def resolve_map_path(path: str | os.PathLike[str]) -> Path:
-    """A path ending in ``.npz`` is the map file; anything else is a folder holding ``map.ofz.npz``."""
+    """A path ending in ``.npz`` is a version-1 map file; a folder holds a tile store
+    (``map.ofz/``, version 2, where a new map goes) or an older ``map.ofz.npz``."""
     p = Path(path)
-    return p if p.suffix == ".npz" else p / MAP_FILE_NAME
+    if p.suffix == ".npz":
+        return p
+    store = find_store(p)
+    if store is not None:
+        return store
+    if (p / MAP_FILE_NAME).exists() or previous_map_path_v1(p).exists():
+        return p / MAP_FILE_NAME
+    return p / STORE_DIR_NAME
+
+
+def _is_store_path(path: str | os.PathLike[str]) -> Path | None:
+    p = Path(path)
+    return None if p.suffix == ".npz" else find_store(p)
+
+
+def previous_map_path_v1(path: str | os.PathLike[str]) -> Path:
+    p = Path(path)
+    target = p if p.suffix == ".npz" else p / MAP_FILE_NAME
+    return target.with_name(target.name[: -len(".npz")] + PREVIOUS_TAG + ".npz")
 
 
 def previous_map_path(path: str | os.PathLike[str]) -> Path:
-    """Where :func:`save_map` keeps the map it replaced: ``map.ofz.npz`` -> ``map.ofz.prev.npz``."""
-    target = resolve_map_path(path)
-    return target.with_name(target.name[: -len(".npz")] + PREVIOUS_TAG + ".npz")
+    """Where :func:`save_map` keeps the version-1 map it replaced: ``map.ofz.npz`` -> ``map.ofz.prev.npz``."""
+    return previous_map_path_v1(path)
 
 
 def _crc(arr: np.ndarray) -> int:
@@ -156,6 +184,12 @@ def save_map(
         json.dumps(user_meta)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"meta must be JSON-serialisable: {exc}") from exc
+    if Path(path).suffix != ".npz":
+        from openfusion.mapping.mapstore import save_store
+
+        written = save_store(path, volume, dictionary, user_meta, regions=regions, summary=summary)
+        logger.info("saved map %s: %d blocks, %d regions", written, volume.num_blocks_total, len(dictionary))
+        return written
     target = resolve_map_path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     arrays: dict[str, np.ndarray] = {f"volume_{k}": v for k, v in volume.to_arrays().items()}
@@ -164,8 +198,7 @@ def save_map(
     arrays["dict_mean_embeddings"] = snap.embeddings.astype(np.float32)
     arrays["dict_counts"] = snap.counts.astype(np.int64)
     if regions is None and summary:
-        surface = volume.extract_points()
-        regions = RegionTable.of_points(surface.keys, surface.points)
+        regions = volume.region_table()  # per tile (bounded memory; equal to the whole surface's table)
     if summary and regions is not None:
         for name in _SUMMARY_ARRAYS:
             arrays[f"summary_{name}"] = np.ascontiguousarray(getattr(regions, name))
@@ -269,17 +302,47 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
-def load_map(path: str | os.PathLike[str], *, device: str | None = None) -> LoadedMap:
+def load_map(
+    path: str | os.PathLike[str],
+    *,
+    device: str | None = None,
+    writable: bool = False,
+    memory_budget_mb: float | None | str = "map",
+) -> LoadedMap:
     """Read a map written by :func:`save_map` (optionally onto another ``device``).
+
+    Version 2 (a tile store): ``writable`` makes the store the volume's own (the geometry service
+    checkpoints into the store it loaded); ``memory_budget_mb`` (``"map"``: the map's own) pages
+    tiles in on demand instead of reading them all (:mod:`openfusion.mapping.mapstore`).
 
     Raises :class:`MapFormatError` for a missing, truncated, corrupt, unknown-version or
     inconsistent file; nothing is half-loaded.
     """
+    store_path = _is_store_path(path)
+    if store_path is not None:
+        return _load_store(store_path, device=device, writable=writable, memory_budget_mb=memory_budget_mb)
     target = resolve_map_path(path)
     return _guarded(target, lambda npz: _load_archive(target, npz, device))
 
 
-def load_latest_map(path: str | os.PathLike[str], *, device: str | None = None) -> LoadedMap:
+def _load_store(path: Path, *, device: str | None, writable: bool, memory_budget_mb: Any) -> LoadedMap:
+    from openfusion.mapping.mapstore import load_store
+
+    store = TileStore(path, readonly=not writable)
+    try:
+        volume, header, arrays = load_store(store, device=device, memory_budget_mb=memory_budget_mb)
+    except BaseException:
+        store.close()
+        raise
+    if not writable and volume.pager.base is None:
+        store.close()  # every tile was read: the store is not needed any more
+    dictionary = _dictionary(header, arrays)
+    logger.info("loaded map %s: %d blocks (%d resident), %d regions", path, volume.num_blocks_total,
+                volume.num_blocks, len(dictionary))
+    return LoadedMap(volume, dictionary, _meta(header), path, header.get("relevancy"))
+
+
+def load_latest_map(path: str | os.PathLike[str], *, device: str | None = None, writable: bool = False) -> LoadedMap:
     """The newest checkpoint at ``path``, or the one before it when the newest is corrupt or missing.
 
     Tries :func:`load_map` on the file; on a :class:`MapFormatError` logs one warning
@@ -289,6 +352,9 @@ def load_latest_map(path: str | os.PathLike[str], *, device: str | None = None) 
     checkpoints a service writes and reads back itself; a map a user names is read strictly with
     :func:`load_map`.
     """
+    store_path = _is_store_path(path)
+    if store_path is not None:  # version 2: no .prev (module docstring)
+        return load_map(path, device=device, writable=writable)
     newest = resolve_map_path(path)
     previous = previous_map_path(newest)
     try:
@@ -335,8 +401,29 @@ def load_map_summary(path: str | os.PathLike[str]) -> MapSummary | None:
     Reads and CRC-checks only the header, dictionary and summary members. Raises
     :class:`MapFormatError` as :func:`load_map` does.
     """
+    store_path = _is_store_path(path)
+    if store_path is not None:
+        return _load_store_summary(store_path)
     target = resolve_map_path(path)
     return _guarded(target, lambda npz: _load_summary(target, npz))
+
+
+def _load_store_summary(path: Path) -> MapSummary | None:
+    from openfusion.mapping.mapstore import check_header, dict_names, summary_names
+
+    with TileStore(path, readonly=True) as store:
+        # Header and arrays from one read transaction (a running geometry may commit meanwhile).
+        header, arrays, tiles = store.read_committed(
+            lambda h: dict_names() + summary_names(check_header(store, h)) if summary_names(check_header(store, h)) else [])
+        tiles.close()
+        header = check_header(store, header)
+        if not summary_names(header):
+            return None
+    dictionary = _dictionary(header, arrays)
+    regions = _region_table(path, arrays)
+    params = VolumeParams.from_dict(header["volume_params"])
+    logger.info("read map summary %s: %d regions, %d with surface points", path, len(dictionary), len(regions))
+    return MapSummary(dictionary, regions, params, _meta(header), header.get("relevancy"))
 
 
 def _guarded(target: Path, read: Any) -> Any:

@@ -93,10 +93,48 @@ def _block_rows(coords: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return codes[order], order, np.concatenate([lo, dims])
 
 
-def block_contacts(block_coords: np.ndarray, block_keys: np.ndarray, *, radius_vox: int = 1) -> RegionContacts:
-    """Contacts between regions (see the module docstring) from the grid's own layout: block
-    coordinates (N, 3) (x, y, z) and each block's voxel keys (N, R, R, R) indexed [z, y, x], -1 =
-    no key (the layout of Open3D's voxel buffers, ``VoxelStorage.labelled_blocks``).
+@dataclass
+class ContactCounts:
+    """Contact counts of the voxels of some blocks, per group of blocks (:func:`contact_counts`):
+    ``surface_*``: labelled voxels per (group, key); ``pair_*``: voxels of ``owner`` touching
+    ``other`` per (group, owner, other), each (voxel, other region) counted once."""
+
+    surface_group: np.ndarray  # (S,) int64
+    surface_key: np.ndarray  # (S,) int64
+    surface_count: np.ndarray  # (S,) int64
+    pair_group: np.ndarray  # (P,) int64
+    pair_owner: np.ndarray  # (P,) int64
+    pair_other: np.ndarray  # (P,) int64
+    pair_count: np.ndarray  # (P,) int64
+
+    @classmethod
+    def empty(cls) -> ContactCounts:
+        z = np.zeros(0, np.int64)
+        return cls(z, z.copy(), z.copy(), z.copy(), z.copy(), z.copy(), z.copy())
+
+
+def _runs(*columns: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    """Distinct rows of integer ``columns`` (sorted, first column major) and how often each occurs."""
+    if len(columns[0]) == 0:
+        return [c[:0] for c in columns], np.zeros(0, np.int64)
+    order = np.lexsort(columns[::-1])
+    cols = [c[order] for c in columns]
+    change = np.zeros(len(order), bool)
+    change[0] = True
+    for c in cols:
+        change[1:] |= c[1:] != c[:-1]
+    starts = np.flatnonzero(change)
+    counts = np.diff(np.append(starts, len(order)))
+    return [c[starts] for c in cols], counts.astype(np.int64)
+
+
+def contact_counts(block_coords: np.ndarray, block_keys: np.ndarray, *, radius_vox: int = 1,
+                   group: np.ndarray | None = None) -> ContactCounts:
+    """The counts :func:`block_contacts` adds up, per group of blocks: block coordinates (N, 3)
+    (x, y, z) and each block's voxel keys (N, R, R, R) indexed [z, y, x], -1 = no key (the layout of
+    Open3D's voxel buffers); ``group`` (N,) int: which group each block's voxels count for, -1 for
+    a block that only pads its neighbours (a halo around the blocks counted: a map read out tile
+    by tile counts every voxel once, in the tile of its block).
 
     Each block is padded with ``radius_vox`` voxels of its 26 neighbour blocks; blocks whose padded
     neighbourhood holds a single key (the inside of a region: most of them) are skipped, and the
@@ -112,12 +150,17 @@ def block_contacts(block_coords: np.ndarray, block_keys: np.ndarray, *, radius_v
     R, r = kb.shape[1], int(radius_vox)
     if r >= R:
         raise ValueError(f"radius_vox ({r}) must be below the block resolution ({R})")
+    groups = np.zeros(len(coords), np.int64) if group is None else np.asarray(group, np.int64).reshape(-1)
+    if len(groups) != len(coords):
+        raise ValueError(f"group must hold one entry per block ({len(coords)}), got {len(groups)}")
     kb = kb.astype(np.int32, copy=False)
     labelled = kb >= 0
-    if not labelled.any():
-        return RegionContacts.empty()
-    region_keys, surface = np.unique(kb[labelled], return_counts=True)
-    region_keys, surface = region_keys.astype(np.int64), surface.astype(np.int64)
+    own = groups >= 0
+    counted = labelled & own[:, None, None, None]
+    if not counted.any():
+        return ContactCounts.empty()
+    blk, _, _, _ = np.nonzero(counted)
+    (surface_group, surface_key), surface_count = _runs(groups[blk], kb[counted].astype(np.int64))
     n, S = len(coords), R + 2 * r
     padded = np.full((n, S, S, S), -1, np.int32)
     padded[:, r : r + R, r : r + R, r : r + R] = kb
@@ -141,9 +184,10 @@ def block_contacts(block_coords: np.ndarray, block_keys: np.ndarray, *, radius_v
     big = np.iinfo(np.int32).max
     high = padded.reshape(n, -1).max(axis=1)
     low = np.where(padded >= 0, padded, big).reshape(n, -1).min(axis=1)
-    border = np.flatnonzero((high > low) & labelled.reshape(n, -1).any(axis=1))
+    border = np.flatnonzero((high > low) & counted.reshape(n, -1).any(axis=1))
     pb, centre = padded[border], kb[border]
-    span = int(region_keys.max()) + 1
+    del padded
+    span = int(max(int(kb.max()), 0)) + 1
     codes_out: list[np.ndarray] = []
     for dx, dy, dz in itertools.product(range(-r, r + 1), repeat=3):
         if dx == dy == dz == 0:
@@ -152,21 +196,48 @@ def block_contacts(block_coords: np.ndarray, block_keys: np.ndarray, *, radius_v
         hit = np.flatnonzero(((centre >= 0) & (other >= 0) & (other != centre)).reshape(-1))
         if len(hit):
             codes_out.append(hit * span + other.reshape(-1)[hit].astype(np.int64))
+    z = np.zeros(0, np.int64)
     if not codes_out:
-        z = np.zeros(0, np.int64)
-        return RegionContacts(region_keys, surface, z, z.copy(), z.copy(), z.copy())
+        return ContactCounts(surface_group, surface_key, surface_count, z, z.copy(), z.copy(), z.copy())
     # Each (voxel, other region) once: a voxel touching b through several neighbours counts once.
     touching = np.unique(np.concatenate(codes_out))
     voxel, against = touching // span, touching % span
     owner = centre.reshape(-1)[voxel].astype(np.int64)
-    pair_codes, counts = np.unique(owner * span + against, return_counts=True)
-    owner, against = pair_codes // span, pair_codes % span
-    lower = owner < against
-    a, b, ca = owner[lower], against[lower], counts[lower]
+    grp = groups[border][voxel // R**3]
+    (pg, po, pa), pc = _runs(grp, owner, against)
+    return ContactCounts(surface_group, surface_key, surface_count, pg, po, pa, pc)
+
+
+def contacts_of_counts(keys: np.ndarray, surface: np.ndarray, owner: np.ndarray, other: np.ndarray,
+                       count: np.ndarray) -> RegionContacts:
+    """:class:`RegionContacts` of summed counts: every region's labelled voxels (``keys``,
+    ``surface``, one row per key, any order) and directed contacts (voxels of ``owner`` touching
+    ``other``, one row per directed pair)."""
+    keys = np.asarray(keys, np.int64)
+    surface = np.asarray(surface, np.int64)
+    order = np.argsort(keys, kind="stable")
+    keys, surface = keys[order], surface[order]
+    owner, other, count = (np.asarray(a, np.int64) for a in (owner, other, count))
+    lower = owner < other
+    a, b, ca = owner[lower], other[lower], count[lower]
+    order = np.lexsort((b, a))
+    a, b, ca = a[order], b[order], ca[order]
     # b's voxels touching a: the directed count (b, a), 0 when none (not possible for r >= 1).
-    reverse = dict(zip(pair_codes.tolist(), counts.tolist(), strict=True))
-    cb = np.array([reverse.get(int(y) * span + int(x), 0) for x, y in zip(a, b, strict=True)], np.int64)
-    return RegionContacts(region_keys, surface, a, b, ca.astype(np.int64), cb)
+    reverse = dict(zip(zip(owner.tolist(), other.tolist(), strict=True), count.tolist(), strict=True))
+    cb = np.array([reverse.get((int(y), int(x)), 0) for x, y in zip(a, b, strict=True)], np.int64)
+    return RegionContacts(keys, surface, a, b, ca, cb)
+
+
+def block_contacts(block_coords: np.ndarray, block_keys: np.ndarray, *, radius_vox: int = 1) -> RegionContacts:
+    """Contacts between regions (see the module docstring) from the grid's own layout: block
+    coordinates (N, 3) (x, y, z) and each block's voxel keys (N, R, R, R) indexed [z, y, x], -1 =
+    no key (the layout of Open3D's voxel buffers, ``VoxelStorage.labelled_blocks``). The counting
+    is :func:`contact_counts`'; a map read out tile by tile adds up the same counts
+    (:mod:`openfusion.mapping.tilereadouts`)."""
+    c = contact_counts(block_coords, block_keys, radius_vox=radius_vox)
+    if len(c.surface_key) == 0:
+        return RegionContacts.empty()
+    return contacts_of_counts(c.surface_key, c.surface_count, c.pair_owner, c.pair_other, c.pair_count)
 
 
 def region_contacts(voxels: np.ndarray, keys: np.ndarray, *, radius_vox: int = 1) -> RegionContacts:

@@ -53,10 +53,18 @@ class VolumeParams(ConfigSection):
         16384,
         ge=1,
         description=(
-            "blocks allocated at start: 16384 blocks of 8^3 voxels x 28 B = 230 MiB, a furnished room at 2 cm. "
-            "The grid doubles when full and each doubling copies every block while integration waits (~0.5 s), "
-            "so a map starts big enough for a room"
+            "blocks allocated at start without a memory budget: 16384 blocks of 8^3 voxels x 16 B = 128 MiB, a "
+            "furnished room at 2 cm (the grid doubles when full)"
         ),
+    )
+    memory_budget_mb: float | None = Field(
+        None,
+        gt=0,
+        description="resident voxel memory in MiB (none = everything stays resident): the grid is allocated once at "
+        "this size and the least recently observed tiles are paged out to the tile store, and back in when seen again",
+    )
+    tile_blocks: int = Field(
+        8, ge=1, le=64, description="blocks per tile edge: tiles are what is paged, checkpointed and stored (8: 1.28 m)"
     )
     max_blocks: int | None = Field(
         None, ge=1, description="block budget; none = grow. A frame needing more is refused or clipped (when_full)"
@@ -337,4 +345,79 @@ class SelectParams(ConfigSection):
     @classmethod
     def from_section(cls, section: ConfigSection) -> SelectParams:
         """The selection parameters of a config section that extends this model (the semantic service's)."""
+        return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})
+
+
+class JoinParams(ConfigSection):
+    """How a robot's odometry frame is joined to the map's (:mod:`openfusion.mapping.robot_join`):
+    its first frames build a submap that is registered to the map's surface, accepted only when
+    the fit is good, unambiguous and well constrained; later frames are re-checked against the map
+    now and then. The geometry service's section extends this model."""
+
+    model_config = ConfigDict(allow_inf_nan=False)
+
+    join_voxel_m: float = Field(
+        0.05, gt=0, le=0.5,
+        description="registration grid: clouds are thinned to one point per cell and the global search "
+        "correlates floor-plan cells of this size")
+    join_submap_frames: int = Field(
+        40, ge=1, description="a held robot's submap is its last this many frames (a robot that started in "
+        "unmapped space joins once its recent frames are in mapped space)")
+    join_min_submap_frames: int = Field(
+        12, ge=1, description="frames a held robot's submap needs before the first registration attempt")
+    join_min_submap_points: int = Field(
+        1500, ge=10, description="thinned points a submap needs before a registration attempt")
+    join_attempt_every: int = Field(
+        10, ge=1, description="while a robot is held, try to join it again every this many of its frames")
+    join_idle_attempt_s: float = Field(
+        2.0, gt=0, description="...or sooner, when the held robot sent no frame for this long (its playback ended)")
+    join_max_held_frames: int = Field(
+        100, ge=1,
+        description="frames of a held robot kept to be integrated once it joins (memory bound: older ones are "
+        "dropped from the hold; a playback replays them after the join, a live robot loses them, counted)")
+    join_min_fitness: float = Field(
+        0.35, gt=0, le=1,
+        description="accept a registration only when at least this share of the submap's points on walls and "
+        "furniture (not floors or ceilings) lies within join_fit_distance_m of the map's surface")
+    join_fit_distance_m: float = Field(
+        0.03, gt=0, le=0.5, description="a submap point fits when the map's surface is this close after registration")
+    join_max_rmse_m: float = Field(
+        0.02, gt=0, le=0.5, description="...and the fitting points' RMS distance is at most this")
+    join_max_ambiguity: float = Field(
+        0.8, gt=0, le=1,
+        description="...and no other distinct alignment fits nearly as well: the runner-up's fitness is at most "
+        "this share of the best's (a symmetric corridor fits several ways)")
+    join_min_constraint: float = Field(
+        0.01, ge=0, le=1,
+        description="...and the fit constrains every direction: the weakest translation and rotation direction "
+        "of the point-to-plane information holds at least this share of the strongest (a bare corridor "
+        "does not fix the position along it)")
+    join_max_conflict: float = Field(
+        0.03, ge=0, le=1,
+        description="...and the robot's views do not contradict the map: of the pixels where both have a "
+        "surface, at most this share has the map's surface in front of what the robot saw (it looked through "
+        "a wall of the map: misaligned)")
+    join_conflict_tolerance_m: float = Field(
+        0.1, gt=0, description="a map surface nearer than the robot's depth by more than this plus the map's "
+        "truncation distance (the band its surfaces are sharp to) is a contradiction")
+    join_conflict_views: int = Field(
+        8, ge=1, description="held frames (spread over the hold) a candidate alignment is checked against")
+    join_recheck_every: int = Field(
+        30, ge=0, description="re-check a joined robot's transform against the map every this many of its frames "
+        "(0 = never)")
+    join_recheck_frames: int = Field(
+        8, ge=1, description="a re-check registers the robot's last this many frames against the map seen from "
+        "their poses")
+    join_recheck_min_correction_m: float = Field(
+        0.01, ge=0, description="a re-check changes the transform only for a correction of at least this "
+        "(or join_recheck_min_correction_deg)")
+    join_recheck_min_correction_deg: float = Field(0.2, ge=0, description="see join_recheck_min_correction_m")
+    join_recheck_max_correction_m: float = Field(
+        0.15, gt=0, description="a re-check proposing more than this (or join_recheck_max_correction_deg) is not "
+        "applied: logged and counted, the transform is kept")
+    join_recheck_max_correction_deg: float = Field(3.0, gt=0, description="see join_recheck_max_correction_m")
+
+    @classmethod
+    def from_section(cls, section: ConfigSection) -> JoinParams:
+        """The join parameters of a config section that extends this model (the geometry service's)."""
         return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})

@@ -310,12 +310,17 @@ class CoverageScorer:
 
     def prepare_frame(self, frame: Frame, render: Callable[[np.ndarray, CameraIntrinsics], Any]) -> ViewEvidence:
         """:meth:`prepare` for a frame, with ``render(T_world_cam, intrinsics)`` giving the map's
-        ``key_map`` and ``conf_map`` at the scored size (a ``RenderedView`` or a render reply)."""
+        ``key_map`` and ``conf_map`` at the scored size (a ``RenderedView`` or a render reply).
+        A render reply's ``T_map_cam`` (the frame's pose joined to the map's frame: another robot's
+        frame) is the pose the view is filed under, so every robot's views share one record."""
         h, w = scoring_size(frame.intrinsics, self.params.select_width_px)
         K = frame.intrinsics.scaled(w, h)
         rendered = render(frame.T_world_cam, K)
+        T_map_cam = getattr(rendered, "T_map_cam", None)
+        if T_map_cam is None:
+            T_map_cam = frame.T_world_cam
         depth_m = frame.depth_m()
-        return self.prepare(frame_id=frame.frame_id, stamp_ns=frame.stamp_ns, T_world_cam=frame.T_world_cam,
+        return self.prepare(frame_id=frame.frame_id, stamp_ns=frame.stamp_ns, T_world_cam=T_map_cam,
                             intrinsics=K, depth_m=resize_nearest(depth_m, (h, w)),
                             key_map=rendered.key_map, conf_map=rendered.conf_map, full_depth_m=depth_m,
                             full_intrinsics=frame.intrinsics)

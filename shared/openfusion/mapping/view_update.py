@@ -74,14 +74,14 @@ def write_view(
     key_map: np.ndarray,
     conf_map: np.ndarray,
     history_weight: float,
-) -> tuple[int, tuple[int, int, int, int]]:
+) -> tuple[int, tuple[int, int, int, int], np.ndarray]:
     """Fuse the pixels ``use`` (bool (h, w)) of ``key_map``/``conf_map`` into the voxels around
-    their hits; returns the voxels updated and ``fuse_semantics``' (labelled, reinforced, weakened,
-    switched) counts. ``hits`` must be of the storage's current generation."""
+    their hits; returns the voxels updated, ``fuse_semantics``' (labelled, reinforced, weakened,
+    switched) counts and the flat indices written. ``hits`` must be of the storage's current generation."""
     h, w = use.shape
     entry = np.flatnonzero((hits.mask.reshape(h * w, 8) & use.reshape(h * w, 1)).reshape(-1))
     if len(entry) == 0:
-        return 0, (0, 0, 0, 0)
+        return 0, (0, 0, 0, 0), np.zeros(0, np.int64)
     voxel = hits.index.reshape(-1)[entry]
     ratio = hits.ratio.reshape(-1)[entry]
     pixel = entry >> 3
@@ -98,7 +98,7 @@ def write_view(
     )
     storage.scatter("key", voxel, out_key1)
     storage.scatter("conf", voxel, out_conf)
-    return int(len(voxel)), counts
+    return int(len(voxel)), counts, voxel
 
 
 def _nearest_per_voxel(voxel: np.ndarray, ratio: np.ndarray) -> np.ndarray:

@@ -17,7 +17,12 @@ part of the story (read their docstrings for the rules):
   by :mod:`openfusion.mapping.update_rule` (:meth:`SemanticVolume.apply_update`);
 - :mod:`openfusion.mapping.readout` -- surface points and meshes with a key each: the nearest
   labelled voxel of their cell, else the nearest same-facing labelled point's within
-  ``VolumeParams.label_fill_radius_m`` (:meth:`SemanticVolume.extract_points`, ``extract_mesh``).
+  ``VolumeParams.label_fill_radius_m`` (:meth:`SemanticVolume.extract_points`, ``extract_mesh``);
+- :mod:`openfusion.mapping.tiles` / :mod:`openfusion.mapping.paging` /
+  :mod:`openfusion.mapping.tilestore` -- tiles, the memory budget (``memory_budget_mb``: tiles
+  paged out to the tile store and back in before a frame or a render reaches them), incremental
+  checkpoints; :mod:`openfusion.mapping.wholemap` -- read-outs of the whole map while part of it
+  is paged out.
 
 Names that moved to those modules (``RayHits``, ``SurfacePoints``, ``fill_nearest_labels``, ...)
 are re-exported here, so ``from openfusion.mapping.volume import ...`` keeps working.
@@ -25,11 +30,16 @@ are re-exported here, so ``from openfusion.mapping.volume import ...`` keeps wor
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
+import shutil
+import tempfile
 import threading
-from collections.abc import Callable
+import weakref
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
@@ -37,8 +47,11 @@ import open3d as o3d
 import open3d.core as o3c
 
 from openfusion.frame import CameraIntrinsics, Frame
-from openfusion.mapping import integration, raycast, readout, view_update
+from openfusion.mapping import integration, raycast, readout, tilereadouts, view_update
 from openfusion.mapping.errors import CapacityError
+from openfusion.mapping.growth import GridGrower
+from openfusion.mapping.merging import RegionContacts
+from openfusion.mapping.paging import Snapshot, TilePager, budget_blocks, camera_center
 from openfusion.mapping.params import VolumeParams
 from openfusion.mapping.raycast import RayHits, range_map_down_factor
 from openfusion.mapping.readout import FILL_MIN_NORMAL_COS, SurfaceMesh, SurfacePoints, fill_nearest_labels
@@ -49,6 +62,10 @@ from openfusion.mapping.storage import (
     VoxelStorage,
     check_arrays,
 )
+from openfusion.mapping.summaries import RegionTable
+from openfusion.mapping.tilereadouts import TileReadouts
+from openfusion.mapping.tiles import TileGrid
+from openfusion.mapping.tilestore import TileStore
 from openfusion.poses import check_pose, invert_pose
 
 __all__ = [
@@ -91,6 +108,7 @@ class UpdateStats:
     pixels_used: int = 0
     pixels_depth_rejected: int = 0
     voxels_updated: int = 0
+    render_budget_short: int = 0  # renders whose view did not fit the memory budget (rendered what was resident)
     voxels_labelled: int = 0  # previously unlabelled
     voxels_reinforced: int = 0  # same key
     voxels_weakened: int = 0  # other key, kept its key
@@ -125,6 +143,11 @@ class VolumeStats:
 _F = TypeVar("_F", bound=Callable[..., Any])
 
 
+def _remove_scratch(store: TileStore, folder: str) -> None:
+    store.close()
+    shutil.rmtree(folder, ignore_errors=True)
+
+
 def _locked(method: _F) -> _F:
     """Serialise a public method on the volume's lock (Open3D's grid is not thread-safe)."""
 
@@ -143,7 +166,10 @@ class SemanticVolume:
     and answer render requests on another.
     """
 
-    def __init__(self, params: VolumeParams | None = None) -> None:
+    def __init__(self, params: VolumeParams | None = None, *, store: TileStore | None = None) -> None:
+        """``store``: the tile store checkpoints go to and tiles are paged out to (a map folder's,
+        :mod:`openfusion.mapping.tilestore`). With ``memory_budget_mb`` and no store, tiles are
+        paged out to a scratch store in a temporary folder, removed by :meth:`close`."""
         self.params = params if params is not None else VolumeParams()
         if self.params.device.startswith("CUDA") and not o3c.cuda.is_available():
             raise ValueError(
@@ -152,12 +178,65 @@ class SemanticVolume:
         self._lock = threading.RLock()
         self.stats = VolumeStats()
         self._intrinsic_cache: dict[CameraIntrinsics, o3c.Tensor] = {}
-        self._storage = VoxelStorage(self.params, o3c.Device(self.params.device))
+        budget = None
+        if self.params.memory_budget_mb is not None:
+            budget = budget_blocks(self.params.memory_budget_mb, BYTES_PER_VOXEL * self.params.block_resolution**3)
+        # With a budget the grid is made at its size once (a default-sized grid first would be
+        # resident beside it for a moment: +128 MiB at start, measured).
+        self._storage = VoxelStorage(self.params, o3c.Device(self.params.device), capacity=budget)
+        self._scratch: weakref.finalize | None = None
+        if budget is not None and store is None:
+            folder = tempfile.mkdtemp(prefix="openfusion-tiles-")
+            store = TileStore(Path(folder) / "map.ofz")
+            # Removed by close(), or when the volume is collected (no warning: it is ours).
+            self._scratch = weakref.finalize(self, _remove_scratch, store, folder)
+        grid = TileGrid(self.params.tile_blocks, self.params.block_size_m)
+        self._pager = TilePager(self._storage, grid, store, budget)
+        #: Without a budget the grid grows ahead of need in the background (:mod:`.growth`).
+        self._grower = GridGrower(self._storage, self._pager.versions, grid) if budget is None else None
+        #: Region summaries and contacts kept per tile (:mod:`.tilereadouts`).
+        self._readouts = TileReadouts(self._storage, self._pager)
+        self._storage.on_relabel = self._readouts.relabelled
+
+    def close(self) -> None:
+        """Release the tile store (and remove a scratch store's folder)."""
+        with self._lock:
+            if self._grower is not None:
+                self._grower.close()
+            store = self._pager.store
+            if store is not None:
+                store.close()
+            if self._pager.base is not None:
+                self._pager.base.close()
+            if self._scratch is not None:
+                self._scratch()
+                self._scratch = None
+
+    @property
+    def store(self) -> TileStore | None:
+        """The tile store of this volume (None: nothing is paged and no checkpoint store is set)."""
+        return self._pager.store if self._scratch is None else None
+
+    @property
+    def pager(self) -> TilePager:
+        return self._pager
+
+    @property
+    def budget_blocks(self) -> int | None:
+        return self._pager.budget_blocks
+
+    @property
+    def resident_bytes(self) -> int:
+        """Bytes of the grid's voxel buffers (its capacity: Open3D allocates and touches them all)."""
+        return self._storage.capacity_blocks * self._storage.bytes_per_block
 
     # ------------------------------------------------------------------ grid bookkeeping
     def _note_capacity_change(self) -> None:
         if self._storage.note_capacity_change():
             self.stats.grow_events += 1
+            if self._pager.budget_blocks is not None:
+                logger.warning("the grid grew past the memory budget (%d blocks): a bug, please report it",
+                               self._pager.budget_blocks)
 
     @property
     def device(self) -> str:
@@ -189,7 +268,7 @@ class SemanticVolume:
 
     @property
     def bytes_per_voxel(self) -> int:
-        """All attributes: tsdf 4 + weight 4 + color 12 + key 4 + conf 4."""
+        """All attributes: tsdf 4 + weight 2 + color 6 + key 2 + conf 2 (``storage``'s docstring)."""
         return BYTES_PER_VOXEL
 
     @property
@@ -205,7 +284,10 @@ class SemanticVolume:
     @_locked
     def clear(self) -> None:
         """Drop all geometry and semantics (counters are kept)."""
+        if self._grower is not None:
+            self._grower.close()
         self._storage.reset()
+        self._readouts.forget()
 
     def _intrinsic_tensor(self, intrinsics: CameraIntrinsics) -> o3c.Tensor:
         K = self._intrinsic_cache.get(intrinsics)
@@ -242,6 +324,13 @@ class SemanticVolume:
             logger.debug("frame %s has no depth in range; nothing integrated", frame.frame_id)
             return IntegrateStats(empty=True)
         result = IntegrateStats(blocks_touched=int(block_coords.shape[0]))
+        pager = self._pager
+        pager.tick(camera_center(frame.T_world_cam))
+        coords_np = block_coords.cpu().numpy()
+        if pager.budget_blocks is not None or pager.stored_blocks:
+            self._page_in_for(coords_np, frame.frame_id)
+        if self._grower is not None:
+            self._grower.before_integrate(len(coords_np))
         if p.max_blocks is not None:
             budget = integration.block_budget(self._storage, block_coords, p.max_blocks)
             result.blocks_new = budget.blocks_new
@@ -263,20 +352,79 @@ class SemanticVolume:
             if budget.admitted is None:
                 return result
             block_coords = budget.admitted
+        vbg = self._storage.vbg  # the grid may have been swapped for a grown copy above
         vbg.integrate(
             block_coords, depth_img, color_img, K, extrinsic, depth_scale, p.depth_max_m, p.trunc_voxels
         )
         self._note_capacity_change()
         self._storage.mark_geometry_changed()
+        capped = self._storage.note_integrated()
+        if len(capped):  # weights capped: those blocks' tiles changed too
+            pager.touched(self._storage.block_coords_of_buf(capped), changed=True)
+        pager.touched(block_coords.cpu().numpy() if p.max_blocks is not None else coords_np, changed=True)
         self.stats.frames_integrated += 1
         return result
+
+    def _page_in_for(self, coords: np.ndarray, frame_id: int) -> None:
+        """Make the tiles of a frame's blocks resident (paging stored ones in) and room for its new
+        blocks under the memory budget; :class:`CapacityError` (nothing written) when the frame
+        alone needs more blocks than the budget holds."""
+        pager = self._pager
+        tiles = pager.touched(coords, changed=False)
+        stored = {t for t in tiles if t in pager.stored_blocks}
+        # Open3D's integrate grows the grid (a whole-grid copy) when the blocks in use plus *all* the
+        # blocks it is given, not only the new ones, exceed its capacity (measured, open3d 0.20):
+        # so room is made for the frame's whole block list after the stored tiles came back.
+        try:
+            pager.ensure_resident(tiles, extra_blocks=len(coords))
+            if pager.budget_blocks is not None and stored:
+                pager.ensure_resident(tiles, extra_blocks=len(coords))
+        except CapacityError as exc:
+            raise CapacityError(
+                f"frame {frame_id}: {exc}; nothing was integrated", blocks_needed=exc.blocks_needed,
+                blocks_free=exc.blocks_free,
+            ) from exc
 
     # ------------------------------------------------------------------ render / update
     @_locked
     def ray_cast(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> RayHits:
         """Depth and the 8 voxels around the first surface hit of every pixel (depth-tested)."""
         T = check_pose(T_world_cam)
+        self._settle_growth()
+        self._page_in_view(T, intrinsics)
         return raycast.ray_cast(self._storage, T, intrinsics, self._intrinsic_tensor(intrinsics))
+
+    def _settle_growth(self) -> None:
+        if self._grower is not None:
+            self._grower.settle()
+
+    def _page_in_view(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> None:
+        """Page in the stored tiles a view can reach (renders see the whole map)."""
+        pager = self._pager
+        if not pager.stored_blocks:
+            return
+        stored = np.array(list(pager.stored_blocks), np.int64)
+        seen = pager.grid.tiles_in_view(
+            stored, T_world_cam, fx=intrinsics.fx, fy=intrinsics.fy, cx=intrinsics.cx, cy=intrinsics.cy,
+            width_px=intrinsics.width_px, height_px=intrinsics.height_px, depth_max_m=self.params.depth_max_m,
+        )
+        if not seen.any():
+            return
+        pager.tick(camera_center(T_world_cam))
+        resident = np.array(pager.resident_tiles(), np.int64).reshape(-1, 3)
+        in_view = resident[pager.grid.tiles_in_view(
+            resident, T_world_cam, fx=intrinsics.fx, fy=intrinsics.fy, cx=intrinsics.cx, cy=intrinsics.cy,
+            width_px=intrinsics.width_px, height_px=intrinsics.height_px, depth_max_m=self.params.depth_max_m,
+        )]
+        tiles = [tuple(int(v) for v in t) for t in np.concatenate([stored[seen], in_view])]
+        try:
+            pager.ensure_resident(tiles)  # type: ignore[arg-type]
+        except CapacityError as exc:  # a view wider than the budget: render what is resident
+            self.stats.render_budget_short += 1
+            logger.warning("render: the tiles in view do not fit the memory budget (%s); rendering the resident ones", exc)
+        for t in tiles:
+            if t in pager.last_used:
+                pager.last_used[t] = pager.clock  # type: ignore[index]
 
     @_locked
     def render(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> RenderedView:
@@ -336,9 +484,10 @@ class SemanticVolume:
         self.stats.updates += 1
         if stats.pixels_used == 0:
             return stats
-        stats.voxels_updated, counts = view_update.write_view(
+        stats.voxels_updated, counts, voxels = view_update.write_view(
             self._storage, hits, use, key_map, conf_map, self.params.conf_history_weight
         )
+        self._pager.touched_voxels(voxels)
         stats.voxels_labelled, stats.voxels_reinforced, stats.voxels_weakened, stats.voxels_switched = counts
         self.stats.voxels_updated += stats.voxels_updated
         return stats
@@ -354,21 +503,74 @@ class SemanticVolume:
     @_locked
     def labelled_voxels(self) -> tuple[np.ndarray, np.ndarray]:
         """(integer voxel coordinates (n, 3) int64, keys (n,) int64) of every voxel carrying a key."""
-        return self._storage.labelled_voxels()
+        coords, keys = self.labelled_blocks()
+        from openfusion.mapping.storage import voxels_of_labelled
+
+        return voxels_of_labelled(coords, keys, self.params.block_resolution)
 
     @_locked
     def labelled_blocks(self) -> tuple[np.ndarray, np.ndarray]:
         """(block coordinates (N, 3), keys (N, R, R, R) [z, y, x], -1 = none) of the blocks holding a key."""
-        return self._storage.labelled_blocks()
+        coords, keys = self._storage.labelled_blocks()
+        if not self._pager.stored_blocks:
+            return coords, keys
+        from openfusion.mapping.storage import labelled_of
 
-    def region_contacts(self, *, radius_vox: int = 1) -> Any:
+        parts_c, parts_k = [coords], [keys]
+        res = self.params.block_resolution
+        for _, tc, raw in self._pager.iter_stored():
+            c, k = labelled_of(tc, self._storage.slots.key1_of(raw["key"].reshape(len(tc), -1)), res)
+            parts_c.append(c)
+            parts_k.append(k)
+        return np.concatenate(parts_c), np.concatenate(parts_k)
+
+    def region_contacts(self, *, radius_vox: int = 1, lock: Any = None) -> RegionContacts:
         """Which regions' labelled voxels touch, how much, and each region's labelled voxel count
-        (:func:`openfusion.mapping.merging.block_contacts`; what a merge pass decides on). Holds
-        the volume's lock only while copying the labelled blocks out."""
-        from openfusion.mapping.merging import block_contacts
+        (what a merge pass decides on; equal to :func:`openfusion.mapping.merging.block_contacts`
+        of every labelled block). Kept per tile (:mod:`.tilereadouts`): only tiles whose
+        neighbourhood changed since the last call are counted again, a chunk at a time, copied
+        holding ``lock`` (a caller's reentrant lock, e.g. a service's) and the volume's lock."""
+        tilereadouts.refresh(self._lock, self._readouts, what="contacts", lock=lock, radius_vox=radius_vox)
+        with self._lock:
+            parts = self._readouts.contact_parts()
+        return tilereadouts.combine_contacts(parts)
 
-        coords, keys = self.labelled_blocks()
-        return block_contacts(coords, keys, radius_vox=radius_vox)
+    def region_table(self, *, lock: Any = None) -> RegionTable:
+        """Per-region surface summaries of the whole map (equal to ``RegionTable.of_points`` of
+        :meth:`extract_points`), kept per tile (:mod:`.tilereadouts`): only the tiles whose
+        neighbourhood changed since the last call are read out again, a chunk at a time, copied
+        holding ``lock`` and the volume's lock and read out holding neither. A map that changes
+        meanwhile gives a table of the tiles as each was read; when the parts kept too few values
+        for an exact box, those tiles are read again (the last try holds the locks throughout)."""
+        for attempt in range(6):
+            hold = attempt >= 3
+            tilereadouts.refresh(self._lock, self._readouts, what="summaries", lock=lock, hold=hold)
+            with tilereadouts.both(lock, self._lock) if hold else self._lock:
+                table, failing = tilereadouts.combine_summaries(self._readouts.summary_parts(), self._storage.slots.key1)
+                if not failing:
+                    return table
+                for (tile, slot), want in failing.items():
+                    self._readouts.keep[(tile, slot)] = max(self._readouts.keep.get((tile, slot), 0), want)
+                    self._readouts.summaries.pop(tile, None)
+        raise RuntimeError("region summaries did not settle: the parts kept too few values six times")
+
+    def refresh_region_table(self, *, settled_clock: int | None = None, lock: Any = None,
+                             max_s: float | None = None) -> int:
+        """Read out the stale summary parts of tiles whose neighbourhood last changed at or before
+        ``settled_clock`` (a service's idle work, so a save has little left), for at most about
+        ``max_s`` seconds; returns the tiles read."""
+        return tilereadouts.refresh(self._lock, self._readouts, what="summaries", lock=lock,
+                                    settled_clock=settled_clock, max_s=max_s)
+
+    @property
+    def readout_stats(self) -> dict[str, int]:
+        """Tiles read out for region summaries and contacts so far (:mod:`.tilereadouts`)."""
+        return dict(self._readouts.stats)
+
+    @property
+    def change_clock(self) -> int:
+        """The tile versions' clock (grows with every change of the map's voxels)."""
+        return self._pager.versions.clock
 
     # ------------------------------------------------------------------ read-out
     @_locked
@@ -385,19 +587,95 @@ class SemanticVolume:
         only points of those regions; ``max_points`` subsamples uniformly at random
         (deterministic for a given ``seed``).
         """
+        self._settle_growth()
+        if self._pager.stored_blocks:
+            from openfusion.mapping import wholemap
+
+            return wholemap.extract_points(self._storage, self._pager, keys, max_points, seed=seed)
         return readout.extract_points(self._storage, keys, max_points, seed=seed)
 
     @_locked
     def extract_mesh(self, keys: np.ndarray | list[int] | None = None) -> SurfaceMesh:
         """Surface mesh (marching cubes); with ``keys``, only triangles whose 3 vertices carry one of
         those keys (unreferenced vertices dropped)."""
+        if self._pager.stored_blocks:
+            from openfusion.mapping import wholemap
+
+            return wholemap.extract_mesh(self._storage, self._pager, keys)
         return readout.extract_mesh(self._storage, keys)
+
+    @_locked
+    def mesh_parts(self, keys: np.ndarray | list[int] | None = None) -> list[SurfaceMesh]:
+        """The mesh in parts of at most ``wholemap.CHUNK_BLOCKS`` blocks each (a large map's mesh
+        written or sent part by part; one part for a map with nothing paged out)."""
+        from openfusion.mapping import wholemap
+
+        if not self._pager.stored_blocks and self._storage.num_blocks <= wholemap.CHUNK_BLOCKS:
+            return [readout.extract_mesh(self._storage, keys)]
+        return list(wholemap.iter_mesh_parts(self._storage, self._pager, keys))
 
     # ------------------------------------------------------------------ arrays (save / load)
     @_locked
     def to_arrays(self) -> dict[str, np.ndarray]:
-        """All active blocks as plain arrays (``key`` holds real keys, -1 = none)."""
-        return self._storage.to_arrays()
+        """Every block (resident and paged out) as plain arrays (``key`` holds real keys, -1 = none)."""
+        arrays = self._storage.to_arrays()
+        if not self._pager.stored_blocks:
+            return arrays
+        parts = [arrays, *self._pager.stored_arrays()]
+        return {name: np.concatenate([p[name] for p in parts]) for name in arrays}
+
+    @property
+    def num_blocks_total(self) -> int:
+        """Blocks of the whole map: resident and paged out."""
+        return self._storage.num_blocks + sum(self._pager.stored_blocks.values())
+
+    # ------------------------------------------------------------------ checkpoints (tile store)
+    # The steps of :func:`openfusion.mapping.mapstore.checkpoint` (the rules: :mod:`.paging`).
+    @_locked
+    def checkpoint_plan(self, *, every_tile: bool = False) -> list[list[tuple[int, int, int]]]:
+        """Slices of the resident tiles a checkpoint must write (``every_tile``: all)."""
+        self._settle_growth()
+        return self._pager.precopy_plan(every_tile=every_tile)
+
+    @_locked
+    def checkpoint_copy(self, tiles: list[tuple[int, int, int]]) -> tuple[dict, dict]:
+        """Raw copies of one slice's tiles (still to be written) and their versions."""
+        return self._pager.copy_tiles(tiles)
+
+    @_locked
+    def checkpoint_slice_written(self, versions: dict[tuple[int, int, int], int]) -> None:
+        self._pager.slice_written(versions)
+
+    @_locked
+    def checkpoint_end(self) -> Snapshot:
+        """A checkpoint's last step (:meth:`~openfusion.mapping.paging.TilePager.end_snapshot`)."""
+        self._settle_growth()
+        snap = self._pager.end_snapshot()
+        snap.tile_index = self._tile_index()
+        return snap
+
+    @_locked
+    def tile_index(self) -> np.ndarray:
+        """int32 (T, 4): every tile of the map (x, y, z, block count)."""
+        return self._tile_index()
+
+    def _tile_index(self) -> np.ndarray:
+        groups = self._pager._resident_groups()
+        rows = [(*t, len(g[1])) for t, g in groups.items()] + [
+            (*t, n) for t, n in self._pager.stored_blocks.items()
+        ]
+        return np.array(sorted(rows), np.int32).reshape(-1, 4)
+
+    @_locked
+    def checkpoint_committed(self, snap: Snapshot) -> None:
+        """``snap``'s generation is durable in the store (bookkeeping of what is dirty)."""
+        self._pager.committed(snap)
+
+    @contextlib.contextmanager
+    def locked(self) -> Iterator[None]:
+        """Hold the volume's lock (nothing changes the map meanwhile): a save into a new store."""
+        with self._lock:
+            yield
 
     @classmethod
     def from_arrays(cls, params: VolumeParams, arrays: dict[str, np.ndarray]) -> SemanticVolume:
@@ -406,4 +684,5 @@ class SemanticVolume:
         volume = cls(params)
         if volume._storage.load_arrays(arrays):
             volume.stats.grow_events += 1
+        volume._pager.sync_resident()
         return volume

@@ -11,12 +11,13 @@ module                 what
 ``registry``           ``open_source(spec, **options)``
 ``scannet``            ScanNet export reader (+ label tsv, instance categories)
 ``scannet_writer``     ``write_scannet_layout``: any source -> ScanNet layout on disk
+``record_scannet``     ``python -m openfusion.sources.record_scannet SPEC OUT``: that, from a source spec
 ``replica``            Replica (NICE-SLAM release)
 ``tum``                TUM RGB-D (timestamp association, pose interpolation)
 ``redwood``            Redwood / Open3D captures (``trajectory.log``)
 ``folder``             any folder described by ``openfusion_source.json``
-``synthetic``          the embedded furnished-room world (ray-cast RGB-D + ground truth)
-``synthetic_spec``     the ``synthetic:key=value`` options, parsed without building the world
+``synthetic``          the embedded worlds: a furnished room and a building of them (ray-cast RGB-D + ground truth)
+``synthetic_spec``     the ``synthetic[:building],key=value`` options and routes, parsed without building the world
 ``sync``               image/pose time pairing, T265 axes, downsampling (live sources)
 ``live``               Azure Kinect + Intel T265 (optional extra ``live``)
 ``cdr``                ROS 2 messages in CDR through ``rosbags`` (thin adapter, image pixels)

@@ -208,7 +208,7 @@ class ReplaySource(FrameSource):
                     return
                 index += 1
                 try:
-                    msg = decode(payload, expected=RgbdFrame, max_bytes=self.max_record_bytes)
+                    msg = decode(payload, expected=RgbdFrame, max_bytes=self.max_record_bytes, accept_older=True)
                 except DecodeError as exc:
                     yield Skip("decode_error", f"{self.path}: record {index - 1} at byte {offset}: {exc}")
                     continue

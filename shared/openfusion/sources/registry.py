@@ -2,7 +2,9 @@
 
 Specs::
 
-    synthetic[:seed=N,frames=N,width=W,height=H,fps=F,noise=0|1,lap=N]
+    synthetic[:seed=N,frames=N,width=W,height=H,fps=F,noise=0|1,lap=N]   (the built-in room)
+    synthetic:building[,rooms=N,route=A-B+C,revisit=N,seed=N,frames=N,width=W,height=H,fps=F,noise=0|1]
+                   (rooms along a corridor; see openfusion.sources.synthetic_spec)
     scannet:PATH   replica:PATH   tum:PATH   redwood:PATH   folder:PATH   replay:FILE
     live:kinect-t265   (Azure Kinect + T265; optional extra 'live')
     rosbag:PATH[,color=/topic,depth=/topic,...]   (rosbag2 folder, .mcap or .db3; see sources.rosbag)
@@ -28,8 +30,10 @@ logger = logging.getLogger(__name__)
 
 def _synthetic(rest: str, options: dict[str, Any]) -> FrameSource:
     from openfusion.sources.synthetic import open_synthetic
+    from openfusion.sources.synthetic_spec import split_world
 
-    return open_synthetic(parse_key_values(rest, scheme="synthetic"), **options)
+    world, rest = split_world(rest)
+    return open_synthetic(parse_key_values(rest, scheme="synthetic"), world=world, **options)
 
 
 def _existing_path(module: str, rest: str) -> Path:
@@ -126,10 +130,11 @@ _SCHEMES: dict[str, Callable[[str, dict[str, Any]], FrameSource]] = {
 SCHEMES: tuple[str, ...] = tuple(_SCHEMES)
 
 def _synthetic_options(rest: str) -> dict[str, Any]:
-    from openfusion.sources.synthetic_spec import synthetic_options  # light: not the world
+    from openfusion.sources.synthetic_spec import split_world, synthetic_options  # light: not the world
 
     try:
-        return synthetic_options(parse_key_values(rest, scheme="synthetic"))
+        world, options = split_world(rest)
+        return synthetic_options(parse_key_values(options, scheme="synthetic"), world=world)
     except SourceError:
         raise
     except ValueError as exc:

@@ -117,6 +117,10 @@ def majority_labels(instance: np.ndarray, label: np.ndarray) -> dict[int, int]:
     return {int(i): int(b) for i, b in zip(present, best, strict=True)}
 
 
+#: Prefix of the lines the ScanNet writer adds to ``<scene>.txt`` (``openfusion.floor_area_m2 = 412.3``).
+META_PREFIX = "openfusion."
+
+
 def _stems(folder: Path, exts: tuple[str, ...]) -> dict[int, Path]:
     out: dict[int, Path] = {}
     if not folder.is_dir():
@@ -184,14 +188,34 @@ class ScanNetSource(IndexedFrameSource):
         elif self._instances:
             logger.warning("%s: instance-filt/ without label-filt/: instance categories are unknown", scene_dir)
 
-    def _depth_size(self) -> tuple[int, int]:
+    def _meta(self) -> dict[str, str]:
+        """``key = value`` lines of ``<scene>.txt`` (empty when there is none)."""
         meta = self.scene_dir / f"{self.scene_dir.name}.txt"
+        values: dict[str, str] = {}
         if meta.is_file():
-            values: dict[str, str] = {}
             for line in meta.read_text(errors="replace").splitlines():
                 if "=" in line:
                     k, v = line.split("=", 1)
                     values[k.strip()] = v.strip()
+        return values
+
+    @property
+    def metadata(self) -> dict[str, object]:
+        """What the writer of the scene recorded about it (``openfusion.*`` lines of ``<scene>.txt``,
+        e.g. a synthetic building's ``floor_area_m2``), numbers as floats; empty for a real scan."""
+        out: dict[str, object] = {}
+        for key, value in self._meta().items():
+            if key.startswith(META_PREFIX):
+                try:
+                    out[key[len(META_PREFIX):]] = float(value)
+                except ValueError:
+                    out[key[len(META_PREFIX):]] = value
+        return out
+
+    def _depth_size(self) -> tuple[int, int]:
+        meta = self.scene_dir / f"{self.scene_dir.name}.txt"
+        if meta.is_file():
+            values = self._meta()
             try:
                 return int(values["depthWidth"]), int(values["depthHeight"])
             except (KeyError, ValueError):

@@ -11,7 +11,8 @@ Written per frame ``i`` (the frame's ``frame_id``)::
     label-filt/<i>.png     16-bit label ids of each instance's category (the tsv ``id``)
 
 plus ``intrinsic/intrinsic_{color,depth}.txt``, ``extrinsic_{color,depth}.txt`` (identity),
-``<scene>.txt`` metadata, ``scannetv2-labels.combined.tsv`` (ScanNet's 16 columns; ``id``,
+``<scene>.txt`` metadata (with the source's own ``metadata`` as ``openfusion.<key> = value`` lines,
+e.g. a synthetic building's ``openfusion.floor_area_m2``; ``ScanNetSource.metadata`` reads them back), ``scannetv2-labels.combined.tsv`` (ScanNet's 16 columns; ``id``,
 ``raw_category``, ``category``, ``count``, ``nyu40id``, ``nyu40class`` filled) and, for a
 synthetic source, ``<scene>_vh_clean_2.labels.ply``: the ground-truth surface as labelled
 points (vertex ``x y z red green blue alpha label instance``, ``label`` = NYU40 id as in
@@ -23,6 +24,9 @@ absolute error well under 1 level, see tests/test_sources_scannet.py).
 
 The scene is written into a temporary sibling folder and renamed into place at the end, so a
 failure never leaves a half-written scene behind.
+
+Command: ``python -m openfusion.sources.record_scannet SPEC OUT_DIR`` writes any source spec this way
+(:mod:`openfusion.sources.record_scannet`).
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ from PIL import Image
 
 from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.sources.base import FrameSource, SourceStats
-from openfusion.sources.scannet import LABEL_TSV_COLUMNS, LABEL_TSV_NAME, SCANNET_DEPTH_SCALE
+from openfusion.sources.scannet import LABEL_TSV_COLUMNS, LABEL_TSV_NAME, META_PREFIX, SCANNET_DEPTH_SCALE
 
 logger = logging.getLogger(__name__)
 
@@ -212,6 +216,9 @@ def _write(
         "numIMUmeasurements": 0,
         "sceneType": "Synthetic" if hasattr(source, "world") else "Unknown",
     }
+    for key, value in (getattr(source, "metadata", None) or {}).items():  # e.g. a building's floor area
+        text = " ".join(str(v) for v in value) if isinstance(value, (list, tuple)) else str(value)
+        meta[f"{META_PREFIX}{key}"] = text
     (root / f"{scene}.txt").write_text("".join(f"{k} = {v}\n" for k, v in meta.items()))
     world = getattr(source, "world", None)
     if world is not None:
@@ -277,3 +284,4 @@ def _write_ground_truth(path: Path, world, spacing_m: float) -> int:  # noqa: AN
         },
     )
     return len(gt.points)
+

@@ -87,11 +87,22 @@ def strip_region_summaries(map_path: str | os.PathLike[str], out_path: str | os.
     ``out_path``: a file, or a folder that gets ``map.ofz.npz``). Returns the file written."""
     import io
     import json
+    import shutil
     import zipfile
 
-    from openfusion.mapping.mapfile import resolve_map_path
+    from openfusion.mapping import load_map
+    from openfusion.mapping.mapfile import MAP_FILE_NAME, resolve_map_path
 
     source = resolve_map_path(map_path)
+    if source.is_dir():  # a tile store (format 2): written as an old, summary-less version-1 file
+        loaded = load_map(source.parent)
+        dest = Path(out_path) if out_path is not None else source.parent
+        dest = dest if dest.suffix == ".npz" else dest / MAP_FILE_NAME
+        written = save_map(dest, loaded.volume, loaded.dictionary, loaded.meta, summary=False, keep_previous=False)
+        loaded.volume.close()
+        if out_path is None:
+            shutil.rmtree(source)
+        return written
     target = resolve_map_path(out_path) if out_path is not None else source
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = target.with_name(f".{target.name}.strip.tmp")
@@ -161,6 +172,8 @@ def cached_synthetic_map(root_dir: str | os.PathLike[str], spec: SyntheticMapSpe
         f"-v{round(spec.voxel_size_m * 1000)}mm-{spec.text_encoder}"
     )
     folder = Path(root_dir) / name
-    if not (folder / "map.ofz.npz").is_file():
+    from openfusion.mapping.mapfile import resolve_map_path
+
+    if not resolve_map_path(folder).exists():
         build_synthetic_map(folder, spec)
     return folder

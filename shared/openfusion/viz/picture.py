@@ -49,7 +49,8 @@ PEEL_GAP_TRUNCATIONS = 1.25
 
 
 def open_map(map_dir: str | os.PathLike[str]) -> LoadedMap:
-    """Load the map in ``map_dir`` (a folder holding ``map.ofz.npz``, or that file itself).
+    """Load the map in ``map_dir`` (a map folder: its tile store ``map.ofz/`` or an older
+    ``map.ofz.npz``, or that file itself).
 
     Raises VizError naming the path for: nothing there, a folder without a map file, a file that
     is not an OpenFusion-Z map or is corrupt.
@@ -58,7 +59,7 @@ def open_map(map_dir: str | os.PathLike[str]) -> LoadedMap:
     if not path.exists():
         raise VizError(f"map folder {path} does not exist")
     target = resolve_map_path(path)
-    if path.is_dir() and not target.is_file():
+    if path.is_dir() and not target.exists():
         raise VizError(f"{path} is not a map folder: it has no {MAP_FILE_NAME} (write one with `openfusion run`)")
     if path.is_file() and path.suffix != ".npz":
         raise VizError(f"{path} is not a map: give the map folder (holding {MAP_FILE_NAME}) or the .npz file")

@@ -50,10 +50,12 @@ from pydantic import BaseModel, ValidationError
 from pydantic_core import PydanticCustomError, core_schema
 
 from openfusion.errors import OpenFusionError
+from openfusion.wire.limits import MAX_MESSAGE_BYTES
 from openfusion.wire.message import Message, message_class
 
-DEFAULT_MAX_MESSAGE_BYTES = 64 * 1024 * 1024
-"""Largest payload :func:`encode` writes and :func:`decode` reads unless told otherwise."""
+DEFAULT_MAX_MESSAGE_BYTES = MAX_MESSAGE_BYTES
+"""Largest payload :func:`encode` writes and :func:`decode` reads unless told otherwise
+(:data:`openfusion.wire.limits.MAX_MESSAGE_BYTES`)."""
 
 DEFAULT_MAX_ARRAY_ELEMENTS = 32 * 1024 * 1024
 """Most elements one array may have on the wire unless told otherwise (per array)."""
@@ -428,11 +430,15 @@ def decode(
     expected: type[M] | None = None,
     max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
     max_array_elements: int = DEFAULT_MAX_ARRAY_ELEMENTS,
+    accept_older: bool = False,
 ) -> M:
     """The validated message in ``data``; :class:`DecodeError` for anything else.
 
     ``expected``: refuse any other schema (reason ``unexpected_schema``).
     ``max_bytes`` / ``max_array_elements``: size limits for this call.
+    ``accept_older``: also read the older versions the message class lists in ``reads_versions``
+    (its later fields have defaults): files written by an earlier build (recordings). On the bus
+    a peer of another version is always refused.
     """
     schema, version, body, arraydata = _unpack(data, max_bytes=max_bytes)
     if expected is not None and schema != expected.schema_name:
@@ -443,7 +449,7 @@ def decode(
     cls = message_class(schema)
     if cls is None:
         raise DecodeError("unknown_schema", f"no message type is registered as {schema!r}", schema=schema)
-    if version != cls.schema_version:
+    if version != cls.schema_version and not (accept_older and version in getattr(cls, "reads_versions", ())):
         raise DecodeError(
             "version_mismatch", f"got version {version}, this build speaks version {cls.schema_version}",
             schema=schema,

@@ -66,6 +66,25 @@ class GeometryCounter(StrEnum):
     UPDATES_REUSED_RENDER = "updates_reused_render"  # updates written through their frame's render (no second ray cast)
     SAVE_MERGES = "save_merges"  # merge passes the semantic service ran because this service was saving
     SAVE_MERGE_FAILURES = "save_merge_failures"  # saves that went ahead without one (semantic gone or silent)
+    ROBOTS = "robots"  # robots whose frames this map has taken
+    ROBOTS_HELD = "robots_held"  # of them, not joined to the map's frame yet (their frames wait in their submaps)
+    FRAMES_HELD = "frames_held"  # frames taken from held robots (in their submaps; integrated when they join)
+    ROBOTS_JOINED = "robots_joined"  # held robots joined by a registration
+    JOIN_ATTEMPTS = "join_attempts"  # registrations of held robots' submaps tried
+    JOIN_FAILURES = "join_failures"  # registration steps that raised (logged; the robot stays as it was)
+    JOIN_RECHECKS = "join_rechecks"  # re-checks of joined robots' transforms
+    JOIN_CORRECTIONS = "join_corrections"  # re-checks that changed a transform
+    UPDATES_DROPPED_NOT_JOINED = "updates_dropped_not_joined"  # semantic updates of a robot not joined (none written)
+    RESIDENT_BLOCKS = "resident_blocks"  # blocks in RAM (num_blocks counts the whole map: resident + paged out)
+    RESIDENT_MB = "resident_mb"  # MiB of the grid's voxel buffers (its capacity: allocated and touched at once)
+    TILES_PAGED_OUT = "tiles_paged_out"  # tiles that left RAM for the tile store (memory budget)
+    TILES_PAGED_IN = "tiles_paged_in"  # tiles read back before a frame or a render reached them
+    CHECKPOINT_LAST_S = "checkpoint_last_s"  # seconds the last checkpoint took (snapshot to commit)
+    CHECKPOINT_LAST_TILES = "checkpoint_last_tiles"  # tiles it encoded (those changed since the one before)
+    SAVING = "saving"  # 1 while a save or a periodic checkpoint is being written
+    RSS_MB = "rss_mb"  # the process's resident memory, sampled once a second
+    RSS_PEAK_MB = "rss_peak_mb"  # ... its largest sample
+    RSS_ANON_PEAK_MB = "rss_anon_peak_mb"  # largest sample of RssAnon (without the store's mapped file pages)
 
 
 class SemanticCounter(StrEnum):
@@ -82,6 +101,7 @@ class SemanticCounter(StrEnum):
     SKIPPED_SWITCH = "skipped_switch"  # frames the semantic switch left out (every_k, max_hz)
     SKIPPED_NO_INSTANCE = "skipped_no_instance"  # gt encoder: the instance image did not come
     SKIPPED_NO_RENDER = "skipped_no_render"  # geometry did not answer the render request
+    SKIPPED_ROBOT_HELD = "skipped_robot_held"  # the frame's robot is not joined to the map's frame yet
     FRAMES_FAILED = "frames_failed"  # the encoder or a step raised on the frame (logged, skipped)
     INSTANCES_EVICTED = "instances_evicted"
     MERGE_PASSES = "merge_passes"  # region merge passes run (every merge_every semantic frames)

@@ -166,6 +166,18 @@ function cell(row, text, className) {
   row.appendChild(td);
 }
 
+// Forget the answers on screen (a failed query must not leave the previous query's answers under
+// its error line).
+function clearAnswers() {
+  answers = [];
+  $("answer-rows").replaceChildren();
+  $("answers").hidden = true;
+  $("query-echo").hidden = true;
+  $("query-shown").textContent = "";
+  $("query-space").textContent = "";
+  if (view) view.showAnswer(null);
+}
+
 function showAnswers(reply) {
   answers = Array.isArray(reply.regions) ? reply.regions : [];
   $("query-shown").textContent = reply.query;
@@ -188,7 +200,7 @@ function showAnswers(reply) {
     row.lastChild.dataset.field = "match";
     cell(row, String(answer.num_points), "points");
     const lo = answer.bbox_min.map((v) => fixed(v, 2)).join(", "), hi = answer.bbox_max.map((v) => fixed(v, 2)).join(", ");
-    cell(row, `[${lo}] .. [${hi}]`, "box");
+    cell(row, `[${lo}] ..\n[${hi}]`, "box");  // two lines: the table fits the panel
     row.addEventListener("click", () => select(i));
     rows.appendChild(row);
   });
@@ -218,6 +230,7 @@ async function ask(event) {
   try {
     showAnswers(await getJson(`/api/query?text=${encodeURIComponent(text)}&top_k=${TOP_K}`));
   } catch (err) {
+    clearAnswers();
     setStatus(err.message, true);
   } finally {
     $("query-button").disabled = false;
@@ -225,6 +238,14 @@ async function ask(event) {
 }
 
 // ------------------------------------------------------------------------------- health
+
+// A live service's badge: its rate and errors, or "no stats yet" until it has published them
+// (never an empty figure such as "– fps").
+function statsText(s) {
+  if (typeof s.fps !== "number" || !Number.isFinite(s.fps)) return "no stats yet";
+  const errors = typeof s.errors === "number" && s.errors > 0 ? `, ${s.errors} errors` : "";
+  return `${fixed(s.fps, 1)} fps${errors}`;
+}
 
 async function refreshHealth() {
   const list = $("health");
@@ -237,7 +258,7 @@ async function refreshHealth() {
       const li = document.createElement("li");
       li.className = s.alive ? "alive" : "down";
       li.dataset.service = s.service;
-      li.textContent = s.alive ? `${s.service} ${fixed(s.fps, 1)} fps${s.errors ? `, ${s.errors} errors` : ""}` : `${s.service} down`;
+      li.textContent = s.alive ? `${s.service} ${statsText(s)}` : `${s.service} down`;
       items.push(li);
     }
     for (const name of NEEDED_SERVICES.filter((n) => !seen.has(n))) {

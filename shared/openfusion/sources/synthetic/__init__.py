@@ -36,11 +36,19 @@ Modules (each owns one part; this package re-exports the public names)
     ``surface``    ``GroundTruthSurface`` and the visible-surface sampling
     ``depth``      depth units/range (``DEPTH_*``, ``GRAZING_COS``) and ``apply_depth_noise``
     ``world``      ``SyntheticWorld``, tying the above together
-    ``source``     ``SyntheticSource`` and ``open_synthetic``
+    ``floorplan``  the building: a corridor with furnished rooms (``layout``'s) on both sides, doorways
+    ``walk``       a route of rooms turned into a collision-free camera walk (grid, shortest paths)
+    ``building``   ``SyntheticBuilding``: the building's world (same interface as ``SyntheticWorld``)
+    ``source``     ``SyntheticSource``, ``BuildingSource`` and ``open_synthetic``
+
+The building (``synthetic:building,rooms=10,route=0-3,revisit=2``) is documented in
+``floorplan`` (the plan), ``walk`` (routes and the trajectory) and ``building`` (rendering and
+ground truth); docs/BUILDING.md has the commands.
 """
 
 from __future__ import annotations
 
+from openfusion.sources.synthetic.building import SyntheticBuilding
 from openfusion.sources.synthetic.camera import LAP_FRAMES, default_intrinsics
 from openfusion.sources.synthetic.camera import _pixel_rays as _pixel_rays
 from openfusion.sources.synthetic.depth import (
@@ -52,12 +60,13 @@ from openfusion.sources.synthetic.depth import (
 )
 from openfusion.sources.synthetic.furniture import CATEGORIES, Part, WorldObject
 from openfusion.sources.synthetic.render import RenderedView
-from openfusion.sources.synthetic.source import SyntheticSource, open_synthetic
+from openfusion.sources.synthetic.source import BuildingSource, SyntheticSource, open_synthetic
 from openfusion.sources.synthetic.surface import GroundTruthSurface
 from openfusion.sources.synthetic.world import SyntheticWorld
 
 __all__ = [
     "CATEGORIES",
+    "BuildingSource",
     "DEPTH_MAX_M",
     "DEPTH_MIN_M",
     "DEPTH_SCALE",
@@ -66,6 +75,7 @@ __all__ = [
     "GroundTruthSurface",
     "Part",
     "RenderedView",
+    "SyntheticBuilding",
     "SyntheticSource",
     "SyntheticWorld",
     "WorldObject",

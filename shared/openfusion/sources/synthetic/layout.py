@@ -40,6 +40,16 @@ from openfusion.sources.synthetic.furniture import (
 )
 
 
+def facing_quad(corners, normal) -> np.ndarray:
+    """``corners`` (4 x 3, in order around the quad) reversed when needed so that the quad's
+    normal (p1-p0) x (p3-p0) points along ``normal``."""
+    q = np.array(corners, dtype=np.float64)
+    n = np.cross(q[1] - q[0], q[3] - q[0])
+    if np.dot(n, np.asarray(normal, dtype=np.float64)) < 0:
+        q = q[::-1]
+    return q
+
+
 def furnished_room(room_size_m: tuple[float, float, float], rng: np.random.Generator) -> list[WorldObject]:
     """The room's objects (walls, floor, ceiling, then the furniture), ids 1, 2, ... in order."""
     layout = RoomLayout(room_size_m)
@@ -62,25 +72,34 @@ class RoomLayout:
         self.objects.append(obj)
         return obj
 
-    def build_room(self) -> None:
+    #: Corner overlap of the room's quads (m), so rays never slip through a crack.
+    CORNER_OVERLAP_M = 0.01
+    #: Unit normal of each wall, pointing into the room: 0 (y=0), 1 (x=W), 2 (y=D), 3 (x=0).
+    WALL_INWARD = ((0.0, 1.0, 0.0), (-1.0, 0.0, 0.0), (0.0, -1.0, 0.0), (1.0, 0.0, 0.0))
+
+    def wall_quads(self) -> list[np.ndarray]:
+        """The four walls as (4, 3) quads, each ordered so its normal points into the room."""
         W, D, H = self.room_size_m
-        e = 0.01  # overlap at the corners so rays never slip through a crack
-        wall_rgb = _PALETTE["wall"]
-        # walls: 0 (y=0, faces +y), 1 (x=W, faces -x), 2 (y=D, faces -y), 3 (x=0, faces +x)
+        e = self.CORNER_OVERLAP_M
         quads = [
             [[-e, 0, -e], [W + e, 0, -e], [W + e, 0, H + e], [-e, 0, H + e]],
             [[W, -e, -e], [W, D + e, -e], [W, D + e, H + e], [W, -e, H + e]],
             [[W + e, D, -e], [-e, D, -e], [-e, D, H + e], [W + e, D, H + e]],
             [[0, D + e, -e], [0, -e, -e], [0, -e, H + e], [0, D + e, H + e]],
         ]
-        for k, q in enumerate(quads):
-            # orient so the normal points into the room: (p1-p0) x (p3-p0)
-            q = np.array(q, dtype=np.float64)
-            n = np.cross(q[1] - q[0], q[3] - q[0])
-            inward = np.array([[0, 1, 0], [-1, 0, 0], [0, -1, 0], [1, 0, 0]][k], dtype=np.float64)
-            if np.dot(n, inward) < 0:
-                q = q[::-1]
-            self._new_object("wall", [Part(*_quad(q), wall_rgb, "paint")])
+        return [facing_quad(q, self.WALL_INWARD[k]) for k, q in enumerate(quads)]
+
+    def build_room(self) -> None:
+        self._build_room(self.wall_quads())
+
+    def _build_room(self, wall_parts: list[np.ndarray | list[np.ndarray]]) -> None:
+        """Walls 0..3 (one object each, made of the quads given), then the floor and the ceiling."""
+        W, D, H = self.room_size_m
+        e = self.CORNER_OVERLAP_M
+        wall_rgb = _PALETTE["wall"]
+        for quads in wall_parts:
+            quads = [quads] if isinstance(quads, np.ndarray) else quads
+            self._new_object("wall", [Part(*_quad(q), wall_rgb, "paint") for q in quads])
         floor = np.array([[-e, -e, 0], [W + e, -e, 0], [W + e, D + e, 0], [-e, D + e, 0]], dtype=np.float64)
         self._new_object("floor", [Part(*_quad(floor), _PALETTE["floor"], "planks")])
         ceiling = np.array([[-e, -e, H], [-e, D + e, H], [W + e, D + e, H], [W + e, -e, H]], dtype=np.float64)
@@ -163,9 +182,12 @@ class RoomLayout:
             self._floor_rects.append(rect)
         return self._new_object(category, builder.place(x, y, yaw), footprint=rect, height_m=float(hi[2]))
 
-    def furnish(self, rng: np.random.Generator) -> None:
+    def furnish(self, rng: np.random.Generator, *, door: bool = True) -> None:
+        """Furniture drawn from ``rng``; ``door=False`` leaves out the door on a wall (a room whose
+        door is a real doorway, placed by the caller)."""
         W, D, H = self.room_size_m
-        self._place_on_wall(rng, _build_door(rng, 0.9, 2.05), "door", keepout_depth_m=0.9)
+        if door:
+            self._place_on_wall(rng, _build_door(rng, 0.9, 2.05), "door", keepout_depth_m=0.9)
         for _ in range(int(rng.integers(1, 3))):
             w = float(rng.uniform(1.0, 1.6))
             self._place_on_wall(rng, _build_window(rng, w, 1.2), "window", z0=0.95, on_floor=False)

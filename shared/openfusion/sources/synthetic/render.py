@@ -33,6 +33,24 @@ class RenderedView:
     view_cos: np.ndarray  # (h, w) float32
 
 
+def objects_mesh(objects: list[WorldObject]) -> o3d.geometry.TriangleMesh:
+    """All parts of ``objects`` as one legacy Open3D mesh with vertex colors (for viewing)."""
+    verts, tris, colors = [], [], []
+    offset = 0
+    for obj in objects:
+        for part in obj.parts:
+            verts.append(part.vertices)
+            tris.append(part.triangles + offset)
+            colors.append(np.broadcast_to(np.asarray(part.rgb, dtype=np.float64), part.vertices.shape))
+            offset += len(part.vertices)
+    mesh = o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(np.concatenate(verts)), o3d.utility.Vector3iVector(np.concatenate(tris))
+    )
+    mesh.vertex_colors = o3d.utility.Vector3dVector(np.concatenate(colors))
+    mesh.compute_triangle_normals()
+    return mesh
+
+
 class SceneRenderer:
     """The world's triangles in one ``RaycastingScene`` with the shading tables of each triangle."""
 
@@ -52,8 +70,7 @@ class SceneRenderer:
                 tex.append(np.full(n, _TEXTURES.index(part.texture), dtype=np.int32))
         V = np.concatenate(verts)
         F = np.concatenate(tris)
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor(V.astype(np.float32)), o3d.core.Tensor(F.astype(np.uint32)))
+        self._V32, self._F32 = V.astype(np.float32), F.astype(np.uint32)
         tri = V[F]
         normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
@@ -72,12 +89,27 @@ class SceneRenderer:
         self._lut_axis = np.append(np.argmax(np.abs(normals), axis=1), 2).astype(np.int8)
         self._lut_lambert = np.append(0.55 + 0.30 * np.maximum(normals @ light, 0.0), 0.0).astype(np.float32)
         self._atlas = _texture_atlas().ravel()
-        self._scene = scene
+        self._scene: o3d.t.geometry.RaycastingScene | None = None
 
     @property
     def scene(self) -> o3d.t.geometry.RaycastingScene:
-        """The ``RaycastingScene`` (all triangles in one geometry)."""
+        """The ``RaycastingScene`` (all triangles in one geometry; built on first use)."""
+        if self._scene is None:
+            self._scene = o3d.t.geometry.RaycastingScene()
+            self._scene.add_triangles(o3d.core.Tensor(self._V32), o3d.core.Tensor(self._F32))
         return self._scene
+
+    @property
+    def miss_index(self) -> int:
+        """The triangle index that stands for "no hit" in the shading tables (one past the last)."""
+        return len(self._lut_instance) - 1
+
+    def _view_hits(self, rays: np.ndarray, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(triangle index (``miss_index`` on a miss), t_hit (inf on a miss), normal) of each of the
+        (h, w, 6) ``rays`` of a view from ``origin``: one cast into the whole scene."""
+        ans = self.scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
+        tri = np.minimum(ans["primitive_ids"].numpy(), np.uint32(self.miss_index))
+        return tri, ans["t_hit"].numpy(), ans["primitive_normals"].numpy()
 
     def cast(self, origins: np.ndarray, directions: np.ndarray) -> dict[str, np.ndarray]:
         """Cast rays (float32 (..., 3) origins and directions); returns ``t_hit`` (in units of
@@ -89,7 +121,18 @@ class SceneRenderer:
 
     def render(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> RenderedView:
         """Noise-free render from ``T_world_cam`` (OpenCV camera axes)."""
-        scene = self.scene
+        rays, origin, inv_len = self._view_rays(T_world_cam, intrinsics)
+        return self._shade(rays, origin, inv_len, *self._view_hits(rays, origin))
+
+    def render_whole(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> RenderedView:
+        """:meth:`render` cast into the whole scene at once (what a subclass's own casting agrees with)."""
+        rays, origin, inv_len = self._view_rays(T_world_cam, intrinsics)
+        return self._shade(rays, origin, inv_len, *SceneRenderer._view_hits(self, rays, origin))
+
+    @staticmethod
+    def _view_rays(T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The (h, w, 6) world rays of a view (direction (ux, uy, 1) rotated, so t_hit is the z
+        depth), the camera's position and the rays' inverse lengths."""
         ux, uy, inv_len = _pixel_rays(intrinsics)
         T = np.asarray(T_world_cam, dtype=np.float64)
         R = T[:3, :3].astype(np.float32)
@@ -102,11 +145,13 @@ class SceneRenderer:
             plane += uy * R[k, 1]
             plane += R[k, 2]
             rays[..., 3 + k] = plane
-        ans = scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
-        tri = np.minimum(ans["primitive_ids"].numpy(), np.uint32(len(self._lut_instance) - 1))
-        t_hit = ans["t_hit"].numpy()
+        return rays, origin, inv_len
+
+    def _shade(
+        self, rays: np.ndarray, origin: np.ndarray, inv_len: np.ndarray, tri: np.ndarray, t_hit: np.ndarray, normals: np.ndarray
+    ) -> RenderedView:
+        """Depth, color, instances and view angle of a view from its rays' hits."""
         depth = np.where(t_hit < np.float32(1e6), t_hit, np.float32(0.0))
-        normals = ans["primitive_normals"].numpy()
         dx, dy, dz = rays[..., 3], rays[..., 4], rays[..., 5]
         view_cos = np.abs(normals[..., 0] * dx + normals[..., 1] * dy + normals[..., 2] * dz) * inv_len
         # texture: triplanar look-up in a 1 cm texel atlas along the two axes of the plane

@@ -17,7 +17,7 @@ from openfusion.frame import CameraIntrinsics
 from openfusion.sources.synthetic.camera import camera_path
 from openfusion.sources.synthetic.furniture import WorldObject
 from openfusion.sources.synthetic.layout import furnished_room
-from openfusion.sources.synthetic.render import RenderedView, SceneRenderer
+from openfusion.sources.synthetic.render import RenderedView, SceneRenderer, objects_mesh
 from openfusion.sources.synthetic.surface import GroundTruthSurface, sample_surface
 
 
@@ -84,16 +84,7 @@ class SyntheticWorld:
 
     def to_mesh(self) -> o3d.geometry.TriangleMesh:
         """All parts as one legacy Open3D mesh with vertex colors (for viewing)."""
-        mesh = o3d.geometry.TriangleMesh()
-        for obj in self.objects:
-            for part in obj.parts:
-                m = o3d.geometry.TriangleMesh(
-                    o3d.utility.Vector3dVector(part.vertices), o3d.utility.Vector3iVector(part.triangles)
-                )
-                m.paint_uniform_color(part.rgb)
-                mesh += m
-        mesh.compute_triangle_normals()
-        return mesh
+        return objects_mesh(self.objects)
 
     def ground_truth_surface(self, spacing_m: float = 0.02, *, visible_only: bool = True) -> GroundTruthSurface:
         """Points sampled uniformly on all surfaces (about one per ``spacing_m``^2), labelled.

@@ -6,7 +6,8 @@ from typing import ClassVar, Literal
 
 from pydantic import Field
 
-from openfusion.wire.message import Message
+from openfusion.wire.message import Message, Record
+from openfusion.wire.schemas.base import RobotName
 
 
 class ControlRequest(Message):
@@ -29,11 +30,42 @@ class ControlReply(Message):
     message: str = ""
 
 
+class RobotStatus(Record):
+    """One robot's stream as geometry sees it (:attr:`HealthStats.robots`; run.json ``robots``).
+
+    ``state``: ``joined`` (its frames go into the map through ``T_map_odom``) or ``held`` (not
+    joined yet: its frames wait in its own submap, never fused misaligned). Counts are of frames
+    taken from geometry's queue: ``frames_integrated`` into the map, the rest skipped by
+    ``skipped`` reason (``duplicate``, ``out_of_order``, ``failed``, ``capacity``, ``held_dropped``),
+    ``frames_gap`` ids never seen between two live frames; ``queued``: its frames waiting in
+    geometry's queue now; ``lag_s``: how long the oldest of them has waited."""
+
+    state: Literal["joined", "held"]
+    frames_taken: int = Field(0, ge=0)
+    frames_integrated: int = Field(0, ge=0)
+    frames_held: int = Field(0, ge=0)
+    frames_gap: int = Field(0, ge=0)
+    skipped: dict[str, int] = Field(default_factory=dict)
+    last_frame_id: int = Field(-1, ge=-1)
+    queued: int = Field(0, ge=0)
+    lag_s: float = Field(0.0, ge=0)
+    T_map_odom: list[float] = Field(default_factory=lambda: [1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0, 0, 0, 0, 0, 1.0],
+                                    min_length=16, max_length=16)
+    join_method: str = ""
+    join_fitness: float = Field(0.0, ge=0)
+    join_attempts: int = Field(0, ge=0)
+    join_reason: str = ""
+    corrections: int = Field(0, ge=0)
+    join_pending: bool = False  # held, and a registration runs or is due
+
+
 class HealthStats(Message):
-    """Periodic stats of one service instance (published on ``…/health/{service}``)."""
+    """Periodic stats of one service instance (published on ``…/health/{service}``).
+
+    v2: ``robots`` (geometry): each robot's stream, by robot name (:class:`RobotStatus`)."""
 
     schema_name: ClassVar[str] = "health.stats"
-    schema_version: ClassVar[int] = 1
+    schema_version: ClassVar[int] = 2
 
     service: str
     map_id: str
@@ -46,6 +78,7 @@ class HealthStats(Message):
     drops: int = Field(ge=0)
     errors: int = Field(ge=0)
     counters: dict[str, float] = Field(default_factory=dict)
+    robots: dict[RobotName, RobotStatus] = Field(default_factory=dict)
 
     def counter(self, name: str, default: float = 0.0) -> float:
         """One named counter (names: :mod:`openfusion.wire.counters`), ``default`` when absent."""

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
-from pydantic import Field
+from pydantic import AfterValidator, Field
 
 from openfusion.frame import CameraIntrinsics
 from openfusion.wire.codec import ndarray
+from openfusion.wire.keys import segment_error
 from openfusion.wire.message import Message
 
 # Array field types used below.
@@ -22,6 +23,21 @@ FloatMap = ndarray("float32", shape=(None, None))
 KeyList = ndarray("int32", shape=(None,))
 Points3f = ndarray("float32", shape=(None, 3))
 Colors3u8 = ndarray("uint8", shape=(None, 3))
+
+#: The robot a frame's stream belongs to when none is named (one robot: today's single stream).
+DEFAULT_ROBOT = "robot0"
+
+
+def check_robot_name(name: str) -> str:
+    """A robot name is one key segment (ASCII letters, digits, ``_ - .``; at most 64 characters),
+    so it can name a key, a log line or a config entry as it is."""
+    why = segment_error(name) if len(name) <= 64 else "is longer than 64 characters"
+    if why is not None:
+        raise ValueError(f"robot name {name!r} is not valid: it {why}")
+    return name
+
+
+RobotName = Annotated[str, AfterValidator(check_robot_name)]
 
 
 class PinholeMessage(Message):

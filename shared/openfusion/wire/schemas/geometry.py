@@ -11,6 +11,7 @@ from openfusion.poses import check_pose
 from openfusion.wire.codec import ndarray
 from openfusion.wire.message import Message
 from openfusion.wire.schemas.base import (
+    DEFAULT_ROBOT,
     Colors3u8,
     FloatMap,
     KeyList,
@@ -18,6 +19,7 @@ from openfusion.wire.schemas.base import (
     PinholeMessage,
     Points3f,
     Pose4x4,
+    RobotName,
 )
 
 
@@ -32,10 +34,14 @@ class GeometryProgress(Message):
     acknowledges no frame): this geometry wants the playback frames after ``holds_frame_id``; it
     sends one when it starts and when a frame comes whose predecessor it does not hold, repeats it
     every second until the next frame arrives in order, and numbers each new one, so the bridge
-    goes back once per (``incarnation``, ``resume``)."""
+    goes back once per (``incarnation``, ``resume``).
+
+    v3: ``robot`` names the robot whose frame this acknowledges or whose playback the announcement
+    is about; chains, acknowledgements and announcements are per robot, and a bridge reads only
+    its own robot's."""
 
     schema_name: ClassVar[str] = "geometry.progress"
-    schema_version: ClassVar[int] = 2
+    schema_version: ClassVar[int] = 3
 
     frame_id: int = Field(ge=-1)
     stamp_ns: int = Field(ge=0)
@@ -46,16 +52,21 @@ class GeometryProgress(Message):
     holds_playback: str = Field("", max_length=64)
     holds_frame_id: int = Field(-1, ge=-1)
     resume: int = Field(0, ge=0)
+    robot: RobotName = DEFAULT_ROBOT
 
 
 class RenderRequest(PinholeMessage):
-    """Render the map's region keys from ``T_world_cam`` into a small ``width_px`` x ``height_px`` view."""
+    """Render the map's region keys from ``T_world_cam`` into a small ``width_px`` x ``height_px`` view.
+
+    v2: ``T_world_cam`` is in ``robot``'s odometry frame, as its frames are; geometry renders from
+    the map pose its join gives (a robot not joined yet is refused: ``robot_not_joined``)."""
 
     schema_name: ClassVar[str] = "geometry.render_request"
-    schema_version: ClassVar[int] = 1
+    schema_version: ClassVar[int] = 2
 
     frame_id: int = Field(ge=0)
     T_world_cam: Pose4x4
+    robot: RobotName = DEFAULT_ROBOT
 
     @model_validator(mode="after")
     def _check(self) -> RenderRequest:
@@ -64,12 +75,17 @@ class RenderRequest(PinholeMessage):
 
 
 class RenderReply(Message):
-    """Per-pixel region key (-1 = none), its confidence and the rendered depth in metres."""
+    """Per-pixel region key (-1 = none), its confidence and the rendered depth in metres.
+
+    v2: ``T_map_cam``, the pose geometry rendered from in the map's frame (the request's pose
+    joined to the map by its robot's transform), so a reader that keeps its own world-frame record
+    (frame selection's coverage) files every robot's views in the one frame."""
 
     schema_name: ClassVar[str] = "geometry.render_reply"
-    schema_version: ClassVar[int] = 1
+    schema_version: ClassVar[int] = 2
 
     frame_id: int = Field(ge=0)
+    T_map_cam: Pose4x4 | None = None
     key_map: KeyMap
     conf_map: FloatMap
     depth_m: FloatMap

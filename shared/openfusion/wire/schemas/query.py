@@ -1,12 +1,15 @@
-"""Queries and their ranked answers."""
+"""Queries and their ranked answers. What a query may ask for (text length, ``top_k``, points,
+texts per batch) is declared once in :mod:`openfusion.wire.limits`; these schemas check it with
+its functions, so a refused message names the limit as every other surface does."""
 
 from __future__ import annotations
 
-from typing import Annotated, ClassVar, Literal
+from typing import ClassVar, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
+from openfusion.wire import limits
 from openfusion.wire.message import Message, Record
 from openfusion.wire.schemas.base import (
     ImageRGB8,
@@ -15,20 +18,29 @@ from openfusion.wire.schemas.base import (
     Vec3f64,
 )
 
-#: Longest text of a :class:`TextQuery` or of one text of a :class:`TextQueryBatch`.
-MAX_TEXT_CHARS = 4096
-#: Most texts one :class:`TextQueryBatch` may carry.
-MAX_BATCH_TEXTS = 64
+# re-exported: the limits of a query (declared in openfusion.wire.limits)
+MAX_TEXT_CHARS = limits.MAX_TEXT_CHARS
+MAX_BATCH_TEXTS = limits.MAX_BATCH_TEXTS
 #: The spatial relations a hit names (:mod:`openfusion.mapping.relations` computes them).
 RELATIONS: tuple[str, ...] = ("on", "under", "above", "next to")
 Relation = Literal["on", "under", "above", "next to"]
 
 
 class _QueryOptions(Message):
-    top_k: int = Field(default=5, gt=0, le=10_000)
+    top_k: int = 5  # 1 to limits.MAX_TOP_K
     with_points: bool = False
-    max_points: int = Field(default=20_000, gt=0)
+    max_points: int = 20_000  # points of each region, 1 to limits.MAX_QUERY_POINTS
     embedding_space: str | None = None
+
+    @field_validator("top_k")
+    @classmethod
+    def _top_k(cls, value: int) -> int:
+        return limits.check_top_k(value)
+
+    @field_validator("max_points")
+    @classmethod
+    def _max_points(cls, value: int) -> int:
+        return limits.check_max_points(value)
 
 
 class TextQuery(_QueryOptions):
@@ -37,7 +49,12 @@ class TextQuery(_QueryOptions):
     schema_name: ClassVar[str] = "query.text"
     schema_version: ClassVar[int] = 1
 
-    text: str = Field(min_length=1, max_length=MAX_TEXT_CHARS)
+    text: str  # 1 to limits.MAX_TEXT_CHARS characters, not blank
+
+    @field_validator("text")
+    @classmethod
+    def _text(cls, value: str) -> str:
+        return limits.check_text(value)
 
 
 class TextQueryBatch(_QueryOptions):
@@ -48,9 +65,12 @@ class TextQueryBatch(_QueryOptions):
     schema_name: ClassVar[str] = "query.text_batch"
     schema_version: ClassVar[int] = 1
 
-    texts: list[Annotated[str, Field(min_length=1, max_length=MAX_TEXT_CHARS)]] = Field(
-        min_length=1, max_length=MAX_BATCH_TEXTS
-    )
+    texts: list[str]  # 1 to limits.MAX_BATCH_TEXTS texts, each as TextQuery's
+
+    @field_validator("texts")
+    @classmethod
+    def _texts(cls, value: list[str]) -> list[str]:
+        return limits.check_batch(value)
 
 
 class ImageQuery(_QueryOptions):
@@ -76,9 +96,19 @@ class PointQuery(Message):
 
     point_world: Vec3f64
     radius_m: float = Field(default=0.1, gt=0)
-    top_k: int = Field(default=5, gt=0, le=10_000)
+    top_k: int = 5  # 1 to limits.MAX_TOP_K
     with_points: bool = False
-    max_points: int = Field(default=20_000, gt=0)
+    max_points: int = 20_000  # 1 to limits.MAX_QUERY_POINTS
+
+    @field_validator("top_k")
+    @classmethod
+    def _top_k(cls, value: int) -> int:
+        return limits.check_top_k(value)
+
+    @field_validator("max_points")
+    @classmethod
+    def _max_points(cls, value: int) -> int:
+        return limits.check_max_points(value)
 
     @model_validator(mode="after")
     def _check(self) -> PointQuery:
@@ -110,8 +140,9 @@ class RelationQueryInfo(Record):
 
 class RegionHit(Record):
     """One ranked region: key, similarity ``score`` (cosine), ``relevancy`` in [0, 1] against the
-    canonical negative phrases and the query-side contrast categories, ``match`` (relevancy at or
-    above the embedding space's calibrated threshold; see :mod:`openfusion.mapping.relevancy`),
+    canonical negative phrases and the query-side contrast categories, ``match`` (what was asked:
+    relevancy at or above the embedding space's calibrated threshold and a margin at least a share
+    of the query's best; see :mod:`openfusion.mapping.relevancy`),
     label, axis-aligned bbox and
     centroid (world, metres), up to three ``nearby`` regions with the hit's relation to each, and
     for a relation query the anchor region it stands in the relation to (``relation``)."""

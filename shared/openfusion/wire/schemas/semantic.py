@@ -11,19 +11,22 @@ from openfusion.poses import check_pose
 from openfusion.wire.codec import ndarray
 from openfusion.wire.message import Message
 from openfusion.wire.schemas.base import (
+    DEFAULT_ROBOT,
     FloatMap,
     KeyList,
     KeyMap,
     PinholeMessage,
     Pose4x4,
+    RobotName,
 )
 
 
 class SemanticUpdate(PinholeMessage):
-    """Per-pixel region keys and confidences to fuse into the volume, seen from ``T_world_cam``."""
+    """Per-pixel region keys and confidences to fuse into the volume, seen from ``T_world_cam``
+    (v2: in ``robot``'s odometry frame, as its frame was; geometry applies the robot's join)."""
 
     schema_name: ClassVar[str] = "semantic.update"
-    schema_version: ClassVar[int] = 1
+    schema_version: ClassVar[int] = 2
 
     frame_id: int = Field(ge=0)
     T_world_cam: Pose4x4
@@ -33,6 +36,7 @@ class SemanticUpdate(PinholeMessage):
     # The frame's depth resampled to the key map (metres, 0 = none): enables the update's depth
     # gate, so labels of an object's outline do not land on the background behind it.
     depth_m: FloatMap | None = None
+    robot: RobotName = DEFAULT_ROBOT
 
     @model_validator(mode="after")
     def _check(self) -> SemanticUpdate:

@@ -10,11 +10,13 @@ from pydantic import Field, model_validator
 from openfusion.frame import Frame
 from openfusion.wire.message import Message
 from openfusion.wire.schemas.base import (
+    DEFAULT_ROBOT,
     DepthImage,
     ImageRGB8,
     KeyMap,
     PinholeMessage,
     Pose4x4,
+    RobotName,
 )
 
 
@@ -25,10 +27,16 @@ class RgbdFrame(PinholeMessage):
     name (new for each bridge process) and the id of the frame it published before this one (-1 for
     the first): geometry integrates a frame only right after that one, so after a restart it neither
     skips nor repeats a frame (:mod:`openfusion.services.geometry.service`). ``""`` and None for
-    live frames (taken as they come)."""
+    live frames (taken as they come).
+
+    ``robot`` (v3): the robot whose stream the frame belongs to. Frame ids, playbacks, chains and
+    poses are per robot: ``T_world_cam`` is in that robot's odometry frame, which geometry joins to
+    the map's (:mod:`openfusion.mapping.robot_join`)."""
 
     schema_name: ClassVar[str] = "sensor.rgbd"
-    schema_version: ClassVar[int] = 2
+    schema_version: ClassVar[int] = 3
+    #: recordings of v2 frames (before robots) still replay: their robot is the default one
+    reads_versions: ClassVar[tuple[int, ...]] = (2,)
 
     frame_id: int = Field(ge=0)
     stamp_ns: int = Field(ge=0)
@@ -41,6 +49,7 @@ class RgbdFrame(PinholeMessage):
     source: str = ""
     playback: str = Field("", max_length=64)
     prev_frame_id: int | None = Field(None, ge=-1)
+    robot: RobotName = DEFAULT_ROBOT
 
     @model_validator(mode="after")
     def _check_frame(self) -> RgbdFrame:
@@ -50,7 +59,7 @@ class RgbdFrame(PinholeMessage):
 
     @classmethod
     def from_frame(cls, frame: Frame, *, with_instance: bool = True, playback: str = "",
-                   prev_frame_id: int | None = None) -> RgbdFrame:
+                   prev_frame_id: int | None = None, robot: str = DEFAULT_ROBOT) -> RgbdFrame:
         """The message of a frame (arrays are not copied). ``with_instance=False`` leaves the
         ground-truth instance image out: the bridge sends it on its own key
         (:class:`InstanceFrame`), so geometry never receives those bytes."""
@@ -68,6 +77,7 @@ class RgbdFrame(PinholeMessage):
             source=frame.source,
             playback=playback,
             prev_frame_id=prev_frame_id,
+            robot=robot,
         )
 
     def to_frame(self, instance: InstanceFrame | None = None) -> Frame:
@@ -80,8 +90,8 @@ class RgbdFrame(PinholeMessage):
         if instance is not None:
             if not instance.belongs_to(self):
                 raise ValueError(
-                    f"instance image of frame {instance.frame_id} (stamp {instance.stamp_ns} ns) joined to "
-                    f"frame {self.frame_id} (stamp {self.stamp_ns} ns)"
+                    f"instance image of frame {instance.frame_id} (stamp {instance.stamp_ns} ns, robot "
+                    f"{instance.robot}) joined to frame {self.frame_id} (stamp {self.stamp_ns} ns, robot {self.robot})"
                 )
             self._check_image("instance", instance.instance)
             inst, categories = instance.instance, dict(instance.instance_categories)
@@ -107,17 +117,18 @@ class InstanceFrame(Message):
     gt encoder of the semantic service reads them. Keeping them off ``…/sensor/rgbd`` saves
     geometry 45 % of each 640x480 frame's bytes (the int32 image is larger than color and depth
     together). ``instance`` is HxW int32 (0 = no instance); ``instance_categories`` maps ids to
-    raw category names.
+    raw category names. ``robot`` (v2): the frame's robot (frame ids are per robot).
     """
 
     schema_name: ClassVar[str] = "sensor.instance"
-    schema_version: ClassVar[int] = 1
+    schema_version: ClassVar[int] = 2
 
     frame_id: int = Field(ge=0)
     stamp_ns: int = Field(ge=0)
     instance: KeyMap
     instance_categories: dict[int, str] = Field(default_factory=dict)
     source: str = ""
+    robot: RobotName = DEFAULT_ROBOT
 
     @model_validator(mode="after")
     def _check_not_empty(self) -> InstanceFrame:
@@ -126,7 +137,7 @@ class InstanceFrame(Message):
         return self
 
     @classmethod
-    def from_frame(cls, frame: Frame) -> InstanceFrame | None:
+    def from_frame(cls, frame: Frame, *, robot: str = DEFAULT_ROBOT) -> InstanceFrame | None:
         """The instance message of a frame, or None when the frame has no instance image."""
         if frame.instance is None:
             return None
@@ -136,8 +147,9 @@ class InstanceFrame(Message):
             instance=frame.instance,
             instance_categories=dict(frame.instance_categories),
             source=frame.source,
+            robot=robot,
         )
 
     def belongs_to(self, msg: RgbdFrame) -> bool:
-        """Same frame id and time stamp as ``msg``."""
-        return self.frame_id == msg.frame_id and self.stamp_ns == msg.stamp_ns
+        """Same robot, frame id and time stamp as ``msg``."""
+        return self.frame_id == msg.frame_id and self.stamp_ns == msg.stamp_ns and self.robot == msg.robot

@@ -1,0 +1,117 @@
+"""Region summaries and region contacts kept per tile (map core, no bus).
+
+The reference is always the whole map at once: ``RegionTable.of_points`` of every surface point and
+``block_contacts`` of every labelled block. The per-tile parts must add up to exactly that (boxes,
+counts, contacts equal; centroids to float rounding), with tiles paged out, after merges, cleared
+keys and new frames, while reading out again only the tiles whose neighbourhood changed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from openfusion.mapping import SemanticVolume, VolumeParams, tilereadouts
+from openfusion.mapping.merging import RegionContacts, block_contacts
+from openfusion.mapping.summaries import RegionTable
+from openfusion.sources import open_source
+
+FRAMES = list(open_source("synthetic:seed=1,frames=12,width=160,height=120,lap=12"))
+# 4 cm voxels and 2-block tiles: many small tiles, so regions span many of them.
+BASE = {"voxel_size_m": 0.04, "tile_blocks": 2, "depth_max_m": 4.0}
+K = FRAMES[0].intrinsics.scaled(80, 60)
+
+
+def _labelled(volume: SemanticVolume, frames: list, first_key: int = 0) -> None:  # noqa: ANN001
+    for i, f in enumerate(frames):
+        volume.integrate(f)
+        if i % 3 == 0:  # vertical bands of keys, a new set every update
+            keys = (np.arange(80)[None].repeat(60, 0) // 10 + first_key + i).astype(np.int32)
+            volume.apply_update(f.T_world_cam, K, keys, np.full((60, 80), 0.7, np.float32))
+
+
+def _reference(volume: SemanticVolume) -> RegionTable:
+    pts = volume.extract_points()
+    return RegionTable.of_points(pts.keys, pts.points)
+
+
+def _assert_same_table(got: RegionTable, ref: RegionTable) -> None:
+    assert len(ref) > 5
+    np.testing.assert_array_equal(got.keys, ref.keys)
+    np.testing.assert_array_equal(got.num_points, ref.num_points)
+    np.testing.assert_array_equal(got.bbox_min, ref.bbox_min)
+    np.testing.assert_array_equal(got.bbox_max, ref.bbox_max)
+    np.testing.assert_allclose(got.centroid, ref.centroid, rtol=0, atol=1e-6)  # sums added in another order
+
+
+def _assert_same_contacts(got: RegionContacts, ref: RegionContacts) -> None:
+    assert len(ref.pair_a) > 0
+    for name in ("keys", "surface_voxels", "pair_a", "pair_b", "contact_a", "contact_b"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
+
+
+def _read(volume: SemanticVolume, what: str) -> int:
+    return volume._readouts.stats[f"{what}_tiles_read"]
+
+
+@pytest.fixture(scope="module")
+def paged() -> SemanticVolume:
+    """The room mapped with keys under a budget of 75 % of its blocks (tiles paged out)."""
+    probe = SemanticVolume(VolumeParams(**BASE))
+    _labelled(probe, FRAMES)
+    budget = 0.75 * probe.num_blocks * 8192 / 2**20
+    probe.close()
+    volume = SemanticVolume(VolumeParams(**BASE, memory_budget_mb=budget))
+    _labelled(volume, FRAMES)
+    assert volume.pager.stored_blocks
+    yield volume
+    volume.close()
+
+
+def test_summaries_per_tile_equal_the_whole_surface_and_only_changed_tiles_are_read_again(paged: SemanticVolume) -> None:
+    """Exact against the whole surface's table; an unchanged map reads no tile, a merge none, a
+    cleared key only the tiles holding it, a frame only the tiles around what it changed."""
+    v = paged
+    every = len(v.pager.all_tiles())
+    _assert_same_table(v.region_table(), _reference(v))
+    assert _read(v, "summary") == every
+    v.region_table()
+    assert _read(v, "summary") == every  # nothing changed: nothing read
+    ref = _reference(v)
+    a, b = int(ref.keys[0]), int(ref.keys[1])
+    v.relabel_keys({a: b})  # a merge: the parts speak slots, nothing to read
+    _assert_same_table(v.region_table(), _reference(v))
+    assert _read(v, "summary") == every
+    v.relabel_keys({int(ref.keys[2]): -1})  # a cleared key: the fill labels its points anew
+    _assert_same_table(v.region_table(), _reference(v))
+    cleared = _read(v, "summary") - every
+    assert 0 < cleared < every
+    v.integrate(FRAMES[-1])
+    _assert_same_table(v.region_table(), _reference(v))
+    assert 0 < _read(v, "summary") - every - cleared < every
+
+
+def test_a_part_that_kept_too_few_values_is_read_again_until_the_box_is_exact(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With parts keeping 2 values per axis, most regions' percentiles need more of some tile: the
+    check finds them, those tiles are read again keeping enough, and the box comes out exact."""
+    monkeypatch.setattr(tilereadouts, "KEEP_MIN", 2)
+    monkeypatch.setattr(tilereadouts, "KEEP_SHARE", 0.0)
+    volume = SemanticVolume(VolumeParams(**BASE))
+    _labelled(volume, FRAMES[:6])
+    _assert_same_table(volume.region_table(), _reference(volume))
+    assert volume._readouts.keep  # tiles were asked to keep more
+    assert _read(volume, "summary") > len(volume.pager.all_tiles())  # and read again
+    volume.close()
+
+
+def test_contacts_per_tile_equal_block_contacts_and_a_merge_recounts_only_its_tiles() -> None:
+    volume = SemanticVolume(VolumeParams(**BASE))
+    _labelled(volume, FRAMES[:7])
+    _assert_same_contacts(volume.region_contacts(), block_contacts(*volume.labelled_blocks()))
+    every = _read(volume, "contact")
+    volume.region_contacts()
+    assert _read(volume, "contact") == every
+    c = volume.region_contacts()
+    volume.relabel_keys({int(c.pair_b[0]): int(c.pair_a[0])})
+    _assert_same_contacts(volume.region_contacts(), block_contacts(*volume.labelled_blocks()))
+    assert 0 < _read(volume, "contact") - every < every
+    volume.close()
