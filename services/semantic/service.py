@@ -261,8 +261,9 @@ class SemanticService:
         with self._dictionary_lock:
             prev_version = self.dictionary.version
             planned = plan_update(obs, rendered, self.dictionary, self.match_params)
-            if self._scorer is not None:  # the regions this frame wrote: seen now, from its direction
-                self._scorer.observe_plan(planned.key_map, frame.T_world_cam, K_small, frame.stamp_ns)
+            if self._scorer is not None:  # the regions this frame wrote: seen now, from its direction (map frame)
+                T_map_cam = reply.T_map_cam if reply.T_map_cam is not None else frame.T_world_cam
+                self._scorer.observe_plan(planned.key_map, T_map_cam, K_small, frame.stamp_ns)
             # The delta goes first, so a key never reaches geometry before its dictionary row.
             self._publish_delta()
             self._update_pub.put(SemanticUpdate(

@@ -268,3 +268,33 @@ def test_frame_selector_with_every_or_latest_scores_nothing() -> None:
     for mode in ("every", "latest"):
         selector = FrameSelector(SelectParams(select=mode), render=lambda *_: pytest.fail("no render"))
         assert selector.wants(frame) and selector.stats.frames_scored == 0
+
+
+def test_another_robots_view_is_filed_under_its_map_pose() -> None:
+    """Two robots, one map: robot b's pose is in its own odometry frame (here 3 m and 180 degrees
+    off); geometry's render reply carries the pose in the map's frame, and the scorer files the view
+    there. So b seeing the wall robot a's encoded frame already covered (from the same side) adds
+    nothing, and the same view filed under b's odometry pose (no map pose known) would have
+    counted as new surface from the opposite direction."""
+    from types import SimpleNamespace
+
+    from openfusion.frame import Frame
+    from openfusion.mapping.robot_streams import yaw_transform
+
+    T_map_odom_b = yaw_transform(3.0, 0.0, 0.0, 180.0)
+    T_odom_cam_b = np.linalg.inv(T_map_odom_b) @ T_FRONT  # b stands where a stood, in its own frame
+    frame_b = Frame(frame_id=5, stamp_ns=int(0.2e9), color=np.zeros((H, W, 3), np.uint8), depth=DEPTH,
+                    depth_scale=1.0, intrinsics=K, T_world_cam=T_odom_cam_b)
+
+    def render(with_map_pose: bool):  # noqa: ANN202
+        def call(T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> SimpleNamespace:
+            assert np.allclose(T_world_cam, T_odom_cam_b)  # asked at the robot's own pose
+            return SimpleNamespace(key_map=NO_KEYS, conf_map=ZERO_CONF,
+                                   T_map_cam=T_map_odom_b @ T_world_cam if with_map_pose else None)
+        return call
+
+    for with_map_pose, expected in ((True, 0.0), (False, 1.0)):
+        scorer = CoverageScorer(params(select_tries=1))
+        encoded(scorer, view(scorer), keys=NO_KEYS)  # robot a's frame, encoded, labelled nothing
+        score = scorer.score(scorer.prepare_frame(frame_b, render(with_map_pose)))
+        assert score.new_surface == pytest.approx(expected), with_map_pose
