@@ -56,6 +56,16 @@ frame once. Live frames (no ``prev_frame_id``) are taken as they come, as before
 between two of them (frames dropped anywhere: the rate cap, congestion, a restart) are counted in
 ``frames_gap``.
 
+Several robots (:mod:`openfusion.mapping.robot_streams`, docs/MULTI_ROBOT.md): every frame names
+its robot, and all of the above is per robot: a chain, a playback, duplicates, out-of-order frames,
+gaps, resume announcements and counts for each (health ``robots``). Frames are served from one
+queue per robot's bridge in turn (``Subscriber(fair=True)``), so one robot's backlog never starves
+another. A robot's poses are in its own odometry frame; a transform joins it to the map's frame:
+given (``geometry.robot_frames``), or found when it starts: until its submap registers to the map
+(:mod:`openfusion.mapping.robot_join`, on the thread of :mod:`.robots`) its frames are held, never
+fused misaligned, and its renders are refused (``robot_not_joined``); a joined robot is re-checked
+against the map now and then and the correction logged.
+
 Region summaries (``geometry/regions``, what the query service ranks with): computed from the
 same surface points as ``geometry/points`` and cached per ``map_version`` (a counter bumped by
 every integrated frame, semantic update, merge, load and reset). A request is answered from the
