@@ -22,12 +22,17 @@ import pytest
 if TYPE_CHECKING:
     import zenoh
 
+from openfusion.app.exit_status import keep_exit_status
 from openfusion.mapping import VolumeParams
 from openfusion.testing.bus import open_pair, unique_map_id
 from openfusion.wire.keys import KeySpace
 
 TESTS = Path(__file__).resolve().parent
 LAYERS = ("unit", "bus", "process")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    keep_exit_status()  # the run's status is pytest's verdict, not Open3D's end-of-process leak check
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from typing import Any, NoReturn
 
 import openfusion
+from openfusion.app.exit_status import keep_exit_status
 from openfusion.errors import Interrupted, OpenFusionError, UserError
 
 EXIT_OK, EXIT_FAILURE, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
@@ -133,6 +134,7 @@ def build_parser(argv: Sequence[str] = ()) -> tuple[argparse.ArgumentParser, dic
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``openfusion`` console script; returns the exit code."""
+    keep_exit_status()
     argv = list(sys.argv[1:] if argv is None else argv)
     parser, loaded = build_parser(argv)
     args, unknown = parser.parse_known_args(argv)
