@@ -104,10 +104,23 @@ def test_a_key_filtered_read_out_reads_only_the_tiles_of_those_keys() -> None:
             for f in FRAMES[4:]:
                 v.integrate(f)
         assert volume.pager.stored_blocks
+        # Stored tiles are told apart by the key slots recorded when they left: a tile without
+        # key 4 is not decoded to find that out (a query's points on a floor read only its tiles).
+        pager = volume.pager
+        assert set(pager.stored_slots) == set(pager.stored_blocks)
+        decoded: list = []
+        read = pager._read
+        pager._read = lambda t: decoded.append(t) or read(t)  # type: ignore[method-assign]
         a, b = volume.extract_points(keys=[4]), ref.extract_points(keys=[4])
         assert len(a) > 0
         np.testing.assert_array_equal(a.points, b.points)
-        assert len(volume.extract_points(keys=[12345])) == 0
+        slot4 = int(np.flatnonzero(volume._storage.slots.key1 == 5)[0])
+        without_4 = {t for t, slots in pager.stored_slots.items() if slot4 not in slots}
+        assert without_4, "the scene should leave some stored tiles without key 4"
+        decoded.clear()
+        assert len(volume.extract_points(keys=[12345])) == 0 and not decoded  # no tile read for an unknown key
+        volume.extract_points(keys=[4])
+        assert decoded and len(set(decoded) & without_4) < len(without_4)  # only tiles near key 4's
     finally:
         volume.close()
 

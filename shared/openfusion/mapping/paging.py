@@ -115,6 +115,11 @@ class TilePager:
         self.location: dict[Tile, str] = {}
         self.base: TileStore | None = None
         self.stored_blocks: dict[Tile, int] = {}  # tiles *not* resident -> their block count
+        #: Key slots present in a stored tile's voxels (sorted), recorded at page-out and rewritten
+        #: by a key compaction, so a read-out for some regions' keys reads only the tiles that hold
+        #: them (:func:`openfusion.mapping.wholemap.extract_points` with keys: a query's points).
+        #: Absent for a tile loaded from a map and not read since: unknown, read to find out.
+        self.stored_slots: dict[Tile, np.ndarray] = {}
         #: Version of the copy of each tile written into the store's generation being built (a
         #: slice of a checkpoint skips a tile a page-out wrote newer: module docstring).
         self._written_version: dict[Tile, int] = {}
@@ -243,6 +248,7 @@ class TilePager:
             raise RuntimeError("paging out needs a tile store")
         if self._needs_writing(tile):
             raw = self.storage.read_raw_blocks(buf)
+            self.stored_slots[tile] = np.unique(raw["key"])
             blob = encode_tile(self.store.codec, coords, raw, self.res)
             # Recorded before the write: a checkpoint's slice that copied this tile earlier then
             # skips it (module docstring).
@@ -252,6 +258,8 @@ class TilePager:
             self.versions.mark_clean(tile)
             self.stats.tiles_written_out += 1
             self.stats.bytes_written += len(blob)
+        else:
+            self.stored_slots[tile] = np.unique(self.storage.read_raw_blocks(buf, names=("key",))["key"])
         self.storage.erase_blocks(coords, buf)
         self.last_used.pop(tile, None)
         self.stored_blocks[tile] = len(buf)
@@ -286,6 +294,7 @@ class TilePager:
         coords, raw = self._read(tile)
         self.storage.write_raw_blocks(coords, raw)
         del self.stored_blocks[tile]
+        self.stored_slots.pop(tile, None)
         self.last_used[tile] = self.clock
         self.versions.mark_clean(tile)
         self.stats.tiles_paged_in += 1
@@ -311,6 +320,7 @@ class TilePager:
         for t, n in tiles.items():
             self.location[t] = "base" if as_base else "own"
             self.stored_blocks[t] = n
+            self.stored_slots.pop(t, None)  # unknown until read
 
     # ------------------------------------------------------------------ checkpoints
     def precopy_plan(self, *, every_tile: bool = False) -> list[list[Tile]]:
@@ -403,7 +413,8 @@ class TilePager:
         for t in sorted(self.stored_blocks):
             coords, raw = self._read(t)
             raw["key"] = remap[raw["key"]]
-            used.append(np.unique(raw["key"]).astype(np.int64))
+            self.stored_slots[t] = np.unique(raw["key"])
+            used.append(self.stored_slots[t].astype(np.int64))
             self._written_version[t] = self.versions.version(t)
             self.store.put(t, encode_tile(self.store.codec, coords, raw, self.res))
             self.location[t] = "own"

@@ -24,13 +24,17 @@ from collections.abc import Iterator
 import numpy as np
 
 from openfusion.mapping import readout
+from openfusion.mapping.heap import release_freed_memory
 from openfusion.mapping.paging import TilePager
 from openfusion.mapping.readout import SurfaceMesh, SurfacePoints
 from openfusion.mapping.storage import ATTR_NAMES, VoxelStorage
 from openfusion.mapping.tiles import pack_coords
 
 Tile = tuple[int, int, int]
-CHUNK_BLOCKS = 4096  # blocks read out at once (32 MiB of compact voxels, plus the halo)
+#: Blocks read out at once (8 MiB of compact voxels, plus the halo and Open3D's read-out buffers):
+#: the size :mod:`openfusion.mapping.tilereadouts` measured (+69 MiB of RssAnon per chunk on the
+#: 10-room building, +122 MiB at 2,048), so a query's points stay within the budget's overhead.
+CHUNK_BLOCKS = 1024
 _TILE_CACHE = 48
 
 
@@ -81,8 +85,17 @@ def _tiles_holding(source: _TileSource, keys: np.ndarray | list[int] | None) -> 
         return []
     hit: list[Tile] = []
     for t in tiles:
-        got = source.get(t)
-        if got is not None and np.isin(got[1]["key"], slots).any():
+        if t in source.groups:  # resident: its key slots only
+            present = source.storage.read_raw_blocks(source.groups[t][1], names=("key",))["key"]
+        elif t in source.pager.stored_slots:  # stored: the slots recorded when it left, no decoding
+            present = source.pager.stored_slots[t]
+        else:  # stored and never indexed (loaded from a map): decoded once, and indexed
+            got = source.get(t)
+            if got is None:
+                continue
+            present = np.unique(got[1]["key"])
+            source.pager.stored_slots[t] = present
+        if np.isin(present, slots).any():
             hit.append(t)
     around = {(t[0] + dx, t[1] + dy, t[2] + dz) for t in hit for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)}
     return [t for t in tiles if t in around]
@@ -183,6 +196,7 @@ def extract_points(
         owner = _owner_blocks(pts.points, p.voxel_size_m, p.block_resolution)
         keep = np.isin(pack_coords(owner), own)
         parts.append(SurfacePoints(pts.points[keep], pts.colors[keep], pts.keys[keep], pts.conf[keep]))
+    release_freed_memory()  # the chunks' scratch buffers, back to the OS
     if not parts:
         return readout._empty_points()
     points = np.concatenate([s.points for s in parts])
