@@ -115,3 +115,16 @@ def test_contacts_per_tile_equal_block_contacts_and_a_merge_recounts_only_its_ti
     _assert_same_contacts(volume.region_contacts(), block_contacts(*volume.labelled_blocks()))
     assert 0 < _read(volume, "contact") - every < every
     volume.close()
+
+
+def test_a_chunk_whose_labelled_points_all_lie_in_its_halo_gives_empty_parts(monkeypatch: pytest.MonkeyPatch) -> None:
+    """One tile per chunk: a tile whose own blocks hold no labelled surface point, while its halo
+    (the neighbours' blocks) does, has an empty part; the table still equals the whole surface's
+    (a building's final save failed here with an IndexError and no map was saved)."""
+    monkeypatch.setattr(tilereadouts, "CHUNK_BLOCKS", 1)
+    volume = SemanticVolume(VolumeParams(**BASE))
+    try:
+        _labelled(volume, FRAMES[:6])
+        _assert_same_table(volume.region_table(), _reference(volume))
+    finally:
+        volume.close()

@@ -334,6 +334,8 @@ def summarise_chunk(copy: ChunkCopy, scratch: Scratch, tile_blocks: int) -> dict
     wanted = {int(pack_coords(np.array([t]))[0]): t for t in copy.tiles}
     inside = np.isin(tkey, np.fromiter(wanted, np.int64))
     points, tkey, slot = points[inside], tkey[inside], slot[inside]
+    if not len(points):  # the chunk's labelled points all belong to halo blocks of other tiles
+        return out
     order = np.lexsort((slot, tkey))
     points, tkey, slot = points[order], tkey[order], slot[order]
     starts = np.flatnonzero(np.r_[True, (tkey[1:] != tkey[:-1]) | (slot[1:] != slot[:-1])])
