@@ -123,6 +123,9 @@ class SemanticSection(MatchParams, MergeParams, SelectParams, EncoderOptions):
     )
     max_hz: float | None = Field(None, gt=0, description="at most this many semantic frames per second")
     render_timeout_s: float = Field(5.0, gt=0, description="wait this long for geometry's render of a frame")
+    contacts_timeout_s: float = Field(
+        30.0, gt=0, description="a merge pass waits this long for geometry's region contacts (a floor's first "
+        "pass after a long walk reads out many tiles: over 5 s on 2 cores, when every pass was skipped)")
     merge_min_interval_s: float = Field(
         2.0, ge=0, description="at least this long between two periodic merge passes (a pass costs geometry a "
         "contacts read-out; with a fast encoder pool merge_every frames come many times a second)")
@@ -307,7 +310,7 @@ class SemanticService:
         started = time.monotonic()
         try:
             reply = runner.call(GEOMETRY_CONTACTS, RegionContactsRequest(radius_vox=self.merge_params.merge_contact_radius_vox),
-                                timeout_s=self.section.render_timeout_s)
+                                timeout_s=self.section.contacts_timeout_s)
         except QueryError as exc:
             logger.warning("semantic: merge pass skipped: geometry did not give region contacts (%s)", exc)
             runner.stats.incr(SemanticCounter.MERGE_FAILURES)

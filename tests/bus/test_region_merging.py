@@ -179,7 +179,8 @@ def test_a_merge_pass_without_geometry_is_counted_and_mapping_goes_on() -> None:
     """No geometry on the bus: the pass's contacts request times out; merge_failures counts it and
     the dictionary is unchanged."""
     map_id = unique_map_id("merge-nogeo")
-    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"select": "latest", "recover_timeout_s": 0, "render_timeout_s": 0.5},
+    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"select": "latest", "recover_timeout_s": 0, "render_timeout_s": 0.5,
+                                                                       "contacts_timeout_s": 0.5},
                       port=free_port(), mode="peer")
     service = SemanticService(sem_cfg, encoder=SplittingEncoder(split_on=[]))
     with ServiceThread(service, sem_cfg, "semantic") as semantic:
