@@ -26,6 +26,7 @@ from openfusion.wire.schemas import DictionaryRequest, RgbdFrame, SemanticUpdate
 pytestmark = pytest.mark.timeout(180)
 
 WORLD = SyntheticWorld(0)
+PROBE_KEY = "0/openfusion/probe"  # not a topic: it shows the robot's subscription is routed
 TEXT = make_text_encoder("hash")
 
 
@@ -81,6 +82,9 @@ def test_ros_publish_once_sends_the_answer_and_the_map_in_the_rmw_zenoh_layout()
         sub = robot.declare_subscriber("0/openfusion/**", lambda s: got.append(
             (str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes() if s.attachment else None)))
         closers.append(sub.undeclare)
+        # The router knows the robot's subscription before the command publishes (--once sends
+        # each message once): a probe put through the router reaches it.
+        wait_until(lambda: sem.put(PROBE_KEY, b"probe") or any(k == PROBE_KEY for k, _p, _a in got), timeout_s=30)
         from openfusion.client import OpenFusionClient
 
         with OpenFusionClient.from_config(ServiceConfig(**cfg("client")), timeout_s=20.0) as probe:
@@ -88,12 +92,12 @@ def test_ros_publish_once_sends_the_answer_and_the_map_in_the_rmw_zenoh_layout()
         code = main(["ros-publish", "table", "--once", "--layout", "rmw_zenoh", "--map-cloud", "--top-k", "1",
                      "--map", map_id, "--mode", "client", "--connect", endpoint, "--no-multicast"])
         assert code == 0
-        wait_until(lambda: len(got) >= 3, timeout_s=30)
+        wait_until(lambda: len([g for g in got if g[0] != PROBE_KEY]) >= 3, timeout_s=30)
     finally:
         for close in reversed(closers):
             close()
     ts = get_typestore(Stores.ROS2_JAZZY)
-    by_key = {key: (payload, att) for key, payload, att in got}
+    by_key = {key: (payload, att) for key, payload, att in got if key != PROBE_KEY}
     k_points = topic_key("/openfusion/query/points", layout="rmw_zenoh", typename="sensor_msgs/msg/PointCloud2")
     k_markers = topic_key("/openfusion/query/markers", layout="rmw_zenoh", typename="visualization_msgs/msg/MarkerArray")
     k_map = topic_key("/openfusion/map/points", layout="rmw_zenoh", typename="sensor_msgs/msg/PointCloud2")
