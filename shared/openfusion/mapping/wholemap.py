@@ -35,7 +35,9 @@ Tile = tuple[int, int, int]
 #: the size :mod:`openfusion.mapping.tilereadouts` measured (+69 MiB of RssAnon per chunk on the
 #: 10-room building, +122 MiB at 2,048), so a query's points stay within the budget's overhead.
 CHUNK_BLOCKS = 1024
-_TILE_CACHE = 48
+#: Decoded stored tiles kept for the halos of the next chunks, bounded by their blocks (a tile
+#: holds up to 512 blocks, 4 MiB: 48 whole tiles, the bound before, could hold 190 MiB).
+_CACHE_BLOCKS = 2 * CHUNK_BLOCKS
 
 
 class _TileSource:
@@ -46,6 +48,7 @@ class _TileSource:
         self.pager = pager
         self.groups = pager._resident_groups()
         self.cache: OrderedDict[Tile, tuple[np.ndarray, dict[str, np.ndarray]]] = OrderedDict()
+        self.cached_blocks = 0
 
     def tiles(self) -> list[Tile]:
         return sorted(set(self.groups) | set(self.pager.stored_blocks))
@@ -65,8 +68,10 @@ class _TileSource:
         if hit is None:
             hit = self.pager._read(tile)
             self.cache[tile] = hit
-            while len(self.cache) > _TILE_CACHE:
-                self.cache.popitem(last=False)
+            self.cached_blocks += len(hit[0])
+            while self.cached_blocks > _CACHE_BLOCKS and len(self.cache) > 1:
+                _t, (old_coords, _raw) = self.cache.popitem(last=False)
+                self.cached_blocks -= len(old_coords)
         else:
             self.cache.move_to_end(tile)
         return hit
