@@ -205,6 +205,29 @@ class Queryable(Generic[M]):
             self._thread.join(timeout_s)
 
 
+#: A query that came back with no reply at all is asked again after this pause, for this long (:func:`get`).
+_RETRY_UNANSWERED_PAUSE_S = 0.05
+_RETRY_UNANSWERED_FOR_S = 0.5
+
+
+def _first_reply(key: str, reply: zenoh.Reply, reply_model: type[M], *, max_bytes: int,
+                 max_array_elements: int) -> M:
+    """The reply as ``reply_model``; QueryError for an error reply or one that does not decode."""
+    if reply.ok is not None:
+        try:
+            return decode(reply.ok.payload, expected=reply_model, max_bytes=max_bytes,
+                          max_array_elements=max_array_elements)
+        except DecodeError as exc:
+            raise QueryError(key, f"bad_reply:{exc.reason}", str(exc)) from None
+    err = reply.err
+    try:
+        error = decode(err.payload, expected=ErrorReply)
+    except DecodeError:
+        text = err.payload.to_bytes()[:300].decode("utf-8", "replace")
+        raise QueryError(key, "error", text) from None
+    raise QueryError(key, error.code, error.reason)
+
+
 def _service_hint(key: str) -> str:
     parts = key.split("/")
     return parts[-2] if len(parts) >= 2 else key
@@ -226,27 +249,26 @@ def get(
     Raises :class:`QueryError`: with the remote ``code``/``reason`` when it answered
     ``reply_err``; ``bad_reply:<reason>`` when the reply does not decode; ``timeout`` ("no
     service answered on KEY within T s: is the SERVICE service running?") when nobody answered.
+    A query that ends with no reply at all before its timeout is asked again for up to 0.5 s (the
+    queryable it went to was going away: another one of several answers).
     """
     payload = encode(request, max_bytes=max_bytes)
-    try:
-        replies = session.get(key, payload=payload, timeout=timeout_s)
-    except zenoh.ZError as exc:
-        raise QueryError(key, "bus_error", f"cannot send the query: {exc}") from None
-    for reply in replies:
-        if reply.ok is not None:
-            try:
-                return decode(
-                    reply.ok.payload, expected=reply_model, max_bytes=max_bytes, max_array_elements=max_array_elements
-                )
-            except DecodeError as exc:
-                raise QueryError(key, f"bad_reply:{exc.reason}", str(exc)) from None
-        err = reply.err
+    started = time.monotonic()
+    deadline = started + timeout_s
+    while True:
         try:
-            error = decode(err.payload, expected=ErrorReply)
-        except DecodeError:
-            text = err.payload.to_bytes()[:300].decode("utf-8", "replace")
-            raise QueryError(key, "error", text) from None
-        raise QueryError(key, error.code, error.reason)
+            replies = session.get(key, payload=payload, timeout=max(deadline - time.monotonic(), 0.001))
+        except zenoh.ZError as exc:
+            raise QueryError(key, "bus_error", f"cannot send the query: {exc}") from None
+        for reply in replies:
+            return _first_reply(key, reply, reply_model, max_bytes=max_bytes, max_array_elements=max_array_elements)
+        # No reply at all, well before the timeout: the query went to a queryable that is going
+        # away (one of several query services closing: Zenoh finalizes the query unanswered) or to
+        # none. Ask again for a moment, so another instance answers (services/query/instances.py).
+        now = time.monotonic()
+        if now - started >= _RETRY_UNANSWERED_FOR_S or deadline - now < 2 * _RETRY_UNANSWERED_PAUSE_S:
+            break
+        time.sleep(_RETRY_UNANSWERED_PAUSE_S)
     hint = service or _service_hint(key)
     raise QueryError(
         key, "timeout", f"no service answered on {key} within {timeout_s:g} s: is the {hint} service running?"
