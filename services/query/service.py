@@ -610,10 +610,10 @@ class QueryService:
         set_torch_threads(self.section.torch_threads)
         runner.subscriber(DICTIONARY_DELTA, self.on_delta, queue_size=256)
         self.resync()
-        runner.queryable(QUERY_TEXT, self.handle_text)
-        runner.queryable(QUERY_TEXT_BATCH, self.handle_text_batch)
-        runner.queryable(QUERY_IMAGE, self.handle_image)
-        runner.queryable(QUERY_POINT, self.handle_point)
+        # several query services may declare these (services/query/instances.py): left to the session's close
+        for endpoint, handler in ((QUERY_TEXT, self.handle_text), (QUERY_TEXT_BATCH, self.handle_text_batch),
+                                  (QUERY_IMAGE, self.handle_image), (QUERY_POINT, self.handle_point)):
+            runner.queryable(endpoint, handler, undeclare_on_close=False)
         runner.stats.set(QueryCounter.REGIONS, len(self.replica))
 
     def loop(self, runner: ServiceRunner) -> None:

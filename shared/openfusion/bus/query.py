@@ -85,8 +85,10 @@ class Queryable(Generic[M]):
         queue_size: int = 256,
         max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
         max_array_elements: int = DEFAULT_MAX_ARRAY_ELEMENTS,
+        undeclare_on_close: bool = True,
     ) -> None:
         self.key = key
+        self._undeclare_on_close = undeclare_on_close
         self.request_model = request_model
         self.handler = handler
         self.reply_model = reply_model or Message
@@ -189,11 +191,18 @@ class Queryable(Generic[M]):
         self._count("answered")
 
     def close(self, *, timeout_s: float = 5.0) -> None:
-        """Undeclare, answer nothing more, and finalize queries still waiting (callers see no reply)."""
-        try:
-            self._qbl.undeclare()
-        except zenoh.ZError as exc:
-            logger.debug("queryable %s already undeclared: %s", self.key, exc)
+        """Undeclare, answer nothing more, and finalize queries still waiting (callers see no reply).
+        With ``undeclare_on_close=False`` the declaration stays until the session closes (queries
+        arriving meanwhile are finalized unanswered, which :func:`get` asks again): one of several
+        ``complete`` queryables on a key must go that way, because a router (eclipse-zenoh 1.10)
+        keeps routing BEST_MATCHING queries to an undeclared complete queryable whose session is
+        still open and stops answering the key altogether, while a closed session's queryables are
+        routed around at once (tests/bus/test_query_services.py)."""
+        if self._undeclare_on_close:
+            try:
+                self._qbl.undeclare()
+            except zenoh.ZError as exc:
+                logger.debug("queryable %s already undeclared: %s", self.key, exc)
         with self._cond:
             self._closed = True
             pending = list(self._queue)
@@ -273,6 +282,42 @@ def get(
     raise QueryError(
         key, "timeout", f"no service answered on {key} within {timeout_s:g} s: is the {hint} service running?"
     )
+
+
+def get_all(
+    session: zenoh.Session,
+    key: str,
+    request: Message,
+    reply_model: type[M],
+    *,
+    timeout_s: float = 5.0,
+    max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+    max_array_elements: int = DEFAULT_MAX_ARRAY_ELEMENTS,
+) -> list[M | QueryError]:
+    """EVERY reply to one query on ``key`` (what :func:`get` returns the first of), each decoded
+    or a :class:`QueryError`, waiting for the query to finish; asked again like :func:`get` when
+    none came. For counting: several services behind one key must answer a request once
+    (``bench/bench_query_load.py``, ``tests/bus/test_query_services.py``)."""
+    payload = encode(request, max_bytes=max_bytes)
+    started = time.monotonic()
+    deadline = started + timeout_s
+    while True:
+        try:
+            replies = list(session.get(key, payload=payload, timeout=max(deadline - time.monotonic(), 0.001)))
+        except zenoh.ZError as exc:
+            raise QueryError(key, "bus_error", f"cannot send the query: {exc}") from None
+        now = time.monotonic()
+        if replies or now - started >= _RETRY_UNANSWERED_FOR_S or deadline - now < 2 * _RETRY_UNANSWERED_PAUSE_S:
+            break
+        time.sleep(_RETRY_UNANSWERED_PAUSE_S)
+    out: list[M | QueryError] = []
+    for reply in replies:
+        try:
+            out.append(_first_reply(key, reply, reply_model, max_bytes=max_bytes,
+                                    max_array_elements=max_array_elements))
+        except QueryError as exc:
+            out.append(exc)
+    return out
 
 
 def call(
