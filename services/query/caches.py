@@ -13,7 +13,9 @@ relevancy of the 32-region match pool < 0.5 ms, reply encoding < 0.5 ms. So:
 - :class:`SummaryDerived`: what is computed from one set of region summaries alone: the boxes of
   answerable regions (sorted once) and each region's nearby list (memoised per key). It hangs on
   the :class:`~services.query.service.RegionSummaries` object, so new summaries (a fetch) start
-  from an empty one: invalidation is the replacement itself.
+  from an empty one: invalidation is the replacement itself. Summaries fetched again from an
+  unchanged map (the background refresh runs every second while queries come) are compared
+  array by array with the last ones and, when equal, keep their caches.
 - :class:`RankCache`: the candidate lists (top-k by cosine) per text, valid for ONE dictionary
   state (the replica's epoch and version): a delta bumps the version, a snapshot the epoch, and
   the next lookup empties it.

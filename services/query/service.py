@@ -206,6 +206,13 @@ class RegionSummaries:
     def __len__(self) -> int:
         return len(self._index)
 
+    def same_boxes(self, other: RegionSummaries) -> bool:
+        """Whether ``other`` lists the same regions with the same boxes and counts (what
+        :class:`~services.query.caches.SummaryDerived` is computed from)."""
+        return (np.array_equal(self._keys, other._keys) and np.array_equal(self._bbox_min, other._bbox_min)
+                and np.array_equal(self._bbox_max, other._bbox_max)
+                and np.array_equal(self._num_points, other._num_points))
+
     def covers(self, key: int) -> bool:
         """Whether the summary knows ``key`` (listed, or below the horizon: no surface points)."""
         return key < self.key_horizon or key in self._index
@@ -393,7 +400,10 @@ class QueryService:
                     "query: no region summaries from geometry (%s); answering from the cache", exc.reason
                 )
                 return False
-            self.summaries = RegionSummaries(reply, asked_at)
+            fresh_summaries = RegionSummaries(reply, asked_at)
+            if cache is not None and fresh_summaries.same_boxes(cache):  # an unchanged map: keep its nearby lists
+                fresh_summaries.derived = cache.derived
+            self.summaries = fresh_summaries
             self._summary_failed_at = None
             self._runner.stats.incr(QueryCounter.SUMMARY_FETCHES)
             return True

@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 
+from openfusion.bus.stats import ServiceStats
 from openfusion.encoders import make_text_encoder
 from openfusion.mapping import RegionDictionary
 from openfusion.mapping.relations import nearby_regions
@@ -33,14 +34,17 @@ def _dictionary(n: int, seed: int = 0) -> RegionDictionary:
     return d
 
 
-def _summaries(n: int, seed: int = 0, *, shift_m: float = 0.0) -> RegionSummaries:
+def _reply(n: int, seed: int = 0, *, shift_m: float = 0.0) -> RegionSummaryReply:
     """Boxes of ``n`` regions packed in a 4 m room (so each has neighbours), 80 points each."""
     rng = np.random.default_rng(seed)
     lo = (rng.uniform(0, 4, (n, 3)) + shift_m).astype(np.float32)
     hi = (lo + rng.uniform(0.1, 0.6, (n, 3))).astype(np.float32)
-    reply = RegionSummaryReply(map_version=1, key_horizon=n, age_s=0.0, keys=np.arange(n, dtype=np.int32),
-                               bbox_min=lo, bbox_max=hi, num_points=np.full(n, 80, np.int64), centroid=(lo + hi) / 2)
-    return RegionSummaries(reply, time.monotonic())
+    return RegionSummaryReply(map_version=1, key_horizon=n, age_s=0.0, keys=np.arange(n, dtype=np.int32),
+                              bbox_min=lo, bbox_max=hi, num_points=np.full(n, 80, np.int64), centroid=(lo + hi) / 2)
+
+
+def _summaries(n: int, seed: int = 0, *, shift_m: float = 0.0) -> RegionSummaries:
+    return RegionSummaries(_reply(n, seed, shift_m=shift_m), time.monotonic())
 
 
 def _service(dictionary: RegionDictionary, *, cache: int) -> QueryService:
@@ -141,3 +145,35 @@ def test_rank_cache_holds_one_state() -> None:
     assert cache.get((1, 4), "chair", 32) is None and len(cache) == 0 and cache.invalidations == 1
     cache.put(None, "chair", 32, [(1, 0.9)])  # no dictionary: nothing kept
     assert cache.get(None, "chair", 32) is None and len(cache) == 0
+
+
+class _Geometry:
+    """A runner whose geometry answers the summaries it is given (refresh_summaries' one call)."""
+
+    def __init__(self) -> None:
+        self.reply: RegionSummaryReply | None = None
+        self.stats = ServiceStats()
+
+    def call(self, endpoint: object, request: object, *, timeout_s: float) -> RegionSummaryReply:
+        assert self.reply is not None
+        return self.reply
+
+
+def test_equal_summaries_keep_their_nearby_lists_and_changed_ones_do_not() -> None:
+    """The background refresh fetches summaries every second: an unchanged map keeps its memo,
+    a changed one starts afresh (and answers from the new boxes)."""
+    d = _dictionary(300)
+    svc = _service(d, cache=64)
+    geometry = _Geometry()
+    svc._runner = geometry  # type: ignore[assignment]
+    geometry.reply = _reply(300, seed=0)
+    assert svc.refresh_summaries()
+    svc.handle_text(TextQuery(text="chair", top_k=5))
+    memo = svc.summaries.derived
+    assert memo.nearby_misses > 0
+    assert svc.refresh_summaries()  # the same map again
+    assert svc.summaries.derived is memo
+    geometry.reply = _reply(300, seed=0, shift_m=0.01)  # every box moved by 1 cm
+    assert svc.refresh_summaries()
+    assert svc.summaries.derived is not memo
+    assert _hits(svc.handle_text(TextQuery(text="chair", top_k=5))) == _uncached(d, 0, "chair", shift_m=0.01)
