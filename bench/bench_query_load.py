@@ -10,8 +10,11 @@ one GIL), each sending text queries (top 5, relevancy and nearby regions in ever
 the other for ``--seconds`` (bounded: at most ``--max-requests`` each), the texts drawn from a
 pool of ``--texts`` (default 100: a fleet asks the same few things again and again).
 
-Every request is sent with :func:`openfusion.bus.get_all`, which waits for EVERY reply of the
-query: 0 replies = lost, 2 or more = duplicated (both must be 0), error replies counted apart.
+Each client asks as :class:`~openfusion.client.OpenFusionClient` does: the live query services
+in turn by name (:mod:`openfusion.bus.instances`), the shared key when the one picked is gone;
+with two services also a row with the shared key only (Zenoh's BEST_MATCHING picks one). Every
+request is sent with :func:`openfusion.bus.get_all`, which waits for EVERY reply of the query:
+0 replies = lost, 2 or more = duplicated (both must be 0), error replies counted apart.
 Printed: a row per number of query services with replies/s, p50/p99 latency, lost, duplicated,
 errors, the share each service answered (its ``queries`` counter), and replies/s against the
 one-service row of the same run.
@@ -35,10 +38,11 @@ import numpy as np
 from openfusion.app.launcher import Cluster, wait_for_services
 from openfusion.bus import Queryable, QueryError, collect_health, get_all, open_session
 from openfusion.bus import free_loopback_port as free_port
+from openfusion.bus.instances import InstancePicker
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.mapping import RegionDictionary
-from openfusion.wire.endpoints import GEOMETRY_REGIONS, QUERY_TEXT, SEMANTIC_DICTIONARY
+from openfusion.wire.endpoints import GEOMETRY_REGIONS, QUERY_TEXT, SEMANTIC_DICTIONARY, is_query_service
 from openfusion.wire.schemas import (
     DictionaryRequest,
     QueryReply,
@@ -58,12 +62,13 @@ def _client_config(endpoint: str) -> ServiceConfig:
 
 
 def _client_process(endpoint: str, n_clients: int, first_id: int, seconds: float, max_requests: int,
-                    texts: list[str], start_at: float, out: mp.Queue) -> None:
+                    texts: list[str], start_at: float, spread: bool, out: mp.Queue) -> None:
     """``n_clients`` client threads, each with its own session; puts (latencies ms, replies per
     request, errors) on ``out``."""
     config = _client_config(endpoint)
     key = QUERY_TEXT.key(config.keys)
     sessions = [open_session(config) for _ in range(n_clients)]
+    pickers = [InstancePicker(s, config.keys, is_query_service) if spread else None for s in sessions]
     lat: list[float] = []
     counts: list[int] = []
     errors: list[str] = []
@@ -77,8 +82,16 @@ def _client_process(endpoint: str, n_clients: int, first_id: int, seconds: float
         n = 0
         while time.monotonic() < stop_at and n < max_requests:
             text = texts[int(rng.integers(len(texts)))]
+            request = TextQuery(text=text, top_k=5)
             t = time.perf_counter()
-            got = get_all(sessions[i], key, TextQuery(text=text, top_k=5), QueryReply, timeout_s=20.0)
+            # as OpenFusionClient asks: a live query service by name in turn, the shared key when it is gone
+            name = pickers[i].pick() if pickers[i] is not None else None
+            got = [] if name is None else get_all(sessions[i], QUERY_TEXT.instance_key(config.keys, name), request,
+                                                  QueryReply, timeout_s=20.0)
+            if name is not None and not got:
+                pickers[i].forget(name)  # type: ignore[union-attr]
+            if not got:
+                got = get_all(sessions[i], key, request, QueryReply, timeout_s=20.0)
             mine_lat.append((time.perf_counter() - t) * 1e3)
             ok = [r for r in got if isinstance(r, QueryReply)]
             mine_counts.append(len(ok))
@@ -107,7 +120,7 @@ def _summaries(rng: np.random.Generator) -> RegionSummaryReply:
                               num_points=np.full(N_REGIONS, 200, np.int64), centroid=(lo + hi) / 2)
 
 
-def load(endpoint: str, args: argparse.Namespace, texts: list[str]) -> dict:
+def load(endpoint: str, args: argparse.Namespace, texts: list[str], *, spread: bool) -> dict:
     """One phase: every client process started, all clients begin together; merged results."""
     ctx = mp.get_context("spawn")
     out: mp.Queue = ctx.Queue()
@@ -118,7 +131,7 @@ def load(endpoint: str, args: argparse.Namespace, texts: list[str]) -> dict:
     first = 0
     for n in per:
         p = ctx.Process(target=_client_process, args=(endpoint, n, first, args.seconds, args.max_requests, texts,
-                                                      start_at, out))
+                                                      start_at, spread, out))
         p.start()
         procs.append(p)
         first += n
@@ -199,13 +212,15 @@ def main() -> None:
                 time.sleep(0.2)
             for text in texts:  # warm: every service's first queries are not what is measured
                 client.query_text(text, top_k=5)
-            before = served()
-            result = load(endpoint, args, texts)
-            time.sleep(1.5)  # one health period: the counters include the last requests
-            after = served()
-            result["services"] = n_services
-            result["share"] = {n: after[n] - before[n] for n in names}
-            results.append(result)
+            for spread in (True, False) if n_services > 1 else (True,):
+                before = served()
+                result = load(endpoint, args, texts, spread=spread)
+                time.sleep(1.5)  # one health period: the counters include the last requests
+                after = served()
+                result["services"] = n_services
+                result["how"] = "each client asks them in turn" if spread else "shared key only (Zenoh BEST_MATCHING)"
+                result["share"] = {n: after[n] - before[n] for n in names}
+                results.append(result)
     finally:
         client.close()
         cluster.stop()
@@ -219,12 +234,12 @@ def main() -> None:
           f"{args.seconds:g} s per row, {args.texts} texts, {N_REGIONS:,} regions, top 5 with relevancy and "
           f"nearby regions; {os.cpu_count()} CPUs; load average {load_before:.2f} at start, "
           f"{os.getloadavg()[0]:.2f} at end)\n")
-    print("| query services | requests | replies/s | ratio vs 1 service | p50 ms | p99 ms | lost | duplicated "
+    print("| query services | requests sent | requests | replies/s | ratio vs 1 service | p50 ms | p99 ms | lost | duplicated "
           "| errors | answered by |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|")
+    print("|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     for r in results:
         share = ", ".join(f"{n} {int(v)}" for n, v in r["share"].items())
-        print(f"| {r['services']} | {r['requests']} | {r['replies_per_s']:.0f} | {r['replies_per_s'] / base:.2f} "
+        print(f"| {r['services']} | {r['how']} | {r['requests']} | {r['replies_per_s']:.0f} | {r['replies_per_s'] / base:.2f} "
               f"| {r['p50']:.1f} | {r['p99']:.1f} | {r['lost']} | {r['duplicated']} | {r['errors']} | {share} |")
     for r in results:
         if r["first_error"]:

@@ -17,13 +17,9 @@ tested in ``tests/bus/test_query_services.py``.
 
 from __future__ import annotations
 
+from openfusion.wire.endpoints import is_query_service, query_service_name
+
 #: Most query services numbered on one map (a sanity bound on ``query.instance``).
 MAX_QUERY_INSTANCES = 64
-SERVICE = "query"
 
-
-def query_service_name(instance: int | None) -> str:
-    """The service name (health, liveliness) of query service ``instance``: ``query`` for none or 1."""
-    if instance is None or int(instance) <= 1:
-        return SERVICE
-    return f"{SERVICE}-{int(instance)}"
+__all__ = ["MAX_QUERY_INSTANCES", "is_query_service", "query_service_name"]

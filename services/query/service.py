@@ -624,6 +624,9 @@ class QueryService:
         for endpoint, handler in ((QUERY_TEXT, self.handle_text), (QUERY_TEXT_BATCH, self.handle_text_batch),
                                   (QUERY_IMAGE, self.handle_image), (QUERY_POINT, self.handle_point)):
             runner.queryable(endpoint, handler, undeclare_on_close=False)
+            # ... and on this instance's own key, where clients that spread their requests ask it by name
+            runner.queryable_at(endpoint.instance_key(runner.keys, runner.service), endpoint.request, endpoint.reply,
+                                handler, undeclare_on_close=False)
         runner.stats.set(QueryCounter.REGIONS, len(self.replica))
 
     def loop(self, runner: ServiceRunner) -> None:
