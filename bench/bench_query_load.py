@@ -62,7 +62,7 @@ def _client_config(endpoint: str) -> ServiceConfig:
 
 
 def _client_process(endpoint: str, n_clients: int, first_id: int, seconds: float, max_requests: int,
-                    texts: list[str], start_at: float, spread: bool, out: mp.Queue) -> None:
+                    n_texts: int, start_at: float, spread: bool, out: mp.Queue) -> None:
     """``n_clients`` client threads, each with its own session; puts (latencies ms, replies per
     request, errors) on ``out``."""
     config = _client_config(endpoint)
@@ -81,7 +81,7 @@ def _client_process(endpoint: str, n_clients: int, first_id: int, seconds: float
         stop_at = time.monotonic() + seconds
         n = 0
         while time.monotonic() < stop_at and n < max_requests:
-            text = texts[int(rng.integers(len(texts)))]
+            text = f"object number {int(rng.integers(n_texts))}"
             request = TextQuery(text=text, top_k=5)
             t = time.perf_counter()
             # as OpenFusionClient asks: a live query service by name in turn, the shared key when it is gone
@@ -120,7 +120,7 @@ def _summaries(rng: np.random.Generator) -> RegionSummaryReply:
                               num_points=np.full(N_REGIONS, 200, np.int64), centroid=(lo + hi) / 2)
 
 
-def load(endpoint: str, args: argparse.Namespace, texts: list[str], *, spread: bool) -> dict:
+def load(endpoint: str, args: argparse.Namespace, *, spread: bool) -> dict:
     """One phase: every client process started, all clients begin together; merged results."""
     ctx = mp.get_context("spawn")
     out: mp.Queue = ctx.Queue()
@@ -130,7 +130,7 @@ def load(endpoint: str, args: argparse.Namespace, texts: list[str], *, spread: b
     procs = []
     first = 0
     for n in per:
-        p = ctx.Process(target=_client_process, args=(endpoint, n, first, args.seconds, args.max_requests, texts,
+        p = ctx.Process(target=_client_process, args=(endpoint, n, first, args.seconds, args.max_requests, args.texts,
                                                       start_at, spread, out))
         p.start()
         procs.append(p)
@@ -171,7 +171,7 @@ def main() -> None:
     args.seconds = args.seconds or (3.0 if args.quick else 10.0)
     if not 1 <= args.clients <= 256 or not 1 <= args.client_processes <= args.clients:
         parser.error("--clients must be 1..256 and --client-processes 1..clients")
-    texts = [f"object number {i}" for i in range(args.texts)]
+    warm_texts = [f"object number {i}" for i in range(min(args.texts, 100))]
     rng = np.random.default_rng(0)
     dictionary = RegionDictionary(MINILM_SPACE, MINILM_DIM)
     with dictionary.batch():
@@ -191,18 +191,19 @@ def main() -> None:
     cluster = Cluster(MAP_ID, endpoint, tmp / "logs")
     load_before = os.getloadavg()[0]
     results = []
+    names: list[str] = []
+
+    def served() -> dict[str, float]:
+        health = collect_health(client.session, client.keys, timeout_s=1.0)
+        return {n: float(health[n].counters.get("queries", 0.0)) if n in health else float("nan") for n in names}
+
     try:
-        names: list[str] = []
         for n_services in (1, 2):
             name = "query" if n_services == 1 else f"query-{n_services}"
             cluster.start(name, [] if n_services == 1 else ["--instance", str(n_services)], service="query")
             names.append(name)
             wait_for_services(client, cluster, set(names), 240)
 
-            def served() -> dict[str, float]:
-                health = collect_health(client.session, client.keys, timeout_s=1.0)
-                return {n: float(health[n].counters.get("queries", 0.0)) if n in health else float("nan")
-                        for n in names}
 
             deadline = time.monotonic() + 120
             while any(v < N_REGIONS for v in (float(collect_health(client.session, client.keys, timeout_s=1.0)
@@ -210,17 +211,31 @@ def main() -> None:
                 if time.monotonic() > deadline:
                     raise RuntimeError("the query services did not load the dictionary")
                 time.sleep(0.2)
-            for text in texts:  # warm: every service's first queries are not what is measured
+            for text in warm_texts:  # warm: every service's first queries are not what is measured
                 client.query_text(text, top_k=5)
             for spread in (True, False) if n_services > 1 else (True,):
                 before = served()
-                result = load(endpoint, args, texts, spread=spread)
+                result = load(endpoint, args, spread=spread)
                 time.sleep(1.5)  # one health period: the counters include the last requests
                 after = served()
                 result["services"] = n_services
-                result["how"] = "each client asks them in turn" if spread else "shared key only (Zenoh BEST_MATCHING)"
+                result["how"] = ("one service" if n_services == 1 else "each client asks them in turn" if spread
+                                 else "shared key only (Zenoh BEST_MATCHING)")
                 result["share"] = {n: after[n] - before[n] for n in names}
                 results.append(result)
+        # the one-service baseline again, the second service stopped: how far the machine drifted
+        cluster.stop("query-2")
+        names.remove("query-2")
+        deadline = time.monotonic() + 60
+        while "query-2" in client.live_services(timeout_s=1.0) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        before = served()
+        result = load(endpoint, args, spread=True)
+        time.sleep(1.5)
+        after = served()
+        result.update(services=1, how="again, after the two-service rows",
+                      share={n: after[n] - before[n] for n in names})
+        results.append(result)
     finally:
         client.close()
         cluster.stop()
@@ -229,12 +244,12 @@ def main() -> None:
         stand_in.close()
         router.close()
 
-    base = results[0]["replies_per_s"]
+    base = results[0]["replies_per_s"]  # the first one-service row
     print(f"\n## Query services under load ({args.clients} clients in {args.client_processes} processes, "
           f"{args.seconds:g} s per row, {args.texts} texts, {N_REGIONS:,} regions, top 5 with relevancy and "
           f"nearby regions; {os.cpu_count()} CPUs; load average {load_before:.2f} at start, "
           f"{os.getloadavg()[0]:.2f} at end)\n")
-    print("| query services | requests sent | requests | replies/s | ratio vs 1 service | p50 ms | p99 ms | lost | duplicated "
+    print("| query services | how requests are sent | requests | replies/s | ratio vs 1 service | p50 ms | p99 ms | lost | duplicated "
           "| errors | answered by |")
     print("|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     for r in results:

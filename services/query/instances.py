@@ -6,13 +6,27 @@ run --query-services N``) numbers them: instance 1 (or none) is ``query``, the o
 ``query-2`` … ``query-N``: the names their health and liveliness use (``openfusion health``
 lists each), while all of them declare the same queryables (``…/query/text`` and the others).
 
-Answered once, by Zenoh: every query queryable is declared ``complete`` and clients ``get`` with
-Zenoh's default target ``BEST_MATCHING``, which delivers a query to ONE complete queryable
-(eclipse-zenoh 1.x: the nearest; on one router, the same one for every client), so a request is
-computed once and answered once, never by both. When that query service's session goes (closed
-or killed: the router drops its face), the next request goes to another one; nothing is
-replicated or elected by us. Measured with 32 concurrent clients in ``bench/bench_query_load.py``;
-tested in ``tests/bus/test_query_services.py``.
+Answered once, and spread:
+
+- every query queryable is declared ``complete`` on the shared key (``…/query/text``), and a
+  ``get`` there uses Zenoh's default target ``BEST_MATCHING``, which delivers it to ONE complete
+  queryable: computed once, answered once. On one router that is always the same service
+  (eclipse-zenoh 1.10; across routers, each router's nearest), so the shared key alone gives a hot
+  standby, not more throughput;
+- each query service also declares every endpoint on its own instance key
+  (``…/query/text/query-2``, :meth:`~openfusion.wire.endpoints.Endpoint.instance_key`), and
+  :class:`~openfusion.client.OpenFusionClient` takes the live query services (liveliness,
+  refreshed every 2 s) in turn (:mod:`openfusion.bus.instances`): one key per request, one
+  queryable behind it. With one query service alive the client uses the shared key as before;
+- a query service that goes away: killed, its router drops the session and routes the shared key
+  to another one at once; stopped, its query queryables are left to the session's close (not
+  undeclared first: a router keeps routing BEST_MATCHING queries to an undeclared complete
+  queryable while its session lives, measured with zenoh 1.10), and a request that got no reply
+  at all is asked again for up to 0.5 s (:func:`openfusion.bus.get`), on the shared key when the
+  instance asked by name is gone.
+
+Nothing is replicated or elected by us. Measured with 32 concurrent clients in
+``bench/bench_query_load.py``; tested in ``tests/bus/test_query_services.py``.
 """
 
 from __future__ import annotations
