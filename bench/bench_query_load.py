@@ -8,7 +8,8 @@ second). ``--clients`` concurrent clients (default 32), each its own Zenoh sessi
 ``--client-processes`` processes (default 4, so the clients' own Python does not serialise on
 one GIL), each sending text queries (top 5, relevancy and nearby regions in every hit) one after
 the other for ``--seconds`` (bounded: at most ``--max-requests`` each), the texts drawn from a
-pool of ``--texts`` (default 100: a fleet asks the same few things again and again).
+pool of ``--texts`` (default 100: a fleet asks the same few things again and again, so answers
+come from the caches; ``--texts 1000000``: every text new, each costs an encoder call).
 
 Each client asks as :class:`~openfusion.client.OpenFusionClient` does: the live query services
 in turn by name (:mod:`openfusion.bus.instances`), the shared key when the one picked is gone;
@@ -17,10 +18,13 @@ request is sent with :func:`openfusion.bus.get_all`, which waits for EVERY reply
 0 replies = lost, 2 or more = duplicated (both must be 0), error replies counted apart.
 Printed: a row per number of query services with replies/s, p50/p99 latency, lost, duplicated,
 errors, the share each service answered (its ``queries`` counter), and replies/s against the
-one-service row of the same run.
+one-service row of the same run; with two services the shared-key-only and the spread rows are
+taken in turn (``--rounds``) and their medians compared (the same processes: only where the
+requests go differs).
 
-    scripts/dev.sh exec python bench/bench_query_load.py --quick   # 3 s per phase
-    scripts/dev.sh exec python bench/bench_query_load.py           # 10 s per phase
+    scripts/dev.sh exec python bench/bench_query_load.py --quick   # 3 s per row
+    scripts/dev.sh exec python bench/bench_query_load.py           # 10 s per row
+    scripts/dev.sh exec python bench/bench_query_load.py --quick --texts 1000000
 """
 
 from __future__ import annotations
@@ -166,6 +170,7 @@ def main() -> None:
     parser.add_argument("--client-processes", type=int, default=4)
     parser.add_argument("--seconds", type=float, default=None, help="per phase (default 10, --quick 3)")
     parser.add_argument("--max-requests", type=int, default=2_000, help="most requests per client per phase")
+    parser.add_argument("--rounds", type=int, default=2, help="shared-key and spread rows taken in turn")
     parser.add_argument("--texts", type=int, default=100, help="distinct query texts the clients draw from")
     args = parser.parse_args()
     args.seconds = args.seconds or (3.0 if args.quick else 10.0)
@@ -213,29 +218,20 @@ def main() -> None:
                 time.sleep(0.2)
             for text in warm_texts:  # warm: every service's first queries are not what is measured
                 client.query_text(text, top_k=5)
-            for spread in (True, False) if n_services > 1 else (True,):
+            # two services: the shared key only (one of them answers) and spread over both, taken in
+            # turn for --rounds rounds, so a shared machine's drift hits both alike
+            modes = [True] if n_services == 1 else [False, True] * args.rounds
+            for spread in modes:
                 before = served()
                 result = load(endpoint, args, spread=spread)
                 time.sleep(1.5)  # one health period: the counters include the last requests
                 after = served()
                 result["services"] = n_services
+                result["spread"] = spread
                 result["how"] = ("one service" if n_services == 1 else "each client asks them in turn" if spread
-                                 else "shared key only (Zenoh BEST_MATCHING)")
+                                 else "shared key only (Zenoh BEST_MATCHING: one answers)")
                 result["share"] = {n: after[n] - before[n] for n in names}
                 results.append(result)
-        # the one-service baseline again, the second service stopped: how far the machine drifted
-        cluster.stop("query-2")
-        names.remove("query-2")
-        deadline = time.monotonic() + 60
-        while "query-2" in client.live_services(timeout_s=1.0) and time.monotonic() < deadline:
-            time.sleep(0.2)
-        before = served()
-        result = load(endpoint, args, spread=True)
-        time.sleep(1.5)
-        after = served()
-        result.update(services=1, how="again, after the two-service rows",
-                      share={n: after[n] - before[n] for n in names})
-        results.append(result)
     finally:
         client.close()
         cluster.stop()
@@ -256,6 +252,12 @@ def main() -> None:
         share = ", ".join(f"{n} {int(v)}" for n, v in r["share"].items())
         print(f"| {r['services']} | {r['how']} | {r['requests']} | {r['replies_per_s']:.0f} | {r['replies_per_s'] / base:.2f} "
               f"| {r['p50']:.1f} | {r['p99']:.1f} | {r['lost']} | {r['duplicated']} | {r['errors']} | {share} |")
+    two = [r for r in results if r["services"] == 2]
+    spread = np.median([r["replies_per_s"] for r in two if r["spread"]])
+    shared = np.median([r["replies_per_s"] for r in two if not r["spread"]])
+    print(f"\nTwo services, spread over both ÷ shared key only (one answers), medians of {args.rounds} rounds: "
+          f"{spread / shared:.2f} ({spread:.0f} / {shared:.0f} replies/s); lost {sum(r['lost'] for r in results)}, "
+          f"duplicated {sum(r['duplicated'] for r in results)}, errors {sum(r['errors'] for r in results)} in all rows.")
     for r in results:
         if r["first_error"]:
             print(f"\nfirst error with {r['services']} service(s): {r['first_error']}")
