@@ -43,6 +43,7 @@ from openfusion.app.launcher import Cluster, wait_for_services
 from openfusion.bus import Queryable, QueryError, collect_health, get_all, open_session
 from openfusion.bus import free_loopback_port as free_port
 from openfusion.bus.instances import InstancePicker
+from openfusion.bus.query import RETRY_UNANSWERED_S
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.mapping import RegionDictionary
@@ -95,7 +96,8 @@ def _client_process(endpoint: str, n_clients: int, first_id: int, seconds: float
             if name is not None and not got:
                 pickers[i].forget(name)  # type: ignore[union-attr]
             if not got:
-                got = get_all(sessions[i], key, request, QueryReply, timeout_s=20.0)
+                got = get_all(sessions[i], key, request, QueryReply, timeout_s=20.0,
+                              retry_unanswered_s=RETRY_UNANSWERED_S)
             mine_lat.append((time.perf_counter() - t) * 1e3)
             ok = [r for r in got if isinstance(r, QueryReply)]
             mine_counts.append(len(ok))

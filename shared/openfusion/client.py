@@ -42,6 +42,7 @@ from pydantic import ValidationError
 
 from openfusion.bus import QueryError, call, collect_health, get, live_services, open_session
 from openfusion.bus.instances import InstancePicker
+from openfusion.bus.query import RETRY_UNANSWERED_S
 from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.errors import UsageError, UserError
 from openfusion.wire import limits
@@ -226,7 +227,9 @@ class OpenFusionClient:
                 if exc.code != "timeout":
                     raise
                 picker.forget(name)  # type: ignore[union-attr]
-        return call(self.session, self.keys, endpoint, request, timeout_s=timeout_s)
+        # a query left unanswered by a query service going away is asked again for a moment
+        retry = RETRY_UNANSWERED_S if endpoint in QUERY_ENDPOINTS else 0.0
+        return call(self.session, self.keys, endpoint, request, timeout_s=timeout_s, retry_unanswered_s=retry)
 
 
 def _key_list(keys: Sequence[int] | None) -> list[int] | None:

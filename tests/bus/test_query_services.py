@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from openfusion.bus import Queryable, QueryError, get_all, open_session
+from openfusion.bus.query import RETRY_UNANSWERED_S
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.encoders import make_text_encoder
@@ -110,7 +111,8 @@ def test_two_query_services_answer_each_request_once_and_survive_one_closing(bus
                     except QueryError as exc:
                         got = [exc]
                 else:  # the shared key, every Zenoh reply counted: Zenoh sends it to one service
-                    got = get_all(client.session, key, TextQuery(text=text, top_k=3), QueryReply, timeout_s=10.0)
+                    got = get_all(client.session, key, TextQuery(text=text, top_k=3), QueryReply, timeout_s=10.0,
+                                 retry_unanswered_s=RETRY_UNANSWERED_S)
                 ok = [r for r in got if isinstance(r, QueryReply)]
                 with lock:
                     sent[0] += 1

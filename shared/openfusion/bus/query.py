@@ -214,9 +214,11 @@ class Queryable(Generic[M]):
             self._thread.join(timeout_s)
 
 
-#: A query that came back with no reply at all is asked again after this pause, for this long (:func:`get`).
+#: A query that came back with no reply at all is asked again after this pause (:func:`get`
+#: with ``retry_unanswered_s``).
 _RETRY_UNANSWERED_PAUSE_S = 0.05
-_RETRY_UNANSWERED_FOR_S = 0.5
+#: How long clients of several interchangeable services (the query services) ask again.
+RETRY_UNANSWERED_S = 0.5
 
 
 def _first_reply(key: str, reply: zenoh.Reply, reply_model: type[M], *, max_bytes: int,
@@ -252,14 +254,16 @@ def get(
     service: str | None = None,
     max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
     max_array_elements: int = DEFAULT_MAX_ARRAY_ELEMENTS,
+    retry_unanswered_s: float = 0.0,
 ) -> M:
     """Ask the service on ``key`` and return its first reply as ``reply_model``.
 
     Raises :class:`QueryError`: with the remote ``code``/``reason`` when it answered
     ``reply_err``; ``bad_reply:<reason>`` when the reply does not decode; ``timeout`` ("no
     service answered on KEY within T s: is the SERVICE service running?") when nobody answered.
-    A query that ends with no reply at all before its timeout is asked again for up to 0.5 s (the
-    queryable it went to was going away: another one of several answers).
+    ``retry_unanswered_s``: a query that ends with no reply at all before its timeout is asked
+    again, every 50 ms, for up to that long (the queryable it went to was going away, or dropped
+    it: another one of several answers; for requests that may be asked twice, e.g. queries).
     """
     payload = encode(request, max_bytes=max_bytes)
     started = time.monotonic()
@@ -272,10 +276,10 @@ def get(
         for reply in replies:
             return _first_reply(key, reply, reply_model, max_bytes=max_bytes, max_array_elements=max_array_elements)
         # No reply at all, well before the timeout: the query went to a queryable that is going
-        # away (one of several query services closing: Zenoh finalizes the query unanswered) or to
-        # none. Ask again for a moment, so another instance answers (services/query/instances.py).
+        # away (one of several query services closing: Zenoh finalizes the query unanswered) or
+        # dropped it. Ask again for a moment, so another instance answers (services/query/instances.py).
         now = time.monotonic()
-        if now - started >= _RETRY_UNANSWERED_FOR_S or deadline - now < 2 * _RETRY_UNANSWERED_PAUSE_S:
+        if now - started >= retry_unanswered_s or deadline - now < 2 * _RETRY_UNANSWERED_PAUSE_S:
             break
         time.sleep(_RETRY_UNANSWERED_PAUSE_S)
     hint = service or _service_hint(key)
@@ -293,10 +297,11 @@ def get_all(
     timeout_s: float = 5.0,
     max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
     max_array_elements: int = DEFAULT_MAX_ARRAY_ELEMENTS,
+    retry_unanswered_s: float = 0.0,
 ) -> list[M | QueryError]:
     """EVERY reply to one query on ``key`` (what :func:`get` returns the first of), each decoded
     or a :class:`QueryError`, waiting for the query to finish; asked again like :func:`get` when
-    none came. For counting: several services behind one key must answer a request once
+    none came (``retry_unanswered_s``). For counting: several services behind one key must answer a request once
     (``bench/bench_query_load.py``, ``tests/bus/test_query_services.py``)."""
     payload = encode(request, max_bytes=max_bytes)
     started = time.monotonic()
@@ -307,7 +312,7 @@ def get_all(
         except zenoh.ZError as exc:
             raise QueryError(key, "bus_error", f"cannot send the query: {exc}") from None
         now = time.monotonic()
-        if replies or now - started >= _RETRY_UNANSWERED_FOR_S or deadline - now < 2 * _RETRY_UNANSWERED_PAUSE_S:
+        if replies or now - started >= retry_unanswered_s or deadline - now < 2 * _RETRY_UNANSWERED_PAUSE_S:
             break
         time.sleep(_RETRY_UNANSWERED_PAUSE_S)
     out: list[M | QueryError] = []
@@ -329,6 +334,7 @@ def call(
     timeout_s: float = 5.0,
     max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
     max_array_elements: int = DEFAULT_MAX_ARRAY_ELEMENTS,
+    retry_unanswered_s: float = 0.0,
 ) -> R:
     """Ask ``endpoint`` of the map ``keys`` and return its typed reply (:func:`get` with the
     key, reply type and owner the endpoint declares). TypeError for a request of another type."""
@@ -343,4 +349,5 @@ def call(
         service=endpoint.owner,
         max_bytes=max_bytes,
         max_array_elements=max_array_elements,
+        retry_unanswered_s=retry_unanswered_s,
     )
