@@ -224,12 +224,17 @@ class OpenFusionClient:
                 return get(self.session, endpoint.instance_key(self.keys, name), request, endpoint.reply,
                            timeout_s=timeout_s, service=name)
             except QueryError as exc:
-                if exc.code != "timeout":
+                if exc.code not in _NOT_THIS_INSTANCE:
                     raise
                 picker.forget(name)  # type: ignore[union-attr]
         # a query left unanswered by a query service going away is asked again for a moment
         retry = RETRY_UNANSWERED_S if endpoint in QUERY_ENDPOINTS else 0.0
         return call(self.session, self.keys, endpoint, request, timeout_s=timeout_s, retry_unanswered_s=retry)
+
+
+#: A query service asked by name that answers so (gone; just started, no dictionary yet) leaves
+#: the request to the shared key, where Zenoh picks one that answers.
+_NOT_THIS_INSTANCE = ("timeout", "no_map")
 
 
 def _key_list(keys: Sequence[int] | None) -> list[int] | None:
