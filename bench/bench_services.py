@@ -178,6 +178,7 @@ def main() -> None:
     parser.add_argument("--full", action="store_true", help="the default size (bench/run_all.py --full passes it)")
     parser.add_argument("--neighbour", action="store_true",
                         help="run one busy-loop process beside the services while 3D-Rec is measured")
+    parser.add_argument("--query-only", action="store_true", help="only the text-query latency (part 3)")
     args = parser.parse_args()
     n_frames, n_queries = (40, 50) if args.quick else (150, 200)
     tmp = Path(tempfile.mkdtemp(prefix="bench-services-"))
@@ -201,196 +202,221 @@ def main() -> None:
     # one busy-loop process runs beside both for the whole measurement.
     load_before = os.getloadavg()[0]
     neighbour = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if args.neighbour else None
-    rows = []
-    try:
-        inproc_fps, inproc_cpu = inproc_integrate()
+    def mapping_rows() -> list[tuple[str, ...]]:
+        rows: list[tuple[str, ...]] = []
+        try:
+            inproc_fps, inproc_cpu = inproc_integrate()
 
-        def over_the_bus(shared_memory: bool | None) -> tuple[float, int, float, dict[str, float]]:
-            bus = Bus(tmp, f"bench-geo-{'shm' if shared_memory is not False else 'tcp'}", shared_memory=shared_memory)
-            try:
-                bus.cluster.start("geometry", ["--checkpoint-period-s", "0", *bus.extra])
-                wait_for_services(bus.client, bus.cluster, {"geometry"}, 240)
-                drops_before = bus.health("geometry").drops
-                # From the first to the last integrated frame: n - 1 intervals of steady throughput.
-                dt, intervals, cpu = play_and_time(bus, recording, n_frames)
-                return (intervals / dt if dt > 0 else float("nan"), int(bus.health("geometry").drops - drops_before),
-                        intervals, cpu)
-            finally:
-                bus.close()
+            def over_the_bus(shared_memory: bool | None) -> tuple[float, int, float, dict[str, float]]:
+                bus = Bus(tmp, f"bench-geo-{'shm' if shared_memory is not False else 'tcp'}", shared_memory=shared_memory)
+                try:
+                    bus.cluster.start("geometry", ["--checkpoint-period-s", "0", *bus.extra])
+                    wait_for_services(bus.client, bus.cluster, {"geometry"}, 240)
+                    drops_before = bus.health("geometry").drops
+                    # From the first to the last integrated frame: n - 1 intervals of steady throughput.
+                    dt, intervals, cpu = play_and_time(bus, recording, n_frames)
+                    return (intervals / dt if dt > 0 else float("nan"), int(bus.health("geometry").drops - drops_before),
+                            intervals, cpu)
+                finally:
+                    bus.close()
 
-        # Zenoh's default (shared memory on) and the same with it off, alternating, best of two each
-        runs: dict[bool, list] = {True: [], False: []}
-        for _ in range(1 if args.quick else 2):
-            for shm in (True, False):
-                runs[shm].append(over_the_bus(None if shm else False))
-        inproc_fps2, inproc_cpu2 = inproc_integrate()
-    finally:
-        if neighbour is not None:
-            neighbour.kill()
-            neighbour.wait()
-    inproc_fps, inproc_cpu = max(inproc_fps, inproc_fps2), min(inproc_cpu, inproc_cpu2)
-    bus_fps, drops, intervals, cpu = max(runs[True], key=lambda r: r[0])
-    tcp_fps, tcp_drops, tcp_intervals, tcp_cpu = max(runs[False], key=lambda r: r[0])
-    beside = ", one busy-loop process beside" if args.neighbour else ""
-    rows.append(
-        (
-            f"3D-Rec fps, 640x480, frames over Zenoh, shared memory (default; {drops} dropped{beside})",
-            f"{bus_fps:.1f}",
-            "in-process integrate",
-            f"{inproc_fps:.1f}",
-            f"{bus_fps / inproc_fps:.2f}",
-            ">= 0.9 idle, >= 0.8 with a neighbour",
-        )
-    )
-    rows.append(
-        (
-            f"3D-Rec fps, frames over Zenoh, shared memory off ({tcp_drops} dropped{beside})",
-            f"{tcp_fps:.1f}",
-            "in-process integrate",
-            f"{inproc_fps:.1f}",
-            f"{tcp_fps / inproc_fps:.2f}",
-            "",
-        )
-    )
-    tcp_per = {k: v / tcp_intervals * 1e3 for k, v in tcp_cpu.items()} if tcp_intervals else {}
-    rows.append(
-        (
-            "CPU ms/frame, shared memory off: geometry + bridge + router (this process)",
-            " + ".join(f"{tcp_per.get(k, float('nan')):.1f}" for k in ("geometry", "bridge", "router")),
-            "in-process integrate CPU ms/frame",
-            f"{inproc_cpu:.1f}",
-            f"{sum(tcp_per.values()) / inproc_cpu:.2f}" if tcp_per else "",
-            "",
-        )
-    )
-    per = {k: v / intervals * 1e3 for k, v in cpu.items()} if intervals else {}
-    rows.append(
-        (
-            "CPU ms/frame over Zenoh: geometry + bridge + router (this process)",
-            " + ".join(f"{per.get(k, float('nan')):.1f}" for k in ("geometry", "bridge", "router")),
-            "in-process integrate CPU ms/frame",
-            f"{inproc_cpu:.1f}",
-            f"{sum(per.values()) / inproc_cpu:.2f}" if per else "",
-            "",
-        )
-    )
-
-    # 2. Sem-3D-Rec with gt
-    bus = Bus(tmp, "bench-sem")
-    try:
-        bus.cluster.start("geometry", ["--checkpoint-period-s", "0"])
-        bus.cluster.start("semantic", ["--encoder", "gt"])
-        wait_for_services(bus.client, bus.cluster, {"geometry", "semantic"}, 240)
-        play_and_time(bus, recording, n_frames, rate_hz=10.0)
-        time.sleep(2.0)
-        integ = bus.counter("geometry", "frames_integrated")
-        integ_s = bus.counter("geometry", "integrate_busy_s")
-        sem = bus.counter("semantic", "semantic_frames")
-        sem_s = bus.counter("semantic", "busy_s")
-    finally:
-        bus.close()
-    sem_rec = 1.0 / (integ_s / integ + sem_s / sem) if sem and integ else float("nan")
-    rows.append(
-        (
-            "Sem-3D-Rec fps (gt encoder), 640x480",
-            f"{sem_rec:.1f}",
-            "3D-Rec (geometry only, same run)",
-            f"{integ / integ_s:.1f}",
-            f"{sem_rec / (integ / integ_s):.2f}",
-            "paper (GPU): 4.5",
-        )
-    )
-    rows.append(
-        ("semantic service frames/s (encode + render + match + update)", f"{sem / sem_s:.1f}", "", "", "", "")
-    )
-
-    # 3. text-query latency at 10,000 regions
-    import torch
-
-    torch.set_num_threads(1)  # as the query service runs it (query.torch_threads)
-    text = make_text_encoder("minilm")
-    rng = np.random.default_rng(0)
-    dictionary = RegionDictionary(text.embedding_space, text.dim)
-    with dictionary.batch():
-        for i in range(10_000):
-            dictionary.add(rng.standard_normal(text.dim).astype(np.float32), label=f"region {i}")
-    snapshot = dictionary.snapshot()
-    map_dir = tmp / "maps"
-    regions_in_map = labelled_map(frames, dictionary, map_dir / "bench-query")
-    queries = [f"object number {i}" for i in range(n_queries)]
-
-    def inproc_query_ms() -> list[float]:
-        out = []
-        for q in queries:
-            t = time.perf_counter()
-            dictionary.top_k(text.encode([q])[0], 5)
-            out.append((time.perf_counter() - t) * 1e3)
-        return out
-
-    text.encode(["warm up"])
-    bus = Bus(tmp, "bench-query")
-    session = open_session(
-        ServiceConfig(
-            map_id="bench-query",
-            zenoh=ZenohSettings(mode="client", connect=[bus.endpoint], multicast_scouting=False),
-        )
-    )
-    try:
-        fake_semantic = Queryable(
-            session, SEMANTIC_DICTIONARY.key(bus.client.keys), DictionaryRequest, lambda _r: snapshot
-        )
-        bus.cluster.start("geometry", ["--checkpoint-period-s", "0", "--map-dir", str(map_dir)])
-        bus.cluster.start("query", [])
-        wait_for_services(bus.client, bus.cluster, {"geometry", "query"}, 240)
-        while bus.counter("query", "regions") < 10_000:
-            time.sleep(0.2)
-        warm = bus.client.query_text("warm up")
-        assert any(r.num_points > 0 for r in warm.regions) or regions_in_map < 5_000, (
-            "the map lost its regions"
-        )
-        lat, geo_rt = [], []
-        for q in queries:
-            t = time.perf_counter()
-            reply = bus.client.query_text(q, top_k=5)
-            lat.append((time.perf_counter() - t) * 1e3)
-            t = time.perf_counter()  # what the query path asked geometry for before summaries were cached
-            get(
-                bus.client.session,
-                GEOMETRY_POINTS.key(bus.client.keys),
-                PointsRequest(keys=[r.key for r in reply.regions], max_points=200_000),
-                PointsReply,
-                timeout_s=30,
+            # Zenoh's default (shared memory on) and the same with it off, alternating, best of two each
+            runs: dict[bool, list] = {True: [], False: []}
+            for _ in range(1 if args.quick else 2):
+                for shm in (True, False):
+                    runs[shm].append(over_the_bus(None if shm else False))
+            inproc_fps2, inproc_cpu2 = inproc_integrate()
+        finally:
+            if neighbour is not None:
+                neighbour.kill()
+                neighbour.wait()
+        inproc_fps, inproc_cpu = max(inproc_fps, inproc_fps2), min(inproc_cpu, inproc_cpu2)
+        bus_fps, drops, intervals, cpu = max(runs[True], key=lambda r: r[0])
+        tcp_fps, tcp_drops, tcp_intervals, tcp_cpu = max(runs[False], key=lambda r: r[0])
+        beside = ", one busy-loop process beside" if args.neighbour else ""
+        rows.append(
+            (
+                f"3D-Rec fps, 640x480, frames over Zenoh, shared memory (default; {drops} dropped{beside})",
+                f"{bus_fps:.1f}",
+                "in-process integrate",
+                f"{inproc_fps:.1f}",
+                f"{bus_fps / inproc_fps:.2f}",
+                ">= 0.9 idle, >= 0.8 with a neighbour",
             )
-            geo_rt.append((time.perf_counter() - t) * 1e3)
-        fake_semantic.close()
-    finally:
-        session.close()
-        bus.close()
-    t_in = inproc_query_ms()  # after the services stopped: the same machine state as the bus run
-    p50, p99 = np.percentile(lat, 50), np.percentile(lat, 99)
-    b50 = np.percentile(t_in, 50)
-    rows.append(
-        (
-            "text query over Zenoh, 10,000 regions, p50 ms",
-            f"{p50:.1f}",
-            "in-process encode + top-k p50 ms",
-            f"{b50:.1f}",
-            f"{p50 / b50:.2f}",
-            "<= 20 ms",
         )
-    )
-    rows.append(("text query over Zenoh, 10,000 regions, p99 ms", f"{p99:.1f}", "", "", "", ""))
-    rows.append(
-        (
-            f"geometry/points round trip for the top 5 regions ({regions_in_map} regions with voxels), "
-            "p50 ms: the pre-cache query path's extra",
-            f"{np.percentile(geo_rt, 50):.1f}",
-            "",
-            "",
-            "",
-            "",
+        rows.append(
+            (
+                f"3D-Rec fps, frames over Zenoh, shared memory off ({tcp_drops} dropped{beside})",
+                f"{tcp_fps:.1f}",
+                "in-process integrate",
+                f"{inproc_fps:.1f}",
+                f"{tcp_fps / inproc_fps:.2f}",
+                "",
+            )
         )
-    )
+        tcp_per = {k: v / tcp_intervals * 1e3 for k, v in tcp_cpu.items()} if tcp_intervals else {}
+        rows.append(
+            (
+                "CPU ms/frame, shared memory off: geometry + bridge + router (this process)",
+                " + ".join(f"{tcp_per.get(k, float('nan')):.1f}" for k in ("geometry", "bridge", "router")),
+                "in-process integrate CPU ms/frame",
+                f"{inproc_cpu:.1f}",
+                f"{sum(tcp_per.values()) / inproc_cpu:.2f}" if tcp_per else "",
+                "",
+            )
+        )
+        per = {k: v / intervals * 1e3 for k, v in cpu.items()} if intervals else {}
+        rows.append(
+            (
+                "CPU ms/frame over Zenoh: geometry + bridge + router (this process)",
+                " + ".join(f"{per.get(k, float('nan')):.1f}" for k in ("geometry", "bridge", "router")),
+                "in-process integrate CPU ms/frame",
+                f"{inproc_cpu:.1f}",
+                f"{sum(per.values()) / inproc_cpu:.2f}" if per else "",
+                "",
+            )
+        )
+
+        # 2. Sem-3D-Rec with gt
+        bus = Bus(tmp, "bench-sem")
+        try:
+            bus.cluster.start("geometry", ["--checkpoint-period-s", "0"])
+            bus.cluster.start("semantic", ["--encoder", "gt"])
+            wait_for_services(bus.client, bus.cluster, {"geometry", "semantic"}, 240)
+            play_and_time(bus, recording, n_frames, rate_hz=10.0)
+            time.sleep(2.0)
+            integ = bus.counter("geometry", "frames_integrated")
+            integ_s = bus.counter("geometry", "integrate_busy_s")
+            sem = bus.counter("semantic", "semantic_frames")
+            sem_s = bus.counter("semantic", "busy_s")
+        finally:
+            bus.close()
+        sem_rec = 1.0 / (integ_s / integ + sem_s / sem) if sem and integ else float("nan")
+        rows.append(
+            (
+                "Sem-3D-Rec fps (gt encoder), 640x480",
+                f"{sem_rec:.1f}",
+                "3D-Rec (geometry only, same run)",
+                f"{integ / integ_s:.1f}",
+                f"{sem_rec / (integ / integ_s):.2f}",
+                "paper (GPU): 4.5",
+            )
+        )
+        rows.append(
+            ("semantic service frames/s (encode + render + match + update)", f"{sem / sem_s:.1f}", "", "", "", "")
+        )
+
+        return rows
+
+    def query_rows() -> list[tuple[str, ...]]:
+        rows: list[tuple[str, ...]] = []
+        # 3. text-query latency at 10,000 regions
+        import torch
+
+        torch.set_num_threads(1)  # as the query service runs it (query.torch_threads)
+        text = make_text_encoder("minilm")
+        rng = np.random.default_rng(0)
+        dictionary = RegionDictionary(text.embedding_space, text.dim)
+        with dictionary.batch():
+            for i in range(10_000):
+                dictionary.add(rng.standard_normal(text.dim).astype(np.float32), label=f"region {i}")
+        snapshot = dictionary.snapshot()
+        map_dir = tmp / "maps"
+        regions_in_map = labelled_map(frames, dictionary, map_dir / "bench-query")
+        queries = [f"object number {i}" for i in range(n_queries)]
+
+        def inproc_query_ms() -> list[float]:
+            out = []
+            for q in queries:
+                t = time.perf_counter()
+                dictionary.top_k(text.encode([q])[0], 5)
+                out.append((time.perf_counter() - t) * 1e3)
+            return out
+
+        text.encode(["warm up"])
+        bus = Bus(tmp, "bench-query")
+        session = open_session(
+            ServiceConfig(
+                map_id="bench-query",
+                zenoh=ZenohSettings(mode="client", connect=[bus.endpoint], multicast_scouting=False),
+            )
+        )
+        try:
+            fake_semantic = Queryable(
+                session, SEMANTIC_DICTIONARY.key(bus.client.keys), DictionaryRequest, lambda _r: snapshot
+            )
+            bus.cluster.start("geometry", ["--checkpoint-period-s", "0", "--map-dir", str(map_dir)])
+            wait_for_services(bus.client, bus.cluster, {"geometry"}, 240)
+
+            def query_service_ms(extra: list[str], rounds: int) -> tuple[list[list[float]], list[float]]:
+                """A query service started with ``extra``: latency of each round of the same
+                ``queries`` (round 1: texts never asked; later rounds: asked before), and the
+                geometry/points round trip of the top 5 (round 1)."""
+                bus.cluster.start("query", extra)
+                try:
+                    wait_for_services(bus.client, bus.cluster, {"query"}, 240)
+                    while bus.counter("query", "regions") < 10_000:
+                        time.sleep(0.2)
+                    warm = bus.client.query_text("warm up")
+                    assert any(r.num_points > 0 for r in warm.regions) or regions_in_map < 5_000, (
+                        "the map lost its regions"
+                    )
+                    lats: list[list[float]] = []
+                    geo_rt: list[float] = []
+                    for round_i in range(rounds):
+                        lat = []
+                        for q in queries:
+                            t = time.perf_counter()
+                            reply = bus.client.query_text(q, top_k=5)
+                            lat.append((time.perf_counter() - t) * 1e3)
+                            if round_i == 0 and extra:  # what the query path asked geometry before summaries were cached
+                                t = time.perf_counter()
+                                get(bus.client.session, GEOMETRY_POINTS.key(bus.client.keys),
+                                    PointsRequest(keys=[r.key for r in reply.regions], max_points=200_000),
+                                    PointsReply, timeout_s=30)
+                                geo_rt.append((time.perf_counter() - t) * 1e3)
+                        lats.append(lat)
+                    return lats, geo_rt
+                finally:
+                    bus.cluster.stop("query")
+
+            # before: torch MiniLM, no text/ranking cache (what the service did before issue 30's caches)
+            (before,), geo_rt = query_service_ms(
+                ["--text-backend", "sentence-transformers", "--text-cache-size", "0"], 1)
+            after_new, after_again = query_service_ms([], 2)[0]
+            fake_semantic.close()
+        finally:
+            session.close()
+            bus.close()
+        t_in = inproc_query_ms()  # after the services stopped: the same machine state as the bus run
+        b50 = np.percentile(before, 50)
+        for what, lat in (("before (torch MiniLM, no text cache)", before),
+                          ("texts never asked (onnxruntime MiniLM)", after_new),
+                          ("texts asked before (embedding + ranking cached)", after_again)):
+            p50, p99 = np.percentile(lat, 50), np.percentile(lat, 99)
+            rows.append((f"text query over Zenoh, 10,000 regions, {what}, p50 / p99 ms",
+                         f"{p50:.1f} / {p99:.1f}", "before, p50 ms (same run)", f"{b50:.1f}", f"{p50 / b50:.2f}",
+                         "p50 <= 5 ms, p99 <= 20 ms"))
+        rows.append(("in-process torch MiniLM encode + top-k, p50 ms", f"{np.percentile(t_in, 50):.1f}",
+                     "", "", "", ""))
+        rows.append(
+            (
+                f"geometry/points round trip for the top 5 regions ({regions_in_map} regions with voxels), "
+                "p50 ms: the pre-cache query path's extra",
+                f"{np.percentile(geo_rt, 50):.1f}",
+                "",
+                "",
+                "",
+                "",
+            )
+        )
+
+        return rows
+
+    rows: list[tuple[str, ...]] = []
+    if not args.query_only:
+        rows += mapping_rows()
+    rows += query_rows()
 
     print(
         f"\n## Services over Zenoh ({n_frames} frames 640x480, {n_queries} queries; {os.cpu_count()} CPUs; "

@@ -26,6 +26,7 @@ class DictionaryReplica:
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self.dictionary: RegionDictionary | None = None
+        self._epoch = 0  # +1 whenever the dictionary is replaced (a snapshot may repeat a version number)
 
     def __len__(self) -> int:
         return len(self.dictionary) if self.dictionary is not None else 0
@@ -39,8 +40,15 @@ class DictionaryReplica:
         with self._lock:
             return self.dictionary.version if self.dictionary is not None else None
 
+    @property
+    def state(self) -> tuple[int, int] | None:
+        """(replacement epoch, version): equal states hold the same dictionary (None: none yet)."""
+        with self._lock:
+            return None if self.dictionary is None else (self._epoch, self.dictionary.version)
+
     def reset(self, dictionary: RegionDictionary | None) -> None:
         with self._lock:
+            self._epoch += 1
             self.dictionary = dictionary
             self._changed.notify_all()
 
@@ -49,6 +57,7 @@ class DictionaryReplica:
         which a holder of voxels relabels with (it may have missed the delta of those merges)."""
         dictionary = RegionDictionary.from_snapshot(msg)
         with self._lock:
+            self._epoch += 1
             self.dictionary = dictionary
             self._changed.notify_all()
         return dictionary.merge_table()
@@ -65,6 +74,7 @@ class DictionaryReplica:
             if self.dictionary is None:
                 if msg.prev_version != 0:
                     return False
+                self._epoch += 1
                 self.dictionary = RegionDictionary(msg.embedding_space, msg.dim)
             try:
                 self.dictionary.apply_delta(msg)
@@ -89,6 +99,15 @@ class DictionaryReplica:
                 return []
             keys, scores = self.dictionary.top_k(vector, k)
         return [(int(a), float(b)) for a, b in zip(keys, scores, strict=True)]
+
+    def top_k_at_state(self, vector: np.ndarray, k: int) -> tuple[tuple[int, int] | None, list[tuple[int, float]]]:
+        """:meth:`top_k` and the :attr:`state` it was computed at (None: no dictionary)."""
+        with self._lock:
+            if self.dictionary is None:
+                return None, []
+            version = (self._epoch, self.dictionary.version)
+            keys, scores = self.dictionary.top_k(vector, k)
+        return version, [(int(a), float(b)) for a, b in zip(keys, scores, strict=True)]
 
     def embeddings_for(self, keys: list[int]) -> np.ndarray:
         """(len(keys), dim) unit embeddings of ``keys`` (zero rows for keys it does not hold)."""

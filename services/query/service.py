@@ -60,6 +60,7 @@ from pydantic import Field, field_validator
 from openfusion.bus import QueryError, RequestError, ServiceRunner
 from openfusion.config import ServiceConfig, one_of
 from openfusion.encoders import TEXT_ENCODER_NAMES, make_text_encoder
+from openfusion.encoders.registry import MINILM_BACKENDS
 from openfusion.mapping.answers import (
     MAX_ANCHORS,
     RELATION_CANDIDATES,
@@ -76,6 +77,13 @@ from openfusion.mapping.relations import Nearby, RegionBoxes, parse_relation_que
 from openfusion.mapping.relevancy import RelevancyScorer
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
+from openfusion.services.query.caches import (
+    DEFAULT_TEXT_CACHE_SIZE,
+    RankCache,
+    SummaryDerived,
+    TextEmbeddings,
+)
+from openfusion.services.query.instances import MAX_QUERY_INSTANCES, query_service_name
 from openfusion.wire import limits
 from openfusion.wire.counters import QueryCounter
 from openfusion.wire.endpoints import (
@@ -114,6 +122,11 @@ class QuerySection(QueryParams):
     text_encoder: str = Field(
         "minilm", description=f"text encoder of the map's embedding space: {', '.join(TEXT_ENCODER_NAMES)}"
     )
+    text_backend: str = Field(
+        "onnxruntime", description="MiniLM runtime: onnxruntime (~3 ms a text, same embeddings; falls back, "
+        "logged, when unavailable) or sentence-transformers (torch, ~11 ms)")
+    text_cache_size: int = Field(
+        DEFAULT_TEXT_CACHE_SIZE, ge=0, description="texts whose embeddings and rankings are kept (0: none)")
     model_path: str | None = Field(None, description="model of the clip-regions / onnx text encoder")
     device: str = Field("auto", description="text encoder device: auto, cpu or cuda")
     torch_threads: int = Field(1, ge=0, description="intra-op threads of a torch text encoder (0 = torch's default)")
@@ -126,10 +139,19 @@ class QuerySection(QueryParams):
     )
     summary_keep_warm_s: float = Field(10.0, ge=0, description="keep refreshing this long after the last query")
 
+    instance: int | None = Field(
+        None, ge=1, le=MAX_QUERY_INSTANCES,
+        description="this query service's number when several serve one map (health: query-N; none: query)")
+
     @field_validator("text_encoder")
     @classmethod
     def _text_encoder(cls, value: str) -> str:
         return one_of(value, TEXT_ENCODER_NAMES, "text encoder")
+
+    @field_validator("text_backend")
+    @classmethod
+    def _text_backend(cls, value: str) -> str:
+        return one_of(value, MINILM_BACKENDS, "MiniLM backend")
 
 
 class QueryConfig(ServiceConfig):
@@ -150,6 +172,8 @@ class RegionSummaries:
         self._keys = np.asarray(reply.keys)
         self._bbox_min, self._bbox_max, self._num_points = reply.bbox_min, reply.bbox_max, reply.num_points
         self._centroid = reply.centroid
+        # boxes and nearby lists of THIS set of summaries: new summaries, new (empty) caches
+        self.derived = SummaryDerived(self._build_boxes)
 
     @classmethod
     def of_points(cls, keys: np.ndarray, points: np.ndarray) -> RegionSummaries:
@@ -170,13 +194,24 @@ class RegionSummaries:
         return ((self._bbox_min[i] + self._bbox_max[i]) / 2).astype(np.float32)
 
     def boxes(self, *, min_points: int = 1) -> RegionBoxes:
-        """The boxes of the regions with at least ``min_points`` surface points (relations)."""
+        """The boxes of the regions with at least ``min_points`` surface points (relations);
+        built once per ``min_points`` (:class:`~services.query.caches.SummaryDerived`)."""
+        return self.derived.boxes_of(min_points)
+
+    def _build_boxes(self, min_points: int) -> RegionBoxes:
         keep = np.asarray(self._num_points) >= min_points
         order = np.argsort(self._keys[keep], kind="stable")
         return RegionBoxes(self._keys[keep][order], self._bbox_min[keep][order], self._bbox_max[keep][order])
 
     def __len__(self) -> int:
         return len(self._index)
+
+    def same_boxes(self, other: RegionSummaries) -> bool:
+        """Whether ``other`` lists the same regions with the same boxes and counts (what
+        :class:`~services.query.caches.SummaryDerived` is computed from)."""
+        return (np.array_equal(self._keys, other._keys) and np.array_equal(self._bbox_min, other._bbox_min)
+                and np.array_equal(self._bbox_max, other._bbox_max)
+                and np.array_equal(self._num_points, other._num_points))
 
     def covers(self, key: int) -> bool:
         """Whether the summary knows ``key`` (listed, or below the horizon: no surface points)."""
@@ -257,6 +292,8 @@ def text_encoder_from_section(section: QuerySection) -> Any:
     opts: dict[str, Any] = {}
     if section.text_encoder != "hash":
         opts["device"] = section.device
+    if section.text_encoder in ("minilm", "gt"):
+        opts["backend"] = section.text_backend
     if section.model_path:
         opts["model_path" if section.text_encoder == "onnx" else "model"] = section.model_path
     return make_text_encoder(section.text_encoder, **opts)
@@ -271,6 +308,9 @@ class QueryService:
         self.text_encoder = text_encoder if text_encoder is not None else text_encoder_from_section(self.section)
         # relevancy of the encoder's space (the map's, or the query is refused): negatives embedded once
         self.scorer = RelevancyScorer(self.text_encoder)
+        # query texts already embedded (LRU) and their candidate lists at the current dictionary version
+        self.texts = TextEmbeddings(self.text_encoder.encode, max_texts=self.section.text_cache_size)
+        self.rankings = RankCache(max_entries=self.section.text_cache_size)
         self.replica = DictionaryReplica()
         self._runner: ServiceRunner | None = None
         self._resync_lock = threading.Lock()
@@ -360,7 +400,10 @@ class QueryService:
                     "query: no region summaries from geometry (%s); answering from the cache", exc.reason
                 )
                 return False
-            self.summaries = RegionSummaries(reply, asked_at)
+            fresh_summaries = RegionSummaries(reply, asked_at)
+            if cache is not None and fresh_summaries.same_boxes(cache):  # an unchanged map: keep its nearby lists
+                fresh_summaries.derived = cache.derived
+            self.summaries = fresh_summaries
             self._summary_failed_at = None
             self._runner.stats.incr(QueryCounter.SUMMARY_FETCHES)
             return True
@@ -408,16 +451,18 @@ class QueryService:
         with_points: bool,
         max_points: int,
         space: str,
+        by_text: bool = False,
     ) -> list[QueryReply]:
         """One reply per query (``vectors`` holds the embedding of each, and of the X and Y of
         relation queries, :func:`~openfusion.mapping.answers.texts_to_embed`): the summaries
         checked once for every ranked key, and with ``with_points`` ONE points request to geometry
         for the regions of all of them. Relevancy, match, nearby regions and relations:
-        :func:`~openfusion.mapping.answers.answer_text`, as every query path."""
+        :func:`~openfusion.mapping.answers.answer_text`, as every query path. ``by_text``: the
+        keys of ``vectors`` are the texts embedded (candidate lists cached per dictionary version)."""
         # the X of "X next to Y" looks at more candidates; the head rule's parts are scored, never ranked
         targets = {rq.target for rq in map(parse_relation_query, queries) if rq is not None}
-        candidates = {text: self.replica.top_k(vectors[text], candidates_for(
-            top_k + RELATION_CANDIDATES if text in targets else pool_size(max(top_k, MAX_ANCHORS))))
+        candidates = {text: self._candidates(text, vectors[text], candidates_for(
+            top_k + RELATION_CANDIDATES if text in targets else pool_size(max(top_k, MAX_ANCHORS))), by_text=by_text)
             for text in texts_to_rank(queries)}
         summaries = self._summaries_for(sorted({k for ranked in candidates.values() for k, _ in ranked}))
         least = self.section.min_region_points
@@ -428,9 +473,15 @@ class QueryService:
             return by_vector[id(vector)][:n]
 
         boxes = summaries.boxes(min_points=least) if summaries is not None else None
+        up_axis = self.section.up_axis
+
+        def nearby(key: int) -> list[Nearby]:  # memoised per set of summaries
+            assert summaries is not None and boxes is not None
+            return summaries.derived.nearby(key, boxes, up_axis=up_axis)
+
         answers: list[TextAnswer] = [
             answer_text(text, vectors, rank=rank, embeddings=self.replica.embeddings_for, scorer=self.scorer,
-                        boxes=boxes, top_k=top_k, up_axis=self.section.up_axis)
+                        boxes=boxes, top_k=top_k, up_axis=up_axis, nearby=nearby if boxes is not None else None)
             for text in queries
         ]
         keys = sorted({r.key for a in answers for r in a.regions})
@@ -455,6 +506,18 @@ class QueryService:
             for query, answer in zip(queries, answers, strict=True)
         ]
 
+    def _candidates(self, text: str, vector: np.ndarray, n: int, *, by_text: bool) -> list[tuple[int, float]]:
+        """The ``n`` regions closest to ``vector`` ((key, cosine), best first); by text from the
+        cache of the current dictionary version when ``by_text``."""
+        if not by_text:
+            return self.replica.top_k(vector, n)
+        cached = self.rankings.get(self.replica.state, text, n)
+        if cached is not None:
+            return cached
+        state, ranked = self.replica.top_k_at_state(vector, n)
+        self.rankings.put(state, text, n, ranked)
+        return ranked
+
     def _check_text(self, text: str, which: str = "") -> None:
         try:
             limits.check_text(text, which=which)
@@ -470,7 +533,7 @@ class QueryService:
         space = self._check_space(req.embedding_space)
         self._check_text_space(space)
         wanted = texts_to_embed(texts)  # the texts, then the X and Y of "X next to Y" queries
-        vectors = np.asarray(self.text_encoder.encode(wanted), np.float32).reshape(len(wanted), -1)
+        vectors = np.asarray(self.texts.encode(wanted), np.float32).reshape(len(wanted), -1)
         return self._rank_many(
             dict(zip(wanted, vectors, strict=True)),
             list(texts),
@@ -478,6 +541,7 @@ class QueryService:
             with_points=req.with_points,
             max_points=req.max_points,
             space=space,
+            by_text=True,
         )
 
     def handle_text(self, req: TextQuery) -> QueryReply:
@@ -556,10 +620,13 @@ class QueryService:
         set_torch_threads(self.section.torch_threads)
         runner.subscriber(DICTIONARY_DELTA, self.on_delta, queue_size=256)
         self.resync()
-        runner.queryable(QUERY_TEXT, self.handle_text)
-        runner.queryable(QUERY_TEXT_BATCH, self.handle_text_batch)
-        runner.queryable(QUERY_IMAGE, self.handle_image)
-        runner.queryable(QUERY_POINT, self.handle_point)
+        # several query services may declare these (services/query/instances.py): left to the session's close
+        for endpoint, handler in ((QUERY_TEXT, self.handle_text), (QUERY_TEXT_BATCH, self.handle_text_batch),
+                                  (QUERY_IMAGE, self.handle_image), (QUERY_POINT, self.handle_point)):
+            runner.queryable(endpoint, handler, undeclare_on_close=False)
+            # ... and on this instance's own key, where clients that spread their requests ask it by name
+            runner.queryable_at(endpoint.instance_key(runner.keys, runner.service), endpoint.request, endpoint.reply,
+                                handler, undeclare_on_close=False)
         runner.stats.set(QueryCounter.REGIONS, len(self.replica))
 
     def loop(self, runner: ServiceRunner) -> None:
@@ -593,4 +660,5 @@ DEFINITION = ServiceDefinition(
     help="answer text, image and 3D-point queries with ranked regions",
     config_model=QueryConfig,
     build=QueryService,
+    instance_name=lambda config: query_service_name(config.query.instance),
 )

@@ -40,7 +40,9 @@ import numpy as np
 import zenoh
 from pydantic import ValidationError
 
-from openfusion.bus import QueryError, call, collect_health, live_services, open_session
+from openfusion.bus import QueryError, call, collect_health, get, live_services, open_session
+from openfusion.bus.instances import InstancePicker
+from openfusion.bus.query import RETRY_UNANSWERED_S
 from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.errors import UsageError, UserError
 from openfusion.wire import limits
@@ -49,12 +51,14 @@ from openfusion.wire.endpoints import (
     GEOMETRY_MESH,
     GEOMETRY_POINTS,
     GEOMETRY_REGIONS,
+    QUERY_ENDPOINTS,
     QUERY_IMAGE,
     QUERY_POINT,
     QUERY_TEXT,
     QUERY_TEXT_BATCH,
     SEMANTIC_DICTIONARY,
     Endpoint,
+    is_query_service,
 )
 from openfusion.wire.keys import KeySpace
 from openfusion.wire.message import Message
@@ -87,12 +91,15 @@ class OpenFusionClient:
     """Queries, points, meshes and admin actions of one map over an open Zenoh session."""
 
     def __init__(
-        self, session: zenoh.Session, keys: KeySpace, *, timeout_s: float = 10.0, owns_session: bool = False
+        self, session: zenoh.Session, keys: KeySpace, *, timeout_s: float = 10.0, owns_session: bool = False,
+        spread_queries: bool = True,
     ) -> None:
         self.session = session
         self.keys = keys
         self.timeout_s = timeout_s
         self._owns_session = owns_session
+        # several query services on the map: requests taken to each in turn (openfusion.bus.instances)
+        self._query_instances = InstancePicker(session, keys, is_query_service) if spread_queries else None
 
     @classmethod
     def from_config(cls, config: ServiceConfig, *, timeout_s: float = 10.0) -> OpenFusionClient:
@@ -209,7 +216,25 @@ class OpenFusionClient:
         return collect_health(self.session, self.keys, timeout_s=timeout_s)
 
     def _call(self, endpoint: Endpoint[Q, R], request: Q, *, min_timeout_s: float = 0.0) -> R:
-        return call(self.session, self.keys, endpoint, request, timeout_s=max(self.timeout_s, min_timeout_s))
+        timeout_s = max(self.timeout_s, min_timeout_s)
+        picker = self._query_instances if endpoint in QUERY_ENDPOINTS else None
+        name = picker.pick() if picker is not None else None
+        if name is not None:  # one of several query services, by name; the shared key when it is gone
+            try:
+                return get(self.session, endpoint.instance_key(self.keys, name), request, endpoint.reply,
+                           timeout_s=timeout_s, service=name)
+            except QueryError as exc:
+                if exc.code not in _NOT_THIS_INSTANCE:
+                    raise
+                picker.forget(name)  # type: ignore[union-attr]
+        # a query left unanswered by a query service going away is asked again for a moment
+        retry = RETRY_UNANSWERED_S if endpoint in QUERY_ENDPOINTS else 0.0
+        return call(self.session, self.keys, endpoint, request, timeout_s=timeout_s, retry_unanswered_s=retry)
+
+
+#: A query service asked by name that answers so (gone; just started, no dictionary yet) leaves
+#: the request to the shared key, where Zenoh picks one that answers.
+_NOT_THIS_INSTANCE = ("timeout", "no_map")
 
 
 def _key_list(keys: Sequence[int] | None) -> list[int] | None:

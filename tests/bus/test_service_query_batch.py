@@ -154,8 +154,9 @@ def test_the_client_asks_several_texts_in_one_round_trip_per_64() -> None:
     map_id = unique_map_id("batch")
     port = free_port()
     base = loopback_config(map_id, listen=[port]).model_dump()
+    # no text cache: every request's texts reach the encoder (what is asserted is how they are batched)
     config = QueryConfig.model_validate({**base, "query": {"text_encoder": "hash", "summary_max_age_s": 3600,
-                                                            "summary_refresh_s": 3600}})
+                                                            "summary_refresh_s": 3600, "text_cache_size": 0}})
     with ServiceThread(_service(config), config, "query") as query:
         client = OpenFusionClient(open_session(loopback_config(map_id, connect=[port])), config.keys, timeout_s=20.0,
                                   owns_session=True)

@@ -49,8 +49,9 @@ def service() -> Iterator[tuple[ServiceThread, int]]:
     """The query service listening on a free loopback port, and that port."""
     port = free_port()
     base = loopback_config(unique_map_id("cli"), listen=[port]).model_dump()
+    # no text cache: every request's texts reach the encoder (the tests count its calls)
     config = QueryConfig.model_validate({**base, "query": {"text_encoder": "hash", "summary_max_age_s": 3600,
-                                                            "summary_refresh_s": 3600}})
+                                                            "summary_refresh_s": 3600, "text_cache_size": 0}})
     app = QueryService(config, text_encoder=CountingTextEncoder())
     dictionary = RegionDictionary(TEXT.embedding_space, TEXT.dim)
     for name in NAMES:

@@ -14,6 +14,9 @@ from openfusion.encoders import make_text_encoder
 from openfusion.mapping import RegionDictionary
 from openfusion.mapping.queries import RegionTable, answer_texts
 from openfusion.mapping.relations import (
+    MAX_NEARBY,
+    NEARBY_M,
+    Nearby,
     RegionBoxes,
     RelationQuery,
     nearby_regions,
@@ -174,3 +177,46 @@ def test_a_relation_query_whose_anchor_matches_nothing_is_a_plain_query() -> Non
     assert zebra[0].key == chair and zebra[0].relation is None
     assert next_to_answer.relation == RelationQuery("chair", "next to", "table") and next_to_answer.anchors == [table]
     assert next_to[0].key == chair and next_to[0].relation.key == table
+
+
+def _nearby_by_full_scan(key: int, boxes: RegionBoxes, *, up_axis: str = "+z", max_count: int = MAX_NEARBY
+                         ) -> list[Nearby]:
+    """The nearby search before the x index: distances to every region (the reference)."""
+    i = boxes.row(key)
+    if i is None:
+        return []
+    lo, hi = np.asarray(boxes.bbox_min, np.float64), np.asarray(boxes.bbox_max, np.float64)
+    dists = np.linalg.norm(np.maximum(0.0, np.maximum(lo[i] - hi, lo - hi[i])), axis=1)
+    near = np.flatnonzero(dists <= NEARBY_M)
+    near = near[near != i]
+    found = []
+    for j in near[np.lexsort((np.asarray(boxes.keys)[near], dists[near]))].tolist():
+        rel = relation_of(boxes.bbox_min[i], boxes.bbox_max[i], boxes.bbox_min[j], boxes.bbox_max[j], up_axis=up_axis)
+        if rel is not None:
+            found.append(Nearby(int(boxes.keys[j]), rel, round(float(dists[j]), 3)))
+            if len(found) == max_count:
+                break
+    return found
+
+
+@pytest.mark.parametrize("up_axis", ["+z", "-y"])
+def test_nearby_through_the_x_index_equals_the_full_scan(up_axis: str) -> None:
+    """The query service's nearby search looks only at regions within reach on x (plus the wide
+    ones): the same lists as measuring every region, with walls spanning the room, boxes exactly
+    at the reach, and regions stacked on one another."""
+    rng = np.random.default_rng(3)
+    n = 2_000
+    lo = rng.uniform(0, 8, (n, 3)).astype(np.float32)
+    hi = (lo + rng.uniform(0.02, 0.6, (n, 3))).astype(np.float32)
+    lo[:4], hi[:4] = [0, 0, 0], [8, 0.1, 3]  # walls and a floor-like slab, wider than any other box
+    lo[10], hi[10] = lo[11] + [hi[11, 0] - lo[11, 0] + NEARBY_M, 0, 0], hi[11] + [hi[11, 0] - lo[11, 0] + NEARBY_M, 0, 0]
+    lo[20], hi[20] = [lo[21, 0], lo[21, 1], hi[21, 2]], [hi[21, 0], hi[21, 1], hi[21, 2] + 0.2]  # 20 on 21
+    boxes = RegionBoxes(np.arange(n) * 3, lo, hi)  # keys not rows
+    assert boxes._by_x[5].size >= 4  # the wide rows are there
+    compared = 0
+    for key in list(range(0, 90, 3)) + [30, 33, 60, 63, 3 * (n - 1), 7]:
+        assert nearby_regions(key, boxes, up_axis=up_axis) == _nearby_by_full_scan(key, boxes, up_axis=up_axis)
+        every = nearby_regions(key, boxes, up_axis=up_axis, max_count=n)  # all within reach, not just 3
+        assert every == _nearby_by_full_scan(key, boxes, up_axis=up_axis, max_count=n)
+        compared += len(every)
+    assert compared > 10 * 30  # regions related within reach: far more than the three nearest each

@@ -72,6 +72,7 @@ from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings, add_section_options, config_from_args
 from openfusion.errors import UsageError
 from openfusion.services.bridge.service import BridgeSection, bridge_name
+from openfusion.services.query.instances import query_service_name
 from openfusion.sources.registry import check_source_spec, describe_source, parse_key_values
 from openfusion.sources.synthetic_spec import split_world
 from openfusion.wire.counters import BridgeCounter, CommonCounter, GeometryCounter, SemanticCounter
@@ -221,11 +222,16 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
                                       latest_only=True))
     for name in ("geometry", "semantic", "query"):
         cluster.start(name)
+    # more query services on the same map: Zenoh delivers each request to one of them (services/query/instances.py)
+    more_queries = [query_service_name(i) for i in range(2, args.query_services + 1)]
+    for i, name in enumerate(more_queries, start=2):
+        cluster.start(name, ["--instance", str(i)], service="query", optional=True)
     workers = [f"w{i + 1}" for i in range(args.encoder_workers)]
     for worker_id in workers:  # the encoder pool: workers of this run's private router
         cluster.start(f"encoder-{worker_id}", ["--worker-id", worker_id], service="encoder", optional=True)
     _say(args, f"starting services on {cluster.endpoint} (logs in {cluster.log_dir})")
-    wait_for_services(client, cluster, {"geometry", "semantic", "query", *(f"encoder-{w}" for w in workers)},
+    wait_for_services(client, cluster, {"geometry", "semantic", "query", *more_queries,
+                                        *(f"encoder-{w}" for w in workers)},
                       SERVICE_START_TIMEOUT_S, should_stop=lambda: signals.requested is not None)
     if signals.requested:
         raise signals.interrupted("stopped before playback started; nothing to save")
@@ -532,6 +538,7 @@ def _say(args: argparse.Namespace, text: str) -> None:
 
 #: More encoder workers than this on one machine is a typo, not a plan.
 MAX_ENCODER_WORKERS = 16
+MAX_QUERY_SERVICES = 8
 
 
 class RunCommand:
@@ -566,6 +573,9 @@ class RunCommand:
         parser.add_argument("--encoder-workers", type=int, default=0, metavar="N",
                             help="start N encoder workers (the encoder pool, `openfusion service encoder`) and let the "
                             "semantic service send them its frames (default 0: it encodes them itself)")
+        parser.add_argument("--query-services", type=int, default=1, metavar="N",
+                            help="start N query services on the map (query, query-2, …): each holds the dictionary "
+                            "and summaries, a request is answered by one of them (default 1)")
         parser.add_argument("--quiet", action="store_true",
                             help="no progress output (stderr); the run summary still goes to stdout")
         parser.add_argument("--config", metavar="FILE", help="TOML/JSON/YAML file with [bridge], [geometry], "
@@ -589,6 +599,10 @@ class RunCommand:
             raise UsageError(f"--encoder-workers must be between 0 and {MAX_ENCODER_WORKERS}, got {args.encoder_workers}")
         if args.in_process and args.encoder_workers:
             raise UsageError("--encoder-workers starts encoder services; --in-process has none")
+        if not 1 <= args.query_services <= MAX_QUERY_SERVICES:
+            raise UsageError(f"--query-services must be between 1 and {MAX_QUERY_SERVICES}, got {args.query_services}")
+        if args.in_process and args.query_services > 1:
+            raise UsageError("--query-services starts query services; --in-process has none")
         if args.timeout_s <= 0:
             raise UsageError(f"--timeout-s must be positive, got {args.timeout_s:g}")
         _check_queries(args.queries or DEFAULT_QUERIES, args.top_k)

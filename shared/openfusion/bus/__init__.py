@@ -38,7 +38,7 @@ returns exit code 0.
 
 from openfusion.bus.health import HealthReporter, collect_health, live_services
 from openfusion.bus.pubsub import Publisher, Subscriber
-from openfusion.bus.query import Queryable, QueryError, RequestError, call, get
+from openfusion.bus.query import Queryable, QueryError, RequestError, call, get, get_all
 from openfusion.bus.runner import ServiceRunner, run_service
 from openfusion.bus.session import BusError, free_loopback_port, open_session
 from openfusion.bus.stats import ServiceStats
@@ -57,6 +57,7 @@ __all__ = [
     "collect_health",
     "free_loopback_port",
     "get",
+    "get_all",
     "live_services",
     "open_session",
     "run_service",

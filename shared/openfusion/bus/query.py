@@ -85,8 +85,10 @@ class Queryable(Generic[M]):
         queue_size: int = 256,
         max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
         max_array_elements: int = DEFAULT_MAX_ARRAY_ELEMENTS,
+        undeclare_on_close: bool = True,
     ) -> None:
         self.key = key
+        self._undeclare_on_close = undeclare_on_close
         self.request_model = request_model
         self.handler = handler
         self.reply_model = reply_model or Message
@@ -189,11 +191,18 @@ class Queryable(Generic[M]):
         self._count("answered")
 
     def close(self, *, timeout_s: float = 5.0) -> None:
-        """Undeclare, answer nothing more, and finalize queries still waiting (callers see no reply)."""
-        try:
-            self._qbl.undeclare()
-        except zenoh.ZError as exc:
-            logger.debug("queryable %s already undeclared: %s", self.key, exc)
+        """Undeclare, answer nothing more, and finalize queries still waiting (callers see no reply).
+        With ``undeclare_on_close=False`` the declaration stays until the session closes (queries
+        arriving meanwhile are finalized unanswered, which :func:`get` asks again): one of several
+        ``complete`` queryables on a key must go that way, because a router (eclipse-zenoh 1.10)
+        keeps routing BEST_MATCHING queries to an undeclared complete queryable whose session is
+        still open and stops answering the key altogether, while a closed session's queryables are
+        routed around at once (tests/bus/test_query_services.py)."""
+        if self._undeclare_on_close:
+            try:
+                self._qbl.undeclare()
+            except zenoh.ZError as exc:
+                logger.debug("queryable %s already undeclared: %s", self.key, exc)
         with self._cond:
             self._closed = True
             pending = list(self._queue)
@@ -203,6 +212,31 @@ class Queryable(Generic[M]):
             query.drop()
         if self._thread is not threading.current_thread():
             self._thread.join(timeout_s)
+
+
+#: A query that came back with no reply at all is asked again after this pause (:func:`get`
+#: with ``retry_unanswered_s``).
+_RETRY_UNANSWERED_PAUSE_S = 0.05
+#: How long clients of several interchangeable services (the query services) ask again.
+RETRY_UNANSWERED_S = 0.5
+
+
+def _first_reply(key: str, reply: zenoh.Reply, reply_model: type[M], *, max_bytes: int,
+                 max_array_elements: int) -> M:
+    """The reply as ``reply_model``; QueryError for an error reply or one that does not decode."""
+    if reply.ok is not None:
+        try:
+            return decode(reply.ok.payload, expected=reply_model, max_bytes=max_bytes,
+                          max_array_elements=max_array_elements)
+        except DecodeError as exc:
+            raise QueryError(key, f"bad_reply:{exc.reason}", str(exc)) from None
+    err = reply.err
+    try:
+        error = decode(err.payload, expected=ErrorReply)
+    except DecodeError:
+        text = err.payload.to_bytes()[:300].decode("utf-8", "replace")
+        raise QueryError(key, "error", text) from None
+    raise QueryError(key, error.code, error.reason)
 
 
 def _service_hint(key: str) -> str:
@@ -220,37 +254,75 @@ def get(
     service: str | None = None,
     max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
     max_array_elements: int = DEFAULT_MAX_ARRAY_ELEMENTS,
+    retry_unanswered_s: float = 0.0,
 ) -> M:
     """Ask the service on ``key`` and return its first reply as ``reply_model``.
 
     Raises :class:`QueryError`: with the remote ``code``/``reason`` when it answered
     ``reply_err``; ``bad_reply:<reason>`` when the reply does not decode; ``timeout`` ("no
     service answered on KEY within T s: is the SERVICE service running?") when nobody answered.
+    ``retry_unanswered_s``: a query that ends with no reply at all before its timeout is asked
+    again, every 50 ms, for up to that long (the queryable it went to was going away, or dropped
+    it: another one of several answers; for requests that may be asked twice, e.g. queries).
     """
     payload = encode(request, max_bytes=max_bytes)
-    try:
-        replies = session.get(key, payload=payload, timeout=timeout_s)
-    except zenoh.ZError as exc:
-        raise QueryError(key, "bus_error", f"cannot send the query: {exc}") from None
-    for reply in replies:
-        if reply.ok is not None:
-            try:
-                return decode(
-                    reply.ok.payload, expected=reply_model, max_bytes=max_bytes, max_array_elements=max_array_elements
-                )
-            except DecodeError as exc:
-                raise QueryError(key, f"bad_reply:{exc.reason}", str(exc)) from None
-        err = reply.err
+    started = time.monotonic()
+    deadline = started + timeout_s
+    while True:
         try:
-            error = decode(err.payload, expected=ErrorReply)
-        except DecodeError:
-            text = err.payload.to_bytes()[:300].decode("utf-8", "replace")
-            raise QueryError(key, "error", text) from None
-        raise QueryError(key, error.code, error.reason)
+            replies = session.get(key, payload=payload, timeout=max(deadline - time.monotonic(), 0.001))
+        except zenoh.ZError as exc:
+            raise QueryError(key, "bus_error", f"cannot send the query: {exc}") from None
+        for reply in replies:
+            return _first_reply(key, reply, reply_model, max_bytes=max_bytes, max_array_elements=max_array_elements)
+        # No reply at all, well before the timeout: the query went to a queryable that is going
+        # away (one of several query services closing: Zenoh finalizes the query unanswered) or
+        # dropped it. Ask again for a moment, so another instance answers (services/query/instances.py).
+        now = time.monotonic()
+        if now - started >= retry_unanswered_s or deadline - now < 2 * _RETRY_UNANSWERED_PAUSE_S:
+            break
+        time.sleep(_RETRY_UNANSWERED_PAUSE_S)
     hint = service or _service_hint(key)
     raise QueryError(
         key, "timeout", f"no service answered on {key} within {timeout_s:g} s: is the {hint} service running?"
     )
+
+
+def get_all(
+    session: zenoh.Session,
+    key: str,
+    request: Message,
+    reply_model: type[M],
+    *,
+    timeout_s: float = 5.0,
+    max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
+    max_array_elements: int = DEFAULT_MAX_ARRAY_ELEMENTS,
+    retry_unanswered_s: float = 0.0,
+) -> list[M | QueryError]:
+    """EVERY reply to one query on ``key`` (what :func:`get` returns the first of), each decoded
+    or a :class:`QueryError`, waiting for the query to finish; asked again like :func:`get` when
+    none came (``retry_unanswered_s``). For counting: several services behind one key must answer a request once
+    (``bench/bench_query_load.py``, ``tests/bus/test_query_services.py``)."""
+    payload = encode(request, max_bytes=max_bytes)
+    started = time.monotonic()
+    deadline = started + timeout_s
+    while True:
+        try:
+            replies = list(session.get(key, payload=payload, timeout=max(deadline - time.monotonic(), 0.001)))
+        except zenoh.ZError as exc:
+            raise QueryError(key, "bus_error", f"cannot send the query: {exc}") from None
+        now = time.monotonic()
+        if replies or now - started >= retry_unanswered_s or deadline - now < 2 * _RETRY_UNANSWERED_PAUSE_S:
+            break
+        time.sleep(_RETRY_UNANSWERED_PAUSE_S)
+    out: list[M | QueryError] = []
+    for reply in replies:
+        try:
+            out.append(_first_reply(key, reply, reply_model, max_bytes=max_bytes,
+                                    max_array_elements=max_array_elements))
+        except QueryError as exc:
+            out.append(exc)
+    return out
 
 
 def call(
@@ -262,6 +334,7 @@ def call(
     timeout_s: float = 5.0,
     max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
     max_array_elements: int = DEFAULT_MAX_ARRAY_ELEMENTS,
+    retry_unanswered_s: float = 0.0,
 ) -> R:
     """Ask ``endpoint`` of the map ``keys`` and return its typed reply (:func:`get` with the
     key, reply type and owner the endpoint declares). TypeError for a request of another type."""
@@ -276,4 +349,5 @@ def call(
         service=endpoint.owner,
         max_bytes=max_bytes,
         max_array_elements=max_array_elements,
+        retry_unanswered_s=retry_unanswered_s,
     )

@@ -163,12 +163,15 @@ def answer_text(
     boxes: RegionBoxes | None,
     top_k: int,
     up_axis: str = "+z",
+    nearby: Callable[[int], list[Nearby]] | None = None,
 ) -> TextAnswer:
     """The answer to ``text`` (module docstring). ``vectors``: the embedding of every text of
     :func:`texts_to_embed`; ``rank(vector, n)``: up to ``n`` (key, cosine) best first, regions
     that are no answers already left out (it is asked for :func:`pool_size` of them); ``boxes``: every answerable region's box (None: no
     relations, no nearby). A relation query whose Y matches no region is answered as a plain
-    query (the whole text): "the thing above my head" names no region "my head" to be above."""
+    query (the whole text): "the thing above my head" names no region "my head" to be above.
+    ``nearby(key)``: :func:`~openfusion.mapping.relations.nearby_regions` of ``key`` in ``boxes``
+    with ``up_axis`` (a caller that keeps them between queries passes its memo; None: computed)."""
     rq = parse_relation_query(text) if boxes is not None else None
     anchors: list[int] = []
     if rq is not None:
@@ -184,5 +187,6 @@ def answer_text(
                                        embeddings=embeddings, scorer=scorer, boxes=boxes, up_axis=up_axis)[:top_k]
     if boxes is not None:
         for region in regions:
-            region.nearby = nearby_regions(region.key, boxes, up_axis=up_axis)
+            region.nearby = nearby(region.key) if nearby is not None else nearby_regions(
+                region.key, boxes, up_axis=up_axis)
     return TextAnswer(text, regions, rq, anchors)

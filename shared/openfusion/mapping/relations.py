@@ -38,6 +38,7 @@ from __future__ import annotations
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -119,7 +120,9 @@ class _Box:
 
     @property
     def foot_area(self) -> float:
-        return float(np.prod(np.maximum(self.foot_hi - self.foot_lo, 1e-6)))
+        # plain floats: the same IEEE products as np.prod of the two sides, without numpy's per-call cost
+        (x0, y0), (x1, y1) = self.foot_lo.tolist(), self.foot_hi.tolist()
+        return max(x1 - x0, 1e-6) * max(y1 - y0, 1e-6)
 
 
 def _box(lo: np.ndarray, hi: np.ndarray, up_axis: str) -> _Box:
@@ -132,8 +135,9 @@ def _box(lo: np.ndarray, hi: np.ndarray, up_axis: str) -> _Box:
 
 def _foot_overlap(a: _Box, b: _Box) -> float:
     """Area of the intersection of the two footprints."""
-    side = np.minimum(a.foot_hi, b.foot_hi) - np.maximum(a.foot_lo, b.foot_lo)
-    return float(np.prod(np.maximum(side, 0.0)))
+    (ax0, ay0), (ax1, ay1) = a.foot_lo.tolist(), a.foot_hi.tolist()
+    (bx0, by0), (bx1, by1) = b.foot_lo.tolist(), b.foot_hi.tolist()
+    return max(min(ax1, bx1) - max(ax0, bx0), 0.0) * max(min(ay1, by1) - max(ay0, by0), 0.0)
 
 
 def _foot_gap(a: _Box, b: _Box) -> float:
@@ -193,6 +197,10 @@ def relation_of(
     return None
 
 
+#: :meth:`RegionBoxes.rows_within`: boxes wider than this on x (metres) are always candidates.
+_WIDE_M = 1.0
+
+
 @dataclass(frozen=True)
 class RegionBoxes:
     """The boxes of a map's regions (keys ascending): what relations are computed from."""
@@ -204,6 +212,30 @@ class RegionBoxes:
     def row(self, key: int) -> int | None:
         i = int(np.searchsorted(self.keys, key))
         return i if i < len(self.keys) and int(self.keys[i]) == int(key) else None
+
+    @cached_property
+    def _by_x(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, np.ndarray]:
+        """float64 boxes; the rows at most :data:`_WIDE_M` wide on x ordered by their low x, those
+        low x and the widest of them; the wider rows (walls, floors: few): built once per set of
+        boxes (the query service keeps one per set of summaries)."""
+        lo, hi = np.asarray(self.bbox_min, np.float64), np.asarray(self.bbox_max, np.float64)
+        extent = hi[:, 0] - lo[:, 0]
+        wide = extent > _WIDE_M
+        narrow = np.flatnonzero(~wide)
+        order = narrow[np.argsort(lo[narrow, 0], kind="stable")]
+        widest = float(extent[narrow].max()) if len(narrow) else 0.0
+        return lo, hi, order, lo[order, 0], widest, np.flatnonzero(wide)
+
+    def rows_within(self, i: int, reach_m: float) -> np.ndarray:
+        """Rows (ascending) that may lie within ``reach_m`` of row ``i``'s box: every row whose box
+        is that close, and some that are not (a superset found on the x axis alone, from the
+        rows sorted by low x, plus every row wider than :data:`_WIDE_M`; the caller measures the
+        exact distance)."""
+        lo, hi, order, lo_x, widest, wide = self._by_x
+        slack = 1e-6  # metres: rounding never drops a row at exactly ``reach_m``
+        first = np.searchsorted(lo_x, lo[i, 0] - reach_m - widest - slack, side="left")
+        last = np.searchsorted(lo_x, hi[i, 0] + reach_m + slack, side="right")
+        return np.sort(np.concatenate([order[first:last], wide]))
 
 
 @dataclass(frozen=True)
@@ -223,12 +255,15 @@ def nearby_regions(
     i = boxes.row(key)
     if i is None:
         return []
-    # box distances to every region at once (the query service holds thousands); only the few
-    # within reach go through the per-pair relation rules
-    lo, hi = np.asarray(boxes.bbox_min, np.float64), np.asarray(boxes.bbox_max, np.float64)
-    gaps = np.maximum(0.0, np.maximum(lo[i] - hi, lo - hi[i]))
-    dists = np.linalg.norm(gaps, axis=1)
-    near = np.flatnonzero(dists <= within_m)
+    # box distances to the regions within reach on the x axis (the query service holds
+    # thousands; :meth:`RegionBoxes.rows_within`); only the few within ``within_m`` go through
+    # the per-pair relation rules
+    lo, hi = boxes._by_x[:2]
+    rows = boxes.rows_within(i, within_m)
+    gaps = np.maximum(0.0, np.maximum(lo[i] - hi[rows], lo[rows] - hi[i]))
+    dists = np.full(len(lo), np.inf)
+    dists[rows] = np.linalg.norm(gaps, axis=1)
+    near = rows[dists[rows] <= within_m]
     near = near[near != i]
     # nearest first (then by key); the relation rules run only until max_count regions relate
     order = near[np.lexsort((np.asarray(boxes.keys)[near], dists[near]))]

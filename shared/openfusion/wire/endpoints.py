@@ -12,10 +12,11 @@ too (:meth:`~openfusion.wire.keys.KeySpace.health`).
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
-from openfusion.wire.keys import CONTROL_ACTIONS, KeySpace
+from openfusion.wire.keys import CONTROL_ACTIONS, KeySpace, validate_segment
 from openfusion.wire.message import Message
 from openfusion.wire.schemas import (
     ControlReply,
@@ -82,6 +83,11 @@ class Endpoint(Generic[Q, R]):
     def key(self, keys: KeySpace) -> str:
         return keys.key(*self.parts)
 
+    def instance_key(self, keys: KeySpace, service: str) -> str:
+        """The key of this endpoint at ONE of several services that all answer :meth:`key`
+        (``…/query/text/query-2``): a client that spreads its requests asks one by name."""
+        return keys.key(*self.parts, validate_segment(service, what="service name"))
+
     @property
     def path(self) -> str:
         return "/".join(self.parts)
@@ -114,6 +120,21 @@ QUERY_TEXT = Endpoint(("query", "text"), TextQuery, QueryReply, owner="query")
 QUERY_TEXT_BATCH = Endpoint(("query", "text_batch"), TextQueryBatch, QueryBatchReply, owner="query")
 QUERY_IMAGE = Endpoint(("query", "image"), ImageQuery, QueryReply, owner="query")
 QUERY_POINT = Endpoint(("query", "point"), PointQuery, QueryReply, owner="query")
+#: The query service's endpoints: several query services may answer them on one map, each also on
+#: its own :meth:`Endpoint.instance_key` (services/query/instances.py).
+QUERY_ENDPOINTS = (QUERY_TEXT, QUERY_TEXT_BATCH, QUERY_IMAGE, QUERY_POINT)
+_QUERY_SERVICE = re.compile(r"query(-[1-9][0-9]*)?")
+
+
+def query_service_name(instance: int | None) -> str:
+    """The service name (health, liveliness, instance keys) of query service ``instance``:
+    ``query`` for none or 1, else ``query-N``."""
+    return "query" if instance is None or int(instance) <= 1 else f"query-{int(instance)}"
+
+
+def is_query_service(name: str) -> bool:
+    """Whether ``name`` is one of :func:`query_service_name`'s names."""
+    return _QUERY_SERVICE.fullmatch(name) is not None
 #: Admin actions (access-controlled in production): save, load, reset.
 CONTROL: dict[str, Endpoint[ControlRequest, ControlReply]] = {
     action: Endpoint(("control", action), ControlRequest, ControlReply, owner="geometry") for action in CONTROL_ACTIONS
