@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
+from typing import Any
 
 
 def release_freed_memory() -> None:
@@ -16,19 +18,18 @@ def release_freed_memory() -> None:
     OS. glibc keeps freed heap in its arenas, and without this a process under a memory budget
     creeps upwards by fragmentation (before this: +106 MiB of RssAnon over a 300-frame walk). A no-op
     where there is no glibc."""
-    if _LIBC is not None:
-        _LIBC.malloc_trim(0)
+    libc = _libc()
+    if libc is not None:
+        libc.malloc_trim(0)
 
 
-def _load_libc() -> object:
+@functools.cache
+def _libc() -> Any:
+    """The C library, looked up on first use (``find_library`` may run ``ldconfig``: not at import,
+    so a command that never trims starts no process)."""
     try:
         name = ctypes.util.find_library("c")
         libc = ctypes.CDLL(name) if name else None
         return libc if libc is not None and hasattr(libc, "malloc_trim") else None
     except OSError:
         return None
-
-
-_LIBC: object = _load_libc()
-
-
