@@ -23,6 +23,7 @@ import logging
 from typing import TYPE_CHECKING
 
 from openfusion.bus import QueryError, ServiceRunner
+from openfusion.bus.health import live_services
 from openfusion.mapping import RegionDictionary, SemanticVolume
 from openfusion.services.dictionary_replica import DictionaryReplica
 from openfusion.services.geometry.section import GeometrySection
@@ -90,6 +91,13 @@ class DictionaryFollower:
         if self._runner is None or not self.section.merge_on_save or self.replica.dictionary is None:
             return False
         timeout_s = self.section.merge_on_save_timeout_s
+        session = getattr(self._runner, "session", None)  # None: a bus-free runner double
+        if session is not None and "semantic" not in live_services(session, self._runner.keys, timeout_s=1.0):
+            # Nobody to run the pass (the semantic service died or was never started): save at once
+            # rather than wait merge_on_save_timeout_s for an answer that cannot come.
+            logger.info("geometry: saving without a merge pass: no semantic service is alive")
+            self._count(GeometryCounter.SAVE_MERGE_FAILURES)
+            return False
         try:
             reply = self._runner.call(SEMANTIC_MERGE, MergeRequest(), timeout_s=timeout_s)
         except QueryError as exc:

@@ -296,8 +296,8 @@ def _save_what_is_left(args: argparse.Namespace, client: Any, cluster: Cluster, 
     write ``run.json`` with the error; neither may hide the error itself."""
     geometry = cluster.processes.get("geometry")
     if geometry is not None and geometry.alive() and summary.frames_integrated > 0:
-        try:
-            client.control("save", str(map_dir.resolve()))
+        try:  # waited for as the end of a run that went well waits (a large map's save outlasts a request)
+            save_and_wait(client, map_dir, say=lambda line: _say(args, line), alive=geometry.alive)
             summary.map_saved = str(map_dir.resolve())
             _say(args, f"saved the map of {summary.frames_integrated} integrated frames to {map_dir}")
         except Exception as exc:  # noqa: BLE001 - the run's own error is what the user must see
