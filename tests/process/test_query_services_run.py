@@ -90,5 +90,5 @@ def test_two_query_services_one_killed_mid_run(tmp_path: Path) -> None:
             proc.wait(30)
         err.close()
     summary = json.loads((out / "run.json").read_text())
-    assert summary["frames_integrated"] == 120
+    assert summary["frames_integrated"] == 120 and summary["query_services"] == 2
     assert not processes_mentioning(map_id)

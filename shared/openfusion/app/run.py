@@ -254,6 +254,7 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
             restarts=cluster.restarts, error=error, encoder_workers=args.encoder_workers,
             select=config.semantic.select)
         summary.map_saved = saved_to
+        summary.query_services = args.query_services
         return summary
 
     try:

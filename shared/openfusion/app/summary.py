@@ -137,6 +137,8 @@ class RunSummary(BaseModel):
     #: encoder workers of the pool (``--encoder-workers``; 0: the semantic service encodes) and the
     #: frames each one encoded that were applied to the map
     encoder_workers: int = 0
+    #: query services serving the map (``--query-services``; each client request answered by one)
+    query_services: int = 1
     frames_encoded_per_worker: dict[str, int] = Field(default_factory=dict)
     #: frames sent again after their worker died, and frames lost (their workers died twice, or a
     #: newer frame's result had been applied before they could go again)
