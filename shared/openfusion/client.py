@@ -224,7 +224,7 @@ class OpenFusionClient:
                 return get(self.session, endpoint.instance_key(self.keys, name), request, endpoint.reply,
                            timeout_s=timeout_s, service=name)
             except QueryError as exc:
-                if exc.code not in _NOT_THIS_INSTANCE:
+                if not (exc.timed_out or exc.code in _NOT_THIS_INSTANCE):
                     raise
                 picker.forget(name)  # type: ignore[union-attr]
         # a query left unanswered by a query service going away is asked again for a moment
@@ -232,9 +232,10 @@ class OpenFusionClient:
         return call(self.session, self.keys, endpoint, request, timeout_s=timeout_s, retry_unanswered_s=retry)
 
 
-#: A query service asked by name that answers so (gone; just started, no dictionary yet) leaves
-#: the request to the shared key, where Zenoh picks one that answers.
-_NOT_THIS_INSTANCE = ("timeout", "no_map")
+#: A query service asked by name that answers so (just started, no dictionary yet), or that does not
+#: answer in time (gone, or closed with the request pending: Zenoh's ``Timeout`` error reply),
+#: leaves the request to the shared key, where Zenoh picks one that answers.
+_NOT_THIS_INSTANCE = ("no_map",)
 
 
 def _key_list(keys: Sequence[int] | None) -> list[int] | None:

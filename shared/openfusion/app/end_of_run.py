@@ -38,7 +38,7 @@ _POLL_S = 1.0
 def _timed_out(exc: QueryError) -> bool:
     """Nobody answered in time, or the queryable did not (Zenoh answers the latter itself, with an
     error reply whose payload is ``Timeout``)."""
-    return exc.code == "timeout" or (exc.code == "error" and exc.reason.strip().lower() == "timeout")
+    return exc.timed_out
 
 
 def _geometry_counters(client: Any) -> dict[str, float] | None:

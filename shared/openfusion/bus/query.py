@@ -46,6 +46,12 @@ class QueryError(OpenFusionError):
         self.reason = reason
         super().__init__(f"{key}: {reason}" if code == "timeout" else f"{key}: {code}: {reason}")
 
+    @property
+    def timed_out(self) -> bool:
+        """No answer in time: our own timeout, or Zenoh's error reply ``Timeout`` (a queryable whose
+        session closed with the query pending, or a router that gave up on it)."""
+        return self.code == "timeout" or (self.code == "error" and self.reason.strip().lower() == "timeout")
+
 
 class RequestError(OpenFusionError):
     """Raise in a queryable handler to refuse a request with your own ``code`` and ``reason``
@@ -239,6 +245,14 @@ def _first_reply(key: str, reply: zenoh.Reply, reply_model: type[M], *, max_byte
     raise QueryError(key, error.code, error.reason)
 
 
+def _zenoh_timeout(reply: zenoh.Reply) -> bool:
+    """Zenoh's own ``Timeout`` error reply (not a service's :class:`ErrorReply`): the queryable's
+    session closed, or a router gave up, with the query pending."""
+    if reply.ok is not None:
+        return False
+    return reply.err.payload.to_bytes()[:16].decode("utf-8", "replace").strip().lower() == "timeout"
+
+
 def _service_hint(key: str) -> str:
     parts = key.split("/")
     return parts[-2] if len(parts) >= 2 else key
@@ -274,10 +288,13 @@ def get(
         except zenoh.ZError as exc:
             raise QueryError(key, "bus_error", f"cannot send the query: {exc}") from None
         for reply in replies:
+            if retry_unanswered_s > 0 and _zenoh_timeout(reply):
+                break  # the queryable closed with the query pending: as unanswered (below)
             return _first_reply(key, reply, reply_model, max_bytes=max_bytes, max_array_elements=max_array_elements)
         # No reply at all, well before the timeout: the query went to a queryable that is going
-        # away (one of several query services closing: Zenoh finalizes the query unanswered) or
-        # dropped it. Ask again for a moment, so another instance answers (services/query/instances.py).
+        # away (one of several query services closing: Zenoh finalizes the query unanswered, or
+        # answers it with its own ``Timeout`` error) or dropped it. Ask again for a moment, so
+        # another instance answers (services/query/instances.py).
         now = time.monotonic()
         if now - started >= retry_unanswered_s or deadline - now < 2 * _RETRY_UNANSWERED_PAUSE_S:
             break
@@ -311,6 +328,8 @@ def get_all(
             replies = list(session.get(key, payload=payload, timeout=max(deadline - time.monotonic(), 0.001)))
         except zenoh.ZError as exc:
             raise QueryError(key, "bus_error", f"cannot send the query: {exc}") from None
+        if retry_unanswered_s > 0 and replies and all(_zenoh_timeout(r) for r in replies):
+            replies = []  # only a closing queryable's Timeout: as unanswered
         now = time.monotonic()
         if replies or now - started >= retry_unanswered_s or deadline - now < 2 * _RETRY_UNANSWERED_PAUSE_S:
             break
