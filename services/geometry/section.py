@@ -39,8 +39,7 @@ class GeometrySection(VolumeParams, JoinParams):
         True, description="before a save on control/save, ask the semantic service for a merge pass"
     )
     merge_on_save_timeout_s: float = Field(
-        60.0, gt=0, description="how long a save waits for that merge pass (then it saves without it; the pass "
-        "waits up to semantic.contacts_timeout_s for region contacts)"
+        20.0, gt=0, description="how long a save waits for that merge pass (then it saves without it)"
     )
     regions_min_interval_s: float = Field(
         0.5, ge=0, description="a changed map's region summaries are recomputed at most this often (unless fresh)"
