@@ -65,7 +65,7 @@ from typing import Any
 from pydantic import Field, field_validator
 
 from openfusion.bus import Publisher, ServiceRunner
-from openfusion.bus.flow_control import InFlightWindow
+from openfusion.bus.flow_control import InFlightWindow, ShardWindows
 from openfusion.config import ConfigSection, ServiceConfig
 from openfusion.frame import Frame
 from openfusion.services.common import ServiceDefinition
@@ -74,6 +74,7 @@ from openfusion.sources.base import IndexedFrameSource
 from openfusion.wire.codec import EncodeError
 from openfusion.wire.counters import BridgeCounter
 from openfusion.wire.endpoints import GEOMETRY_PROGRESS, SENSOR_INSTANCE, SENSOR_RGBD
+from openfusion.wire.keys import MAX_SHARDS, ShardId
 from openfusion.wire.schemas import GeometryProgress, InstanceFrame, RgbdFrame
 from openfusion.wire.schemas.base import DEFAULT_ROBOT, check_robot_name
 
@@ -111,6 +112,10 @@ class BridgeSection(ConfigSection):
         "well under geometry's frame queue"
     )
     flow_wait_s: float = Field(5.0, gt=0, description="playback: without an acknowledgement this long, go open loop")
+    geometry_shards: int = Field(
+        1, ge=1, le=MAX_SHARDS, description="geometry shards the map is split into (docs/SHARDS.md): playback waits "
+        "for every shard's acknowledgement"
+    )
     playback: str = Field(
         "", max_length=64, description="name of this playback (none = a new one); a bridge restarted with the same "
         "name continues it: geometry drops the frames it already holds"
@@ -191,9 +196,11 @@ class BridgeService:
         self._instance_pub: Publisher | None = None
         blocking = self.section.block_when_congested
         self.blocking = (not self.source.live) if blocking is None else blocking
-        self.window: InFlightWindow | None = None
+        self.window: InFlightWindow | ShardWindows | None = None
         if self.blocking and self.section.max_in_flight > 0:
-            self.window = InFlightWindow(self.section.max_in_flight)
+            n = self.section.geometry_shards
+            self.window = (InFlightWindow(self.section.max_in_flight) if n == 1 else
+                           ShardWindows(self.section.max_in_flight, [s.service for s in ShardId.all(n)]))
         # Replay for a restarted geometry (module docstring): an indexed playback source only.
         self.replayable = isinstance(self.source, IndexedFrameSource) and not self.source.live and not self.section.loop
         self.playback = (self.section.playback or uuid.uuid4().hex[:16]) if self.replayable else ""
@@ -203,7 +210,7 @@ class BridgeService:
         self._rewind_to: tuple[int, int] | None = None  # (position, id of the frame before it)
         self._handled: tuple[str, int] | None = None  # the last announcement gone back for, and when
         self._handled_at = 0.0
-        self._incarnations: set[str] = set()  # the geometry processes heard from
+        self._incarnations: set[tuple[str, str]] = set()  # the geometry processes heard from: (shard, incarnation)
         self._semantic_lost_at: int | None = None  # position of the last frame published when it went away
         self._semantic_watch: Any = None
 
@@ -257,12 +264,12 @@ class BridgeService:
         if msg.robot != self.robot:
             return
         if self.window is not None and msg.frame_id >= 0:
-            self.window.acknowledge(msg.frame_id, msg.stamp_ns)
+            self.window.acknowledge(msg.frame_id, msg.stamp_ns, shard=msg.shard)
         if msg.resume > 0 and self.replayable:
             self.on_resume(msg)
         if msg.incarnation:
             with self._replay_lock:
-                self._incarnations.add(msg.incarnation)
+                self._incarnations.add((msg.shard, msg.incarnation))
 
     def on_resume(self, msg: GeometryProgress, now_s: float | None = None) -> None:
         """Geometry wants the frames of this playback after ``holds_frame_id``: go back there when
@@ -272,7 +279,7 @@ class BridgeService:
         with self._replay_lock:
             if key == self._handled and now - self._handled_at < self.section.flow_wait_s:
                 return
-            if msg.resume == 1 and not self._incarnations - {msg.incarnation}:
+            if msg.resume == 1 and not {i for s, i in self._incarnations if s == msg.shard} - {msg.incarnation}:
                 # The start announcement of the first geometry this bridge hears of: the frames
                 # published so far are on their way to it, not lost (it may have sent this before
                 # they reached it). Frames lost anyway come out of order and it announces again.

@@ -106,7 +106,7 @@ from openfusion.mapping.robot_streams import Admission, RobotStream, RobotStream
 from openfusion.mapping.tilestore import STORE_DIR_NAME
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
-from openfusion.services.geometry import checkpoints
+from openfusion.services.geometry import checkpoints, sharding
 from openfusion.services.geometry.dictionary_follower import DictionaryFollower
 from openfusion.services.geometry.memory import MemoryPeaks, publish_map_size
 from openfusion.services.geometry.robots import RobotJoiner
@@ -191,8 +191,11 @@ class GeometryService(DictionaryFollower):
         self.config = config
         self.section = config.geometry
         self._lock = threading.RLock()
+        #: Which geometry shard this is (docs/SHARDS.md): 0/1, the whole map, unless ``shard`` says.
+        self.shard = self.section.shard_id
         self.checkpoint_dir: Path | None = (
-            self.section.map_dir / config.map_id if self.section.map_dir is not None else None
+            sharding.checkpoint_dir(self.section.map_dir / config.map_id, self.shard)
+            if self.section.map_dir is not None else None
         )
         load = self.section.load_on_start and self.checkpoint_dir is not None and _has_checkpoint(self.checkpoint_dir)
         self.volume = checkpoints.new_volume(self.section.volume_params(), None if load else self.checkpoint_dir)
@@ -562,7 +565,7 @@ class GeometryService(DictionaryFollower):
             self._progress_pub.put(GeometryProgress(frame_id=msg.frame_id, stamp_ns=msg.stamp_ns, integrated=integrated,
                                                     frames_integrated=self.frames_integrated, queued=queued,
                                                     incarnation=self.incarnation, holds_playback=playback,
-                                                    holds_frame_id=held, robot=msg.robot))
+                                                    holds_frame_id=held, robot=msg.robot, shard=self.shard.service))
         except zenoh.ZError as exc:  # the map is fine; the bridge falls back to open loop
             logger.warning("geometry: progress for frame %d not published: %s", msg.frame_id, exc)
 
@@ -689,11 +692,11 @@ class GeometryService(DictionaryFollower):
             raise RequestError("bad_request", f"this key takes action {action!r}, got {req.action!r}")
         if action == "save":
             self.merge_before_save()
-            path = self.save(Path(req.path) if req.path else None)
+            path = self.save(sharding.part_path(Path(req.path), self.shard) if req.path else None)
             return ControlReply(ok=True, message=f"saved to {path}")
         if action == "load":
             # A named file is read strictly; our own checkpoint falls back to its .prev file.
-            path = Path(req.path) if req.path else self.checkpoint_dir
+            path = sharding.part_path(Path(req.path), self.shard) if req.path else self.checkpoint_dir
             own = not req.path
             if path is None or not (_has_checkpoint(path) if own else resolve_map_path(path).exists()):
                 raise RequestError("not_found", f"no map at {path}")
@@ -723,14 +726,16 @@ class GeometryService(DictionaryFollower):
         runner.stats.robots_provider = self.robot_status
         runner.subscriber(SEMANTIC_UPDATE, self.on_update, queue_size=64)
         runner.subscriber(DICTIONARY_DELTA, self.on_delta, queue_size=256)
-        runner.queryable(GEOMETRY_RENDER, self.handle_render)
-        runner.queryable(GEOMETRY_POINTS, self.handle_points)
-        runner.queryable(GEOMETRY_MESH, self.handle_mesh)
-        runner.queryable(GEOMETRY_REGIONS, self.handle_regions)
-        runner.queryable(GEOMETRY_DICTIONARY, self.handle_dictionary)
-        runner.queryable(GEOMETRY_CONTACTS, self.handle_contacts)
+        # One shard (the default): today's keys; shard I of N: the same endpoints under its own
+        # segment (…/geometry/render/geometry-0of2), merged by readers (openfusion.shard_client).
+        for endpoint, handler in ((GEOMETRY_RENDER, self.handle_render), (GEOMETRY_POINTS, self.handle_points),
+                                  (GEOMETRY_MESH, self.handle_mesh), (GEOMETRY_REGIONS, self.handle_regions),
+                                  (GEOMETRY_DICTIONARY, self.handle_dictionary),
+                                  (GEOMETRY_CONTACTS, self.handle_contacts)):
+            sharding.serve(runner, endpoint, handler, self.shard)
         for action, endpoint in CONTROL.items():
-            runner.queryable(endpoint, lambda req, action=action: self.handle_control(req, action=action))
+            sharding.serve(runner, endpoint, lambda req, action=action: self.handle_control(req, action=action),
+                           self.shard)
         runner.stats.set(GeometryCounter.FRAMES_INTEGRATED, self.frames_integrated)
         runner.stats.set(GeometryCounter.INTEGRATE_BUSY_S, self.integrate_busy_s)
         self._set_memory_stats()
@@ -811,4 +816,5 @@ DEFINITION = ServiceDefinition(
     help="integrate frames into the semantic TSDF, render region keys, serve points/meshes, checkpoint",
     config_model=GeometryConfig,
     build=GeometryService,
+    instance_name=lambda config: config.geometry.shard_id.service,  # geometry, or geometry-0of2...
 )

@@ -84,12 +84,11 @@ from openfusion.services.query.caches import (
     TextEmbeddings,
 )
 from openfusion.services.query.instances import MAX_QUERY_INSTANCES, query_service_name
+from openfusion.shard_client import reader_for
 from openfusion.wire import limits
 from openfusion.wire.counters import QueryCounter
 from openfusion.wire.endpoints import (
     DICTIONARY_DELTA,
-    GEOMETRY_POINTS,
-    GEOMETRY_REGIONS,
     QUERY_IMAGE,
     QUERY_POINT,
     QUERY_TEXT,
@@ -373,8 +372,8 @@ class QueryService:
         if self._runner is None or (keys is not None and not keys):
             return None
         try:
-            return self._runner.call(GEOMETRY_POINTS, PointsRequest(keys=keys, max_points=max_points),
-                                     timeout_s=self.section.geometry_timeout_s)
+            return reader_for(self._runner).points(PointsRequest(keys=keys, max_points=max_points),
+                                                   timeout_s=self.section.geometry_timeout_s)
         except QueryError as exc:
             logger.warning("query: no points from geometry (%s); answering without geometry", exc.reason)
             return None
@@ -391,8 +390,8 @@ class QueryService:
                 return True
             asked_at = time.monotonic()
             try:
-                reply = self._runner.call(GEOMETRY_REGIONS, RegionSummaryRequest(fresh=fresh),
-                                          timeout_s=self.section.geometry_timeout_s)
+                reply = reader_for(self._runner).regions(RegionSummaryRequest(fresh=fresh),
+                                                         timeout_s=self.section.geometry_timeout_s)
             except QueryError as exc:
                 self._summary_failed_at = time.monotonic()
                 self._runner.stats.incr(QueryCounter.SUMMARY_FAILURES)

@@ -36,8 +36,8 @@ from openfusion.bus import QueryError, ServiceRunner, Subscriber
 from openfusion.bus.instance_join import InstanceBuffer
 from openfusion.frame import CameraIntrinsics
 from openfusion.mapping.selection import CandidateWindow, CoverageScorer, WindowChange
+from openfusion.shard_client import reader_for
 from openfusion.wire.counters import SemanticCounter
-from openfusion.wire.endpoints import GEOMETRY_RENDER
 from openfusion.wire.schemas import InstanceFrame, RenderRequest, RgbdFrame
 
 logger = logging.getLogger(__name__)
@@ -152,10 +152,9 @@ class CandidateFeeder:
 
     def _prepare(self, runner: ServiceRunner, msg: RgbdFrame) -> Any:
         def render(T_world_cam: Any, K_small: CameraIntrinsics) -> Any:
-            return runner.call(GEOMETRY_RENDER, RenderRequest(frame_id=msg.frame_id, T_world_cam=T_world_cam,
-                                                              robot=msg.robot,
-                                                              **RenderRequest.intrinsics_fields(K_small)),
-                               timeout_s=self.render_timeout_s)
+            request = RenderRequest(frame_id=msg.frame_id, T_world_cam=T_world_cam, robot=msg.robot,
+                                    **RenderRequest.intrinsics_fields(K_small))
+            return reader_for(runner).render(request, timeout_s=self.render_timeout_s)
 
         return self.scorer.prepare_frame(msg.to_frame(), render)
 

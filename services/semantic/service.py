@@ -73,12 +73,10 @@ from openfusion.services.encoder.options import (
 )
 from openfusion.services.semantic.pool import EncoderPool, PoolResult
 from openfusion.services.semantic.selection import CandidateFeeder, Pending
+from openfusion.shard_client import reader_for
 from openfusion.wire.counters import ENCODED_BY_PREFIX, PoolCounter, SemanticCounter
 from openfusion.wire.endpoints import (
     DICTIONARY_DELTA,
-    GEOMETRY_CONTACTS,
-    GEOMETRY_DICTIONARY,
-    GEOMETRY_RENDER,
     SEMANTIC_DICTIONARY,
     SEMANTIC_MERGE,
     SEMANTIC_UPDATE,
@@ -211,8 +209,8 @@ class SemanticService:
         deadline = time.monotonic() + self.section.recover_timeout_s
         while True:
             try:
-                snap = runner.call(GEOMETRY_DICTIONARY, DictionaryRequest(),
-                                   timeout_s=max(0.5, min(3.0, deadline - time.monotonic())))
+                snap = reader_for(runner).dictionary(DictionaryRequest(),
+                                                     timeout_s=max(0.5, min(3.0, deadline - time.monotonic())))
                 break
             except QueryError as exc:
                 if exc.code != "timeout" or time.monotonic() >= deadline:
@@ -255,9 +253,9 @@ class SemanticService:
         h, w = obs.conf_maps.shape[1:] if obs.conf_maps.ndim == 3 else self.encoder.output_size(
             frame.intrinsics.height_px, frame.intrinsics.width_px)
         K_small = frame.intrinsics.scaled(w, h)
-        reply = runner.call(GEOMETRY_RENDER, RenderRequest(frame_id=frame.frame_id, T_world_cam=frame.T_world_cam,
-                                                           robot=robot, **RenderRequest.intrinsics_fields(K_small)),
-                            timeout_s=self.section.render_timeout_s)
+        reply = reader_for(runner).render(RenderRequest(frame_id=frame.frame_id, T_world_cam=frame.T_world_cam,
+                                                        robot=robot, **RenderRequest.intrinsics_fields(K_small)),
+                                          timeout_s=self.section.render_timeout_s)
         rendered = RenderedView(key_map=reply.key_map, conf_map=reply.conf_map, depth_m=reply.depth_m)
         depth_m = resize_nearest(frame.depth_m(), (h, w)).astype(np.float32)
         assert self._update_pub is not None and self._delta_pub is not None
@@ -309,8 +307,9 @@ class SemanticService:
     def _merge(self, runner: ServiceRunner) -> MergeReply:
         started = time.monotonic()
         try:
-            reply = runner.call(GEOMETRY_CONTACTS, RegionContactsRequest(radius_vox=self.merge_params.merge_contact_radius_vox),
-                                timeout_s=self.section.contacts_timeout_s)
+            reply = reader_for(runner).contacts(
+                RegionContactsRequest(radius_vox=self.merge_params.merge_contact_radius_vox),
+                timeout_s=self.section.contacts_timeout_s)
         except QueryError as exc:
             logger.warning("semantic: merge pass skipped: geometry did not give region contacts (%s)", exc)
             runner.stats.incr(SemanticCounter.MERGE_FAILURES)

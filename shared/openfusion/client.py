@@ -45,12 +45,10 @@ from openfusion.bus.instances import InstancePicker
 from openfusion.bus.query import RETRY_UNANSWERED_S
 from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.errors import UsageError, UserError
+from openfusion.shard_client import GeometryReader
 from openfusion.wire import limits
 from openfusion.wire.endpoints import (
     CONTROL,
-    GEOMETRY_MESH,
-    GEOMETRY_POINTS,
-    GEOMETRY_REGIONS,
     QUERY_ENDPOINTS,
     QUERY_IMAGE,
     QUERY_POINT,
@@ -100,6 +98,8 @@ class OpenFusionClient:
         self._owns_session = owns_session
         # several query services on the map: requests taken to each in turn (openfusion.bus.instances)
         self._query_instances = InstancePicker(session, keys, is_query_service) if spread_queries else None
+        #: geometry read from however many shards serve the map (docs/SHARDS.md)
+        self._geometry = GeometryReader(session, keys)
 
     @classmethod
     def from_config(cls, config: ServiceConfig, *, timeout_s: float = 10.0) -> OpenFusionClient:
@@ -124,6 +124,7 @@ class OpenFusionClient:
         self.close()
 
     def close(self) -> None:
+        self._geometry.close()
         if self._owns_session:
             self.session.close()
             self._owns_session = False
@@ -190,14 +191,16 @@ class OpenFusionClient:
 
     # geometry
     def points(self, keys: Sequence[int] | None = None, *, max_points: int | None = None) -> PointsReply:
-        return self._call(GEOMETRY_POINTS, PointsRequest(keys=_key_list(keys), max_points=max_points))
+        return self._geometry.points(PointsRequest(keys=_key_list(keys), max_points=max_points),
+                                     timeout_s=self.timeout_s)
 
     def regions(self, keys: Sequence[int] | None = None, *, fresh: bool = False) -> RegionSummaryReply:
         """Per-region bounding boxes and surface point counts (``fresh``: of the current map)."""
-        return self._call(GEOMETRY_REGIONS, RegionSummaryRequest(keys=_key_list(keys), fresh=fresh), min_timeout_s=30.0)
+        return self._geometry.regions(RegionSummaryRequest(keys=_key_list(keys), fresh=fresh),
+                                      timeout_s=max(self.timeout_s, 30.0))
 
     def mesh(self, keys: Sequence[int] | None = None) -> MeshReply:
-        return self._call(GEOMETRY_MESH, MeshRequest(keys=_key_list(keys)), min_timeout_s=30.0)
+        return self._geometry.mesh(MeshRequest(keys=_key_list(keys)), timeout_s=max(self.timeout_s, 30.0))
 
     def dictionary(self) -> DictionarySnapshot:
         return self._call(SEMANTIC_DICTIONARY, DictionaryRequest())
@@ -206,7 +209,8 @@ class OpenFusionClient:
     def control(self, action: str, path: str | None = None) -> ControlReply:
         if action not in CONTROL:
             raise UsageError(f"control action {action!r} is not one of {', '.join(CONTROL)}")
-        return self._call(CONTROL[action], ControlRequest(action=action, path=path), min_timeout_s=60.0)
+        return self._geometry.control(action, ControlRequest(action=action, path=path),
+                                      timeout_s=max(self.timeout_s, 60.0))
 
     def live_services(self, *, timeout_s: float = 2.0) -> list[str]:
         return live_services(self.session, self.keys, timeout_s=timeout_s)

@@ -33,7 +33,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("openfusion.encoders",),
     ("openfusion.sources",),
     ("openfusion.eval", "openfusion.viz"),
-    ("openfusion.client",),
+    ("openfusion.client", "openfusion.shard_client"),
     ("openfusion.services",),
     ("openfusion.app",),
     ("openfusion.testing",),
@@ -41,6 +41,7 @@ LAYERS: list[tuple[str, ...]] = [
 
 #: Packages that may import zenoh (they talk to the bus); everything else must not.
 ZENOH_ALLOWED = ("openfusion.config", "openfusion.bus", "openfusion.sources.ros2", "openfusion.client",
+                 "openfusion.shard_client",
                  "openfusion.services", "openfusion.app", "openfusion.testing")
 
 

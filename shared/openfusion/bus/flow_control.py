@@ -55,7 +55,9 @@ class InFlightWindow:
             if not self._open_loop:
                 self._pending.append((int(frame_id), int(stamp_ns)))
 
-    def acknowledge(self, frame_id: int, stamp_ns: int) -> None:
+    def acknowledge(self, frame_id: int, stamp_ns: int, shard: str | None = None) -> None:
+        """``frame_id`` was taken (``shard``: which geometry shard said so; one window, any)."""
+        del shard
         key = (int(frame_id), int(stamp_ns))
         with self._cond:
             self._open_loop = False
@@ -96,3 +98,65 @@ class InFlightWindow:
             self._pending.clear()
             self._open_loop = True
             self._cond.notify_all()
+
+
+class ShardWindows:
+    """Flow control towards several geometry shards (docs/SHARDS.md): one :class:`InFlightWindow`
+    per shard, named by its service name (``geometry-0of2``...), all fed every frame; there is room
+    for another frame only when every shard has room, so the slowest shard paces playback and no
+    shard's queue overflows. An acknowledgement counts for its shard's window only; one of a shard
+    not in the split (another map's, an old one) changes nothing. A timeout gives up on every
+    window that has no room (open loop for those shards until they acknowledge again)."""
+
+    def __init__(self, limit: int, shards: list[str]) -> None:
+        if not shards:
+            raise ValueError("ShardWindows needs at least one shard")
+        self.limit = limit
+        self._windows = {name: InFlightWindow(limit) for name in shards}
+        self._gave_up = 0
+
+    @property
+    def shards(self) -> list[str]:
+        return list(self._windows)
+
+    @property
+    def timeouts(self) -> int:
+        return self._gave_up
+
+    @property
+    def acknowledged(self) -> int:
+        """Frames every shard has taken."""
+        return min(w.acknowledged for w in self._windows.values())
+
+    @property
+    def open_loop(self) -> bool:
+        return any(w.open_loop for w in self._windows.values())
+
+    def __len__(self) -> int:
+        return max(len(w) for w in self._windows.values())
+
+    def sent(self, frame_id: int, stamp_ns: int) -> None:
+        for w in self._windows.values():
+            w.sent(frame_id, stamp_ns)
+
+    def acknowledge(self, frame_id: int, stamp_ns: int, shard: str | None = None) -> None:
+        window = self._windows.get(shard or "")
+        if window is not None:
+            window.acknowledge(frame_id, stamp_ns)
+
+    def wait_for_room(self, wait_s: float) -> bool:
+        deadline = time.monotonic() + wait_s
+        for w in self._windows.values():
+            if not w.wait_for_room(max(0.0, deadline - time.monotonic())):
+                return False
+        return True
+
+    def reset(self) -> None:
+        for w in self._windows.values():
+            w.reset()
+
+    def give_up(self) -> None:
+        self._gave_up += 1
+        for w in self._windows.values():
+            if len(w) >= w.limit:
+                w.give_up()

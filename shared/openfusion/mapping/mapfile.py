@@ -80,6 +80,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from openfusion.mapping import shardmaps
 from openfusion.mapping.dictionary import RegionDictionary
 from openfusion.mapping.errors import MapFormatError
 from openfusion.mapping.params import VolumeParams
@@ -321,6 +322,9 @@ def load_map(
     store_path = _is_store_path(path)
     if store_path is not None:
         return _load_store(store_path, device=device, writable=writable, memory_budget_mb=memory_budget_mb)
+    parts = shardmaps.shard_parts(path) if not writable else None  # saved by geometry shards: merged
+    if parts is not None:
+        return shardmaps.load_sharded(parts, device=device)
     target = resolve_map_path(path)
     return _guarded(target, lambda npz: _load_archive(target, npz, device))
 
@@ -404,6 +408,9 @@ def load_map_summary(path: str | os.PathLike[str]) -> MapSummary | None:
     store_path = _is_store_path(path)
     if store_path is not None:
         return _load_store_summary(store_path)
+    parts = shardmaps.shard_parts(path)  # saved by geometry shards: the parts' summaries merged
+    if parts is not None:
+        return shardmaps.load_sharded_summary(parts)
     target = resolve_map_path(path)
     return _guarded(target, lambda npz: _load_summary(target, npz))
 

@@ -21,6 +21,7 @@ from typing import Any, Literal
 from pydantic import ConfigDict, Field, field_validator, model_validator
 
 from openfusion.config import ConfigSection
+from openfusion.wire.keys import ShardId
 
 _DEVICE_RE = re.compile(r"^(CPU|CUDA):(\d+)$")
 
@@ -90,17 +91,34 @@ class VolumeParams(ConfigSection):
         "within this distance (thin structures the encoder-sized view misses); 0 = off",
     )
     device: str = Field("CPU:0", description="Open3D device of the volume: CPU:0 or CUDA:<n>")
+    shard: str = Field(
+        "0/1", description="geometry shard I/N: this volume integrates only the blocks of the tiles shard I of N owns "
+        "(docs/SHARDS.md); 0/1 = the whole map"
+    )
 
     @field_validator("device")
     @classmethod
     def _device(cls, value: str) -> str:
         return normalise_device(value)
 
+    @field_validator("shard")
+    @classmethod
+    def _shard(cls, value: str) -> str:
+        try:
+            return str(ShardId.parse(value))
+        except ValueError as exc:
+            raise ValueError(str(exc)) from None
+
     @model_validator(mode="after")
     def _depth_range(self) -> VolumeParams:
         if self.depth_max_m <= self.depth_min_m:
             raise ValueError(f"depth_max_m ({self.depth_max_m}) must exceed depth_min_m ({self.depth_min_m})")
         return self
+
+    @property
+    def shard_id(self) -> ShardId:
+        """:attr:`shard` parsed (:class:`~openfusion.wire.keys.ShardId`)."""
+        return ShardId.parse(self.shard)
 
     @property
     def trunc_m(self) -> float:

@@ -47,7 +47,7 @@ import open3d as o3d
 import open3d.core as o3c
 
 from openfusion.frame import CameraIntrinsics, Frame
-from openfusion.mapping import integration, raycast, readout, tilereadouts, view_update
+from openfusion.mapping import integration, raycast, readout, shards, tilereadouts, view_update
 from openfusion.mapping.errors import CapacityError
 from openfusion.mapping.growth import GridGrower
 from openfusion.mapping.merging import RegionContacts
@@ -123,6 +123,7 @@ class IntegrateStats:
     blocks_touched: int = 0
     blocks_new: int = 0
     blocks_refused: int = 0
+    blocks_not_owned: int = 0  # touched blocks of tiles another geometry shard owns (left to it)
     empty: bool = False
 
 
@@ -197,6 +198,10 @@ class SemanticVolume:
         #: Region summaries and contacts kept per tile (:mod:`.tilereadouts`).
         self._readouts = TileReadouts(self._storage, self._pager)
         self._storage.on_relabel = self._readouts.relabelled
+        #: The geometry shard this volume is (docs/SHARDS.md); 0/1: the whole map.
+        self._shard = self.params.shard_id
+        #: A shard's record of the blocks other shards hold (coordinates only; raycast.py).
+        self._others = shards.OtherBlocks(self.params.tile_blocks)
 
     def close(self) -> None:
         """Release the tile store (and remove a scratch store's folder)."""
@@ -327,6 +332,16 @@ class SemanticVolume:
         pager = self._pager
         pager.tick(camera_center(frame.T_world_cam))
         coords_np = block_coords.cpu().numpy()
+        if self._shard.sharded:  # a geometry shard: only the blocks of its own tiles (mapping/shards.py)
+            owned = shards.owned_blocks(coords_np, p.tile_blocks, self._shard)
+            result.blocks_not_owned = int((~owned).sum())
+            self._others.add(coords_np[~owned])  # coordinates only: its ray casts stand in for them
+            if not owned.any():
+                self.stats.frames_integrated += 1  # taken: nothing of it is this shard's
+                return result
+            if result.blocks_not_owned:
+                coords_np = coords_np[owned]
+                block_coords = block_coords[o3c.Tensor(np.flatnonzero(owned).astype(np.int64), device=block_coords.device)]
         if pager.budget_blocks is not None or pager.stored_blocks:
             self._page_in_for(coords_np, frame.frame_id)
         if self._grower is not None:
@@ -392,7 +407,17 @@ class SemanticVolume:
         T = check_pose(T_world_cam)
         self._settle_growth()
         self._page_in_view(T, intrinsics)
-        return raycast.ray_cast(self._storage, T, intrinsics, self._intrinsic_tensor(intrinsics))
+        return raycast.ray_cast(self._storage, T, intrinsics, self._intrinsic_tensor(intrinsics),
+                                others=self._others_in_view(T, intrinsics) if self._shard.sharded else None)
+
+    def _others_in_view(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
+        """The blocks other shards hold in tiles a view can reach (a shard's ray cast stands in for them)."""
+        tiles = self._others.tiles()
+        seen = self._pager.grid.tiles_in_view(
+            tiles, T_world_cam, fx=intrinsics.fx, fy=intrinsics.fy, cx=intrinsics.cx, cy=intrinsics.cy,
+            width_px=intrinsics.width_px, height_px=intrinsics.height_px, depth_max_m=self.params.depth_max_m,
+        )
+        return self._others.blocks_of(tiles[seen])
 
     def _settle_growth(self) -> None:
         if self._grower is not None:

@@ -16,7 +16,7 @@ import re
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
-from openfusion.wire.keys import CONTROL_ACTIONS, KeySpace, validate_segment
+from openfusion.wire.keys import CONTROL_ACTIONS, KeySpace, ShardId, validate_segment
 from openfusion.wire.message import Message
 from openfusion.wire.schemas import (
     ControlReply,
@@ -87,6 +87,13 @@ class Endpoint(Generic[Q, R]):
         """The key of this endpoint at ONE of several services that all answer :meth:`key`
         (``…/query/text/query-2``): a client that spreads its requests asks one by name."""
         return keys.key(*self.parts, validate_segment(service, what="service name"))
+
+    def shard_key(self, keys: KeySpace, shard: ShardId) -> str:
+        """The key of this (geometry) endpoint at one shard: the plain key for an unsharded map
+        (today's), else ``…/geometry/render/geometry-0of2`` (docs/SHARDS.md). A shard answers only
+        its own key, so a reader that asks one key gets one shard's part of the map, never a
+        partial answer it mistakes for the whole."""
+        return self.key(keys) if not shard.sharded else self.instance_key(keys, shard.service)
 
     @property
     def path(self) -> str:

@@ -214,3 +214,70 @@ class PoolKeys:
         if segment_error(rest) is not None:
             raise InvalidKeyError(f"{key!r} is not an encoder worker key (expected {head}<worker id>)")
         return rest
+
+
+# ----------------------------------------------------------------------------- geometry shards
+#: The service name of the one geometry service of an unsharded map (and the prefix of a shard's).
+GEOMETRY_SERVICE = "geometry"
+_SHARD_SPEC = re.compile(r"^\s*([0-9]+)\s*/\s*([0-9]+)\s*$")
+_SHARD_SERVICE = re.compile(r"^geometry-([0-9]+)of([0-9]+)$")
+#: More shards than this is a typo, not a deployment (each shard receives every frame).
+MAX_SHARDS = 64
+
+
+@dataclass(frozen=True)
+class ShardId:
+    """Geometry shard ``index`` of ``count`` (docs/SHARDS.md): the tiles it owns are those
+    :func:`openfusion.mapping.shards.shard_of_tiles` maps to ``index``.
+
+    Its name on the bus (health, liveliness and the segment its queryables are declared under,
+    :meth:`openfusion.wire.endpoints.Endpoint.shard_key`) is ``geometry`` for the one shard of an
+    unsharded map (today's service, today's keys) and ``geometry-{index}of{count}`` otherwise, so a
+    reader learns the shard count from any shard's liveliness token."""
+
+    index: int = 0
+    count: int = 1
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.count <= MAX_SHARDS:
+            raise InvalidKeyError(f"shard count must be 1..{MAX_SHARDS}, got {self.count}")
+        if not 0 <= self.index < self.count:
+            raise InvalidKeyError(f"shard index must be 0..{self.count - 1} for {self.count} shards, got {self.index}")
+
+    @classmethod
+    def parse(cls, text: str) -> ShardId:
+        """``"I/N"`` (shard I of N, counted from 0); InvalidKeyError naming the value otherwise."""
+        m = _SHARD_SPEC.match(str(text))
+        if m is None:
+            raise InvalidKeyError(f"shard {text!r} is not of the form I/N (e.g. 0/2: the first of two shards)")
+        return cls(int(m.group(1)), int(m.group(2)))
+
+    @classmethod
+    def of_service(cls, name: str) -> ShardId | None:
+        """The shard a geometry service name names (``geometry`` -> 0/1), None for another service."""
+        if name == GEOMETRY_SERVICE:
+            return cls()
+        m = _SHARD_SERVICE.match(str(name))
+        if m is None:
+            return None
+        try:
+            return cls(int(m.group(1)), int(m.group(2)))
+        except InvalidKeyError:
+            return None
+
+    @classmethod
+    def all(cls, count: int) -> list[ShardId]:
+        """Every shard of a map split ``count`` ways."""
+        return [cls(i, count) for i in range(count)]
+
+    @property
+    def sharded(self) -> bool:
+        return self.count > 1
+
+    @property
+    def service(self) -> str:
+        """Service name (health, liveliness, key segment): ``geometry`` or ``geometry-{I}of{N}``."""
+        return GEOMETRY_SERVICE if self.count == 1 else f"{GEOMETRY_SERVICE}-{self.index}of{self.count}"
+
+    def __str__(self) -> str:
+        return f"{self.index}/{self.count}"

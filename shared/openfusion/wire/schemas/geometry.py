@@ -38,10 +38,14 @@ class GeometryProgress(Message):
 
     v3: ``robot`` names the robot whose frame this acknowledges or whose playback the announcement
     is about; chains, acknowledgements and announcements are per robot, and a bridge reads only
-    its own robot's."""
+    its own robot's.
+
+    v4: ``shard`` names the geometry shard that sends it (its service name, ``geometry`` for an
+    unsharded map, ``geometry-0of2``...: :class:`~openfusion.wire.keys.ShardId`); a bridge keeps a
+    flow-control window per shard (docs/SHARDS.md)."""
 
     schema_name: ClassVar[str] = "geometry.progress"
-    schema_version: ClassVar[int] = 3
+    schema_version: ClassVar[int] = 4
 
     frame_id: int = Field(ge=-1)
     stamp_ns: int = Field(ge=0)
@@ -53,6 +57,7 @@ class GeometryProgress(Message):
     holds_frame_id: int = Field(-1, ge=-1)
     resume: int = Field(0, ge=0)
     robot: RobotName = DEFAULT_ROBOT
+    shard: str = Field("geometry", min_length=1, max_length=64)
 
 
 class RenderRequest(PinholeMessage):
