@@ -62,6 +62,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from openfusion.app import shard_run
 from openfusion.app.end_of_run import fetch_mesh, save_and_wait
 from openfusion.app.launcher import Cluster, RunError, StopSignals, wait_for_services
 from openfusion.app.outputs import open_rerun, say_progress, surface_mesh, write_query_outputs
@@ -77,7 +78,7 @@ from openfusion.sources.registry import check_source_spec, describe_source, pars
 from openfusion.sources.synthetic_spec import split_world
 from openfusion.wire.counters import BridgeCounter, CommonCounter, GeometryCounter, SemanticCounter
 from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
-from openfusion.wire.keys import validate_map_id
+from openfusion.wire.keys import MAX_SHARDS, validate_map_id
 from openfusion.wire.limits import LimitError, check_text, check_top_k
 from openfusion.wire.schemas.base import check_robot_name
 
@@ -162,6 +163,7 @@ def run_services(args: argparse.Namespace, config: RunConfig) -> RunSummary:
     shutil.rmtree(config.geometry.map_dir / config.map_id, ignore_errors=True)
     # One playback name for the run: a restarted bridge continues it (geometry drops what it holds).
     config.bridge.playback = config.bridge.playback or uuid.uuid4().hex[:16]
+    config.bridge.geometry_shards = args.geometry_shards  # playback waits for every shard (docs/SHARDS.md)
     if args.encoder_workers:
         config.use_encoder_pool()
     config_file = write_service_config(config, out / "run-config.json")
@@ -220,7 +222,8 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
         subscribers.append(Subscriber(client.session, SENSOR_RGBD.key(client.keys), SENSOR_RGBD.message,
                                       lambda msg: rerun.log_frame(msg.to_frame(instances.take(msg))),
                                       latest_only=True))
-    for name in ("geometry", "semantic", "query"):
+    geometry_names = shard_run.start_geometry(cluster, args.geometry_shards)  # one, or a process per shard
+    for name in ("semantic", "query"):
         cluster.start(name)
     # more query services on the same map: Zenoh delivers each request to one of them (services/query/instances.py)
     more_queries = [query_service_name(i) for i in range(2, args.query_services + 1)]
@@ -230,7 +233,7 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
     for worker_id in workers:  # the encoder pool: workers of this run's private router
         cluster.start(f"encoder-{worker_id}", ["--worker-id", worker_id], service="encoder", optional=True)
     _say(args, f"starting services on {cluster.endpoint} (logs in {cluster.log_dir})")
-    wait_for_services(client, cluster, {"geometry", "semantic", "query", *more_queries,
+    wait_for_services(client, cluster, {*geometry_names, "semantic", "query", *more_queries,
                                         *(f"encoder-{w}" for w in workers)},
                       SERVICE_START_TIMEOUT_S, should_stop=lambda: signals.requested is not None)
     if signals.requested:
@@ -255,6 +258,8 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
             select=config.semantic.select)
         summary.map_saved = saved_to
         summary.query_services = args.query_services
+        summary.geometry_shards = args.geometry_shards
+        summary.shards = shard_run.shard_health(stats, args.geometry_shards)
         return summary
 
     try:
@@ -268,9 +273,8 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
             (out / "run.json").write_text(summary.model_dump_json(indent=2) + "\n")
             raise signals.interrupted("no frame was integrated yet; nothing saved")
     _say(args, "saving the map")
-    geometry = cluster.processes.get("geometry")
     save_and_wait(client, map_dir, say=lambda line: _say(args, line),
-                  alive=lambda: geometry is not None and geometry.alive())
+                  alive=lambda: shard_run.geometry_alive(cluster, args.geometry_shards))
     saved_to = str(map_dir.resolve())
     replies = []
     for text in args.queries:
@@ -295,10 +299,10 @@ def _save_what_is_left(args: argparse.Namespace, client: Any, cluster: Cluster, 
                        summary: RunSummary) -> None:
     """A run that fails after playback started: save the map geometry holds (when it is alive) and
     write ``run.json`` with the error; neither may hide the error itself."""
-    geometry = cluster.processes.get("geometry")
-    if geometry is not None and geometry.alive() and summary.frames_integrated > 0:
+    if shard_run.geometry_alive(cluster, args.geometry_shards) and summary.frames_integrated > 0:
         try:  # waited for as the end of a run that went well waits (a large map's save outlasts a request)
-            save_and_wait(client, map_dir, say=lambda line: _say(args, line), alive=geometry.alive)
+            save_and_wait(client, map_dir, say=lambda line: _say(args, line),
+                          alive=lambda: shard_run.geometry_alive(cluster, args.geometry_shards))
             summary.map_saved = str(map_dir.resolve())
             _say(args, f"saved the map of {summary.frames_integrated} integrated frames to {map_dir}")
         except Exception as exc:  # noqa: BLE001 - the run's own error is what the user must see
@@ -417,6 +421,7 @@ def _follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
             carried = {} if carried is None else carried
             _carry_over(stats, fresh, carried)
             stats.update(fresh)
+            stats.update(shard_run.combined_geometry(stats, getattr(args, "geometry_shards", 1)))
             integrated = _counter(stats, "geometry", GeometryCounter.FRAMES_INTEGRATED)
             refused = (_counter(stats, "geometry", GeometryCounter.CAPACITY_REFUSED)
                        + _counter(stats, "geometry", GeometryCounter.FRAMES_FAILED))
@@ -577,6 +582,9 @@ class RunCommand:
         parser.add_argument("--query-services", type=int, default=1, metavar="N",
                             help="start N query services on the map (query, query-2, …): each holds the dictionary "
                             "and summaries, a request is answered by one of them (default 1)")
+        parser.add_argument("--geometry-shards", type=int, default=1, metavar="N",
+                            help="split the map by tile across N geometry processes (geometry-0ofN, …), each "
+                            "integrating only its tiles' blocks of every frame (docs/SHARDS.md; default 1)")
         parser.add_argument("--quiet", action="store_true",
                             help="no progress output (stderr); the run summary still goes to stdout")
         parser.add_argument("--config", metavar="FILE", help="TOML/JSON/YAML file with [bridge], [geometry], "
@@ -604,6 +612,10 @@ class RunCommand:
             raise UsageError(f"--query-services must be between 1 and {MAX_QUERY_SERVICES}, got {args.query_services}")
         if args.in_process and args.query_services > 1:
             raise UsageError("--query-services starts query services; --in-process has none")
+        if not 1 <= args.geometry_shards <= MAX_SHARDS:
+            raise UsageError(f"--geometry-shards must be between 1 and {MAX_SHARDS}, got {args.geometry_shards}")
+        if args.in_process and args.geometry_shards > 1:
+            raise UsageError("--geometry-shards starts geometry services; --in-process has none")
         if args.timeout_s <= 0:
             raise UsageError(f"--timeout-s must be positive, got {args.timeout_s:g}")
         _check_queries(args.queries or DEFAULT_QUERIES, args.top_k)

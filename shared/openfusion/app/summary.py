@@ -169,6 +169,10 @@ class RunSummary(BaseModel):
     geometry_rss_anon_peak_mb: float | None = None
     #: each robot's stream by robot name (one robot: ``robot0``, or ``--robot``); README "Several robots"
     robots: dict[str, RobotRun] = Field(default_factory=dict)
+    #: geometry shards of the run (``--geometry-shards``, docs/SHARDS.md) and each shard's own counts
+    #: (frames integrated, blocks, integrate busy seconds, ...) by its service name; empty for one
+    geometry_shards: int = 1
+    shards: dict[str, dict[str, float]] = Field(default_factory=dict)
 
     @field_validator("map_saved", mode="before")
     @classmethod
