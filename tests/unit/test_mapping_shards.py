@@ -78,11 +78,18 @@ def test_shards_integrate_disjoint_blocks_equal_to_one_volume(maps) -> None:  # 
     whole, parts = maps
     ref = _blocks(whole)
     got = [_blocks(p) for p in parts]
-    assert set(got[0]).isdisjoint(got[1])
-    assert set(got[0]) | set(got[1]) == set(ref)
+    tb = BASE["tile_blocks"]
+    owned = [{c for c in g if shards.owned_blocks(np.array([c]), tb, ShardId(i, 2))[0]} for i, g in enumerate(got)]
+    # Each block of the map is owned by exactly one shard; a shard also holds ghosts: blocks of the
+    # other's tiles just above its own (+x/+y/+z), no more than a fraction of its own.
+    assert owned[0].isdisjoint(owned[1]) and owned[0] | owned[1] == set(ref)
+    for i, g in enumerate(got):
+        ghosts = set(g) - owned[i]
+        assert ghosts <= owned[1 - i]
+        assert len(ghosts) < 0.6 * len(owned[i]), (len(ghosts), len(owned[i]))
     assert parts[0].stats.frames_integrated == parts[1].stats.frames_integrated == len(FRAMES)
-    # The voxels of every block are the single volume's (Open3D integrates blocks independently).
-    res3 = BASE and whole.params.block_resolution ** 3
+    # The voxels of every block (ghosts too) are the single volume's (Open3D integrates blocks independently).
+    res3 = whole.params.block_resolution ** 3
     for part, blocks in zip(parts, got, strict=True):
         coords = list(blocks)
         mine = part._storage.read_raw_blocks(np.array([blocks[c] for c in coords]))
@@ -105,11 +112,13 @@ def test_composited_render_equals_the_single_volume_render(maps) -> None:  # noq
         keys_ok += int((keys == ref.key_map)[seen].sum())
         assert (conf[keys < 0] == 0).all()
     assert pixels > 10_000
-    # The issue's target is 99 % for both; measured 97.5 % / 92 % here (docs/SHARDS.md says why:
-    # Open3D's ray march steps by the TSDF it reads, and a shard cannot read the other shards').
-    # Without the stand-ins for the other shards' blocks (raycast.py) this was 82 % / 82 %.
-    assert depth_ok / pixels >= 0.97, depth_ok / pixels
-    assert keys_ok / pixels >= 0.90, keys_ok / pixels
+    # The issue's target is 99 % for both; measured 98.2 % / 98.8 % here, 98.8 % / 99.3 % with
+    # 2 cm voxels and 8-block tiles (docs/SHARDS.md: Open3D's ray march steps by the TSDF it
+    # reads, and a shard holds only its tiles, their ghosts and stand-ins for the rest). One
+    # volume against itself moved 1 mm: 96.6 %. Without ghosts and stand-ins: 82 % / 82 %.
+    print(f"composite vs single: depth {depth_ok / pixels:.4f}, keys {keys_ok / pixels:.4f}")
+    assert depth_ok / pixels >= 0.975, depth_ok / pixels
+    assert keys_ok / pixels >= 0.98, keys_ok / pixels
 
 
 def test_composite_rules_and_bad_input() -> None:
@@ -134,36 +143,27 @@ def test_merged_read_outs_equal_the_single_volume(maps) -> None:  # noqa: ANN001
     part_pts = [p.extract_points() for p in parts]
     pts, _, keys, cut = shards.concat_points([(p.points, p.colors, p.keys) for p in part_pts])
     assert not cut
-    # The shards' points are the single volume's (same voxels), less the zero crossings between a
-    # voxel and its +x/+y/+z neighbour in another shard's tile (Open3D reads a crossing from the
-    # block of its lower voxel, whose neighbour block the shard does not hold): docs/SHARDS.md.
+    # The shards' points are exactly the single volume's (same voxels; the ghosts give a shard the
+    # crossings from its last voxel into the next tile, and each point is kept by one shard only).
     def rows(a: np.ndarray) -> set[bytes]:
         return {r.tobytes() for r in np.round(np.asarray(a, np.float64) / 1e-4).astype(np.int64)}
 
-    ref_rows, got_rows = rows(ref_pts.points), rows(pts)
-    assert got_rows <= ref_rows
-    missing = np.array([np.frombuffer(r, np.int64) for r in ref_rows - got_rows]) * 1e-4
-    res, tb = whole.params.block_resolution, whole.params.tile_blocks
-    on_face = np.zeros(len(missing), bool)
-    for nudge in (-1e-3, 1e-3):  # a crossing at ratio ~1 rounds into the next voxel
-        vox = np.floor(missing / whole.params.voxel_size_m + nudge).astype(np.int64)
-        on_face |= ((vox + 1) % (res * tb) == 0).any(axis=1)  # the lower voxel on a tile's + face
-    assert on_face.mean() > 0.99, on_face.mean()
-    share = len(missing) / len(ref_rows)
-    assert share < 0.10, share  # 4-block tiles here: ~9 %; 8-block tiles (the default) about half
-    # Region summaries: counts never above the single map's; a region on a plane along a tile face
-    # (the floor at z = 0) loses up to half its points with the crossings (docs/SHARDS.md).
+    assert rows(pts) == rows(ref_pts.points)
+    assert abs(len(pts) - len(ref_pts.points)) <= 2  # Open3D emits a crossing twice now and then
+    # Region summaries: every region's count, centroid and box as the single map's (the keys of
+    # points differ where the shards' updates saw other voxels, docs/SHARDS.md: 5 % of labelled points at most).
     ref = RegionTable.of_points(ref_pts.keys, ref_pts.points)
     tables = [RegionTable.of_points(p.keys, p.points) for p in part_pts]
     k, n, lo, hi, cen = shards.merge_region_tables([(t.keys, t.num_points, t.bbox_min, t.bbox_max, t.centroid)
                                                     for t in tables])
-    big = ref.keys[ref.num_points >= 500]
-    assert len(big) >= 3
-    for key in big:
+    moved = 0
+    for key in ref.keys:
         i, j = int(np.searchsorted(k, key)), ref.row(int(key))
-        assert k[i] == key
-        assert 0.45 * int(ref.num_points[j]) <= int(n[i]) <= 1.02 * int(ref.num_points[j])
-        np.testing.assert_allclose(cen[i], ref.centroid[j], atol=0.25)
+        got_n = int(n[i]) if i < len(k) and k[i] == key else 0
+        moved += abs(got_n - int(ref.num_points[j]))
+        if ref.num_points[j] >= 5000:
+            np.testing.assert_allclose(cen[i], ref.centroid[j], atol=0.05)
+    assert moved <= 0.05 * int(ref.num_points.sum()), moved / int(ref.num_points.sum())
     # Capped points: uniformly subsampled to the cap, said so.
     capped = shards.concat_points([(p.points, p.colors, p.keys) for p in part_pts], max_points=1000)
     assert len(capped[0]) == 1000 and capped[3]

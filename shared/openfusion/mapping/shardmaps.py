@@ -74,6 +74,7 @@ def load_sharded(parts: list[Path], *, device: str | None = None) -> Any:
     """One :class:`~openfusion.mapping.mapfile.LoadedMap` of the parts (module docstring): every
     tile read into one resident volume of shard 0/1."""
     from openfusion.mapping.mapfile import LoadedMap, load_map
+    from openfusion.mapping.shards import owned_blocks
     from openfusion.mapping.volume import SemanticVolume
 
     loaded = [load_map(part, device=device, memory_budget_mb=None) for part in parts]
@@ -82,8 +83,11 @@ def load_sharded(parts: list[Path], *, device: str | None = None) -> Any:
         merged = SemanticVolume(params)
         storage = merged._storage
         blocks = []
-        for part in loaded:
+        for i, part in enumerate(loaded):
             coords, buf = part.volume._storage.active_blocks()
+            # Only the part's own tiles: the blocks of other tiles it holds are ghosts (shards.py).
+            mine = owned_blocks(coords, params.tile_blocks, ShardId(i, len(parts)))
+            coords, buf = coords[mine], buf[mine]
             raw = part.volume._storage.read_raw_blocks(buf)
             key1 = part.volume._storage.slots.key1_of(raw["key"])
             raw["key"] = storage.slots.slots_for(key1).astype(raw["key"].dtype).reshape(raw["key"].shape)

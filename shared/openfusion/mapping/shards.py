@@ -41,6 +41,8 @@ __all__ = [
     "composite_renders",
     "concat_meshes",
     "concat_points",
+    "ghost_blocks",
+    "own_points",
     "merge_contacts",
     "merge_region_tables",
     "owned_blocks",
@@ -124,6 +126,44 @@ class OtherBlocks:
 
     def clear(self) -> None:
         self._by_tile.clear()
+
+
+#: A block's neighbours in +x, +y, +z (and their combinations): the blocks whose voxels Open3D
+#: reads with a block's when it extracts zero crossings (+x/+y/+z) and marching-cube triangles.
+_UPPER = np.array([(x, y, z) for x in (0, 1) for y in (0, 1) for z in (0, 1) if (x, y, z) != (0, 0, 0)], np.int64)
+
+
+def ghost_blocks(block_coords: np.ndarray, owned: np.ndarray, tile_blocks: int, shard: ShardId) -> np.ndarray:
+    """Bool mask over ``block_coords`` (int (N, 3)): the blocks not owned (``owned`` mask) that sit
+    in +x/+y/+z of a block of a tile ``shard`` owns (a rule of coordinates only, so every frame
+    that reaches such a block integrates it: its voxels are exactly one whole volume's). A shard
+    integrates these *ghosts* with its own blocks so the surface crossing from its last voxel into
+    the next tile, and the triangles of the cubes there, are read out by it; its read-outs keep
+    only what its own tiles own (:func:`own_points`), a merged load only its tiles' blocks."""
+    coords = np.asarray(block_coords, np.int64).reshape(-1, 3)
+    if not shard.sharded or owned.all():
+        return np.zeros(len(coords), bool)
+    out = np.zeros(len(coords), bool)
+    rest = np.flatnonzero(~owned)
+    for u in _UPPER:
+        if not len(rest):
+            break
+        below = owned_blocks(coords[rest] - u, tile_blocks, shard)
+        out[rest[below]] = True
+        rest = rest[~below]
+    return out
+
+
+def own_points(points: np.ndarray, voxel_size_m: float, block_resolution: int, tile_blocks: int,
+               shard: ShardId) -> np.ndarray:
+    """Bool mask over surface ``points`` (or triangle centroids) (N, 3): those whose owning block
+    (the block of the voxel a crossing starts from, the read-out's rule of
+    :mod:`openfusion.mapping.wholemap`) lies in a tile ``shard`` owns."""
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    if not shard.sharded or len(pts) == 0:
+        return np.ones(len(pts), bool)
+    voxel = np.floor(pts / voxel_size_m + 1e-4).astype(np.int64)
+    return owned_blocks(np.floor_divide(voxel, block_resolution), tile_blocks, shard)
 
 
 # ------------------------------------------------------------------------------------ renders

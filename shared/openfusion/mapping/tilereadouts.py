@@ -132,6 +132,9 @@ class TileReadouts:
         self.keep: dict[tuple[Tile, int], int] = {}
         self._compactions = storage.compactions
         self.stats = {"summary_tiles_read": 0, "contact_tiles_read": 0}
+        #: A geometry shard's: whether it owns a tile (only those are read out; the others' blocks
+        #: it holds are ghosts, read as halo only: :mod:`openfusion.mapping.shards`).
+        self.owns: Any = None
 
     # ------------------------------------------------------------------ invalidation
     def forget(self) -> None:
@@ -164,6 +167,8 @@ class TileReadouts:
         groups = self.pager._resident_groups()
         out = {t: len(g[1]) for t, g in groups.items()}
         out.update(self.pager.stored_blocks)
+        if self.owns is not None:
+            out = {t: n for t, n in out.items() if self.owns(t)}
         return out
 
     def _newest_around(self, tile: Tile) -> int:

@@ -202,6 +202,10 @@ class SemanticVolume:
         self._shard = self.params.shard_id
         #: A shard's record of the blocks other shards hold (coordinates only; raycast.py).
         self._others = shards.OtherBlocks(self.params.tile_blocks)
+        if self._shard.sharded:  # only its own tiles' summaries and contacts (the rest are ghosts)
+            self._readouts.owns = lambda tile: bool(shards.owned_blocks(
+                np.asarray(tile, np.int64).reshape(1, 3) * self.params.tile_blocks, self.params.tile_blocks,
+                self._shard)[0])
 
     def close(self) -> None:
         """Release the tile store (and remove a scratch store's folder)."""
@@ -334,14 +338,15 @@ class SemanticVolume:
         coords_np = block_coords.cpu().numpy()
         if self._shard.sharded:  # a geometry shard: only the blocks of its own tiles (mapping/shards.py)
             owned = shards.owned_blocks(coords_np, p.tile_blocks, self._shard)
+            taken = owned | shards.ghost_blocks(coords_np, owned, p.tile_blocks, self._shard)  # read-outs across seams
             result.blocks_not_owned = int((~owned).sum())
-            self._others.add(coords_np[~owned])  # coordinates only: its ray casts stand in for them
+            self._others.add(coords_np[~taken])  # coordinates only: its ray casts stand in for them
             if not owned.any():
                 self.stats.frames_integrated += 1  # taken: nothing of it is this shard's
                 return result
-            if result.blocks_not_owned:
-                coords_np = coords_np[owned]
-                block_coords = block_coords[o3c.Tensor(np.flatnonzero(owned).astype(np.int64), device=block_coords.device)]
+            if not taken.all():
+                coords_np = coords_np[taken]
+                block_coords = block_coords[o3c.Tensor(np.flatnonzero(taken).astype(np.int64), device=block_coords.device)]
         if pager.budget_blocks is not None or pager.stored_blocks:
             self._page_in_for(coords_np, frame.frame_id)
         if self._grower is not None:
@@ -613,6 +618,18 @@ class SemanticVolume:
         (deterministic for a given ``seed``).
         """
         self._settle_growth()
+        if self._shard.sharded:  # only the points its own tiles own, then the cap
+            pts = self._extract_points(keys, None, seed)
+            p = self.params
+            keep = shards.own_points(pts.points, p.voxel_size_m, p.block_resolution, p.tile_blocks, self._shard)
+            pts = SurfacePoints(pts.points[keep], pts.colors[keep], pts.keys[keep], pts.conf[keep])
+            if max_points is not None and len(pts) > max_points:
+                sel = np.sort(np.random.default_rng(seed).choice(len(pts), size=max_points, replace=False))
+                pts = SurfacePoints(pts.points[sel], pts.colors[sel], pts.keys[sel], pts.conf[sel])
+            return pts
+        return self._extract_points(keys, max_points, seed)
+
+    def _extract_points(self, keys: np.ndarray | list[int] | None, max_points: int | None, seed: int) -> SurfacePoints:
         if self._pager.stored_blocks:
             from openfusion.mapping import wholemap
 
@@ -626,8 +643,23 @@ class SemanticVolume:
         if self._pager.stored_blocks:
             from openfusion.mapping import wholemap
 
-            return wholemap.extract_mesh(self._storage, self._pager, keys)
-        return readout.extract_mesh(self._storage, keys)
+            return self._own_mesh(wholemap.extract_mesh(self._storage, self._pager, keys))
+        return self._own_mesh(readout.extract_mesh(self._storage, keys))
+
+    def _own_mesh(self, mesh: SurfaceMesh) -> SurfaceMesh:
+        """A shard's mesh: the triangles whose cube its own tiles own (unreferenced vertices dropped)."""
+        if not self._shard.sharded or len(mesh.triangles) == 0:
+            return mesh
+        p = self.params
+        keep = shards.own_points(mesh.vertices[mesh.triangles].mean(axis=1), p.voxel_size_m, p.block_resolution,
+                                 p.tile_blocks, self._shard)
+        tris = mesh.triangles[keep]
+        used = np.zeros(len(mesh.vertices), bool)
+        used[tris.reshape(-1)] = True
+        remap = np.full(len(mesh.vertices), -1, np.int64)
+        remap[used] = np.arange(int(used.sum()))
+        return SurfaceMesh(mesh.vertices[used], remap[tris].astype(np.int32), mesh.colors[used], mesh.normals[used],
+                           mesh.keys[used], mesh.conf[used])
 
     @_locked
     def mesh_parts(self, keys: np.ndarray | list[int] | None = None) -> list[SurfaceMesh]:
@@ -636,8 +668,8 @@ class SemanticVolume:
         from openfusion.mapping import wholemap
 
         if not self._pager.stored_blocks and self._storage.num_blocks <= wholemap.CHUNK_BLOCKS:
-            return [readout.extract_mesh(self._storage, keys)]
-        return list(wholemap.iter_mesh_parts(self._storage, self._pager, keys))
+            return [self._own_mesh(readout.extract_mesh(self._storage, keys))]
+        return [self._own_mesh(m) for m in wholemap.iter_mesh_parts(self._storage, self._pager, keys)]
 
     # ------------------------------------------------------------------ arrays (save / load)
     @_locked
