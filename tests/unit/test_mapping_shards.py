@@ -112,13 +112,12 @@ def test_composited_render_equals_the_single_volume_render(maps) -> None:  # noq
         keys_ok += int((keys == ref.key_map)[seen].sum())
         assert (conf[keys < 0] == 0).all()
     assert pixels > 10_000
-    # The issue's target is 99 % for both; measured 98.2 % / 98.8 % here, 98.8 % / 99.3 % with
-    # 2 cm voxels and 8-block tiles (docs/SHARDS.md: Open3D's ray march steps by the TSDF it
-    # reads, and a shard holds only its tiles, their ghosts and stand-ins for the rest). One
-    # volume against itself moved 1 mm: 96.6 %. Without ghosts and stand-ins: 82 % / 82 %.
+    # The issue's target: 99 % for both (measured 99.2 % / 99.1 % here; 99.5 % / 99.5 % with 2 cm
+    # voxels and 8-block tiles). Without the ghosts and the stand-ins for the other shards' blocks
+    # (raycast.py) this was 82 % / 82 %; one volume against itself moved 1 mm: 96.6 %.
     print(f"composite vs single: depth {depth_ok / pixels:.4f}, keys {keys_ok / pixels:.4f}")
-    assert depth_ok / pixels >= 0.975, depth_ok / pixels
-    assert keys_ok / pixels >= 0.98, keys_ok / pixels
+    assert depth_ok / pixels >= 0.99, depth_ok / pixels
+    assert keys_ok / pixels >= 0.99, keys_ok / pixels
 
 
 def test_composite_rules_and_bad_input() -> None:
