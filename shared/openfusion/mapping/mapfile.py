@@ -324,7 +324,7 @@ def load_map(
         return _load_store(store_path, device=device, writable=writable, memory_budget_mb=memory_budget_mb)
     parts = shardmaps.shard_parts(path) if not writable else None  # saved by geometry shards: merged
     if parts is not None:
-        return shardmaps.load_sharded(parts, device=device)
+        return shardmaps.load_sharded(parts, load_map, device=device)
     target = resolve_map_path(path)
     return _guarded(target, lambda npz: _load_archive(target, npz, device))
 
@@ -410,7 +410,7 @@ def load_map_summary(path: str | os.PathLike[str]) -> MapSummary | None:
         return _load_store_summary(store_path)
     parts = shardmaps.shard_parts(path)  # saved by geometry shards: the parts' summaries merged
     if parts is not None:
-        return shardmaps.load_sharded_summary(parts)
+        return shardmaps.load_sharded_summary(parts, load_map_summary)
     target = resolve_map_path(path)
     return _guarded(target, lambda npz: _load_summary(target, npz))
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -70,10 +71,10 @@ def _merged_meta(metas: list[dict[str, Any]], count: int) -> dict[str, Any]:
     return meta
 
 
-def load_sharded(parts: list[Path], *, device: str | None = None) -> Any:
-    """One :class:`~openfusion.mapping.mapfile.LoadedMap` of the parts (module docstring): every
-    tile read into one resident volume of shard 0/1."""
-    from openfusion.mapping.mapfile import LoadedMap, load_map
+def load_sharded(parts: list[Path], load_map: Callable[..., Any], *, device: str | None = None) -> Any:
+    """One :class:`~openfusion.mapping.mapfile.LoadedMap` of the parts (module docstring), each
+    read with ``load_map`` (:func:`openfusion.mapping.load_map`): every tile in one resident
+    volume of shard 0/1."""
     from openfusion.mapping.shards import owned_blocks
     from openfusion.mapping.volume import SemanticVolume
 
@@ -102,16 +103,15 @@ def load_sharded(parts: list[Path], *, device: str | None = None) -> Any:
         meta = _merged_meta([p.meta for p in loaded], len(parts))
         logger.info("loaded sharded map %s: %d parts, %d blocks, %d regions", parts[0].parent, len(parts), total,
                     len(dictionary))
-        return LoadedMap(merged, dictionary, meta, parts[0].parent, loaded[0].relevancy)
+        return type(loaded[0])(merged, dictionary, meta, parts[0].parent, loaded[0].relevancy)
     finally:
         for part in loaded:
             part.volume.close()
 
 
-def load_sharded_summary(parts: list[Path]) -> Any:
-    """One :class:`~openfusion.mapping.mapfile.MapSummary` of the parts (None when a part has no
-    summaries: read the map with :func:`load_sharded`)."""
-    from openfusion.mapping.mapfile import MapSummary, load_map_summary
+def load_sharded_summary(parts: list[Path], load_map_summary: Callable[[Path], Any]) -> Any:
+    """One :class:`~openfusion.mapping.mapfile.MapSummary` of the parts, each read with
+    ``load_map_summary`` (None when a part has no summaries: read the map with :func:`load_sharded`)."""
     from openfusion.mapping.shards import merge_region_tables
     from openfusion.mapping.summaries import RegionTable
 
@@ -125,7 +125,7 @@ def load_sharded_summary(parts: list[Path]) -> Any:
     dictionary = max((s.dictionary for s in summaries), key=lambda d: (d.version, len(d)))  # type: ignore[union-attr]
     meta = _merged_meta([s.meta for s in summaries], len(parts))  # type: ignore[union-attr]
     params = first.volume_params.with_changes(shard="0/1")  # type: ignore[union-attr]
-    return MapSummary(dictionary, RegionTable(keys, num, cen, lo, hi), params, meta, first.relevancy)  # type: ignore[union-attr]
+    return type(first)(dictionary, RegionTable(keys, num, cen, lo, hi), params, meta, first.relevancy)  # type: ignore[union-attr]
 
 
 def has_parts(path: str | Path) -> bool:
