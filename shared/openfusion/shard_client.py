@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, TypeVar
 
@@ -77,11 +78,15 @@ def shard_count_of(names: list[str]) -> int:
 class GeometryReader:
     """One map's geometry, read from however many shards serve it (module docstring). Thread-safe."""
 
-    def __init__(self, session: zenoh.Session, keys: KeySpace, *, shards: int | None = None,
-                 refresh_s: float = DEFAULT_REFRESH_S) -> None:
+    def __init__(self, session: zenoh.Session | None, keys: KeySpace, *, shards: int | None = None,
+                 refresh_s: float = DEFAULT_REFRESH_S, call: Callable[..., Any] | None = None) -> None:
+        """``call``: how an unsharded map's endpoint is asked (a service's ``runner.call``: the
+        service's own path, as before shards); without it, :func:`openfusion.bus.query.get` on
+        ``session``. Without a session the map is taken as unsharded."""
         self._session = session
         self._keys = keys
-        self._fixed = shards
+        self._call = call
+        self._fixed = shards if session is not None else 1
         self.refresh_s = refresh_s
         self._count = shards or 1
         self._refreshed_at: float | None = None
@@ -107,8 +112,7 @@ class GeometryReader:
         """Every shard's reply to ``request`` (in shard order), asked in parallel."""
         n = self.shard_count
         if n == 1:
-            return [get(self._session, endpoint.key(self._keys), request, endpoint.reply, timeout_s=timeout_s,
-                        service=endpoint.owner)]
+            return [self._one(endpoint, request, timeout_s)]
         with self._lock:
             if self._pool is None or self._pool._max_workers < n:  # noqa: SLF001 (sized once per split)
                 self._pool = ThreadPoolExecutor(max_workers=n, thread_name_prefix="shard-read")
@@ -116,6 +120,12 @@ class GeometryReader:
         futures = [pool.submit(get, self._session, endpoint.shard_key(self._keys, shard), request, endpoint.reply,
                                timeout_s=timeout_s, service=shard.service) for shard in ShardId.all(n)]
         return [f.result() for f in futures]
+
+    def _one(self, endpoint: Endpoint, request: Any, timeout_s: float) -> Any:
+        if self._call is not None:
+            return self._call(endpoint, request, timeout_s=timeout_s)
+        return get(self._session, endpoint.key(self._keys), request, endpoint.reply, timeout_s=timeout_s,  # type: ignore[arg-type]
+                   service=endpoint.owner)
 
     def close(self) -> None:
         with self._lock:
@@ -175,7 +185,7 @@ class GeometryReader:
         shard follows the same deltas)."""
         n = self.shard_count
         if n == 1:
-            return self._ask(GEOMETRY_DICTIONARY, request, timeout_s)[0]
+            return self._one(GEOMETRY_DICTIONARY, request, timeout_s)
         errors: list[QueryError] = []
         for shard in ShardId.all(n):
             try:
@@ -204,6 +214,6 @@ def reader_for(runner: Any) -> GeometryReader:
     first use, kept with the runner: one shard count cache per service)."""
     reader = getattr(runner, "_geometry_reader", None)
     if reader is None:
-        reader = GeometryReader(runner._require_session(), runner.keys)  # noqa: SLF001 (the runner's own session)
+        reader = GeometryReader(getattr(runner, "session", None), getattr(runner, "keys", None), call=runner.call)  # type: ignore[arg-type]
         runner._geometry_reader = reader  # noqa: SLF001
     return reader
