@@ -470,3 +470,23 @@ def test_prod_acl_lets_every_service_serve_and_publish_its_own_keys() -> None:
     assert _allows("gpu-semantic", "ingress", "liveliness_token", pool.worker("w1"))
     assert _allows("gpu-semantic", "ingress", "liveliness_query", pool.workers)
     assert not _allows("query-client", "ingress", "query", "openfusion/lab-1/semantic/merge")
+
+
+def test_two_host_shards_split_the_map_and_name_each_shard_as_its_health_key() -> None:
+    """deploy/two-host/*.shards.compose.yml: shard 0/2 on the robot, 1/2 on the second host, each
+    health check requiring the name the shard reports under, the bridge waiting for both (bad input
+    guarded: a shard spec geometry would refuse, a health name that is not the shard's, a bridge
+    whose shard count differs from the shards')."""
+    from openfusion.services.geometry.service import GeometrySection
+
+    robot = load_compose(TWO_HOST / "robot.compose.yml", TWO_HOST / "robot.shards.compose.yml")
+    gpu = load_compose(TWO_HOST / "gpu.compose.yml", TWO_HOST / "gpu.shards.compose.yml", env={"ROBOT_HOST": "robot.local"})
+    shards = [robot["services"]["geometry"], gpu["services"]["geometry-1of2"]]
+    specs = [GeometrySection(shard=option(s["command"], "--shard")).shard_id for s in shards]
+    assert [str(s) for s in specs] == ["0/2", "1/2"]
+    for service, spec in zip(shards, specs, strict=True):
+        assert option(health_argv(service), "--require") == spec.service
+        assert option(service["command"], "--zenoh-config") == "/etc/openfusion/secrets/client-geometry.json5"
+        assert "--map-dir" in service["command"]
+    assert option(gpu["services"]["geometry-1of2"]["command"], "--connect") == "tls/robot.local:7447"
+    assert option(robot["services"]["bridge"]["command"], "--geometry-shards") == "2"
