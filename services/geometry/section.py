@@ -16,6 +16,7 @@ from openfusion.config import ServiceConfig
 from openfusion.mapping import VolumeParams
 from openfusion.mapping.params import JoinParams
 from openfusion.mapping.queries import RegionTable
+from openfusion.wire.keys import ShardId
 from openfusion.wire.limits import MAX_SURFACE_POINTS
 from openfusion.wire.schemas import RegionSummaryReply
 
@@ -40,6 +41,10 @@ class GeometrySection(VolumeParams, JoinParams):
     )
     merge_on_save_timeout_s: float = Field(
         20.0, gt=0, description="how long a save waits for that merge pass (then it saves without it)"
+    )
+    replica: int = Field(
+        0, ge=0, le=9, description="replica of this shard (docs/SHARDS.md): 0 = the shard; 1.. = the same shard run "
+        "again (another host): same frames, same tiles, the same keys; named geometry[-IofN]-rR"
     )
     regions_min_interval_s: float = Field(
         0.5, ge=0, description="a changed map's region summaries are recomputed at most this often (unless fresh)"
@@ -68,6 +73,11 @@ class GeometrySection(VolumeParams, JoinParams):
             data.setdefault("initial_block_count", value)
             logger.warning("geometry.initial_blocks is deprecated; use geometry.initial_block_count")
         return data
+
+    @property
+    def shard_service(self) -> ShardId:
+        """This geometry's shard and replica (:class:`~openfusion.wire.keys.ShardId`)."""
+        return self.shard_id.with_replica(self.replica)
 
     def volume_params(self) -> VolumeParams:
         return VolumeParams.from_section(self)

@@ -192,7 +192,7 @@ class GeometryService(DictionaryFollower):
         self.section = config.geometry
         self._lock = threading.RLock()
         #: Which geometry shard this is (docs/SHARDS.md): 0/1, the whole map, unless ``shard`` says.
-        self.shard = self.section.shard_id
+        self.shard = self.section.shard_service
         self.checkpoint_dir: Path | None = (
             sharding.checkpoint_dir(self.section.map_dir / config.map_id, self.shard)
             if self.section.map_dir is not None else None
@@ -816,5 +816,5 @@ DEFINITION = ServiceDefinition(
     help="integrate frames into the semantic TSDF, render region keys, serve points/meshes, checkpoint",
     config_model=GeometryConfig,
     build=GeometryService,
-    instance_name=lambda config: config.geometry.shard_id.service,  # geometry, or geometry-0of2...
+    instance_name=lambda config: config.geometry.shard_service.service,  # geometry, geometry-0of2, geometry-0of2-r1
 )

@@ -29,7 +29,7 @@ from openfusion.wire.keys import ShardId
 def part_path(map_path: Path, shard: ShardId) -> Path:
     """Where shard ``shard`` keeps its part of the map folder ``map_path`` (the folder itself for
     an unsharded map)."""
-    return map_path if not shard.sharded else Path(map_path) / shard_dir_name(shard)
+    return map_path if not shard.sharded and not shard.replica else Path(map_path) / shard_dir_name(shard)
 
 
 def checkpoint_dir(map_path: Path, shard: ShardId) -> Path:
@@ -38,7 +38,8 @@ def checkpoint_dir(map_path: Path, shard: ShardId) -> Path:
 
 
 def serve(runner: ServiceRunner, endpoint: Endpoint, handler: Callable[[Any], Any], shard: ShardId) -> None:
-    """Answer ``endpoint`` at this shard's key (the plain key for an unsharded map)."""
+    """Answer ``endpoint`` at this shard's key (the plain key for an unsharded map); a replica
+    answers its shard's keys (Zenoh gives a query to one of them)."""
     if not shard.sharded:
         runner.queryable(endpoint, handler)
         return

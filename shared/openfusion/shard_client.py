@@ -13,6 +13,9 @@ regions, meshes and control calls) asks through :class:`GeometryReader`, which
   and meshes concatenated (points capped again), region summaries and contacts merged, the
   dictionary taken from the first shard that answers (every shard follows the same deltas), and
   control calls (save, load, reset) done by every shard (ok only when every shard says ok).
+- a shard run twice (replicas, ``geometry-0of2`` and ``geometry-0of2-r1``) answers on one key:
+  Zenoh gives each query to one of them (the first good answer); a query left unanswered by a
+  replica that went away is asked again for a moment and goes to the other.
 
 A shard that does not answer makes the whole call fail (:class:`~openfusion.bus.QueryError`
 naming the shard): a reader never takes a part of the map for the whole.
@@ -30,7 +33,7 @@ import numpy as np
 import zenoh
 
 from openfusion.bus.health import live_services
-from openfusion.bus.query import QueryError, get
+from openfusion.bus.query import RETRY_UNANSWERED_S, QueryError, get
 from openfusion.mapping import shards as merge
 from openfusion.wire.endpoints import (
     CONTROL,
@@ -117,8 +120,11 @@ class GeometryReader:
             if self._pool is None or self._pool._max_workers < n:  # noqa: SLF001 (sized once per split)
                 self._pool = ThreadPoolExecutor(max_workers=n, thread_name_prefix="shard-read")
             pool = self._pool
+        # A replica that goes away with the query pending leaves it unanswered: asked again for a
+        # moment, Zenoh gives it to the shard's other replica.
         futures = [pool.submit(get, self._session, endpoint.shard_key(self._keys, shard), request, endpoint.reply,
-                               timeout_s=timeout_s, service=shard.service) for shard in ShardId.all(n)]
+                               timeout_s=timeout_s, service=shard.service, retry_unanswered_s=RETRY_UNANSWERED_S)
+                   for shard in ShardId.all(n)]
         return [f.result() for f in futures]
 
     def _one(self, endpoint: Endpoint, request: Any, timeout_s: float) -> Any:
@@ -190,7 +196,8 @@ class GeometryReader:
         for shard in ShardId.all(n):
             try:
                 return get(self._session, GEOMETRY_DICTIONARY.shard_key(self._keys, shard), request,
-                           DictionarySnapshot, timeout_s=timeout_s, service=shard.service)
+                           DictionarySnapshot, timeout_s=timeout_s, service=shard.service,
+                           retry_unanswered_s=RETRY_UNANSWERED_S)
             except QueryError as exc:
                 errors.append(exc)
         raise errors[-1]

@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from openfusion.bus.flow_control import InFlightWindow
+from openfusion.bus.flow_control import InFlightWindow, ShardWindows
 
 
 def test_window_holds_at_most_limit_frames_until_one_is_acknowledged() -> None:
@@ -65,3 +65,25 @@ def test_no_acknowledgement_gives_up_to_open_loop_until_geometry_answers_again()
 def test_limit_must_be_positive() -> None:
     with pytest.raises(ValueError, match="limit must be at least 1"):
         InFlightWindow(0)
+
+
+def test_shard_windows_wait_for_every_shard_and_a_replica_counts_for_its_shard() -> None:
+    """Two shards: room only when both took the frames; shard 0's acknowledgement comes from its
+    replica (geometry-0of2-r1). Bad input tried: an acknowledgement of another split's shard, or of
+    no shard at all, changes nothing."""
+    w = ShardWindows(2, ["geometry-0of2", "geometry-1of2"])
+    w.sent(1, 10)
+    w.sent(2, 20)
+    assert not w.wait_for_room(0.0)
+    w.acknowledge(2, 20, shard="geometry-1of2")
+    assert not w.wait_for_room(0.0)  # shard 0 has not taken them
+    w.acknowledge(2, 20, shard="geometry-0of3")
+    w.acknowledge(2, 20, shard=None)
+    assert not w.wait_for_room(0.0)
+    w.acknowledge(2, 20, shard="geometry-0of2-r1")
+    assert w.wait_for_room(0.0) and w.acknowledged == 2
+    w.sent(3, 30)
+    w.sent(4, 40)
+    assert not w.wait_for_room(0.0)
+    w.give_up()  # nobody answered: open loop for the shards without room
+    assert w.timeouts == 1 and w.open_loop and w.wait_for_room(0.0)

@@ -44,6 +44,11 @@ def test_shard_ids_parse_name_and_refuse_bad_input() -> None:
     assert ShardId().service == "geometry" and ShardId(0, 2).service == "geometry-0of2"
     assert ShardId.of_service("geometry-1of2") == ShardId(1, 2) and ShardId.of_service("geometry") == ShardId()
     assert ShardId.of_service("query") is None and ShardId.of_service("geometry-2of2") is None
+    # Replicas: their own names, their shard's keys and parts.
+    r1 = ShardId.of_service("geometry-0of2-r1")
+    assert r1 == ShardId(0, 2, 1) and r1.part == ShardId(0, 2) and r1.service == "geometry-0of2-r1"
+    assert ShardId.of_service("geometry-r2") == ShardId(0, 1, 2) and ShardId.of_service("geometry-0of1") is None
+    assert ShardId.of_service("geometry-0of2-r10") is None  # bad input: more replicas than allowed
     # Bad input: not I/N, an index past the count, no shards, a count nobody means.
     for bad in ("1", "a/b", "2/2", "0/0", "-1/2", "0/1000"):
         with pytest.raises(InvalidKeyError):

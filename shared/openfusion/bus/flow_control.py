@@ -19,6 +19,8 @@ import collections
 import threading
 import time
 
+from openfusion.wire.keys import ShardId
+
 
 class InFlightWindow:
     """Frames published and not yet acknowledged, identified by (frame id, stamp ns).
@@ -140,7 +142,9 @@ class ShardWindows:
             w.sent(frame_id, stamp_ns)
 
     def acknowledge(self, frame_id: int, stamp_ns: int, shard: str | None = None) -> None:
-        window = self._windows.get(shard or "")
+        """An acknowledgement of ``shard`` (a service name; a replica's counts for its shard)."""
+        sid = ShardId.of_service(shard or "")
+        window = self._windows.get(sid.part.service if sid is not None else "")
         if window is not None:
             window.acknowledge(frame_id, stamp_ns)
 

@@ -31,12 +31,18 @@ from openfusion.wire.keys import ShardId
 
 logger = logging.getLogger(__name__)
 
-_PART = re.compile(r"^shard-([0-9]+)of([0-9]+)$")
+_PART = re.compile(r"^shard-([0-9]+)of([0-9]+)(?:-r([0-9]+))?$")
 
 
 def shard_dir_name(shard: ShardId) -> str:
-    """The subfolder of a map folder where shard ``shard`` keeps its part."""
-    return f"shard-{shard.index}of{shard.count}"
+    """The subfolder of a map folder where shard ``shard`` keeps its part (a replica R > 0: its
+    own, ``…-rR``, so two replicas sharing a disk never write one store)."""
+    return f"shard-{shard.index}of{shard.count}" + (f"-r{shard.replica}" if shard.replica else "")
+
+
+def _newest(folder: Path) -> float:
+    """When the part in ``folder`` was last written (its files' newest modification time)."""
+    return max((f.stat().st_mtime for f in folder.rglob("*") if f.is_file()), default=0.0)
 
 
 def shard_parts(path: str | Path) -> list[Path] | None:
@@ -46,10 +52,14 @@ def shard_parts(path: str | Path) -> list[Path] | None:
     if not p.is_dir():
         return None
     found: dict[int, dict[int, Path]] = {}
-    for child in p.iterdir():
+    for child in sorted(p.iterdir()):
         m = _PART.match(child.name)
         if m and child.is_dir():
-            found.setdefault(int(m.group(2)), {})[int(m.group(1))] = child
+            # Replicas of a part (a save goes to one of them, checkpoints to each): the newest.
+            parts = found.setdefault(int(m.group(2)), {})
+            index = int(m.group(1))
+            if index not in parts or _newest(child) > _newest(parts[index]):
+                parts[index] = child
     if not found:
         return None
     if len(found) > 1:

@@ -93,7 +93,7 @@ class Endpoint(Generic[Q, R]):
         (today's), else ``…/geometry/render/geometry-0of2`` (docs/SHARDS.md). A shard answers only
         its own key, so a reader that asks one key gets one shard's part of the map, never a
         partial answer it mistakes for the whole."""
-        return self.key(keys) if not shard.sharded else self.instance_key(keys, shard.service)
+        return self.key(keys) if not shard.sharded else self.instance_key(keys, shard.part.service)
 
     @property
     def path(self) -> str:

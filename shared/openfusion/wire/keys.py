@@ -220,7 +220,9 @@ class PoolKeys:
 #: The service name of the one geometry service of an unsharded map (and the prefix of a shard's).
 GEOMETRY_SERVICE = "geometry"
 _SHARD_SPEC = re.compile(r"^\s*([0-9]+)\s*/\s*([0-9]+)\s*$")
-_SHARD_SERVICE = re.compile(r"^geometry-([0-9]+)of([0-9]+)$")
+_SHARD_SERVICE = re.compile(r"^geometry(?:-([0-9]+)of([0-9]+))?(?:-r([0-9]+))?$")
+#: Replicas of one shard (the same tiles, on other hosts); more is a typo.
+MAX_REPLICAS = 9
 #: More shards than this is a typo, not a deployment (each shard receives every frame).
 MAX_SHARDS = 64
 
@@ -233,16 +235,22 @@ class ShardId:
     Its name on the bus (health, liveliness and the segment its queryables are declared under,
     :meth:`openfusion.wire.endpoints.Endpoint.shard_key`) is ``geometry`` for the one shard of an
     unsharded map (today's service, today's keys) and ``geometry-{index}of{count}`` otherwise, so a
-    reader learns the shard count from any shard's liveliness token."""
+    reader learns the shard count from any shard's liveliness token. A *replica* ``r > 0`` of a
+    shard (the same shard run again, on another host) is named ``…-r{r}`` in health, liveliness and
+    its acknowledgements, and answers the same keys as the shard (:attr:`part`): Zenoh gives a
+    reader's query to one of them."""
 
     index: int = 0
     count: int = 1
+    replica: int = 0
 
     def __post_init__(self) -> None:
         if not 1 <= self.count <= MAX_SHARDS:
             raise InvalidKeyError(f"shard count must be 1..{MAX_SHARDS}, got {self.count}")
         if not 0 <= self.index < self.count:
             raise InvalidKeyError(f"shard index must be 0..{self.count - 1} for {self.count} shards, got {self.index}")
+        if not 0 <= self.replica <= MAX_REPLICAS:
+            raise InvalidKeyError(f"replica must be 0..{MAX_REPLICAS}, got {self.replica}")
 
     @classmethod
     def parse(cls, text: str) -> ShardId:
@@ -255,15 +263,24 @@ class ShardId:
     @classmethod
     def of_service(cls, name: str) -> ShardId | None:
         """The shard a geometry service name names (``geometry`` -> 0/1), None for another service."""
-        if name == GEOMETRY_SERVICE:
-            return cls()
         m = _SHARD_SERVICE.match(str(name))
         if m is None:
             return None
         try:
-            return cls(int(m.group(1)), int(m.group(2)))
+            shard = cls(int(m.group(1)), int(m.group(2))) if m.group(1) is not None else cls()
+            if m.group(1) is not None and not shard.sharded:
+                return None  # geometry-0of1 is not a name any service takes
+            return shard.with_replica(int(m.group(3) or 0))
         except InvalidKeyError:
             return None
+
+    def with_replica(self, replica: int) -> ShardId:
+        return ShardId(self.index, self.count, int(replica))
+
+    @property
+    def part(self) -> ShardId:
+        """The shard itself (replica 0's id): what keys, flow-control windows and map parts are of."""
+        return ShardId(self.index, self.count)
 
     @classmethod
     def all(cls, count: int) -> list[ShardId]:
@@ -276,8 +293,10 @@ class ShardId:
 
     @property
     def service(self) -> str:
-        """Service name (health, liveliness, key segment): ``geometry`` or ``geometry-{I}of{N}``."""
-        return GEOMETRY_SERVICE if self.count == 1 else f"{GEOMETRY_SERVICE}-{self.index}of{self.count}"
+        """Service name (health, liveliness, acknowledgements): ``geometry`` or ``geometry-{I}of{N}``,
+        with ``-r{R}`` for replica R > 0."""
+        name = GEOMETRY_SERVICE if self.count == 1 else f"{GEOMETRY_SERVICE}-{self.index}of{self.count}"
+        return name if self.replica == 0 else f"{name}-r{self.replica}"
 
     def __str__(self) -> str:
         return f"{self.index}/{self.count}"
