@@ -13,6 +13,12 @@ its ``integrate_busy_s`` (time inside integration) per frame and its blocks. The
 the slowest shard's CPU per frame against one geometry's, measured in the same run; the issue's
 target is <= 0.6 at 2 shards. A row per image size and shard count.
 
+A second table (in this process, no bus): the same frames into one volume and into the shards'
+volumes (``VolumeParams.shard``), CPU time of ``integrate`` per frame, blocks (own + ghosts), and how
+close the composited render of the shards is to the single volume's (share of pixels with depth
+within one voxel and the same region key, frames' instances as keys), with the single volume's own
+spread under a 1 mm camera shift as the floor of what a render can agree on.
+
     .venv/bin/python bench/bench_shards.py --quick    # 60 frames at 320x240 and 640x480, 1 and 2 shards
     .venv/bin/python bench/bench_shards.py            # 150 frames, 1, 2 and 3 shards
 """
@@ -95,12 +101,70 @@ def _run_one(shards: int, width: int, height: int, frames: int, log_dir: Path) -
         router.close()
 
 
+def _in_process(shards: int, width: int, height: int, frames: int) -> dict[str, object]:
+    """Volumes of ``shards`` shards in this process (module docstring, second table)."""
+    import numpy as np
+
+    from openfusion.frame import resize_nearest
+    from openfusion.mapping import SemanticVolume, VolumeParams
+    from openfusion.sources import open_source
+
+    source = list(open_source(f"synthetic:seed=1,width={width},height={height},frames={frames}"))
+    K = source[0].intrinsics.scaled(160, 120)
+    cpu, vols = [], []
+    for i in range(shards):
+        vol = SemanticVolume(VolumeParams(shard=f"{i}/{shards}"))
+        spent = 0.0
+        for n, f in enumerate(source):
+            t = time.process_time()
+            vol.integrate(f)
+            if n >= 5:  # warm: the grid grown, Open3D's buffers made
+                spent += time.process_time() - t
+            if n % 3 == 0:
+                keys = resize_nearest(f.instance, (120, 160)).astype(np.int32) - 1
+                vol.apply_update(f.T_world_cam, K, keys, np.full((120, 160), 0.8, np.float32), observed_depth_m=f.depth_m())
+        cpu.append(1000 * spent / max(len(source) - 5, 1))
+        vols.append(vol)
+    out: dict[str, object] = {"shards": shards, "size": f"{width}x{height}", "cpu_ms": cpu,
+                              "blocks": [v.num_blocks for v in vols]}
+    if shards > 1:
+        out["vols"] = vols
+    else:
+        out["vol"] = vols[0]
+    return out
+
+
+def _agreement(single: object, parts: list, frames: list, voxel_m: float) -> tuple[float, float, float]:
+    import numpy as np
+
+    from openfusion.mapping.shards import composite_renders
+
+    K = frames[0].intrinsics.scaled(160, 120)
+    depth_ok = keys_ok = floor_ok = pixels = floor_px = 0
+    for f in frames[1::7]:
+        ref = single.render(f.T_world_cam, K)  # type: ignore[attr-defined]
+        views = [p.render(f.T_world_cam, K) for p in parts]
+        keys, _, depth = composite_renders([(v.key_map, v.conf_map, v.depth_m) for v in views])
+        seen = (ref.depth_m > 0) | (depth > 0)
+        pixels += int(seen.sum())
+        depth_ok += int((np.abs(depth - ref.depth_m)[seen] <= voxel_m).sum())
+        keys_ok += int((keys == ref.key_map)[seen].sum())
+        moved = f.T_world_cam.copy()
+        moved[:3, 3] += 0.001
+        again = single.render(moved, K).depth_m  # type: ignore[attr-defined]
+        both = (ref.depth_m > 0) | (again > 0)
+        floor_px += int(both.sum())
+        floor_ok += int((np.abs(again - ref.depth_m)[both] <= voxel_m).sum())
+    return depth_ok / pixels, keys_ok / pixels, floor_ok / floor_px
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="60 frames, 1 and 2 shards")
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--shards", default=None, help="comma-separated shard counts (default 1,2,3; quick 1,2)")
     parser.add_argument("--sizes", default="320x240,640x480")
+    parser.add_argument("--no-in-process", action="store_true", help="only the services table")
     args = parser.parse_args(argv)
     frames = args.frames or (60 if args.quick else 150)
     counts = [int(x) for x in (args.shards or ("1,2" if args.quick else "1,2,3")).split(",")]
@@ -125,6 +189,27 @@ def main(argv: list[str] | None = None) -> int:
               f"{' '.join(f'{b:5.1f}' for b in r['busy_ms']):>22} "  # type: ignore[union-attr]
               f"{' '.join(f'{int(b):6d}' for b in r['blocks']):>22} {r['fps']:6.1f}")  # type: ignore[union-attr]
     print("\nratio: the slowest shard's CPU per frame / one geometry's (target <= 0.6 at 2 shards)")
+    if args.no_in_process:
+        return 0
+    from openfusion.sources import open_source
+
+    print(f"\nin this process: the same {frames} frames into one volume and into the shards' volumes")
+    print(f"{'size':>8} {'shards':>6} {'integrate CPU ms/frame':>26} {'max':>6} {'ratio':>6} {'blocks (own+ghosts)':>22} "
+          f"{'render depth ok':>15} {'keys ok':>8} {'1 mm floor':>10}")
+    for width, height in sizes:
+        single = _in_process(1, width, height, frames)
+        base = single["cpu_ms"][0]  # type: ignore[index]
+        print(f"{single['size']:>8} {1:>6} {base:26.1f} {base:6.1f} {1.0:6.2f} {single['blocks'][0]:>22d}")  # type: ignore[index]
+        source = list(open_source(f"synthetic:seed=1,width={width},height={height},frames={frames}"))
+        for n in [c for c in counts if c > 1]:
+            r = _in_process(n, width, height, frames)
+            cpu = r["cpu_ms"]
+            d, k, fl = _agreement(single["vol"], r["vols"], source, 0.02)  # type: ignore[arg-type]
+            print(f"{r['size']:>8} {n:>6} {' '.join(f'{c:5.1f}' for c in cpu):>26} {max(cpu):6.1f} "  # type: ignore[union-attr]
+                  f"{max(cpu) / base:6.2f} {' '.join(str(b) for b in r['blocks']):>22} "  # type: ignore[union-attr, type-var]
+                  f"{d:15.4f} {k:8.4f} {fl:10.4f}")
+    print("\nrender: share of pixels (either render has a surface) whose composited depth is within one voxel "
+          "of one volume's / whose key is the same; 1 mm floor: one volume against itself moved 1 mm")
     return 0
 
 

@@ -1,0 +1,141 @@
+"""Two geometry shards on two hosts, and a replica of shard 0 on the second host; shard 0's primary is
+killed with SIGKILL mid-run (docs/SHARDS.md, "Replicas").
+
+Host 1 (this network namespace): the router, the bridge, geometry shard 0/2 (the primary), the
+semantic and the query service. Host 2 (a namespace of its own, joined by a veth pair as in
+test_deploy_two_host.py): geometry shard 1/2 and shard 0/2's replica (``--replica 1``). The bridge
+plays the synthetic room with flow control over both shards; once the primary has integrated a
+third of the frames it is killed. The run completes: every frame is integrated exactly once by
+each live owner of its tiles (the replica and shard 1 count every frame once), queries keep being
+answered, and the map saved afterwards (shard 0's part from the replica, shard 1's) loads as one
+map whose surface equals one volume's of the same frames within 1 %.
+
+Skipped with the reason when namespaces cannot be created (not root, no iproute2)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from openfusion.app.launcher import Cluster, wait_for_services
+from openfusion.bus import QueryError, collect_health, live_services, open_session
+from openfusion.bus import free_loopback_port as free_port
+from openfusion.client import OpenFusionClient
+from openfusion.config import ServiceConfig, ZenohSettings
+from openfusion.testing.bus import subprocess_env, unique_map_id, wait_until
+from openfusion.wire.counters import BridgeCounter, GeometryCounter, SemanticCounter
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_deploy_two_host import NetNs, _netns_unavailable  # noqa: E402
+
+ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
+N = 45
+SOURCE = f"synthetic:seed=1,frames={N},width=320,height=240"
+
+pytestmark = [pytest.mark.netns, pytest.mark.slow, pytest.mark.timeout(600)]
+
+
+@pytest.fixture
+def netns() -> Iterator[NetNs]:
+    reason = _netns_unavailable()
+    if reason:
+        pytest.skip(reason)
+    ns = NetNs()
+    ns.create()
+    try:
+        yield ns
+    finally:
+        ns.delete()
+
+
+def _counter(client: OpenFusionClient, service: str, name: str) -> float:
+    stats = collect_health(client.session, client.keys, timeout_s=1.5).get(service)
+    return float(stats.counters.get(name, 0.0)) if stats else 0.0
+
+
+def test_shard_primary_killed_its_replica_on_another_host_carries_on(netns: NetNs, tmp_path: Path) -> None:
+    map_id = unique_map_id("shards2h")
+    port = free_port()
+    local, remote = f"tcp/127.0.0.1:{port}", f"tcp/{netns.host_addr}:{port}"
+    router = open_session(ServiceConfig(map_id=map_id, zenoh=ZenohSettings(
+        mode="router", listen=[local, remote], multicast_scouting=False)))
+    cluster = Cluster(map_id, local, tmp_path / "logs")
+    client = OpenFusionClient.from_config(ServiceConfig(map_id=map_id, zenoh=ZenohSettings(
+        mode="client", connect=[local], multicast_scouting=False)), timeout_s=20)
+    env = subprocess_env(HF_HUB_OFFLINE="1")
+    host2: list[subprocess.Popen[bytes]] = []
+    logs = []
+    try:
+        for name, extra in (("geometry-1of2", ["--shard", "1/2"]), ("geometry-0of2-r1", ["--shard", "0/2", "--replica", "1"])):
+            log = (tmp_path / f"{name}-netns.log").open("wb")
+            logs.append(log)
+            host2.append(subprocess.Popen(
+                ["ip", "netns", "exec", netns.name, sys.executable, "-m", "openfusion.app.cli", "service", "geometry",
+                 "--map", map_id, "--mode", "client", "--connect", remote, "--no-multicast",
+                 "--map-dir", str(tmp_path / "host2"), "--checkpoint-period-s", "0", *extra],
+                stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, env=env))
+        cluster.start("geometry-0of2", ["--shard", "0/2", "--map-dir", str(tmp_path / "host1"),
+                                        "--checkpoint-period-s", "0"], service="geometry", env=env)
+        cluster.start("semantic", [], env=env)
+        cluster.start("query", [], env=env)
+        wait_for_services(client, cluster, {"geometry-0of2", "semantic", "query"}, 240)
+        wait_until(lambda: {"geometry-1of2", "geometry-0of2-r1"} <= set(live_services(client.session, client.keys)),
+                   timeout_s=240)
+        cluster.start("bridge", ["--source", SOURCE, "--rate-hz", "6", "--geometry-shards", "2"], env=env)
+
+        # Mid-run: the primary of shard 0 dies (SIGKILL: no checkpoint, no goodbye).
+        wait_until(lambda: _counter(client, "geometry-0of2", GeometryCounter.FRAMES_INTEGRATED) >= N // 3,
+                   timeout_s=240)
+        primary = cluster.processes["geometry-0of2"]
+        os.kill(primary.proc.pid, signal.SIGKILL)
+        primary.proc.wait(timeout=20)
+        cluster.processes.pop("geometry-0of2")
+
+        def answered() -> bool:
+            try:
+                return bool(client.query_text("chair", top_k=1).regions)
+            except QueryError as exc:  # no dictionary yet: the semantic service has not published one
+                assert exc.code == "no_map", exc
+                return False
+
+        wait_until(answered, timeout_s=120, interval_s=0.5)  # queries answered with shard 0 on its replica
+        wait_until(lambda: _counter(client, "bridge", BridgeCounter.PLAYBACK_DONE) >= 1, timeout_s=240)
+        for name in ("geometry-1of2", "geometry-0of2-r1"):
+            wait_until(lambda name=name: _counter(client, name, GeometryCounter.FRAMES_INTEGRATED) >= N, timeout_s=120)
+            # Exactly once: the count is of frames taken in order (a replayed frame it holds is a duplicate).
+            assert _counter(client, name, GeometryCounter.FRAMES_INTEGRATED) == N, name
+        assert _counter(client, "semantic", SemanticCounter.SEMANTIC_FRAMES) >= 2
+        assert client.query_text("table", top_k=1).regions
+
+        # The map: shard 0's part from its replica, shard 1's; one map, the surface of one volume.
+        reply = client.control("save", str(tmp_path / "map"))
+        assert reply.ok, reply.message
+        assert sorted(p.name for p in (tmp_path / "map").iterdir()) == ["shard-0of2-r1", "shard-1of2"]
+        from openfusion.mapping import SemanticVolume, VolumeParams, load_map
+        from openfusion.sources import open_source
+
+        merged = load_map(tmp_path / "map")
+        whole = SemanticVolume(VolumeParams())
+        for frame in open_source(SOURCE):
+            whole.integrate(frame)
+        got, ref = len(merged.volume.extract_points()), len(whole.extract_points())
+        assert abs(got - ref) <= 0.01 * ref, (got, ref)
+    finally:
+        for proc in host2:
+            proc.terminate()
+        for proc in host2:
+            try:
+                proc.wait(20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+        for log in logs:
+            log.close()
+        cluster.stop()
+        client.close()
+        router.close()
