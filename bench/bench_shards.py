@@ -20,7 +20,7 @@ within one voxel and the same region key, frames' instances as keys), with the s
 spread under a 1 mm camera shift as the floor of what a render can agree on.
 
     .venv/bin/python bench/bench_shards.py --quick    # 60 frames at 320x240 and 640x480, 1 and 2 shards
-    .venv/bin/python bench/bench_shards.py            # 150 frames, 1, 2 and 3 shards
+    .venv/bin/python bench/bench_shards.py --full     # 150 frames, 1, 2 and 3 shards (also the default)
 """
 
 from __future__ import annotations
@@ -160,7 +160,9 @@ def _agreement(single: object, parts: list, frames: list, voxel_m: float) -> tup
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--quick", action="store_true", help="60 frames, 1 and 2 shards")
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_true", help="60 frames, 1 and 2 shards")
+    size.add_argument("--full", action="store_true", help="150 frames, 1, 2 and 3 shards (the default)")
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--shards", default=None, help="comma-separated shard counts (default 1,2,3; quick 1,2)")
     parser.add_argument("--sizes", default="320x240,640x480")

@@ -150,7 +150,8 @@ def _health_table(live: list[str], stats: dict[str, Any]) -> str:
 
 def robots_table(stats: dict[str, Any]) -> str:
     """Each robot's stream as geometry reports it (README "Several robots"); "" when none does."""
-    geometry = stats.get("geometry")
+    geometry = stats.get("geometry") or next(  # geometry shards (docs/SHARDS.md): each follows every robot
+        (s for name, s in sorted(stats.items()) if name.startswith("geometry-") and s.robots), None)
     if geometry is None or not geometry.robots:
         return ""
     header = ("robot", "state", "integrated", "held", "skipped", "queued", "lag_s", "x_m", "y_m", "z_m", "yaw_deg",

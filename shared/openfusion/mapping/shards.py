@@ -22,8 +22,9 @@ One map to every reader
       disjoint tiles as one map's. Summaries: point counts add, centroids are count-weighted
       means, boxes are the union of the shards' boxes (each shard's box is its points' 1st-99th
       percentile box, so the union can be slightly larger than the whole map's robust box).
-      Contacts: voxel counts and contact counts add per pair (a contact across a tile border of
-      two shards is not seen by either: the semantic service's merges miss it there).
+      Contacts: voxel counts and contact counts add per pair (across a tile face between two
+      shards, the lower tile's shard sees the contact through its ghosts, the upper one's does not:
+      such a pair's count on the upper side is short).
 """
 
 from __future__ import annotations
