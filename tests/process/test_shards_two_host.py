@@ -8,7 +8,8 @@ plays the synthetic room with flow control over both shards; once the primary ha
 third of the frames it is killed. The run completes: every frame is integrated exactly once by
 each live owner of its tiles (the replica and shard 1 count every frame once), queries keep being
 answered, and the map saved afterwards (shard 0's part from the replica, shard 1's) loads as one
-map whose surface equals one volume's of the same frames within 1 %.
+map whose surface equals one volume's of the same frames within 1 %, with the f-mIoU of one
+geometry's map of the same frames (``openfusion run``, same pace) within 0.01.
 
 Skipped with the reason when namespaces cannot be created (not root, no iproute2)."""
 
@@ -36,7 +37,8 @@ from test_deploy_two_host import NetNs, _netns_unavailable  # noqa: E402
 
 ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
 N = 45
-SOURCE = f"synthetic:seed=1,frames={N},width=320,height=240"
+SOURCE = f"synthetic:seed=1,frames={N},lap=120,width=320,height=240"  # as `openfusion run` plays it
+RATE_HZ = 3
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow, pytest.mark.timeout(600)]
 
@@ -82,12 +84,14 @@ def test_shard_primary_killed_its_replica_on_another_host_carries_on(netns: NetN
                 stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, env=env))
         cluster.start("geometry-0of2", ["--shard", "0/2", "--map-dir", str(tmp_path / "host1"),
                                         "--checkpoint-period-s", "0"], service="geometry", env=env)
-        cluster.start("semantic", [], env=env)
+        # Every frame encoded in order, at a pace the semantic service keeps: the map's semantics do
+        # not hang on timing, so the f-mIoU compares with one geometry's run below.
+        cluster.start("semantic", ["--select", "every"], env=env)
         cluster.start("query", [], env=env)
         wait_for_services(client, cluster, {"geometry-0of2", "semantic", "query"}, 240)
         wait_until(lambda: {"geometry-1of2", "geometry-0of2-r1"} <= set(live_services(client.session, client.keys)),
                    timeout_s=240)
-        cluster.start("bridge", ["--source", SOURCE, "--rate-hz", "6", "--geometry-shards", "2"], env=env)
+        cluster.start("bridge", ["--source", SOURCE, "--rate-hz", str(RATE_HZ), "--geometry-shards", "2"], env=env)
 
         # Mid-run: the primary of shard 0 dies (SIGKILL: no checkpoint, no goodbye).
         wait_until(lambda: _counter(client, "geometry-0of2", GeometryCounter.FRAMES_INTEGRATED) >= N // 3,
@@ -126,6 +130,22 @@ def test_shard_primary_killed_its_replica_on_another_host_carries_on(netns: NetN
             whole.integrate(frame)
         got, ref = len(merged.volume.extract_points()), len(whole.extract_points())
         assert abs(got - ref) <= 0.01 * ref, (got, ref)
+
+        # One geometry, the same frames at the same pace: the same quality.
+        single = subprocess.run(
+            [sys.executable, "-m", "openfusion.app.cli", "run", "--out", str(tmp_path / "one"), "--source", SOURCE,
+             "--frames", str(N), "--rate-hz", str(RATE_HZ), "--set", "semantic.select=every", "--quiet"],
+            capture_output=True, text=True, timeout=400, cwd=ROOT, env=env)
+        assert single.returncode == 0, single.stderr[-3000:]
+        from openfusion.encoders import make_text_encoder
+        from openfusion.eval.saved_map import synthetic_map_quality
+
+        text = make_text_encoder("minilm")
+        one = load_map(tmp_path / "one" / "map")
+        q1 = synthetic_map_quality(one.volume, one.dictionary, seed=1, text_encoder=text)["f_mIoU"]
+        q2 = synthetic_map_quality(merged.volume, merged.dictionary, seed=1, text_encoder=text)["f_mIoU"]
+        print(f"f-mIoU: one geometry {q1:.4f}, two shards with shard 0's primary killed {q2:.4f}")
+        assert q1 > 0.3 and abs(q1 - q2) <= 0.01, (q1, q2)
     finally:
         for proc in host2:
             proc.terminate()
