@@ -275,8 +275,8 @@ SelectMode = Literal["coverage", "every", "latest"]
 
 
 class SelectParams(SectionParams):
-    """Which frames the region encoder sees (:mod:`openfusion.mapping.selection`, where the
-    reasoning behind each rule and default is written down). The semantic service's section extends
+    """Which frames the region encoder sees (:mod:`openfusion.mapping.selection`; the reasoning
+    behind each rule and default is written down in :mod:`openfusion.mapping.coverage`). The semantic service's section extends
     this model; ``openfusion run --in-process`` and ``openfusion eval`` build the same one, so a
     result measured in-process is what the services do.
 
