@@ -260,6 +260,9 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
     try:
         stats = _follow_progress(args, client, cluster, signals, stats, carried)
     except RunError as exc:  # past the restart limit (or a timeout): keep what can be kept, then fail
+        # The stats are from the loop's last poll, up to a poll before the death it noticed; the
+        # services still alive are asked once more, so the save and run.json see what they hold now.
+        _refresh_stats(client, stats, carried)
         _save_what_is_left(args, client, cluster, map_dir, summary_now(str(exc)))
         raise
     if signals.requested:
@@ -289,6 +292,19 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
         for text, _space, hits in replies:
             rerun.log_query(text, hits)
     return summary_now()
+
+
+def _refresh_stats(client: Any, stats: dict[str, Any], carried: dict[str, dict[str, float]]) -> None:
+    """One more health poll into ``stats`` (a service that does not answer keeps its last stats)."""
+    import zenoh
+
+    try:
+        fresh = collect_health(client.session, client.keys, timeout_s=1.0)
+    except zenoh.ZError as exc:
+        logger.warning("could not ask the services for their last stats: %s", exc)
+        return
+    _carry_over(stats, fresh, carried)
+    stats.update(fresh)
 
 
 def _save_what_is_left(args: argparse.Namespace, client: Any, cluster: Cluster, map_dir: Path,
