@@ -83,12 +83,20 @@ class BackgroundRun:
 
     def wait_for(self, predicate: Any, *, timeout_s: float = 240.0) -> dict[str, HealthStats]:
         """Wait until ``predicate(health)`` holds (the run must still be going); the health then."""
+        last: dict[str, HealthStats] = {}
+
         def check() -> dict[str, HealthStats] | None:
             assert self.proc.poll() is None, f"the run ended early:\n{self.stderr()[-3000:]}"
             health = self.health()
+            last.update(health)
             return health if health and predicate(health) else None
 
-        return wait_until(check, timeout_s=timeout_s, interval_s=0.2)
+        def describe() -> str:  # what the services said last, and what the run said: a timeout's evidence
+            said = {name: {k: v for k, v in stats.counters.items() if v} for name, stats in sorted(last.items())}
+            robots = {name: stats.robots for name, stats in last.items() if stats.robots}
+            return f"last health {said}; robots {robots}; the run's stderr:\n{self.stderr()[-3000:]}"
+
+        return wait_until(check, timeout_s=timeout_s, interval_s=0.2, describe=describe)
 
     def kill(self, service: str, *, restarts_before: int) -> None:
         """SIGKILL the service's current process once it runs as restart number ``restarts_before``

@@ -7,6 +7,7 @@ A restarted service counts from 0: its earlier process's counts are carried over
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 import time
 from typing import Any
@@ -14,6 +15,8 @@ from typing import Any
 from openfusion.app.launcher import Cluster, RunError, StopSignals
 from openfusion.bus import collect_health
 from openfusion.wire.counters import BridgeCounter, CommonCounter, GeometryCounter, SemanticCounter
+
+logger = logging.getLogger(__name__)
 
 #: geometry and semantic have settled when their counters did not change for this long.
 SETTLE_S = 2.0
@@ -39,6 +42,19 @@ def carry_over(stats: dict[str, Any], fresh: dict[str, Any], carried: dict[str, 
         into = carried.setdefault(name, {})
         for counter in counters:
             into[counter] = into.get(counter, 0.0) + old.counter(counter)
+
+
+def refresh_stats(client: Any, stats: dict[str, Any], carried: dict[str, dict[str, float]]) -> None:
+    """One more health poll into ``stats`` (a service that does not answer keeps its last stats)."""
+    import zenoh
+
+    try:
+        fresh = collect_health(client.session, client.keys, timeout_s=1.0)
+    except zenoh.ZError as exc:
+        logger.warning("could not ask the services for their last stats: %s", exc)
+        return
+    carry_over(stats, fresh, carried)
+    stats.update(fresh)
 
 
 def progress_counts(stats: dict[str, Any]) -> dict[str, int]:

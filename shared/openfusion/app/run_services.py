@@ -19,7 +19,7 @@ from openfusion.app.end_of_run import fetch_mesh, save_and_wait
 from openfusion.app.launcher import Cluster, RunError, StopSignals, wait_for_services
 from openfusion.app.outputs import open_rerun, say_progress, surface_mesh, write_query_outputs
 from openfusion.app.run_config import RunConfig, write_service_config
-from openfusion.app.run_progress import follow_progress, with_carried
+from openfusion.app.run_progress import follow_progress, refresh_stats, with_carried
 from openfusion.app.summary import RunSummary
 from openfusion.bus import free_loopback_port, open_session
 from openfusion.client import OpenFusionClient
@@ -150,6 +150,9 @@ def _run_with_services(args: argparse.Namespace, config: RunConfig, cluster: Clu
     try:
         stats = follow_progress(args, client, cluster, signals, stats, carried)
     except RunError as exc:  # past the restart limit (or a timeout): keep what can be kept, then fail
+        # The stats are from the loop's last poll, up to a poll before the death it noticed; the
+        # services still alive are asked once more, so the save and run.json see what they hold now.
+        refresh_stats(client, stats, carried)
         _save_what_is_left(args, client, cluster, map_dir, summary_now(str(exc)))
         raise
     if signals.requested:
