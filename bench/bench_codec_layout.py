@@ -23,10 +23,10 @@ import numpy as np
 
 
 def main(argv: list[str] | None = None) -> int:
-    from openfusion.mapping import SemanticVolume, VolumeParams
     from openfusion.mapping.tilestore import _Zstd as Zstd  # the store's codec, at other levels too
     from openfusion.mapping.tilestore import decode_tile, encode_tile
     from openfusion.sources import open_source
+    from openfusion.testing.maps import volume_with_every_tile
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     size = parser.add_mutually_exclusive_group()
@@ -38,12 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     source = open_source(spec)
     meta = source.metadata() if callable(source.metadata) else source.metadata  # type: ignore[attr-defined]
     floor_m2 = float(meta["floor_area_m2"])
-    volume = SemanticVolume(VolumeParams())
-    for f in source:
-        volume.integrate(f)
-    tiles = {}
-    for part in volume.checkpoint_plan(every_tile=True):
-        tiles.update(volume.pager.copy_tiles(part, every_tile=True)[0])
+    volume, tiles = volume_with_every_tile(source)
     res = volume.params.block_resolution
     print(f"# {rooms} rooms, {floor_m2:.0f} m^2 of floor: {volume.num_blocks} blocks in {len(tiles)} tiles "
           f"({volume.num_blocks * 8192 / 1e6:.0f} MB of compact voxels)")

@@ -254,28 +254,22 @@ def main() -> None:
                 "",
             )
         )
-        tcp_per = {k: v / tcp_intervals * 1e3 for k, v in tcp_cpu.items()} if tcp_intervals else {}
-        rows.append(
-            (
-                "CPU ms/frame, shared memory off: geometry + bridge + router (this process)",
-                " + ".join(f"{tcp_per.get(k, float('nan')):.1f}" for k in ("geometry", "bridge", "router")),
-                "in-process integrate CPU ms/frame",
-                f"{inproc_cpu:.1f}",
-                f"{sum(tcp_per.values()) / inproc_cpu:.2f}" if tcp_per else "",
-                "",
-            )
-        )
-        per = {k: v / intervals * 1e3 for k, v in cpu.items()} if intervals else {}
-        rows.append(
-            (
-                "CPU ms/frame over Zenoh: geometry + bridge + router (this process)",
+
+        def cpu_row(what: str, cpu_s: dict[str, float], intervals: float) -> tuple[str, ...]:
+            """CPU ms per frame of geometry, bridge and the router (this process) over ``intervals``
+            frame intervals, against the in-process integration's."""
+            per = {k: v / intervals * 1e3 for k, v in cpu_s.items()} if intervals else {}
+            return (
+                f"CPU ms/frame{what}: geometry + bridge + router (this process)",
                 " + ".join(f"{per.get(k, float('nan')):.1f}" for k in ("geometry", "bridge", "router")),
                 "in-process integrate CPU ms/frame",
                 f"{inproc_cpu:.1f}",
                 f"{sum(per.values()) / inproc_cpu:.2f}" if per else "",
                 "",
             )
-        )
+
+        rows.append(cpu_row(", shared memory off", tcp_cpu, tcp_intervals))
+        rows.append(cpu_row(" over Zenoh", cpu, intervals))
 
         # 2. Sem-3D-Rec with gt
         bus = Bus(tmp, "bench-sem")

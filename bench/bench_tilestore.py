@@ -20,10 +20,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from openfusion.mapping import SemanticVolume, VolumeParams
 from openfusion.mapping.tiles import tile_key
 from openfusion.mapping.tilestore import TileStore, decode_tile, encode_tile, make_codec
 from openfusion.sources import open_source
+from openfusion.testing.maps import volume_with_every_tile
 
 
 class _Sqlite:
@@ -69,12 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     size.add_argument("--full", action="store_true", help="120 frames at 640x480")
     args = parser.parse_args(argv)
     frames, w, h = (120, 640, 480) if args.full else (60, 320, 240)
-    volume = SemanticVolume(VolumeParams())
-    for f in open_source(f"synthetic:seed=1,frames={frames},width={w},height={h}"):
-        volume.integrate(f)
-    tiles = {}
-    for part in volume.checkpoint_plan(every_tile=True):
-        tiles.update(volume.pager.copy_tiles(part, every_tile=True)[0])
+    volume, tiles = volume_with_every_tile(open_source(f"synthetic:seed=1,frames={frames},width={w},height={h}"))
     raw_bytes = volume.num_blocks * volume._storage.bytes_per_block
     print(f"# the room: {volume.num_blocks} blocks in {len(tiles)} tiles, {raw_bytes / 2**20:.1f} MiB of compact voxels "
           f"({volume.bytes_per_voxel} B per voxel; was 28)")

@@ -12,7 +12,7 @@ relevancy of the 32-region match pool < 0.5 ms, reply encoding < 0.5 ms. So:
   (``query.text_backend``) makes a text not yet seen cost ~3 ms instead of ~11.
 - :class:`SummaryDerived`: what is computed from one set of region summaries alone: the boxes of
   answerable regions (sorted once) and each region's nearby list (memoised per key). It hangs on
-  the :class:`~services.query.service.RegionSummaries` object, so new summaries (a fetch) start
+  the :class:`~services.query.region_hits.RegionSummaries` object, so new summaries (a fetch) start
   from an empty one: invalidation is the replacement itself. Summaries fetched again from an
   unchanged map (the background refresh runs every second while queries come) are compared
   array by array with the last ones and, when equal, keep their caches.

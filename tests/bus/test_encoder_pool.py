@@ -47,9 +47,6 @@ FRAMES = list(open_source("synthetic:frames=8,width=160,height=120"))
 WARM_UP_ID = 1000  # the frame id of Map.publishers' warm-up frame
 
 
-def _config(model, map_id: str, section: str, values: dict, **ports):  # noqa: ANN001, ANN003, ANN202
-    return model.model_validate({**loopback_config(map_id, **ports).model_dump(), section: values})
-
 
 def _encoder() -> FlakyEncoder:
     return FlakyEncoder(empty_on=(), fail_on=())
@@ -61,8 +58,8 @@ class Map:
     def __init__(self, stack: ExitStack, port: int, *, listen: bool, **semantic_values: object) -> None:
         self.map_id = unique_map_id("pool")
         ports = {"listen": [port]} if listen else {"connect": [port]}
-        geo = _config(GeometryConfig, self.map_id, "geometry", {"initial_block_count": 1024}, **ports)
-        sem = _config(SemanticConfig, self.map_id, "semantic", {"select": "latest", "recover_timeout_s": 0, "instance_wait_s": 2,
+        geo = loopback_config(self.map_id, model=GeometryConfig, geometry={"initial_block_count": 1024}, **ports)
+        sem = loopback_config(self.map_id, model=SemanticConfig, semantic={"select": "latest", "recover_timeout_s": 0, "instance_wait_s": 2,
                                                                "encoder_pool": True, "local_encoder": False,
                                                                **semantic_values},
                       connect=[port])
@@ -94,7 +91,7 @@ class Map:
 
 
 def _worker(stack: ExitStack, port: int, worker_id: str, encoder: FlakyEncoder) -> ServiceThread:
-    cfg = _config(EncoderConfig, unique_map_id("workers"), "encoder", {"worker_id": worker_id}, connect=[port])
+    cfg = loopback_config(unique_map_id("workers"), model=EncoderConfig, encoder={"worker_id": worker_id}, connect=[port])
     return stack.enter_context(ServiceThread(EncoderWorker(cfg, encoder=encoder), cfg, f"encoder-{worker_id}"))
 
 
@@ -233,7 +230,7 @@ def test_a_worker_embeds_the_scene_categories_before_it_takes_frames() -> None:
             calls.append(list(texts))
             return super().encode(texts)
 
-    cfg = _config(EncoderConfig, unique_map_id("workers"), "encoder", {"worker_id": "warm"}, listen=[free_port()])
+    cfg = loopback_config(unique_map_id("workers"), model=EncoderConfig, encoder={"worker_id": "warm"}, listen=[free_port()])
     encoder = GroundTruthRegionEncoder(Counting(dim=32))
     with ServiceThread(EncoderWorker(cfg, encoder=encoder), cfg, "encoder-warm") as worker:
         assert len(calls) == 1 and calls[0][: len(CATEGORIES)] == sorted(CATEGORIES)  # names, then captions

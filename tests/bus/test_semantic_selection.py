@@ -43,9 +43,6 @@ def _as(frame, frame_id: int):  # noqa: ANN001, ANN202
     return dataclasses.replace(frame, frame_id=frame_id, stamp_ns=frame_id * 33_333_333)
 
 
-def _config(model, map_id: str, section: str, values: dict, **ports):  # noqa: ANN001, ANN003, ANN202
-    return model.model_validate({**loopback_config(map_id, **ports).model_dump(), section: values})
-
 
 class GatedEncoder(FlakyEncoder):
     """Holds frame ``gate_on`` until :attr:`release` is set (a busy encoder, on cue)."""
@@ -71,11 +68,11 @@ SELECT = {"select": "coverage", "select_tries": 1, "recover_timeout_s": 0, "inst
 def _rig(stack: ExitStack, *, encoder, semantic_values: dict, geometry: bool = True):  # noqa: ANN001, ANN202
     map_id = unique_map_id("select")
     port = free_port()
-    sem_cfg = _config(SemanticConfig, map_id, "semantic", {**SELECT, **semantic_values}, listen=[port])
+    sem_cfg = loopback_config(map_id, model=SemanticConfig, semantic={**SELECT, **semantic_values}, listen=[port])
     semantic = stack.enter_context(ServiceThread(SemanticService(sem_cfg, encoder=encoder), sem_cfg, "semantic"))
     geo = None
     if geometry:
-        geo_cfg = _config(GeometryConfig, map_id, "geometry", {"initial_block_count": 2048}, connect=[port])
+        geo_cfg = loopback_config(map_id, model=GeometryConfig, geometry={"initial_block_count": 2048}, connect=[port])
         geo = stack.enter_context(ServiceThread(GeometryService(geo_cfg), geo_cfg, "geometry"))
     session = open_session(loopback_config(map_id, connect=[port]))
     stack.callback(session.close)
@@ -138,7 +135,7 @@ def test_the_encoder_pool_dispatches_from_the_same_window() -> None:
         semantic, _geometry, rgbd, port, _ = _rig(
             stack, encoder=FlakyEncoder(empty_on=(), fail_on=()),
             semantic_values={"encoder_pool": True, "local_encoder": False})
-        cfg = _config(EncoderConfig, unique_map_id("workers"), "encoder", {"worker_id": "w1"}, connect=[port])
+        cfg = loopback_config(unique_map_id("workers"), model=EncoderConfig, encoder={"worker_id": "w1"}, connect=[port])
         stack.enter_context(ServiceThread(EncoderWorker(cfg, encoder=FlakyEncoder(empty_on=(), fail_on=())), cfg,
                                           "encoder-w1"))
         wait_until(lambda: semantic.counter(PoolCounter.ENCODER_WORKERS) == 1, timeout_s=60)

@@ -30,19 +30,14 @@ from openfusion.wire.endpoints import SENSOR_INSTANCE, SENSOR_RGBD
 from openfusion.wire.schemas import InstanceFrame, RgbdFrame
 
 
-def _config(model, map_id: str, section: str, values: dict, **zenoh_ports):  # noqa: ANN001, ANN003, ANN202
-    base = loopback_config(map_id, **zenoh_ports).model_dump()
-    return model.model_validate({**base, section: values})
-
-
 def test_semantic_service_counts_failed_and_empty_frames_and_keeps_going() -> None:
     """Six frames: frame 2 has no region, frame 3 makes the encoder raise, frame 4 carries an
     instance image of the wrong size. Geometry integrates all six; the semantic service fuses
     frames 0, 1, 2 and 5, counts two failures, and its dictionary has regions."""
     map_id = unique_map_id("sem")
     port = free_port()
-    geo_cfg = _config(GeometryConfig, map_id, "geometry", {"initial_block_count": 2048}, listen=[port])
-    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"select": "latest", "recover_timeout_s": 0, "instance_wait_s": 10},
+    geo_cfg = loopback_config(map_id, model=GeometryConfig, geometry={"initial_block_count": 2048}, listen=[port])
+    sem_cfg = loopback_config(map_id, model=SemanticConfig, semantic={"select": "latest", "recover_timeout_s": 0, "instance_wait_s": 10},
                       connect=[port])
     frames = list(open_source("synthetic:frames=6,width=160,height=120"))
     with (

@@ -23,7 +23,8 @@ from openfusion.encoders import make_text_encoder
 from openfusion.mapping import RegionDictionary
 from openfusion.mapping.answers import texts_to_embed
 from openfusion.mapping.relevancy import DEFAULT_NEGATIVES, DEFAULT_QUERY_CATEGORIES
-from openfusion.services.query.service import QueryConfig, QueryService, RegionSummaries
+from openfusion.services.query.region_hits import RegionSummaries
+from openfusion.services.query.service import QueryConfig, QueryService
 from openfusion.testing.bus import ServiceThread, free_port, loopback_config, unique_map_id, wait_for_services
 from openfusion.testing.encoders import CountingTextEncoder
 from openfusion.wire.counters import QueryCounter

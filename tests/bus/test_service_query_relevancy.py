@@ -22,7 +22,8 @@ from openfusion.client import OpenFusionClient
 from openfusion.encoders import make_text_encoder
 from openfusion.mapping import RegionDictionary
 from openfusion.mapping.relevancy import calibration_for
-from openfusion.services.query.service import QueryConfig, QueryService, RegionSummaries
+from openfusion.services.query.region_hits import RegionSummaries
+from openfusion.services.query.service import QueryConfig, QueryService
 from openfusion.testing.bus import ServiceThread, free_port, loopback_config, unique_map_id, wait_for_services
 from openfusion.wire.codec import decode, encode
 from openfusion.wire.schemas import QueryReply, RegionSummaryReply, TextQuery, TextQueryBatch

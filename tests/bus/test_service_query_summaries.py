@@ -18,13 +18,8 @@ from openfusion.frame import Frame
 from openfusion.mapping import RegionDictionary
 from openfusion.mapping.queries import query_regions, region_summaries
 from openfusion.services.geometry.service import GeometryConfig, GeometrySection, GeometryService
-from openfusion.services.query.service import (
-    QueryConfig,
-    QuerySection,
-    QueryService,
-    RegionSummaries,
-    region_hits,
-)
+from openfusion.services.query.region_hits import RegionSummaries, region_hits
+from openfusion.services.query.service import QueryConfig, QuerySection, QueryService
 from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld
 from openfusion.testing.bus import free_port, unique_map_id, wait_until
 from openfusion.wire.endpoints import SEMANTIC_DICTIONARY
@@ -338,7 +333,7 @@ def test_query_without_geometry_answers_zero_boxes_and_does_not_wait_every_time(
 def test_ranked_regions_known_to_be_empty_are_dropped() -> None:
     """Ranking keeps the regions with surface points and those the summary does not know yet (newer
     than it); a key below the horizon that is not listed, or listed with 0 points, is dropped."""
-    from openfusion.services.query.service import RegionSummaries, drop_empty_regions
+    from openfusion.services.query.region_hits import RegionSummaries, drop_empty_regions
     from openfusion.wire.schemas import RegionSummaryReply
 
     reply = RegionSummaryReply(

@@ -36,6 +36,18 @@ def _cmdlines() -> list[tuple[int, list[str]]]:
     return found
 
 
+def pid_of(*words: str) -> int | None:
+    """The pid of a process with every one of ``words`` among its arguments (None while there is none)."""
+    return next((pid for pid, args in _cmdlines() if all(w in args for w in words)), None)
+
+
+def run_endpoint(map_id: str) -> str | None:
+    """The endpoint of the router of the run of ``map_id``: its services are started with ``--map
+    MAP_ID --connect ENDPOINT`` (None until one is)."""
+    return next((args[args.index("--connect") + 1] for _pid, args in _cmdlines()
+                 if map_id in args and "--connect" in args and args.index("--connect") + 1 < len(args)), None)
+
+
 class BackgroundRun:
     """``openfusion run --out OUT --map <unique> ARGS`` in the background (stderr in a file)."""
 
@@ -62,8 +74,7 @@ class BackgroundRun:
     def health(self) -> dict[str, HealthStats]:
         """The services' last health stats ({} until the run's services are up)."""
         if self.session is None:
-            endpoint = next((args[args.index("--connect") + 1] for _pid, args in _cmdlines()
-                             if self.map_id in args and "--connect" in args), None)
+            endpoint = run_endpoint(self.map_id)
             if endpoint is None:
                 return {}
             self.session = open_session(ServiceConfig(map_id=self.map_id, zenoh=ZenohSettings(
@@ -72,12 +83,20 @@ class BackgroundRun:
 
     def wait_for(self, predicate: Any, *, timeout_s: float = 240.0) -> dict[str, HealthStats]:
         """Wait until ``predicate(health)`` holds (the run must still be going); the health then."""
+        last: dict[str, HealthStats] = {}
+
         def check() -> dict[str, HealthStats] | None:
             assert self.proc.poll() is None, f"the run ended early:\n{self.stderr()[-3000:]}"
             health = self.health()
+            last.update(health)
             return health if health and predicate(health) else None
 
-        return wait_until(check, timeout_s=timeout_s, interval_s=0.2)
+        def describe() -> str:  # what the services said last, and what the run said: a timeout's evidence
+            said = {name: {k: v for k, v in stats.counters.items() if v} for name, stats in sorted(last.items())}
+            robots = {name: stats.robots for name, stats in last.items() if stats.robots}
+            return f"last health {said}; robots {robots}; the run's stderr:\n{self.stderr()[-3000:]}"
+
+        return wait_until(check, timeout_s=timeout_s, interval_s=0.2, describe=describe)
 
     def kill(self, service: str, *, restarts_before: int) -> None:
         """SIGKILL the service's current process once it runs as restart number ``restarts_before``

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from supervision_support import pid_of, run_endpoint
 
 from openfusion.bus import QueryError
 from openfusion.client import OpenFusionClient
@@ -31,17 +31,6 @@ pytestmark = [pytest.mark.timeout(400), pytest.mark.slow]
 ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
 
 
-def _pid_of(*words: str) -> int | None:
-    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
-        try:
-            args = cmdline.read_bytes().decode(errors="replace").split("\0")
-        except OSError:
-            continue
-        if all(w in args for w in words):
-            return int(cmdline.parent.name)
-    return None
-
-
 def test_two_query_services_one_killed_mid_run(tmp_path: Path) -> None:
     out, map_id = tmp_path / "out", unique_map_id("queries")
     err = (tmp_path / "stderr.txt").open("w")
@@ -54,8 +43,7 @@ def test_two_query_services_one_killed_mid_run(tmp_path: Path) -> None:
     try:
         def endpoint() -> str | None:
             assert proc.poll() is None, (tmp_path / "stderr.txt").read_text()[-3000:]
-            found = [re.search(r"--connect (tcp/127\.0\.0\.1:\d+)", c) for c in processes_mentioning(map_id)]
-            return next((f.group(1) for f in found if f is not None), None)
+            return run_endpoint(map_id)
 
         client = OpenFusionClient.from_config(ServiceConfig(map_id=map_id, zenoh=ZenohSettings(
             mode="client", connect=[wait_until(endpoint, timeout_s=120)], multicast_scouting=False)), timeout_s=30.0)
@@ -75,7 +63,7 @@ def test_two_query_services_one_killed_mid_run(tmp_path: Path) -> None:
             return answered("query") >= 1 and answered("query-2") >= 1
 
         wait_until(both_answered, timeout_s=120, interval_s=0.2)
-        victim = _pid_of("query", "--instance", "2", "--map", map_id)
+        victim = pid_of("query", "--instance", "2", "--map", map_id)
         assert victim is not None
         os.kill(victim, signal.SIGKILL)
         # every one answered (by the other, or the restarted one once it is back), none lost

@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from supervision_support import run_endpoint
 
 from openfusion.bus import collect_health, open_session
 from openfusion.config import ServiceConfig, ZenohSettings
@@ -82,8 +83,7 @@ class _Run:
         """Frames geometry has integrated (0 until the run's services are up: they are started with
         ``--connect`` to the run's router, the endpoint used here)."""
         if self.session is None:
-            found = [re.search(r"--connect (tcp/127\.0\.0\.1:\d+)", c) for c in processes_mentioning(self.map_id)]
-            endpoint = next((f.group(1) for f in found if f is not None), None)
+            endpoint = run_endpoint(self.map_id)
             if endpoint is None:
                 return 0.0
             self.session = open_session(ServiceConfig(map_id=self.map_id, zenoh=ZenohSettings(

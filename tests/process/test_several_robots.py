@@ -5,7 +5,9 @@ exactly once, and a SIGKILL of geometry mid-run resumes both robots' streams fro
 Two robots walk different rooms of a two-room building (a shared corridor) with poses in one frame
 (both ``fixed``: joining by registration is covered without processes in
 tests/bus/test_two_robots.py, and at full size in the slow tests below). Small frames (160x120),
-4 cm voxels and a 1 s checkpoint period keep the fast one within the default suite's budget.
+4 cm voxels and a 1 s checkpoint period keep the fast one within the default suite's budget;
+4 frames/s (8 s of playback per robot) leaves a loaded machine time for a checkpoint before playback
+ends (at 8 frames/s, 3 s, one busy run checkpointed only after the last frame).
 
 Bad input tried: two sources naming the same robot, a robot name with a '/', several sources with
 --in-process (each refused with one line, exit 2, before anything starts)."""
@@ -25,7 +27,7 @@ from openfusion.wire.counters import CommonCounter, GeometryCounter
 
 pytestmark = pytest.mark.timeout(600)
 
-FRAMES = 24
+FRAMES = 32
 ROOM = "synthetic:building,rooms=2,revisit=0,width=160,height=120,frames=" + str(FRAMES)
 
 
@@ -37,7 +39,7 @@ def _robots_integrated(health: dict, at_least: int) -> bool:
 
 def test_two_robots_each_frame_once_and_both_resume_after_geometry_is_killed(tmp_path: Path) -> None:
     run = BackgroundRun(tmp_path, "--source", f"{ROOM},route=0", "--source", f"{ROOM},route=1,name=robot1",
-                        "--rate-hz", "8", "--query", "chair", "--set", "supervision.checkpoint_period_s=1",
+                        "--rate-hz", "4", "--query", "chair", "--set", "supervision.checkpoint_period_s=1",
                         "--set", "geometry.voxel_size_m=0.04", "--set", "geometry.robot_frames=robot0=fixed;robot1=fixed",
                         "--restart-backoff-s", "0.2", name="robots")
     try:

@@ -199,7 +199,7 @@ def test_an_encoder_worker_is_restarted_and_past_the_limit_the_run_goes_on_witho
 
 def test_a_restarted_semantic_services_counts_add_up_in_run_json() -> None:
     """A restarted process counts from 0: run.json adds the last counts of the one before."""
-    from openfusion.app.run import _carry_over, _with_carried, progress_counts
+    from openfusion.app.run_progress import carry_over, progress_counts, with_carried
     from openfusion.wire.schemas import HealthStats
 
     def semantic(frames: float, restarts: float) -> HealthStats:
@@ -208,12 +208,12 @@ def test_a_restarted_semantic_services_counts_add_up_in_run_json() -> None:
                                                                              "restarts": restarts})
 
     stats, carried = {"semantic": semantic(40, 0)}, {}
-    _carry_over(stats, {"semantic": semantic(41, 0)}, carried)  # same process: nothing carried
+    carry_over(stats, {"semantic": semantic(41, 0)}, carried)  # same process: nothing carried
     assert carried == {}
     stats = {"semantic": semantic(41, 0)}
-    _carry_over(stats, {"semantic": semantic(3, 1)}, carried)
+    carry_over(stats, {"semantic": semantic(3, 1)}, carried)
     stats = {"semantic": semantic(3, 1)}
-    assert _with_carried(stats, carried)["semantic"].counter("semantic_frames") == 44
+    assert with_carried(stats, carried)["semantic"].counter("semantic_frames") == 44
     assert stats["semantic"].counter("semantic_frames") == 3  # the live stats are untouched
     # the progress line counts what run.json counts (it showed the live process's 3)
-    assert progress_counts(_with_carried(stats, carried))["semantic"] == 44
+    assert progress_counts(with_carried(stats, carried))["semantic"] == 44

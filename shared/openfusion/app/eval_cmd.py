@@ -23,7 +23,7 @@ from typing import get_args
 from openfusion.encoders.gt import REGION_TEXTS
 from openfusion.errors import OpenFusionError, UsageError
 from openfusion.eval.classes import DEFAULT_BACKGROUND_CLASSES
-from openfusion.eval.runner import FULL, QUICK, EvalConfig
+from openfusion.eval.config import FULL, QUICK, EvalConfig
 from openfusion.mapping.params import SelectMode
 
 logger = logging.getLogger(__name__)

@@ -32,11 +32,15 @@ def geometry_names(count: int) -> list[str]:
     return [shard.service for shard in ShardId.all(count)]
 
 
-def combined_geometry(stats: dict[str, HealthStats], count: int) -> dict[str, HealthStats]:
-    """``{"geometry": one view of the shards}`` when every shard's stats are in ``stats`` (else
-    nothing: the run waits for them as for any service)."""
-    parts = [stats.get(name) for name in geometry_names(count)]
-    if count == 1 or any(p is None for p in parts):
+def combined_geometry(stats: dict[str, HealthStats]) -> dict[str, HealthStats]:
+    """``{"geometry": one view of the shards}`` when the stats hold every shard of a split (the
+    shards' replica-0 services, ``geometry-IofN``); nothing for an unsharded map or while a shard's
+    stats are missing (the run waits for them as for any service)."""
+    split = {s.count for s in (ShardId.of_service(n) for n in stats) if s is not None and s.sharded and not s.replica}
+    if len(split) != 1:
+        return {}
+    parts = [stats.get(name) for name in geometry_names(split.pop())]
+    if any(p is None for p in parts):
         return {}
     shards: list[HealthStats] = parts  # type: ignore[assignment]
     names = set().union(*(p.counters for p in shards))

@@ -12,7 +12,7 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
-from openfusion.eval.runner import MAP_NAMES, MAP_TITLES
+from openfusion.eval.config import MAP_NAMES, MAP_TITLES
 
 logger = logging.getLogger(__name__)
 

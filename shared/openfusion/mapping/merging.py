@@ -43,8 +43,8 @@ from __future__ import annotations
 import itertools
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass, field, fields
+from typing import Any, Self
 
 import numpy as np
 from scipy.sparse import coo_matrix
@@ -53,8 +53,17 @@ from scipy.sparse.csgraph import connected_components
 from openfusion.mapping.params import MergeParams
 
 
+class _Int64Columns:
+    """A dataclass whose fields are equally long int64 columns (a table of facts)."""
+
+    @classmethod
+    def empty(cls) -> Self:
+        """The table with no row."""
+        return cls(*(np.zeros(0, np.int64) for _ in fields(cls)))  # type: ignore[arg-type]
+
+
 @dataclass
-class RegionContacts:
+class RegionContacts(_Int64Columns):
     """Adjacency facts of a map's regions (what geometry answers on ``geometry/contacts``).
 
     ``keys`` / ``surface_voxels``: every region with labelled voxels and how many it has.
@@ -68,11 +77,6 @@ class RegionContacts:
     pair_b: np.ndarray  # (P,) int64
     contact_a: np.ndarray  # (P,) int64
     contact_b: np.ndarray  # (P,) int64
-
-    @classmethod
-    def empty(cls) -> RegionContacts:
-        z = np.zeros(0, np.int64)
-        return cls(z, z.copy(), z.copy(), z.copy(), z.copy(), z.copy())
 
     def surface_of(self) -> dict[int, int]:
         return {int(k): int(n) for k, n in zip(self.keys, self.surface_voxels, strict=True)}
@@ -94,7 +98,7 @@ def _block_rows(coords: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 @dataclass
-class ContactCounts:
+class ContactCounts(_Int64Columns):
     """Contact counts of the voxels of some blocks, per group of blocks (:func:`contact_counts`):
     ``surface_*``: labelled voxels per (group, key); ``pair_*``: voxels of ``owner`` touching
     ``other`` per (group, owner, other), each (voxel, other region) counted once."""
@@ -106,11 +110,6 @@ class ContactCounts:
     pair_owner: np.ndarray  # (P,) int64
     pair_other: np.ndarray  # (P,) int64
     pair_count: np.ndarray  # (P,) int64
-
-    @classmethod
-    def empty(cls) -> ContactCounts:
-        z = np.zeros(0, np.int64)
-        return cls(z, z.copy(), z.copy(), z.copy(), z.copy(), z.copy(), z.copy())
 
 
 def _runs(*columns: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:

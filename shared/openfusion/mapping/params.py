@@ -16,7 +16,7 @@ running map leave out the same regions.
 from __future__ import annotations
 
 import re
-from typing import Any, Literal
+from typing import Any, Literal, Self
 
 from pydantic import ConfigDict, Field, field_validator, model_validator
 
@@ -38,7 +38,18 @@ def normalise_device(device: str) -> str:
     return text
 
 
-class VolumeParams(ConfigSection):
+class SectionParams(ConfigSection):
+    """Base of a parameter model that a service's config section extends (the volume's and the
+    join's the geometry service's, matching, merging and selection the semantic service's, the
+    query's the query service's): the section carries them, the library takes the model."""
+
+    @classmethod
+    def from_section(cls, section: ConfigSection) -> Self:
+        """This model's parameters of a config section that extends it."""
+        return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})
+
+
+class VolumeParams(SectionParams):
     """Geometry and semantic-fusion parameters of a :class:`~openfusion.mapping.SemanticVolume`."""
 
     model_config = ConfigDict(allow_inf_nan=False)
@@ -143,13 +154,8 @@ class VolumeParams(ConfigSection):
         """A validated copy with ``changes`` (e.g. another ``device`` for a loaded map)."""
         return VolumeParams.model_validate({**self.to_dict(), **changes})
 
-    @classmethod
-    def from_section(cls, section: ConfigSection) -> VolumeParams:
-        """The volume parameters of a config section that extends this model (the geometry service's)."""
-        return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})
 
-
-class MatchParams(ConfigSection):
+class MatchParams(SectionParams):
     """How a frame's regions are matched to the map's and turned into a planned update
     (:func:`openfusion.mapping.matching.plan_update`; the soft IoU, the assignment and the
     mask-edge weighting are described in that module)."""
@@ -220,13 +226,8 @@ class MatchParams(ConfigSection):
     )
     join_min_cos: float = Field(0.9, ge=-1, le=1, description="embedding cosine a joining frame region needs")
 
-    @classmethod
-    def from_section(cls, section: ConfigSection) -> MatchParams:
-        """The matching parameters of a config section that extends this model (the semantic service's)."""
-        return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})
 
-
-class MergeParams(ConfigSection):
+class MergeParams(SectionParams):
     """When two regions are one object and merge (:mod:`openfusion.mapping.merging`): their labelled
     voxels touch in 3D over a substantial part of the smaller one and their embeddings agree. The
     semantic service's section extends this model (it decides merges); the in-process pipeline and
@@ -263,13 +264,8 @@ class MergeParams(ConfigSection):
         "surviving region's",
     )
 
-    @classmethod
-    def from_section(cls, section: ConfigSection) -> MergeParams:
-        """The merge parameters of a config section that extends this model (the semantic service's)."""
-        return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})
 
-
-class QueryParams(ConfigSection):
+class QueryParams(SectionParams):
     """How a query turns ranked regions into answers (the query service's section extends this;
     :func:`openfusion.mapping.queries.query_regions`, ``openfusion query --map-dir`` and the
     in-process run use the same declaration)."""
@@ -287,11 +283,6 @@ class QueryParams(ConfigSection):
         "(on, under, above, next to) are computed with it",
     )
 
-    @classmethod
-    def from_section(cls, section: ConfigSection) -> QueryParams:
-        """The query parameters of a config section that extends this model (the query service's)."""
-        return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})
-
 
 def default_min_region_points() -> int:
     """The declared default of :attr:`QueryParams.min_region_points`."""
@@ -301,9 +292,9 @@ def default_min_region_points() -> int:
 SelectMode = Literal["coverage", "every", "latest"]
 
 
-class SelectParams(ConfigSection):
-    """Which frames the region encoder sees (:mod:`openfusion.mapping.selection`, where the
-    reasoning behind each rule and default is written down). The semantic service's section extends
+class SelectParams(SectionParams):
+    """Which frames the region encoder sees (:mod:`openfusion.mapping.selection`; the reasoning
+    behind each rule and default is written down in :mod:`openfusion.mapping.coverage`). The semantic service's section extends
     this model; ``openfusion run --in-process`` and ``openfusion eval`` build the same one, so a
     result measured in-process is what the services do.
 
@@ -360,13 +351,8 @@ class SelectParams(ConfigSection):
         60.0, gt=0, description="coverage: a region in view not encoded for this long (frame stamps) counts with "
         "all its pixels, so it cannot go stale while it is seen (none = never stale)")
 
-    @classmethod
-    def from_section(cls, section: ConfigSection) -> SelectParams:
-        """The selection parameters of a config section that extends this model (the semantic service's)."""
-        return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})
 
-
-class JoinParams(ConfigSection):
+class JoinParams(SectionParams):
     """How a robot's odometry frame is joined to the map's (:mod:`openfusion.mapping.robot_join`):
     its first frames build a submap that is registered to the map's surface, accepted only when
     the fit is good, unambiguous and well constrained; later frames are re-checked against the map
@@ -434,8 +420,3 @@ class JoinParams(ConfigSection):
         0.15, gt=0, description="a re-check proposing more than this (or join_recheck_max_correction_deg) is not "
         "applied: logged and counted, the transform is kept")
     join_recheck_max_correction_deg: float = Field(3.0, gt=0, description="see join_recheck_max_correction_m")
-
-    @classmethod
-    def from_section(cls, section: ConfigSection) -> JoinParams:
-        """The join parameters of a config section that extends this model (the geometry service's)."""
-        return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})

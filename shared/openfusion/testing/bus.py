@@ -54,10 +54,13 @@ def unique_map_id(stem: str = "test") -> str:
 
 
 def loopback_config(
-    map_id: str, *, listen: Sequence[int] = (), connect: Sequence[int] = (), **fields: Any
-) -> ServiceConfig:
-    """Peer config on loopback, multicast off, listening/connecting on the given ports."""
-    return ServiceConfig.model_validate(
+    map_id: str, *, listen: Sequence[int] = (), connect: Sequence[int] = (), model: type[ServiceConfig] = ServiceConfig,
+    **fields: Any,
+) -> Any:
+    """Peer config on loopback, multicast off, listening/connecting on the given ports: a ``model``
+    (a service's config class, e.g. ``SemanticConfig``) with ``fields`` (its section:
+    ``semantic={"select": "latest"}``)."""
+    return model.model_validate(
         {
             "map_id": map_id,
             "zenoh": {

@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from openfusion.mapping import VolumeParams, save_map
+from openfusion.mapping import SemanticVolume, VolumeParams, save_map
 
 logger = logging.getLogger(__name__)
 
@@ -58,6 +60,19 @@ def build_synthetic_map(out_dir: str | os.PathLike[str], spec: SyntheticMapSpec 
     path = save_map(out_dir, result.volume, result.dictionary, meta=meta)
     logger.info("synthetic test map %s: %d regions", path, len(result.dictionary))
     return path
+
+
+def volume_with_every_tile(frames: Iterable[Any]) -> tuple[SemanticVolume, dict[Any, tuple[np.ndarray, dict[str, np.ndarray]]]]:
+    """``frames`` integrated into a new volume (default parameters) and a copy of every tile of it,
+    ``{tile: (block coords, attribute arrays)}`` as a full checkpoint writes them (for the benches
+    of the tile codec and store)."""
+    volume = SemanticVolume(VolumeParams())
+    for frame in frames:
+        volume.integrate(frame)
+    tiles = {}
+    for part in volume.checkpoint_plan(every_tile=True):
+        tiles.update(volume.pager.copy_tiles(part, every_tile=True)[0])
+    return volume, tiles
 
 
 def plant_small_region(volume, dictionary, *, like_key: int, label: str, voxels: int = 1):  # noqa: ANN001, ANN201

@@ -1,0 +1,459 @@
+"""The coverage score of a candidate frame: what encoding it would add to the map.
+
+:class:`CoverageScorer` says, for a candidate frame, what encoding it would add, from the frame's
+pose and depth and the map as geometry holds it (a render of the region keys and confidences at
+the frame's pose), plus a small record of what earlier encoded frames covered;
+:meth:`CoverageScorer.decide` chooses a frame or not. Where the encoder is busy while frames come
+(the services), the chosen frames wait in a :class:`~openfusion.mapping.candidate_window.CandidateWindow`;
+in one process :class:`~openfusion.mapping.selection.FrameSelector` drives the scorer (the overview:
+:mod:`openfusion.mapping.selection`).
+
+The score (one number, shares of the scored view's pixels)
+    ``gain = new_surface + select_direction_weight * new_direction + stale``
+
+    - **new surface**: surface pixels (the frame's own depth is valid) where the render shows no
+      region or a confidence below ``select_low_conf``, and whose surface was not shown from the
+      same direction bin by an encoded frame before. The second half matters: surface an encoder
+      never labels (a floor gap, a region border whose fused confidence stays low, anything a
+      real encoder misses) would otherwise make every view of it look new forever. Unlabelled
+      surface is remembered per cube of ``select_cell_m`` with a bit per direction bin.
+    - **new direction**: pixels of a region (labelled, confident) seen from a viewing direction
+      bin the region was not encoded from (OVI-MAP's per-instance coverage of directions; our
+      bins are ``select_direction_bins`` points of a Fibonacci sphere, the direction is the one
+      from the surface to the camera). Only regions that fill at least
+      ``select_min_region_share`` of the view count (OVI-MAP asks 1000 visible pixels).
+    - **stale**: pixels of a region in view (same size rule) that no encoded frame showed for
+      ``select_stale_s`` seconds of frame time: the floor that keeps a region that stays in view
+      from going stale; a stale region that fills ``select_min_gain`` of a view is encoded again.
+
+    A frame is encoded only when it adds something and ``gain >= select_min_gain / (1 + t /
+    select_patience_s)``, ``t`` the frame time since the last frame chosen: the bar falls while
+    nothing is encoded, so a little new surface that has waited (a glimpse behind an object that
+    the next frames hide again) is encoded too, and a frame that adds nothing never is, even when
+    the encoder is idle (counted ``skipped_no_gain``).
+
+Why these rules and defaults (measured in docs/EVAL.md, "Frame selection")
+    OVI-MAP (CVPR 2026) runs its VLM only on views that add viewing-direction coverage of an
+    instance (at most 0.9 overlap with the covered bins, at least 1000 visible pixels, the top K by
+    visible area) and cut VLM calls per instance from 18.7 to 8.6 at about the same accuracy; OVO
+    keeps the top views per segment by mask area. We score whole frames because our encoders
+    describe a frame at once (one call per frame, all its regions), so what a call buys is the sum
+    over its regions: new surface first (weight 1: an unlabelled pixel is a miss in every metric),
+    new directions of known regions at half weight (a second view of a labelled surface refines
+    its embedding and its borders but is worth less than a first one), and staleness as a floor.
+    The bins are coarse (24, about 47 degrees across): finer bins made a robot's small turns look
+    new. The view is scored at 64 px wide: a ray cast of the map at that size costs ~4 ms on a
+    laptop core, well under 10 % of a semantic step (render, match and update at the encoder's
+    160x120 alone take ~35 ms), and a region of 0.5 % of the view is still 15 pixels.
+
+What is remembered (the scorer's state; it grows with the mapped surface, not with time)
+    per region: a bit mask of the direction bins it was encoded from and the stamp of its last
+    encoded view; per ``select_cell_m`` cube of surface an encoded frame showed: a bit mask of the
+    bins it was shown from. Both follow merges (:meth:`CoverageScorer.merge`). A restarted semantic
+    service starts with an empty record: every labelled region looks unseen from every direction
+    once, so the first views after a restart are encoded again (the map itself is recovered).
+
+Cost: :meth:`CoverageScorer.prepare` is numpy over the scored view's pixels (~0.3 ms at 64x48); a
+rescore of a prepared view (:meth:`CoverageScorer.score`, after the record changed) ~0.1 ms; the
+render at the candidate's pose is the caller's (``SemanticVolume.render`` in one process, a
+``geometry/render`` request in the services) and dominates.
+
+Written here rather than taken from a library: no library scores views against a semantic map;
+the pieces are numpy.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+import threading
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from openfusion.frame import CameraIntrinsics, Frame, resize_nearest
+from openfusion.mapping.params import SelectParams
+
+#: A chosen view marks the surface it shows sampled this many times denser (per side) than it is
+#: scored: at 64 px wide a scored pixel of a wall 4.7 m away is 9 cm across, about a cube, and
+#: the cubes between the scored pixels' samples were counted as never shown in the next frame
+#: (measured: 4-10 % of every view looked new right after an encoded frame).
+MARK_DENSITY = 3
+
+#: Frame times of chosen views kept for the patience rule (:meth:`CoverageScorer.min_gain_at`).
+SELECTED_KEPT = 1024
+
+#: Cell coordinates are packed into one int64: 21 bits per axis around 0 (+-1,048,576 cells; at
+#: 0.1 m cells +-100 km).
+_CELL_BITS = 21
+_CELL_OFFSET = 1 << (_CELL_BITS - 1)
+_CELL_MASK = (1 << _CELL_BITS) - 1
+
+
+def fibonacci_directions(n: int) -> np.ndarray:
+    """``n`` unit vectors spread evenly over the sphere (float64 (n, 3)): the direction bins' centres."""
+    if n < 1:
+        raise ValueError(f"need at least one direction bin, got {n}")
+    i = np.arange(n, dtype=np.float64) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    theta = math.pi * (1.0 + math.sqrt(5.0)) * i
+    return np.stack([r * np.cos(theta), r * np.sin(theta), z], axis=1)
+
+
+def scoring_size(intrinsics: CameraIntrinsics, width_px: int) -> tuple[int, int]:
+    """(height, width) of the scored view: ``width_px`` wide (at most the frame's), same aspect."""
+    w = max(1, min(int(width_px), intrinsics.width_px))
+    h = max(1, int(round(intrinsics.height_px * w / intrinsics.width_px)))
+    return h, w
+
+
+@dataclass
+class ViewEvidence:
+    """A candidate view, prepared once (:meth:`CoverageScorer.prepare`): per surface pixel of the
+    scored view its direction bin, its surface cube and the region the map holds there."""
+
+    frame_id: int
+    stamp_s: float
+    view_px: int  # pixels of the scored view (the shares' denominator)
+    bins: np.ndarray  # (n,) int64, direction bin of each surface pixel
+    cells: np.ndarray  # (n,) int64, packed surface cube of each surface pixel
+    keys: np.ndarray  # (n,) int64, the map's region at each surface pixel (-1: none)
+    confident: np.ndarray  # (n,) bool, key >= 0 with confidence >= select_low_conf
+    unsure_px: np.ndarray | None = None  # (h, w) bool: surface pixels without a confident region
+    # For marking a chosen view (:meth:`CoverageScorer.mark_selected`): the frame's depth sampled
+    # MARK_DENSITY times denser than the score, and that grid's camera (None: the scored pixels are marked)
+    mark_depth_m: np.ndarray | None = field(default=None, repr=False)
+    mark_intrinsics: CameraIntrinsics | None = None
+    T_world_cam: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def surface_px(self) -> int:
+        return int(len(self.bins))
+
+
+@dataclass(frozen=True)
+class ViewScore:
+    """What encoding a view would add, in shares of its pixels (module docstring)."""
+
+    frame_id: int
+    stamp_s: float
+    gain: float
+    new_surface: float
+    new_direction: float
+    stale: float
+    surface: float  # share of the view with valid depth
+    regions: int  # regions in view big enough to count
+
+
+class CoverageScorer:
+    """The score of a view against what encoded frames already covered (module docstring).
+
+    Thread-safe: the semantic service prepares candidates on one thread, takes them on another and
+    records plans on a third."""
+
+    def __init__(self, params: SelectParams | None = None) -> None:
+        self.params = params if params is not None else SelectParams()
+        p = self.params
+        self.directions = fibonacci_directions(p.select_direction_bins)
+        self._lock = threading.RLock()
+        self._region_bins: dict[int, int] = {}
+        self._region_last_s: dict[int, float] = {}
+        self._region_views: dict[int, int] = {}  # encoded frames whose update wrote the region
+        # _cell_tries[i][cube]: the direction bins the cube was shown from by at least i + 1 encoded frames
+        self._cell_tries: list[dict[int, int]] = [{} for _ in range(p.select_tries)]
+        self._rays: dict[CameraIntrinsics, np.ndarray] = {}
+        self._selected_s: list[float] = []  # frame times of the views chosen (sorted; the newest SELECTED_KEPT)
+
+    # ------------------------------------------------------------------ record
+    @property
+    def regions_recorded(self) -> int:
+        with self._lock:
+            return len(self._region_bins)
+
+    @property
+    def cells_recorded(self) -> int:
+        with self._lock:
+            return len(self._cell_tries[0])
+
+    def record_bytes(self) -> int:
+        """Rough memory of the record (python dict entries of two ints, ~100 B each)."""
+        with self._lock:
+            return 100 * (sum(len(t) for t in self._cell_tries) + 3 * len(self._region_bins))
+
+    def reset(self) -> None:
+        with self._lock:
+            self._region_bins.clear()
+            self._region_last_s.clear()
+            self._region_views.clear()
+            self._selected_s.clear()
+            for table in self._cell_tries:
+                table.clear()
+
+    def merge(self, merged_into: Mapping[int, int], removed: Iterable[int] = ()) -> None:
+        """Follow the dictionary: region ``b`` merged into ``a`` gives ``a`` its direction bins and the
+        later of the two last-seen stamps; removed regions are forgotten."""
+        with self._lock:
+            def root(k: int) -> int:
+                seen = set()
+                while k in merged_into and k not in seen:
+                    seen.add(k)
+                    k = int(merged_into[k])
+                return k
+
+            for b in merged_into:
+                b, a = int(b), root(int(b))
+                bits = self._region_bins.pop(b, 0)
+                last = self._region_last_s.pop(b, None)
+                views = self._region_views.pop(b, 0)
+                if a < 0:
+                    continue
+                if bits:
+                    self._region_bins[a] = self._region_bins.get(a, 0) | bits
+                if views:
+                    self._region_views[a] = self._region_views.get(a, 0) + views
+                if last is not None:
+                    self._region_last_s[a] = max(last, self._region_last_s.get(a, last))
+            for k in removed:
+                self._region_bins.pop(int(k), None)
+                self._region_last_s.pop(int(k), None)
+                self._region_views.pop(int(k), None)
+
+    # ------------------------------------------------------------------ geometry of a view
+    def _camera_rays(self, intrinsics: CameraIntrinsics) -> np.ndarray:
+        """(h*w, 3) camera-frame rays with z = 1 through every pixel centre (integer coordinates, the
+        convention of :meth:`CameraIntrinsics.scaled`; cached)."""
+        rays = self._rays.get(intrinsics)
+        if rays is None:
+            h, w = intrinsics.height_px, intrinsics.width_px
+            u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))  # pixel centres
+            rays = np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy,
+                             np.ones_like(u)], axis=-1).reshape(-1, 3)
+            if len(self._rays) > 16:
+                self._rays.clear()
+            self._rays[intrinsics] = rays
+        return rays
+
+    def _bins_of(self, rays_cam: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
+        """Direction bin (from the surface to the camera, world frame) of each camera ray."""
+        to_camera = -(rays_cam @ np.asarray(T_world_cam, np.float64)[:3, :3].T)
+        return np.argmax(to_camera @ self.directions.T, axis=1).astype(np.int64)
+
+    def _cells_of(self, points_world: np.ndarray) -> np.ndarray:
+        c = np.floor(points_world / self.params.select_cell_m).astype(np.int64) + _CELL_OFFSET
+        c &= _CELL_MASK
+        return (c[:, 0] << (2 * _CELL_BITS)) | (c[:, 1] << _CELL_BITS) | c[:, 2]
+
+    def prepare(
+        self,
+        *,
+        frame_id: int,
+        stamp_ns: int,
+        T_world_cam: np.ndarray,
+        intrinsics: CameraIntrinsics,
+        depth_m: np.ndarray,
+        key_map: np.ndarray,
+        conf_map: np.ndarray,
+        full_depth_m: np.ndarray | None = None,
+        full_intrinsics: CameraIntrinsics | None = None,
+    ) -> ViewEvidence:
+        """The evidence of one view: ``intrinsics`` of the scored view (:func:`scoring_size`),
+        the frame's depth in metres at that size, and the map's key and confidence maps rendered at
+        the frame's pose at that size. ``full_depth_m`` with its ``full_intrinsics`` (the frame's
+        own): what the view marks as shown when it is chosen is sampled from it, :data:`MARK_DENSITY`
+        times denser than the score (a cube the scored pixels step over is shown all the same); only
+        that sample is kept. Raises ValueError when the sizes disagree."""
+        h, w = intrinsics.height_px, intrinsics.width_px
+        for name, arr in (("depth_m", depth_m), ("key_map", key_map), ("conf_map", conf_map)):
+            if np.shape(arr) != (h, w):
+                raise ValueError(f"{name} is {np.shape(arr)}, the scored view is {(h, w)}")
+        depth = np.asarray(depth_m, np.float64).reshape(-1)
+        surface = np.isfinite(depth) & (depth > 0)
+        rays = self._camera_rays(intrinsics)[surface]
+        T = np.asarray(T_world_cam, np.float64)
+        points = (rays * depth[surface, None]) @ T[:3, :3].T + T[:3, 3]
+        keys = np.asarray(key_map).reshape(-1)[surface].astype(np.int64)
+        conf = np.asarray(conf_map, np.float32).reshape(-1)[surface]
+        confident = (keys >= 0) & (conf >= self.params.select_low_conf)
+        unsure_px = np.zeros(h * w, bool)
+        unsure_px[np.flatnonzero(surface)[~confident]] = True
+        ev = ViewEvidence(
+            frame_id=int(frame_id), stamp_s=stamp_ns / 1e9, view_px=h * w, bins=self._bins_of(rays, T),
+            cells=self._cells_of(points), keys=keys, confident=confident, unsure_px=unsure_px.reshape(h, w),
+            T_world_cam=T)
+        if full_depth_m is not None and full_intrinsics is not None:
+            mh, mw = scoring_size(full_intrinsics, MARK_DENSITY * w)
+            ev.mark_depth_m = np.asarray(resize_nearest(np.asarray(full_depth_m), (mh, mw)), np.float32)
+            ev.mark_intrinsics = full_intrinsics.scaled(mw, mh)
+        return ev
+
+    def _marks(self, ev: ViewEvidence) -> tuple[np.ndarray, np.ndarray]:
+        """(cubes, bins) a chosen view marks as shown: its unsure surface (the rest is labelled and
+        never looked up), sampled :data:`MARK_DENSITY` times denser than it was scored."""
+        unsure = ~ev.confident
+        if ev.mark_depth_m is None or ev.mark_intrinsics is None or ev.unsure_px is None or ev.T_world_cam is None:
+            return ev.cells[unsure], ev.bins[unsure]
+        mh, mw = ev.mark_depth_m.shape
+        fine = ev.mark_depth_m.astype(np.float64).reshape(-1)
+        pick = (np.isfinite(fine) & (fine > 0) & resize_nearest(ev.unsure_px, (mh, mw)).reshape(-1))
+        T = ev.T_world_cam
+        rays = self._camera_rays(ev.mark_intrinsics)[pick]
+        return self._cells_of((rays * fine[pick, None]) @ T[:3, :3].T + T[:3, 3]), self._bins_of(rays, T)
+
+    def prepare_frame(self, frame: Frame, render: Callable[[np.ndarray, CameraIntrinsics], Any]) -> ViewEvidence:
+        """:meth:`prepare` for a frame, with ``render(T_world_cam, intrinsics)`` giving the map's
+        ``key_map`` and ``conf_map`` at the scored size (a ``RenderedView`` or a render reply).
+        A render reply's ``T_map_cam`` (the frame's pose joined to the map's frame: another robot's
+        frame) is the pose the view is filed under, so every robot's views share one record."""
+        h, w = scoring_size(frame.intrinsics, self.params.select_width_px)
+        K = frame.intrinsics.scaled(w, h)
+        rendered = render(frame.T_world_cam, K)
+        T_map_cam = getattr(rendered, "T_map_cam", None)
+        if T_map_cam is None:
+            T_map_cam = frame.T_world_cam
+        depth_m = frame.depth_m()
+        return self.prepare(frame_id=frame.frame_id, stamp_ns=frame.stamp_ns, T_world_cam=T_map_cam,
+                            intrinsics=K, depth_m=resize_nearest(depth_m, (h, w)),
+                            key_map=rendered.key_map, conf_map=rendered.conf_map, full_depth_m=depth_m,
+                            full_intrinsics=frame.intrinsics)
+
+    # ------------------------------------------------------------------ score
+    def score(self, ev: ViewEvidence) -> ViewScore:
+        """The view's gain against the record as it is now (cheap: call again after it changed)."""
+        p = self.params
+        with self._lock:
+            # new surface: unlabelled / unsure pixels whose cube was not shown from this bin
+            unsure = ~ev.confident
+            new_surface = 0
+            if unsure.any():
+                cells, bins = ev.cells[unsure], ev.bins[unsure]
+                uniq, inv = np.unique(cells, return_inverse=True)
+                tried = self._cell_tries[-1]
+                masks = np.fromiter((tried.get(int(c), 0) for c in uniq), np.int64, len(uniq))
+                new_surface = int((((masks[inv] >> bins) & 1) == 0).sum())
+            # regions: new directions and staleness, for regions big enough to count
+            new_direction = stale = regions = 0
+            if ev.confident.any():
+                keys, bins = ev.keys[ev.confident], ev.bins[ev.confident]
+                uniq, inv, counts = np.unique(keys, return_inverse=True, return_counts=True)
+                big = counts >= max(1.0, p.select_min_region_share * ev.view_px)
+                regions = int(big.sum())
+                masks = np.fromiter((self._region_bins.get(int(k), 0) for k in uniq), np.int64, len(uniq))
+                few = np.fromiter((self._region_views.get(int(k), 0) < p.select_min_views for k in uniq), bool,
+                                  len(uniq))
+                new_px = ((((masks[inv] >> bins) & 1) == 0) | few[inv]) & big[inv]
+                new_direction = int(new_px.sum())
+                if p.select_stale_s is not None:
+                    last = np.fromiter((self._region_last_s.get(int(k), math.inf) for k in uniq), np.float64,
+                                       len(uniq))
+                    is_stale = big & (ev.stamp_s - last >= p.select_stale_s)
+                    stale = int(counts[is_stale].sum())
+        n = max(1, ev.view_px)
+        gain = (new_surface + p.select_direction_weight * new_direction + stale) / n
+        return ViewScore(frame_id=ev.frame_id, stamp_s=ev.stamp_s, gain=gain, new_surface=new_surface / n,
+                         new_direction=new_direction / n, stale=stale / n, surface=ev.surface_px / n,
+                         regions=regions)
+
+    def min_gain_at(self, stamp_s: float) -> float:
+        """The gain a view of frame time ``stamp_s`` needs: ``select_min_gain``, falling as
+        ``1 / (1 + t / select_patience_s)`` with the frame time ``t`` to the nearest view chosen
+        (in one process the last one; in the services' window, where an older candidate can be
+        taken after a newer one, the nearest on either side)."""
+        p = self.params
+        with self._lock:
+            chosen = self._selected_s
+            if p.select_patience_s is None or not chosen:
+                return p.select_min_gain
+            i = bisect.bisect_left(chosen, stamp_s)
+            t = min(abs(stamp_s - chosen[j]) for j in (i - 1, i) if 0 <= j < len(chosen))
+        return p.select_min_gain / (1.0 + t / p.select_patience_s)
+
+    def worth_encoding(self, score: ViewScore) -> bool:
+        """A view is encoded only when it adds something and its gain reaches :meth:`min_gain_at`."""
+        return score.gain > 0 and score.gain >= self.min_gain_at(score.stamp_s)
+
+    def decide(self, ev: ViewEvidence) -> tuple[ViewScore, bool]:
+        """Score a view and choose it or not; a chosen view is recorded at once
+        (:meth:`mark_selected`). The one decision of every pipeline: one process asks it for every
+        frame, the services' window for every frame as it comes."""
+        with self._lock:
+            score = self.score(ev)
+            chosen = self.worth_encoding(score)
+            if chosen:
+                self.mark_selected(ev)
+            return score, chosen
+
+    # ------------------------------------------------------------------ record what was encoded
+    def mark_selected(self, ev: ViewEvidence) -> None:
+        """Record a view chosen for the encoder (before its result is back, so the next choice
+        does not pick the same new surface again): its surface cubes and the map's regions in it
+        are now covered from its bins, the regions seen at its stamp."""
+        with self._lock:
+            bisect.insort(self._selected_s, ev.stamp_s)
+            if len(self._selected_s) > SELECTED_KEPT:
+                del self._selected_s[0]
+            cells, bins = self._marks(ev)
+            if len(cells):
+                self._mark_cells(cells, bins)
+            labelled = ev.keys >= 0
+            if labelled.any():
+                _or_into(self._region_bins, ev.keys[labelled], ev.bins[labelled])
+                for k in np.unique(ev.keys[labelled]):
+                    self._region_last_s[int(k)] = ev.stamp_s
+
+    def observe_plan(self, key_map: np.ndarray, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics,
+                     stamp_ns: int) -> None:
+        """Record the regions an applied update wrote (the plan's ``key_map`` at the encoder's
+        size, ``intrinsics`` of that size): new regions get their first direction bins, every
+        region written its last-seen stamp. Scored at :attr:`SelectParams.select_width_px`."""
+        key_map = np.asarray(key_map)
+        if key_map.ndim != 2 or key_map.size == 0:
+            return
+        h, w = scoring_size(intrinsics, self.params.select_width_px)
+        small = resize_nearest(key_map, (h, w)).reshape(-1)
+        labelled = small >= 0
+        if not labelled.any():
+            return
+        rays = self._camera_rays(intrinsics.scaled(w, h))[labelled]
+        bins = self._bins_of(rays, T_world_cam)
+        keys = small[labelled].astype(np.int64)
+        with self._lock:
+            _or_into(self._region_bins, keys, bins)
+            for k in np.unique(keys).tolist():
+                self._region_last_s[k] = max(stamp_ns / 1e9, self._region_last_s.get(k, -math.inf))
+                self._region_views[k] = self._region_views.get(k, 0) + 1
+
+    def _mark_cells(self, cells: np.ndarray, bins: np.ndarray) -> None:
+        """(lock held) One more encoded frame showed ``cells`` from ``bins``: count it per try level
+        (a bin reaches level i + 1 when it was at level i before this frame)."""
+        uniq, bits = _group_bits_arrays(cells, bins)
+        keys = uniq.tolist()
+        old = [np.fromiter((t.get(c, 0) for c in keys), np.int64, len(keys)) for t in self._cell_tries]
+        for level, table in enumerate(self._cell_tries):
+            new = old[level] | (bits if level == 0 else old[level - 1] & bits)
+            changed = np.flatnonzero(new != old[level])
+            table.update(zip(uniq[changed].tolist(), new[changed].tolist(), strict=True))
+
+
+def _group_bits_arrays(keys: np.ndarray, bins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(distinct keys, the OR of ``1 << bin`` over each key's pairs), as int64 arrays."""
+    if len(keys) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    order = np.argsort(keys, kind="stable")
+    keys, bits = keys[order], np.left_shift(np.int64(1), bins[order])
+    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+    return keys[starts], np.bitwise_or.reduceat(bits, starts)
+
+
+def _group_bits(keys: np.ndarray, bins: np.ndarray) -> list[tuple[int, int]]:
+    """``(key, bits)`` per distinct key: the OR of ``1 << bin`` over its pairs."""
+    uniq, bits = _group_bits_arrays(keys, bins)
+    return list(zip(uniq.tolist(), bits.tolist(), strict=True))
+
+
+def _or_into(table: dict[int, int], keys: np.ndarray, bins: np.ndarray) -> None:
+    """``table[k] |= 1 << bin`` for every (key, bin) pair, grouped per key."""
+    for k, b in _group_bits(keys, bins):
+        table[k] = table.get(k, 0) | b
