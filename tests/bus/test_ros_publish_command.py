@@ -92,7 +92,8 @@ def test_ros_publish_once_sends_the_answer_and_the_map_in_the_rmw_zenoh_layout()
         code = main(["ros-publish", "table", "--once", "--layout", "rmw_zenoh", "--map-cloud", "--top-k", "1",
                      "--map", map_id, "--mode", "client", "--connect", endpoint, "--no-multicast"])
         assert code == 0
-        wait_until(lambda: len([g for g in got if g[0] != PROBE_KEY]) >= 3, timeout_s=30)
+        wait_until(lambda: len([g for g in got if g[0] != PROBE_KEY]) >= 3, timeout_s=30,
+                   describe=lambda: f"got {sorted({k for k, _p, _a in got})}")
     finally:
         for close in reversed(closers):
             close()
