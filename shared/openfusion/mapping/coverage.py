@@ -385,6 +385,20 @@ class CoverageScorer:
                 self.mark_selected(ev)
             return score, chosen
 
+    def decide_best(self, evs: list[ViewEvidence]) -> tuple[list[ViewScore], int | None]:
+        """Score a run of views (``select_lookahead`` consecutive frames) and choose at most one: the
+        one of highest gain (ties: the newest), when :meth:`worth_encoding`; it is recorded at once.
+        Returns every view's score and the index of the chosen one (None: none)."""
+        with self._lock:
+            scores = [self.score(ev) for ev in evs]
+            if not scores:
+                return scores, None
+            best = max(range(len(scores)), key=lambda i: (scores[i].gain, scores[i].stamp_s, i))
+            if not self.worth_encoding(scores[best]):
+                return scores, None
+            self.mark_selected(evs[best])
+            return scores, best
+
     # ------------------------------------------------------------------ record what was encoded
     def mark_selected(self, ev: ViewEvidence) -> None:
         """Record a view chosen for the encoder (before its result is back, so the next choice
