@@ -273,6 +273,30 @@ def test_a_run_of_select_lookahead_frames_encodes_at_most_its_best() -> None:
     assert [f.frame_id for f in selector.flush()] == [6] and selector.flush() == []
 
 
+def test_the_window_decides_select_lookahead_frames_at_a_time_as_one_process_does() -> None:
+    """The services' window with select_lookahead 3: the first two frames wait undecided, the third
+    completes the run and only its best frame (the 100 % new view) waits for the encoder, the other
+    two are dropped (no_gain); a run cut short (frames stopped coming) is decided by flush."""
+    scorer = CoverageScorer(params(select_tries=1, select_min_gain=0.1, select_lookahead=3))
+    window: CandidateWindow[int] = CandidateWindow(scorer, capacity=8)
+
+    def wall_at(depth_m: float, share: float):  # noqa: ANN202
+        depth = np.zeros((H, W), np.float32)
+        depth[:, : round(W * share)] = depth_m
+        return depth
+
+    for i, (d, share) in enumerate(((2.0, 0.25), (3.0, 1.0))):
+        change = window.offer(view(scorer, depth=wall_at(d, share), frame_id=i), i)
+        assert not change.no_gain and not change.evicted and len(window) == 0
+    assert window.undecided == 2
+    change = window.offer(view(scorer, depth=wall_at(4.0, 0.5), frame_id=2), 2)
+    assert sorted(c.payload for c in change.no_gain) == [0, 2] and window.undecided == 0
+    assert window.take().taken.payload == 1
+    window.offer(view(scorer, depth=wall_at(5.0, 1.0), frame_id=3, stamp_s=1.0), 3)
+    assert window.take(timeout_s=0.01).taken is None  # undecided: not the encoder's yet
+    assert not window.flush().no_gain and window.take().taken.payload == 3
+
+
 SPEC = "synthetic:frames=8,width=160,height=120"
 
 
