@@ -3,6 +3,7 @@
 frame) and after (``--select coverage``), each pair measured in the same run.
 
     python bench/bench_select.py --full --laps   # three 120-frame laps of the built-in room, in process
+    python bench/bench_select.py --full --laps --select-also select_lookahead=3   # ... and a row with these
     python bench/bench_select.py --full --cost   # scoring cost per frame against a semantic step, per map size
     python bench/bench_select.py --services [--repeat 2]
         # a 90-frame ScanNet-layout scene through `openfusion run` at its own rate (30 fps) with the gt
@@ -54,9 +55,9 @@ def _load() -> str:
 # ----------------------------------------------------------------------------------- laps
 
 
-def laps(laps_n: int, lap: int, width: int, height: int) -> None:
-    """``laps_n`` laps of the built-in room in one process, every frame vs coverage: encoder calls per
-    lap and quality at the end, in one run."""
+def laps(laps_n: int, lap: int, width: int, height: int, also: list[SelectParams] = ()) -> None:
+    """``laps_n`` laps of the built-in room in one process, every frame vs coverage (and a row per
+    ``also``): encoder calls per lap and quality at the end, in one run."""
     spec = f"synthetic:lap={lap},frames={laps_n * lap},width={width},height={height}"
     text = make_text_encoder("minilm")
     encoder = make_region_encoder("gt", text_encoder=text)
@@ -69,7 +70,11 @@ def laps(laps_n: int, lap: int, width: int, height: int) -> None:
     print(f"| select | {lap_cols} | last lap / first | all calls | regions encoded | f-mIoU | mAcc | "
           "skipped (no gain) | scoring ms/frame | wall (s) |")
     print("|---|" + "---|" * (laps_n + 8))
-    for name, params in (("every", SelectParams(select="every")), ("coverage", SelectParams())):
+    rows = [("every", SelectParams(select="every")), ("coverage", SelectParams())]
+    for p in also:
+        changed = {k: v for k, v in p.model_dump().items() if v != SelectParams.model_fields[k].default}
+        rows.append(("coverage " + ", ".join(f"{k}={v}" for k, v in changed.items()), p))
+    for name, params in rows:
         per_lap: list[int] = []
 
         def on_frame(frame, stats, per_lap=per_lap) -> None:  # noqa: ANN001
@@ -82,6 +87,8 @@ def laps(laps_n: int, lap: int, width: int, height: int) -> None:
         wall = time.perf_counter() - t0
         q = map_quality(r.volume, r.dictionary, gt, text_encoder=text)
         s = r.stats
+        if per_lap:  # a look-ahead run decided at the end of the source counts in the last lap
+            per_lap[-1] += s.encoder_calls - sum(per_lap)
         ratio = per_lap[-1] / per_lap[0] if per_lap and per_lap[0] else None
         score_ms = 1e3 * s.select_s / s.frames_scored if s.frames_scored else None
         print(f"| {name} | {' | '.join(str(n) for n in per_lap)} | {_f(ratio, '{:.3f}')} | {s.encoder_calls} | "
@@ -225,13 +232,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=90, help="--services: frames of the scene (default 90)")
     parser.add_argument("--delay-ms", type=float, default=150.0, help="--services: encoder delay (default 150)")
     parser.add_argument("--repeat", type=int, default=2, help="--services: runs of each services variant (default 2)")
+    parser.add_argument("--select-also", action="append", default=[], metavar="FIELD=VALUE[,FIELD=VALUE]",
+                        help="--laps: one more coverage row with these select_* parameters (repeatable)")
     parser.add_argument("--work", type=Path, default=None, help="--services: working folder (default a temporary one)")
     args = parser.parse_args(argv)
     everything = not (args.laps or args.cost or args.services)
     lap = args.lap or (BUILTIN_LAP if args.full else 40)
     width, height = (640, 480) if args.full else (320, 240)
     if args.laps or everything:
-        laps(args.laps_n, lap, width, height)
+        also = [SelectParams.model_validate(dict(kv.split("=", 1) for kv in row.split(",") if kv))
+                for row in args.select_also]
+        laps(args.laps_n, lap, width, height, also)
     if args.cost or everything:
         cost(args.laps_n, lap, width, height, [int(w) for w in args.widths.split(",")])
     if args.services or (everything and args.full):
