@@ -9,6 +9,8 @@ frame) and after (``--select coverage``), each pair measured in the same run.
         # a 90-frame ScanNet-layout scene through `openfusion run` at its own rate (30 fps) with the gt
         # encoder and a fixed --encoder-delay-ms 150: latest (before) and coverage (after), with the
         # local encoder and with an encoder pool of 2 workers, against the in-process every-frame map
+    python bench/bench_select.py --services --repeat 1 --run-set semantic.select_lookahead=3
+        # ... every run with that --set (the look-ahead's in-process/services parity)
     python bench/bench_select.py --full       # all three
     python bench/bench_select.py [--quick]    # CI-sized: laps of 40 frames at 320x240 and their cost
     python bench/bench_eval.py --full --compare-select   # the three bench rooms, noise off and standard
@@ -183,12 +185,15 @@ def _run(out: Path, scene: Path, frames: int, *args: str) -> tuple[dict, float, 
     return json.loads((out / "run.json").read_text()), wall, f"{load_before} -> {_load()}"
 
 
-def services(work: Path, frames: int, delay_ms: float, repeat: int) -> None:
+def services(work: Path, frames: int, delay_ms: float, repeat: int, sets: list[str] = ()) -> None:
+    """The services variants (and the in-process maps) of the scene; ``sets``: ``--set`` options of
+    every run (``semantic.select_lookahead=3``), so each pair stays measured alike."""
     scene = _scene(work, frames)
     gt = load_scannet_ground_truth(scene)
     text = make_text_encoder("minilm")
     print(f"### Through the services at the scene's own rate ({frames}-frame ScanNet-layout scene of the built-in "
-          f"world, 30 fps, gt encoder + {delay_ms:g} ms per frame; {os.cpu_count()} cores)")
+          f"world, 30 fps, gt encoder + {delay_ms:g} ms per frame; {os.cpu_count()} cores"
+          f"{'; every run with ' + ', '.join(sets) if sets else ''})")
     print()
     print("| run | mode | select | encoder workers | f-mIoU | Δ vs in-process every frame | mAcc | unlabelled | "
           "encoder calls | skipped (no gain) | regions | calls per region | wall (s) | load 1/5 min before -> after |")
@@ -207,6 +212,8 @@ def services(work: Path, frames: int, delay_ms: float, repeat: int) -> None:
                 args = ["--in-process", "--select", select, "--encoder", "gt"]
             elif workers:
                 args += ["--encoder-workers", str(workers)]
+            for kv in sets:
+                args += ["--set", kv]
             summary, wall, load = _run(out, scene, frames, *args)
             loaded = load_map(out / "map")
             q = map_quality(loaded.volume, loaded.dictionary, gt, text_encoder=text)
@@ -234,6 +241,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=2, help="--services: runs of each services variant (default 2)")
     parser.add_argument("--select-also", action="append", default=[], metavar="FIELD=VALUE[,FIELD=VALUE]",
                         help="--laps: one more coverage row with these select_* parameters (repeatable)")
+    parser.add_argument("--run-set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                        help="--services: a --set option of every openfusion run (repeatable)")
     parser.add_argument("--work", type=Path, default=None, help="--services: working folder (default a temporary one)")
     args = parser.parse_args(argv)
     everything = not (args.laps or args.cost or args.services)
@@ -248,10 +257,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.services or (everything and args.full):
         if args.work is not None:
             args.work.mkdir(parents=True, exist_ok=True)
-            services(args.work, args.frames, args.delay_ms, args.repeat)
+            services(args.work, args.frames, args.delay_ms, args.repeat, args.run_set)
         else:
             with tempfile.TemporaryDirectory(prefix="bench-select-") as tmp:
-                services(Path(tmp), args.frames, args.delay_ms, args.repeat)
+                services(Path(tmp), args.frames, args.delay_ms, args.repeat, args.run_set)
     return 0
 
 
