@@ -319,6 +319,12 @@ def test_the_pipeline_encodes_only_frames_that_add_something() -> None:
     default = map_scene(frames, region_encoder=FlakyEncoder(empty_on=(), fail_on=()), volume_params=volume)
     assert 1 <= default.stats.encoder_calls <= SelectParams().select_tries
     assert default.stats.skipped_no_gain == 6 - default.stats.encoder_calls
+    # select_lookahead 4: the first run of four frames is encoded once, the last two (a run cut
+    # short by the end of the source) are decided at the end; every frame is decided exactly once
+    ahead = map_scene(frames, region_encoder=FlakyEncoder(empty_on=(), fail_on=()), volume_params=volume,
+                      select_params=SelectParams(select_tries=1, select_lookahead=4))
+    assert ahead.stats.frames_scored == 6 and ahead.stats.encoder_calls == 1
+    assert ahead.stats.skipped_no_gain == 5 and ahead.stats.semantic_frames == 1
 
 
 def test_frame_selector_with_every_or_latest_scores_nothing() -> None:
