@@ -175,9 +175,9 @@ def _run(out: Path, scene: Path, frames: int, *args: str) -> tuple[dict, float, 
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "openfusion.app.cli", "run", "--source", f"scannet:{scene}",
                            "--frames", str(frames), "--out", str(out), "--quiet", "--query", "chair",
-                           # the scene's mesh (about 600,000 vertices at 640x480) is over geometry's default
-                           # reply limit, and openfusion run asks for it after saving the map
-                           "--set", "geometry.max_points_reply=2000000", *args],
+                           # the scene's mesh (about 600,000 vertices at 640x480) is over geometry's reply
+                           # limit; openfusion run then builds mesh.ply from the saved map (app.end_of_run)
+                           *args],
                           capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"}, timeout=1800)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
