@@ -11,6 +11,8 @@ measured in the same run with the gt encoder on synthetic scenes, noise off and 
     python bench/bench_eval.py --full --compare-select
         # every frame encoded (before) vs coverage-driven frame selection (after), same run: quality,
         # encoder calls (frames, regions, per ground-truth object), scoring cost; no baselines
+    python bench/bench_eval.py --full --compare-select --select-also select_lookahead=3
+        # ... plus a row per --select-also (comma-separated FIELD=VALUE of select_*), same run
 
 Prints markdown tables (the ratios are to the region map). Exit 0 always unless it crashes;
 targets are reported, not asserted (use ``openfusion eval --check-targets`` for that).
@@ -66,6 +68,9 @@ def main(argv: list[str] | None = None) -> int:
                              "no baselines")
     parser.add_argument("--select-set", action="append", default=[], metavar="FIELD=VALUE",
                         help="with --compare-select: a select_* parameter of the 'after' run (repeatable)")
+    parser.add_argument("--select-also", action="append", default=[], metavar="FIELD=VALUE[,FIELD=VALUE]",
+                        help="with --compare-select: one more coverage row with these select_* parameters "
+                             "(repeatable: a row each)")
     parser.add_argument("--merge-embedding", default="weighted",
                         help="with --compare-merging: comma-separated merged-embedding rules to compare "
                              "(weighted, mean, first)")
@@ -79,7 +84,9 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.compare_select:
         after = SelectParams.model_validate(dict(kv.split("=", 1) for kv in args.select_set))
-        return compare_select(base, specs, profiles, after)
+        also = [SelectParams.model_validate(dict(kv.split("=", 1) for kv in row.split(",") if kv))
+                for row in args.select_also]
+        return compare_select(base, specs, profiles, after, also)
     if args.compare_merging:
         return compare_merging(base, specs, profiles, [e.strip() for e in args.merge_embedding.split(",") if e.strip()])
 
@@ -152,12 +159,18 @@ def compare_merging(base, specs, profiles: list[str], embeddings: list[str]) -> 
     return 0
 
 
-def compare_select(base, specs, profiles: list[str], after: SelectParams) -> int:  # noqa: ANN001
-    """Every frame encoded (before) and coverage-driven selection (after), per noise profile, in one
-    run: quality, encoder calls (frames; regions; per ground-truth object: OVI-MAP's measure) and
-    what scoring costs per frame against a semantic step measured in the same run."""
+def compare_select(base, specs, profiles: list[str], after: SelectParams,  # noqa: ANN001
+                   also: list[SelectParams] = ()) -> int:
+    """Every frame encoded (before) and coverage-driven selection (after; and a row per ``also``),
+    per noise profile, in one run: quality, encoder calls (frames; regions; per ground-truth object:
+    OVI-MAP's measure) and what scoring costs per frame against a semantic step measured in the
+    same run."""
+
+    def changed_of(p: SelectParams) -> dict:
+        return {k: v for k, v in p.model_dump().items() if v != SelectParams.model_fields[k].default}
+
     base = replace(base, baselines=False, raw_open3d_baseline=False)
-    changed = {k: v for k, v in after.model_dump().items() if v != SelectParams.model_fields[k].default}
+    changed = changed_of(after)
     print(f"### Frame selection, every frame vs coverage ({len(specs)} synthetic scenes, {base.frames} frames at "
           f"{base.width_px}x{base.height_px}, gt encoder + {base.text_encoder}{', after: ' + str(changed) if changed else ''})")
     print()
@@ -167,7 +180,9 @@ def compare_select(base, specs, profiles: list[str], after: SelectParams) -> int
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for noise in profiles:
         before_f = None
-        for name, select in (("every", SelectParams(select="every")), ("coverage", after)):
+        rows = [("every", SelectParams(select="every")), ("coverage", after)]
+        rows += [("coverage " + ", ".join(f"{k}={v}" for k, v in changed_of(p).items()), p) for p in also]
+        for name, select in rows:
             t0 = time.perf_counter()
             r = run_eval(specs, replace(base, noise=noise, select=select))
             wall = time.perf_counter() - t0

@@ -3,11 +3,14 @@
 frame) and after (``--select coverage``), each pair measured in the same run.
 
     python bench/bench_select.py --full --laps   # three 120-frame laps of the built-in room, in process
+    python bench/bench_select.py --full --laps --select-also select_lookahead=3   # ... and a row with these
     python bench/bench_select.py --full --cost   # scoring cost per frame against a semantic step, per map size
     python bench/bench_select.py --services [--repeat 2]
         # a 90-frame ScanNet-layout scene through `openfusion run` at its own rate (30 fps) with the gt
         # encoder and a fixed --encoder-delay-ms 150: latest (before) and coverage (after), with the
         # local encoder and with an encoder pool of 2 workers, against the in-process every-frame map
+    python bench/bench_select.py --services --repeat 1 --run-set semantic.select_lookahead=3
+        # ... every run with that --set (the look-ahead's in-process/services parity)
     python bench/bench_select.py --full       # all three
     python bench/bench_select.py [--quick]    # CI-sized: laps of 40 frames at 320x240 and their cost
     python bench/bench_eval.py --full --compare-select   # the three bench rooms, noise off and standard
@@ -54,9 +57,9 @@ def _load() -> str:
 # ----------------------------------------------------------------------------------- laps
 
 
-def laps(laps_n: int, lap: int, width: int, height: int) -> None:
-    """``laps_n`` laps of the built-in room in one process, every frame vs coverage: encoder calls per
-    lap and quality at the end, in one run."""
+def laps(laps_n: int, lap: int, width: int, height: int, also: list[SelectParams] = ()) -> None:
+    """``laps_n`` laps of the built-in room in one process, every frame vs coverage (and a row per
+    ``also``): encoder calls per lap and quality at the end, in one run."""
     spec = f"synthetic:lap={lap},frames={laps_n * lap},width={width},height={height}"
     text = make_text_encoder("minilm")
     encoder = make_region_encoder("gt", text_encoder=text)
@@ -69,7 +72,11 @@ def laps(laps_n: int, lap: int, width: int, height: int) -> None:
     print(f"| select | {lap_cols} | last lap / first | all calls | regions encoded | f-mIoU | mAcc | "
           "skipped (no gain) | scoring ms/frame | wall (s) |")
     print("|---|" + "---|" * (laps_n + 8))
-    for name, params in (("every", SelectParams(select="every")), ("coverage", SelectParams())):
+    rows = [("every", SelectParams(select="every")), ("coverage", SelectParams())]
+    for p in also:
+        changed = {k: v for k, v in p.model_dump().items() if v != SelectParams.model_fields[k].default}
+        rows.append(("coverage " + ", ".join(f"{k}={v}" for k, v in changed.items()), p))
+    for name, params in rows:
         per_lap: list[int] = []
 
         def on_frame(frame, stats, per_lap=per_lap) -> None:  # noqa: ANN001
@@ -82,6 +89,8 @@ def laps(laps_n: int, lap: int, width: int, height: int) -> None:
         wall = time.perf_counter() - t0
         q = map_quality(r.volume, r.dictionary, gt, text_encoder=text)
         s = r.stats
+        if per_lap:  # a look-ahead run decided at the end of the source counts in the last lap
+            per_lap[-1] += s.encoder_calls - sum(per_lap)
         ratio = per_lap[-1] / per_lap[0] if per_lap and per_lap[0] else None
         score_ms = 1e3 * s.select_s / s.frames_scored if s.frames_scored else None
         print(f"| {name} | {' | '.join(str(n) for n in per_lap)} | {_f(ratio, '{:.3f}')} | {s.encoder_calls} | "
@@ -166,9 +175,9 @@ def _run(out: Path, scene: Path, frames: int, *args: str) -> tuple[dict, float, 
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-m", "openfusion.app.cli", "run", "--source", f"scannet:{scene}",
                            "--frames", str(frames), "--out", str(out), "--quiet", "--query", "chair",
-                           # the scene's mesh (about 600,000 vertices at 640x480) is over geometry's default
-                           # reply limit, and openfusion run asks for it after saving the map
-                           "--set", "geometry.max_points_reply=2000000", *args],
+                           # the scene's mesh (about 600,000 vertices at 640x480) is over geometry's reply
+                           # limit; openfusion run then builds mesh.ply from the saved map (app.end_of_run)
+                           *args],
                           capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"}, timeout=1800)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
@@ -176,12 +185,15 @@ def _run(out: Path, scene: Path, frames: int, *args: str) -> tuple[dict, float, 
     return json.loads((out / "run.json").read_text()), wall, f"{load_before} -> {_load()}"
 
 
-def services(work: Path, frames: int, delay_ms: float, repeat: int) -> None:
+def services(work: Path, frames: int, delay_ms: float, repeat: int, sets: list[str] = ()) -> None:
+    """The services variants (and the in-process maps) of the scene; ``sets``: ``--set`` options of
+    every run (``semantic.select_lookahead=3``), so each pair stays measured alike."""
     scene = _scene(work, frames)
     gt = load_scannet_ground_truth(scene)
     text = make_text_encoder("minilm")
     print(f"### Through the services at the scene's own rate ({frames}-frame ScanNet-layout scene of the built-in "
-          f"world, 30 fps, gt encoder + {delay_ms:g} ms per frame; {os.cpu_count()} cores)")
+          f"world, 30 fps, gt encoder + {delay_ms:g} ms per frame; {os.cpu_count()} cores"
+          f"{'; every run with ' + ', '.join(sets) if sets else ''})")
     print()
     print("| run | mode | select | encoder workers | f-mIoU | Δ vs in-process every frame | mAcc | unlabelled | "
           "encoder calls | skipped (no gain) | regions | calls per region | wall (s) | load 1/5 min before -> after |")
@@ -200,6 +212,8 @@ def services(work: Path, frames: int, delay_ms: float, repeat: int) -> None:
                 args = ["--in-process", "--select", select, "--encoder", "gt"]
             elif workers:
                 args += ["--encoder-workers", str(workers)]
+            for kv in sets:
+                args += ["--set", kv]
             summary, wall, load = _run(out, scene, frames, *args)
             loaded = load_map(out / "map")
             q = map_quality(loaded.volume, loaded.dictionary, gt, text_encoder=text)
@@ -225,22 +239,28 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=90, help="--services: frames of the scene (default 90)")
     parser.add_argument("--delay-ms", type=float, default=150.0, help="--services: encoder delay (default 150)")
     parser.add_argument("--repeat", type=int, default=2, help="--services: runs of each services variant (default 2)")
+    parser.add_argument("--select-also", action="append", default=[], metavar="FIELD=VALUE[,FIELD=VALUE]",
+                        help="--laps: one more coverage row with these select_* parameters (repeatable)")
+    parser.add_argument("--run-set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                        help="--services: a --set option of every openfusion run (repeatable)")
     parser.add_argument("--work", type=Path, default=None, help="--services: working folder (default a temporary one)")
     args = parser.parse_args(argv)
     everything = not (args.laps or args.cost or args.services)
     lap = args.lap or (BUILTIN_LAP if args.full else 40)
     width, height = (640, 480) if args.full else (320, 240)
     if args.laps or everything:
-        laps(args.laps_n, lap, width, height)
+        also = [SelectParams.model_validate(dict(kv.split("=", 1) for kv in row.split(",") if kv))
+                for row in args.select_also]
+        laps(args.laps_n, lap, width, height, also)
     if args.cost or everything:
         cost(args.laps_n, lap, width, height, [int(w) for w in args.widths.split(",")])
     if args.services or (everything and args.full):
         if args.work is not None:
             args.work.mkdir(parents=True, exist_ok=True)
-            services(args.work, args.frames, args.delay_ms, args.repeat)
+            services(args.work, args.frames, args.delay_ms, args.repeat, args.run_set)
         else:
             with tempfile.TemporaryDirectory(prefix="bench-select-") as tmp:
-                services(Path(tmp), args.frames, args.delay_ms, args.repeat)
+                services(Path(tmp), args.frames, args.delay_ms, args.repeat, args.run_set)
     return 0
 
 

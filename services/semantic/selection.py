@@ -7,7 +7,8 @@ joins the frame with its instance image when the encoder reads them, asks geomet
 the map at the frame's pose at the scored size (``geometry/render``, ``select_width_px`` wide) and
 offers the prepared view to the :class:`~openfusion.mapping.selection.CandidateWindow`, which
 decides it at once with the rule of the in-process pipeline (so the services choose the frames one
-process would). The encoding side (the service loop with its local encoder, or the encoder pool's
+process would; with ``select_lookahead`` K > 1 it decides K frames at a time, and a run cut short
+because frames stopped coming for 0.2 s is decided then). The encoding side (the service loop with its local encoder, or the encoder pool's
 dispatch) takes the chosen frame of highest gain whenever it is free; a frame that adds too little
 is dropped without being encoded (``skipped_no_gain``), a chosen one a full window lets go for
 frames of higher gain is counted in ``select_evicted``. Scoring on its own thread keeps the encoder busy: scoring the frames that
@@ -112,7 +113,9 @@ class CandidateFeeder:
         """Feed the window until the service stops (a thread of the service)."""
         while not runner.stopping:
             msg = self.frames.recv(timeout_s=0.2)
-            if msg is None:
+            if msg is None:  # frames paused: a run of select_lookahead frames cut short is decided now
+                if self.window.undecided:
+                    self.account(runner, self.window.flush())
                 continue
             try:
                 self.feed(runner, msg)

@@ -239,6 +239,64 @@ def test_a_full_window_lets_its_lowest_gain_frame_go() -> None:
     assert [window.take().taken.payload for _ in range(2)] == [0, 2]
 
 
+def test_a_run_of_select_lookahead_frames_encodes_at_most_its_best() -> None:
+    """select_lookahead 3: frames are decided three at a time. Three views of new surface of 25 %,
+    100 % and 50 % (each another cube): only the 100 % one is encoded, when the third frame comes
+    (the selector returns nothing before); the next run, of views that add nothing, encodes none;
+    a run cut short by the end of the source is decided by flush. Greedy (lookahead 1) would have
+    encoded all three of the first run."""
+    from types import SimpleNamespace
+
+    from openfusion.frame import Frame
+
+    def wall(frame_id: int, depth_m: float, share: float) -> Frame:
+        depth = np.zeros((H, W), np.float32)
+        depth[:, : round(W * share)] = depth_m
+        return Frame(frame_id=frame_id, stamp_ns=frame_id * 100_000_000, color=np.zeros((H, W, 3), np.uint8),
+                     depth=depth, depth_scale=1.0, intrinsics=K, T_world_cam=T_FRONT)
+
+    def render(T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> SimpleNamespace:
+        return SimpleNamespace(key_map=NO_KEYS, conf_map=ZERO_CONF)
+
+    run = [wall(0, 2.0, 0.25), wall(1, 3.0, 1.0), wall(2, 4.0, 0.5)]
+    greedy = FrameSelector(params(select_tries=1, select_min_gain=0.1), render)
+    assert [len(greedy.offer(f)) for f in run] == [1, 1, 1]
+    selector = FrameSelector(params(select_tries=1, select_min_gain=0.1, select_lookahead=3), render)
+    assert selector.offer(run[0]) == [] and selector.offer(run[1]) == []
+    assert [f.frame_id for f in selector.offer(run[2])] == [1]
+    assert selector.stats.frames_scored == 3 and selector.stats.skipped_no_gain == 2
+    # the chosen view's surface is covered: the same wall again adds nothing, the run encodes none
+    assert [selector.offer(wall(i, 3.0, 1.0)) for i in (3, 4, 5)] == [[], [], []]
+    assert selector.stats.skipped_no_gain == 5
+    # a run cut short by the end of the source: flush decides it
+    assert selector.offer(wall(6, 5.0, 1.0)) == []
+    assert [f.frame_id for f in selector.flush()] == [6] and selector.flush() == []
+
+
+def test_the_window_decides_select_lookahead_frames_at_a_time_as_one_process_does() -> None:
+    """The services' window with select_lookahead 3: the first two frames wait undecided, the third
+    completes the run and only its best frame (the 100 % new view) waits for the encoder, the other
+    two are dropped (no_gain); a run cut short (frames stopped coming) is decided by flush."""
+    scorer = CoverageScorer(params(select_tries=1, select_min_gain=0.1, select_lookahead=3))
+    window: CandidateWindow[int] = CandidateWindow(scorer, capacity=8)
+
+    def wall_at(depth_m: float, share: float):  # noqa: ANN202
+        depth = np.zeros((H, W), np.float32)
+        depth[:, : round(W * share)] = depth_m
+        return depth
+
+    for i, (d, share) in enumerate(((2.0, 0.25), (3.0, 1.0))):
+        change = window.offer(view(scorer, depth=wall_at(d, share), frame_id=i), i)
+        assert not change.no_gain and not change.evicted and len(window) == 0
+    assert window.undecided == 2
+    change = window.offer(view(scorer, depth=wall_at(4.0, 0.5), frame_id=2), 2)
+    assert sorted(c.payload for c in change.no_gain) == [0, 2] and window.undecided == 0
+    assert window.take().taken.payload == 1
+    window.offer(view(scorer, depth=wall_at(5.0, 1.0), frame_id=3, stamp_s=1.0), 3)
+    assert window.take(timeout_s=0.01).taken is None  # undecided: not the encoder's yet
+    assert not window.flush().no_gain and window.take().taken.payload == 3
+
+
 SPEC = "synthetic:frames=8,width=160,height=120"
 
 
@@ -261,6 +319,12 @@ def test_the_pipeline_encodes_only_frames_that_add_something() -> None:
     default = map_scene(frames, region_encoder=FlakyEncoder(empty_on=(), fail_on=()), volume_params=volume)
     assert 1 <= default.stats.encoder_calls <= SelectParams().select_tries
     assert default.stats.skipped_no_gain == 6 - default.stats.encoder_calls
+    # select_lookahead 4: the first run of four frames is encoded once, the last two (a run cut
+    # short by the end of the source) are decided at the end; every frame is decided exactly once
+    ahead = map_scene(frames, region_encoder=FlakyEncoder(empty_on=(), fail_on=()), volume_params=volume,
+                      select_params=SelectParams(select_tries=1, select_lookahead=4))
+    assert ahead.stats.frames_scored == 6 and ahead.stats.encoder_calls == 1
+    assert ahead.stats.skipped_no_gain == 5 and ahead.stats.semantic_frames == 1
 
 
 def test_frame_selector_with_every_or_latest_scores_nothing() -> None:

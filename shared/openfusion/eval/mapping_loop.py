@@ -83,6 +83,33 @@ def map_scene_for_eval(
         run.regions_merged += result.merged
         run.merge_s += result.total_ms / 1e3
         run.semantic_step_s += result.total_ms / 1e3
+
+    def semantic(frame: object, depth_m: object) -> None:  # one chosen frame: encode, step, record
+        t1 = time.perf_counter()
+        obs = region_encoder.encode(frame)
+        run.encoder_calls += 1
+        run.encoder_regions += len(obs.conf_maps)
+        t2 = time.perf_counter()
+        mapper.step(obs, frame.T_world_cam, frame.intrinsics, depth_m=depth_m)
+        if mapper.last_plan is not None:
+            selector.encoded(frame, mapper.last_plan.key_map)
+        t3 = time.perf_counter()
+        run.encode_s += t2 - t1
+        run.semantic_step_s += t3 - t2
+        run.semantic_frames += 1
+        if schedule.due():
+            merge_pass()
+        if record_for_baselines:
+            rec = record_frame(
+                obs.conf_maps,
+                obs.embeddings,
+                depth_m=depth_m,
+                intrinsics=frame.intrinsics,
+                T_world_cam=frame.T_world_cam,
+            )
+            run.records.append(rec)
+            run.record_bytes += rec.nbytes
+
     raw = None
     if raw_open3d_baseline:
         p = volume_params
@@ -109,32 +136,11 @@ def map_scene_for_eval(
         depth_m = frame.depth_m()
         if observed is not None:
             observed.add_view(depth_m, frame.intrinsics, frame.T_world_cam)
-        if i % semantic_every or not selector.wants(frame):
-            continue
-        t1 = time.perf_counter()
-        obs = region_encoder.encode(frame)
-        run.encoder_calls += 1
-        run.encoder_regions += len(obs.conf_maps)
-        t2 = time.perf_counter()
-        mapper.step(obs, frame.T_world_cam, frame.intrinsics, depth_m=depth_m)
-        if mapper.last_plan is not None:
-            selector.encoded(frame, mapper.last_plan.key_map)
-        t3 = time.perf_counter()
-        run.encode_s += t2 - t1
-        run.semantic_step_s += t3 - t2
-        run.semantic_frames += 1
-        if schedule.due():
-            merge_pass()
-        if record_for_baselines:
-            rec = record_frame(
-                obs.conf_maps,
-                obs.embeddings,
-                depth_m=depth_m,
-                intrinsics=frame.intrinsics,
-                T_world_cam=frame.T_world_cam,
-            )
-            run.records.append(rec)
-            run.record_bytes += rec.nbytes
+        if i % semantic_every == 0:
+            for chosen in selector.offer(frame):
+                semantic(chosen, depth_m if chosen is frame else chosen.depth_m())
+    for chosen in selector.flush():
+        semantic(chosen, chosen.depth_m())
     if run.frames == 0:
         raise ValueError(f"source {getattr(source, 'name', source)!r} produced no frames")
     if merge_p.merge_every > 0 and run.semantic_frames:

@@ -57,6 +57,7 @@ class CandidateWindow(Generic[T]):
         if self.capacity < 1:
             raise ValueError(f"the window must hold at least one frame, got {self.capacity}")
         self._items: list[Candidate[T]] = []
+        self._run: list[tuple[ViewEvidence, T, int]] = []  # frames waiting for their run's decision
         self._arrivals = 0
         self._cond = threading.Condition()
         self._closed = False
@@ -67,22 +68,50 @@ class CandidateWindow(Generic[T]):
 
     def offer(self, evidence: ViewEvidence, payload: T) -> WindowChange[T]:
         """Decide one frame: wait in the window (chosen) or drop it (``no_gain``); a full window
-        lets its lowest-gain frame go (``evicted``)."""
+        lets its lowest-gain frame go (``evicted``). With ``select_lookahead`` K > 1 frames are
+        decided K at a time (:meth:`CoverageScorer.decide_best`, as in one process): a frame waits
+        undecided until its run is complete (or :meth:`flush`)."""
         with self._cond:
-            score, chosen = self.scorer.decide(evidence)
-            cand = Candidate(evidence, score, payload, self._arrivals)
+            arrival = self._arrivals
             self._arrivals += 1
-            change: WindowChange[T] = WindowChange()
-            if not chosen:
-                change.no_gain.append(cand)
-                return change
-            self._items.append(cand)
-            if len(self._items) > self.capacity:
-                worst = min(self._items, key=lambda c: (c.score.gain, c.arrival))
-                self._items.remove(worst)
-                change.evicted.append(worst)
-            self._cond.notify_all()
+            lookahead = self.scorer.params.select_lookahead
+            if lookahead <= 1:
+                score, chosen = self.scorer.decide(evidence)
+                return self._place([Candidate(evidence, score, payload, arrival)], 0 if chosen else None)
+            self._run.append((evidence, payload, arrival))
+            if len(self._run) < lookahead:
+                return WindowChange()
+            return self._decide_run()
+
+    def flush(self) -> WindowChange[T]:
+        """Decide the frames of an incomplete run now (the frames stopped coming for a while)."""
+        with self._cond:
+            return self._decide_run() if self._run else WindowChange()
+
+    @property
+    def undecided(self) -> int:
+        """Frames waiting for the rest of their run (``select_lookahead``)."""
+        with self._cond:
+            return len(self._run)
+
+    def _decide_run(self) -> WindowChange[T]:
+        run, self._run = self._run, []
+        scores, best = self.scorer.decide_best([ev for ev, _, _ in run])
+        return self._place([Candidate(ev, sc, pl, arr) for (ev, pl, arr), sc in zip(run, scores, strict=True)], best)
+
+    def _place(self, cands: list[Candidate[T]], chosen: int | None) -> WindowChange[T]:
+        """(lock held) The chosen candidate waits, the others are dropped (``no_gain``)."""
+        change: WindowChange[T] = WindowChange()
+        change.no_gain.extend(c for i, c in enumerate(cands) if i != chosen)
+        if chosen is None:
             return change
+        self._items.append(cands[chosen])
+        if len(self._items) > self.capacity:
+            worst = min(self._items, key=lambda c: (c.score.gain, c.arrival))
+            self._items.remove(worst)
+            change.evicted.append(worst)
+        self._cond.notify_all()
+        return change
 
     def take(self, timeout_s: float = 0.0) -> WindowChange[T]:
         """The waiting frame of highest gain, waiting up to ``timeout_s`` for one."""
@@ -100,9 +129,12 @@ class CandidateWindow(Generic[T]):
             return change
 
     def drain(self) -> list[Candidate[T]]:
-        """Remove and return every candidate (a new playback, a shutdown)."""
+        """Remove and return every candidate, decided or not (a new playback, a shutdown)."""
         with self._cond:
             out, self._items = self._items, []
+            for ev, payload, arrival in self._run:
+                out.append(Candidate(ev, self.scorer.score(ev), payload, arrival))
+            self._run = []
             return out
 
     def close(self) -> None:

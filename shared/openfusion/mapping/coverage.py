@@ -32,6 +32,14 @@ The score (one number, shares of the scored view's pixels)
     the next frames hide again) is encoded too, and a frame that adds nothing never is, even when
     the encoder is idle (counted ``skipped_no_gain``).
 
+    **Look-ahead** (``select_lookahead`` K, off at 1): frames are decided K at a time
+    (:meth:`CoverageScorer.decide_best`): of each run of K consecutive frames at most the one of
+    highest gain is encoded, when it reaches the bar; a frame waits up to K - 1 frames for its
+    decision. On a first sweep, where nearly every frame shows something new, this caps the calls
+    at 1/K and takes the best view of each run instead of the first one over the bar; on a
+    revisit, runs that add nothing still cost nothing. One process and the services' window decide
+    the same runs (the window decides a run cut short when frames stop coming).
+
 Why these rules and defaults (measured in docs/EVAL.md, "Frame selection")
     OVI-MAP (CVPR 2026) runs its VLM only on views that add viewing-direction coverage of an
     instance (at most 0.9 overlap with the covered bins, at least 1000 visible pixels, the top K by
@@ -384,6 +392,20 @@ class CoverageScorer:
             if chosen:
                 self.mark_selected(ev)
             return score, chosen
+
+    def decide_best(self, evs: list[ViewEvidence]) -> tuple[list[ViewScore], int | None]:
+        """Score a run of views (``select_lookahead`` consecutive frames) and choose at most one: the
+        one of highest gain (ties: the newest), when :meth:`worth_encoding`; it is recorded at once.
+        Returns every view's score and the index of the chosen one (None: none)."""
+        with self._lock:
+            scores = [self.score(ev) for ev in evs]
+            if not scores:
+                return scores, None
+            best = max(range(len(scores)), key=lambda i: (scores[i].gain, scores[i].stamp_s, i))
+            if not self.worth_encoding(scores[best]):
+                return scores, None
+            self.mark_selected(evs[best])
+            return scores, best
 
     # ------------------------------------------------------------------ record what was encoded
     def mark_selected(self, ev: ViewEvidence) -> None:

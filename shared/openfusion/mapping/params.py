@@ -338,6 +338,10 @@ class SelectParams(SectionParams):
         0, ge=0, le=100, description="coverage: a region in view written by fewer encoded frames than this counts "
         "like a new direction with all its pixels (OVO keeps several views per segment; one noisy view is not "
         "a region's final word)")
+    select_lookahead: int = Field(
+        1, ge=1, le=16, description="coverage: frames decided together: of each run of this many frames at most the "
+        "one of highest gain is encoded (when it reaches the bar), the others are not; 1 = each frame on its own. "
+        "Frames wait up to this many frames for their decision")
     select_direction_bins: int = Field(
         24, ge=1, le=64, description="coverage: viewing directions are binned on the sphere into this many bins "
         "(Fibonacci sphere; 24: about 47 degrees across each)")

@@ -137,6 +137,28 @@ def map_scene(
         stats.merge_s += result.total_ms / 1e3
         if result.merged:
             logger.debug("merged %d regions in %.0f ms: %s", result.merged, result.total_ms, result.plan.groups)
+
+    def semantic(frame: Frame) -> None:  # one chosen frame: encode and step, a failure counted
+        t1 = time.perf_counter()
+        try:
+            stats.encoder_calls += 1
+            obs = region_encoder.encode(frame)
+            stats.encoder_regions += len(obs.conf_maps)
+            t2 = time.perf_counter()
+            mapper.step(obs, frame.T_world_cam, frame.intrinsics, depth_m=frame.depth_m())
+            if mapper.last_plan is not None:
+                selector.encoded(frame, mapper.last_plan.key_map)
+        except Exception:  # one frame's encoder or step failure is logged and counted, never fatal
+            logger.exception("frame %d: the semantic step failed; the frame keeps its geometry", frame.frame_id)
+            stats.semantic_failed += 1
+        else:
+            t3 = time.perf_counter()
+            stats.encode_s += t2 - t1
+            stats.semantic_step_s += t3 - t2
+            stats.semantic_frames += 1
+            if schedule.due():
+                merge_pass()
+
     refused: dict[str, int] = {}
     for frame in source:
         if max_frames is not None and stats.frames_integrated >= max_frames:
@@ -151,28 +173,13 @@ def map_scene(
         t1 = time.perf_counter()
         stats.integrate_s += t1 - t0
         stats.frames_integrated += 1
-        if semantic_every and frame.frame_id % semantic_every == 0 and _selected(selector, frame, stats):
-            t1 = time.perf_counter()
-            try:
-                stats.encoder_calls += 1
-                obs = region_encoder.encode(frame)
-                stats.encoder_regions += len(obs.conf_maps)
-                t2 = time.perf_counter()
-                mapper.step(obs, frame.T_world_cam, frame.intrinsics, depth_m=frame.depth_m())
-                if mapper.last_plan is not None:
-                    selector.encoded(frame, mapper.last_plan.key_map)
-            except Exception:  # one frame's encoder or step failure is logged and counted, never fatal
-                logger.exception("frame %d: the semantic step failed; the frame keeps its geometry", frame.frame_id)
-                stats.semantic_failed += 1
-            else:
-                t3 = time.perf_counter()
-                stats.encode_s += t2 - t1
-                stats.semantic_step_s += t3 - t2
-                stats.semantic_frames += 1
-                if schedule.due():
-                    merge_pass()
+        if semantic_every and frame.frame_id % semantic_every == 0:
+            for chosen in _offered(selector, frame, stats):
+                semantic(chosen)
         if on_frame is not None:
             on_frame(frame, stats)
+    for chosen in _offered(selector, None, stats):
+        semantic(chosen)
     if merge_p.merge_every > 0 and stats.semantic_frames:
         merge_pass()
     source_stats = getattr(source, "stats", None)
@@ -186,9 +193,10 @@ def map_scene(
     return MapResult(volume, dictionary, stats)
 
 
-def _selected(selector: FrameSelector, frame: Frame, stats: PipelineStats) -> bool:
-    """Whether the selection sends ``frame`` to the encoder; its counts and time go into ``stats``."""
-    chosen = selector.wants(frame)
+def _offered(selector: FrameSelector, frame: Frame | None, stats: PipelineStats) -> list[Frame]:
+    """The frames the selection sends to the encoder now (``frame`` None: the end of the source);
+    its counts and time go into ``stats``."""
+    chosen = selector.offer(frame) if frame is not None else selector.flush()
     stats.frames_scored = selector.stats.frames_scored
     stats.skipped_no_gain = selector.stats.skipped_no_gain
     stats.select_s = selector.stats.score_s

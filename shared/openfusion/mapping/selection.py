@@ -67,9 +67,12 @@ class SelectionStats:
 class FrameSelector:
     """Selection where the encoder is free for every frame (the in-process pipeline, the eval):
     each frame is scored as it comes and encoded when it adds enough (``select=coverage``), or
-    always (``every`` / ``latest``, which are the same in one process). The services use the same
-    :class:`CoverageScorer` through a :class:`CandidateWindow`, since their encoder is busy while
-    frames come."""
+    always (``every`` / ``latest``, which are the same in one process). With ``select_lookahead``
+    K > 1 frames are decided K at a time (:meth:`CoverageScorer.decide_best`: at most the best of
+    them is encoded), so a frame waits up to K - 1 frames for its decision: :meth:`offer` returns
+    the frames to encode now, :meth:`flush` the last run's choice at the end of a source. The
+    services use the same :class:`CoverageScorer` through a :class:`CandidateWindow`, since their
+    encoder is busy while frames come."""
 
     def __init__(self, params: SelectParams | None, render: Callable[[np.ndarray, CameraIntrinsics], Any]) -> None:
         self.params = params if params is not None else SelectParams()
@@ -77,13 +80,15 @@ class FrameSelector:
         self.render = render
         self.stats = SelectionStats()
         self.last_score: ViewScore | None = None
+        self._run: list[tuple[Frame, ViewEvidence]] = []  # frames waiting for their run's decision
 
     @property
     def scoring(self) -> bool:
         return self.params.select == "coverage"
 
     def wants(self, frame: Frame) -> bool:
-        """Whether ``frame`` goes to the encoder; with ``coverage`` it is then recorded as selected."""
+        """Whether ``frame`` goes to the encoder, decided on its own (``select_lookahead`` is not
+        used: :meth:`offer` is); with ``coverage`` it is then recorded as selected."""
         if not self.scoring:
             return True
         t0 = time.perf_counter()
@@ -93,6 +98,34 @@ class FrameSelector:
         self.stats.skipped_no_gain += int(not chosen)
         self.stats.score_s += time.perf_counter() - t0
         return chosen
+
+    def offer(self, frame: Frame) -> list[Frame]:
+        """One more frame: the frames to encode now, in order (this one, an earlier one whose run
+        of ``select_lookahead`` frames is complete, or none)."""
+        if not self.scoring:
+            return [frame]
+        if self.params.select_lookahead <= 1:
+            return [frame] if self.wants(frame) else []
+        t0 = time.perf_counter()
+        self._run.append((frame, self.scorer.prepare_frame(frame, self.render)))
+        self.stats.frames_scored += 1
+        out = self._decide_run() if len(self._run) >= self.params.select_lookahead else []
+        self.stats.score_s += time.perf_counter() - t0
+        return out
+
+    def flush(self) -> list[Frame]:
+        """The end of the source: decide the frames still waiting."""
+        t0 = time.perf_counter()
+        out = self._decide_run() if self._run else []
+        self.stats.score_s += time.perf_counter() - t0
+        return out
+
+    def _decide_run(self) -> list[Frame]:
+        run, self._run = self._run, []
+        scores, best = self.scorer.decide_best([ev for _, ev in run])
+        self.last_score = scores[best] if best is not None else scores[-1]
+        self.stats.skipped_no_gain += len(run) - (best is not None)
+        return [run[best][0]] if best is not None else []
 
     def encoded(self, frame: Frame, key_map: np.ndarray) -> None:
         """Record the update a chosen frame's encoding planned (``key_map`` at the encoder's size)."""
