@@ -97,6 +97,7 @@ from openfusion.mapping import (
     RegionDictionary,
     RenderedView,
     SemanticVolume,
+    readout_worker,
     save_map,
 )
 from openfusion.mapping.mapfile import resolve_map_path
@@ -191,6 +192,7 @@ class GeometryService(DictionaryFollower):
         self.config = config
         self.section = config.geometry
         self._lock = threading.RLock()
+        readout_worker.register_lock(self._lock, owner=self)  # read-out jobs take it: never asked for under it
         self.checkpoint_dir: Path | None = (
             self.section.map_dir / config.map_id if self.section.map_dir is not None else None
         )
@@ -348,11 +350,14 @@ class GeometryService(DictionaryFollower):
                                             lock=self._lock, state=state)
                     tiles = int(info["tiles"])
                     written = store.path if own else store.copy_to(Path(target) / STORE_DIR_NAME)
-                else:  # no store of its own (no map_dir), or a version-1 file named: under the lock
-                    with self._lock:
-                        dictionary, meta = state()
-                        written = save_map(target, volume, dictionary, meta=meta, regions=regions,
-                                           summary=regions is not None)
+                else:  # no store of its own (no map_dir), or a version-1 file named: under the lock, one read-out job
+                    def save_locked() -> Path:
+                        with self._lock:
+                            dictionary, meta = state()
+                            return save_map(target, volume, dictionary, meta=meta, regions=regions,
+                                            summary=regions is not None)
+
+                    written = readout_worker.run("save", save_locked)
             except OSError as exc:
                 # Disk full, read-only folder...: the store (or file) is as it was before; the map
                 # stays in memory and the next period tries again.
@@ -629,7 +634,8 @@ class GeometryService(DictionaryFollower):
     def handle_points(self, req: PointsRequest) -> PointsReply:
         cap = self._points_cap(req.max_points)
         with self._lock:
-            pts = self.volume.extract_points(keys=req.keys, max_points=None)
+            volume = self.volume
+        pts = volume.extract_points(keys=req.keys, max_points=None)  # a read-out job: asked for holding no lock
         n = len(pts.points)
         if n > cap:
             idx = np.sort(np.random.default_rng(0).choice(n, size=cap, replace=False))
@@ -667,7 +673,8 @@ class GeometryService(DictionaryFollower):
 
     def handle_mesh(self, req: MeshRequest) -> MeshReply:
         with self._lock:
-            mesh = self.volume.extract_mesh(keys=req.keys)
+            volume = self.volume
+        mesh = volume.extract_mesh(keys=req.keys)  # a read-out job: asked for holding no lock
         if len(mesh.vertices) > self.section.max_points_reply:
             raise RequestError(
                 "too_large",

@@ -56,7 +56,7 @@ from typing import Any
 
 import numpy as np
 
-from openfusion.mapping import readout
+from openfusion.mapping import readout, readout_worker
 from openfusion.mapping.heap import release_freed_memory
 from openfusion.mapping.keyslots import KeySlots
 from openfusion.mapping.merging import RegionContacts, contact_counts, contacts_of_counts
@@ -548,11 +548,24 @@ def refresh(
     max_s: float | None = None,
 ) -> int:
     """Read out the stale tiles' parts (``what``: ``"summaries"`` or ``"contacts"``), a chunk at a
-    time: copied holding ``lock`` (the caller's, e.g. a service's) and the volume's lock, read out
-    holding neither (``hold``: holding both throughout; both must be reentrant). ``max_s``: stop
-    after the chunk that passes this many seconds (idle work). Returns the tiles read out."""
+    time, each chunk one job on the read-out worker (:mod:`openfusion.mapping.readout_worker`: one
+    chunk in hand in the process at a time): copied holding ``lock`` (the caller's, e.g. a
+    service's) and the volume's lock, read out holding neither (``hold``: the whole refresh one
+    job holding both throughout; both must be reentrant). The caller must hold neither lock
+    (the worker's rule 1). ``max_s``: stop after the chunk that passes this many seconds (idle
+    work). Returns the tiles read out."""
     if what not in ("summaries", "contacts"):
         raise ValueError(f"what must be 'summaries' or 'contacts', got {what!r}")
+    readout_worker.check_caller(what)
+    if hold:
+        return readout_worker.run(what, _refresh, volume_lock, readouts, what=what, lock=lock,
+                                  settled_clock=settled_clock, radius_vox=radius_vox, hold=True, max_s=max_s)
+    return _refresh(volume_lock, readouts, what=what, lock=lock, settled_clock=settled_clock,
+                    radius_vox=radius_vox, hold=False, max_s=max_s)
+
+
+def _refresh(volume_lock: Any, readouts: TileReadouts, *, what: str, lock: Any, settled_clock: int | None,
+             radius_vox: int, hold: bool, max_s: float | None) -> int:
     pager, storage = readouts.pager, readouts.storage
     res, tile_blocks = storage.params.block_resolution, pager.grid.tile_blocks
     done = 0
@@ -563,22 +576,26 @@ def refresh(
                 readouts.contact_radius = radius_vox
             parts = readouts.summaries if what == "summaries" else readouts.contacts
             chunks = readouts.stale(parts, settled_clock=settled_clock)
-        scratch = Scratch(storage) if what == "summaries" else None
-        started = time.monotonic()
-        for chunk in chunks:
-            if max_s is not None and done and time.monotonic() - started >= max_s:
-                break
+
+        def one(chunk: list[Tile]) -> None:
+            """One chunk: copied under the locks, read out outside them, its parts kept."""
             with both(lock, volume_lock):
                 copy = readouts.copy_chunk(chunk, keys_only=what == "contacts")
-            if scratch is not None:
-                got_s = summarise_chunk(copy, scratch, tile_blocks)
+            if what == "summaries":  # a scratch grid of this chunk's size, freed with the job
+                got_s = summarise_chunk(copy, Scratch(storage), tile_blocks)
                 with volume_lock:
                     readouts.put_summaries(got_s)
             else:
                 got_c = count_contacts_chunk(copy, tile_blocks, res, radius_vox)
                 with volume_lock:
                     readouts.put_contacts(got_c, radius_vox)
-            done += len(chunk)
             del copy
             release_freed_memory()  # the chunk's copies and read-out arrays: back to the OS
+
+        started = time.monotonic()
+        for chunk in chunks:
+            if max_s is not None and done and time.monotonic() - started >= max_s:
+                break
+            readout_worker.run(what, one, chunk)
+            done += len(chunk)
     return done

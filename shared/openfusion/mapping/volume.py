@@ -47,7 +47,7 @@ import open3d as o3d
 import open3d.core as o3c
 
 from openfusion.frame import CameraIntrinsics, Frame
-from openfusion.mapping import integration, raycast, readout, tilereadouts, view_update
+from openfusion.mapping import integration, raycast, readout, readout_worker, tilereadouts, view_update
 from openfusion.mapping.errors import CapacityError
 from openfusion.mapping.growth import GridGrower
 from openfusion.mapping.merging import RegionContacts
@@ -159,6 +159,21 @@ def _locked(method: _F) -> _F:
     return wrapper  # type: ignore[return-value]
 
 
+def _read_out(method: _F) -> _F:
+    """A whole-map read-out: one job on the read-out worker (:mod:`.readout_worker`: one at a time
+    in the process, so its chunks never overlap another read-out's), holding the volume's lock there."""
+
+    @functools.wraps(method)
+    def wrapper(self: SemanticVolume, *args: Any, **kwargs: Any) -> Any:
+        def job() -> Any:
+            with self._lock:
+                return method(self, *args, **kwargs)
+
+        return readout_worker.run(method.__name__, job)
+
+    return wrapper  # type: ignore[return-value]
+
+
 class SemanticVolume:
     """Semantic TSDF volume; the module docstring says which module holds each rule.
 
@@ -176,6 +191,7 @@ class SemanticVolume:
                 f"device {self.params.device} requested but this Open3D build has no CUDA; use device='CPU:0'"
             )
         self._lock = threading.RLock()
+        readout_worker.register_lock(self._lock, owner=self)  # read-out jobs take it (rule 1 there)
         self.stats = VolumeStats()
         self._intrinsic_cache: dict[CameraIntrinsics, o3c.Tensor] = {}
         budget = None
@@ -500,7 +516,7 @@ class SemanticVolume:
         """
         return self._storage.relabel_keys(mapping)
 
-    @_locked
+    @_read_out
     def labelled_voxels(self) -> tuple[np.ndarray, np.ndarray]:
         """(integer voxel coordinates (n, 3) int64, keys (n,) int64) of every voxel carrying a key."""
         coords, keys = self.labelled_blocks()
@@ -508,7 +524,7 @@ class SemanticVolume:
 
         return voxels_of_labelled(coords, keys, self.params.block_resolution)
 
-    @_locked
+    @_read_out
     def labelled_blocks(self) -> tuple[np.ndarray, np.ndarray]:
         """(block coordinates (N, 3), keys (N, R, R, R) [z, y, x], -1 = none) of the blocks holding a key."""
         coords, keys = self._storage.labelled_blocks()
@@ -573,7 +589,7 @@ class SemanticVolume:
         return self._pager.versions.clock
 
     # ------------------------------------------------------------------ read-out
-    @_locked
+    @_read_out
     def extract_points(
         self,
         keys: np.ndarray | list[int] | None = None,
@@ -594,7 +610,7 @@ class SemanticVolume:
             return wholemap.extract_points(self._storage, self._pager, keys, max_points, seed=seed)
         return readout.extract_points(self._storage, keys, max_points, seed=seed)
 
-    @_locked
+    @_read_out
     def extract_mesh(self, keys: np.ndarray | list[int] | None = None) -> SurfaceMesh:
         """Surface mesh (marching cubes); with ``keys``, only triangles whose 3 vertices carry one of
         those keys (unreferenced vertices dropped)."""
@@ -604,7 +620,7 @@ class SemanticVolume:
             return wholemap.extract_mesh(self._storage, self._pager, keys)
         return readout.extract_mesh(self._storage, keys)
 
-    @_locked
+    @_read_out
     def mesh_parts(self, keys: np.ndarray | list[int] | None = None) -> list[SurfaceMesh]:
         """The mesh in parts of at most ``wholemap.CHUNK_BLOCKS`` blocks each (a large map's mesh
         written or sent part by part; one part for a map with nothing paged out)."""
@@ -615,7 +631,7 @@ class SemanticVolume:
         return list(wholemap.iter_mesh_parts(self._storage, self._pager, keys))
 
     # ------------------------------------------------------------------ arrays (save / load)
-    @_locked
+    @_read_out
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Every block (resident and paged out) as plain arrays (``key`` holds real keys, -1 = none)."""
         arrays = self._storage.to_arrays()
@@ -623,6 +639,13 @@ class SemanticVolume:
             return arrays
         parts = [arrays, *self._pager.stored_arrays()]
         return {name: np.concatenate([p[name] for p in parts]) for name in arrays}
+
+    def unshared_arrays(self) -> dict[str, np.ndarray]:
+        """:meth:`to_arrays` on the calling thread, not as a read-out job: only for a volume no other
+        thread can reach yet (a loaded map being moved into another volume by a caller that
+        holds a service's lock, which a job may not be asked for under)."""
+        with self._lock:
+            return SemanticVolume.to_arrays.__wrapped__(self)  # type: ignore[attr-defined]
 
     @property
     def num_blocks_total(self) -> int:
