@@ -48,7 +48,7 @@ Checkpoints (:mod:`openfusion.mapping.mapstore` drives them; the pager keeps the
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -125,6 +125,9 @@ class TilePager:
         self._written_version: dict[Tile, int] = {}
         self.stats = PagerStats()
         self.camera_m = np.zeros(3)
+        #: Called with a tile after it was paged out (under the volume's lock): the read-out parts
+        #: of it go to disk (:meth:`openfusion.mapping.tilereadouts.TileReadouts.paged_out`).
+        self.on_page_out: Callable[[Tile], None] | None = None
         storage.on_compact_keys = self._compact_stored_keys
 
     # ------------------------------------------------------------------ bookkeeping
@@ -264,6 +267,8 @@ class TilePager:
         self.last_used.pop(tile, None)
         self.stored_blocks[tile] = len(buf)
         self.stats.tiles_paged_out += 1
+        if self.on_page_out is not None:
+            self.on_page_out(tile)
 
     def _store_of(self, tile: Tile) -> TileStore:
         store = self.base if self.location.get(tile) == "base" else self.store

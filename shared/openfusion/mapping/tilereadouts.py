@@ -61,6 +61,7 @@ from openfusion.mapping.heap import release_freed_memory
 from openfusion.mapping.keyslots import KeySlots
 from openfusion.mapping.merging import RegionContacts, contact_counts, contacts_of_counts
 from openfusion.mapping.paging import TilePager
+from openfusion.mapping.partstore import MemoryParts, open_part_store
 from openfusion.mapping.storage import ATTR_NAMES, VoxelStorage
 from openfusion.mapping.summaries import BBOX_PERCENTILE, RegionTable
 from openfusion.mapping.tiles import pack_coords
@@ -106,6 +107,78 @@ class ContactPart:
 
 
 @dataclass
+class StoredPart:
+    """A paged-out tile's part, kept in the part store (:mod:`openfusion.mapping.partstore`): in
+    memory only its clock and what a merge or a cleared key must know (the slots of a summary part;
+    the keys, owners and others of a contact part)."""
+
+    clock: int
+    present: np.ndarray  # (n,) int64, sorted
+
+    def holds(self, keys: np.ndarray) -> bool:
+        return bool(np.isin(self.present, keys).any())
+
+
+def part_arrays(part: SummaryPart | ContactPart) -> dict[str, np.ndarray]:
+    """A part as flat arrays (the part store's encoding)."""
+    if isinstance(part, ContactPart):
+        return {"clock": np.array([part.clock], np.int64), "keys": part.keys, "surface": part.surface,
+                "owner": part.owner, "other": part.other, "count": part.count}
+    lows = [v for per in part.low for v in per]
+    highs = [v for per in part.high for v in per]
+    return {"clock": np.array([part.clock], np.int64), "slots": part.slots, "count": part.count, "sums": part.sums,
+            "low_n": np.array([len(v) for v in lows], np.int64), "high_n": np.array([len(v) for v in highs], np.int64),
+            "low": np.concatenate(lows) if lows else np.zeros(0, np.float32),
+            "high": np.concatenate(highs) if highs else np.zeros(0, np.float32)}
+
+
+def part_of(kind: str, a: dict[str, np.ndarray]) -> SummaryPart | ContactPart:
+    """The inverse of :func:`part_arrays`."""
+    clock = int(a["clock"][0])
+    if kind == "contacts":
+        return ContactPart(clock, a["keys"], a["surface"], a["owner"], a["other"], a["count"])
+    part = SummaryPart(clock, a["slots"], a["count"], a["sums"])
+    for name, out in (("low", part.low), ("high", part.high)):
+        values = np.split(a[name], np.cumsum(a[f"{name}_n"])[:-1]) if len(a[f"{name}_n"]) else []
+        for i in range(len(part.slots)):
+            out.append(list(values[3 * i : 3 * i + 3]))
+    return part
+
+
+def _present(kind: str, part: SummaryPart | ContactPart) -> np.ndarray:
+    if isinstance(part, ContactPart):
+        return np.unique(np.concatenate([part.keys, part.owner, part.other]).astype(np.int64))
+    return np.unique(part.slots.astype(np.int64))
+
+
+def relabel_contacts(part: ContactPart, mapping: dict[int, int]) -> ContactPart | None:
+    """A contact part after keys were merged (``{b: a}``) or cleared (``{b: -1}``), exactly, or None
+    when it must be counted again. Contacts count, per (owner, other) key pair, the owner's voxels
+    touching at least one voxel of the other: renaming ``b`` to ``a`` is exact when the part holds
+    ``b`` and not ``a`` (no two counts merge into one), clearing ``b`` drops its rows and pairs
+    (the labelled voxels of other keys are unchanged). A part holding one of a merge's keys and
+    another key the mapping names (both ``a`` and ``b``, or two of its entries) is counted again."""
+    present = set(_present("contacts", part).tolist())
+    named = {k for pair in mapping.items() for k in pair if k >= 0}
+    hit = present & named
+    sources = hit & set(mapping)
+    if not sources:
+        return part  # only merge targets (or nothing) here: no voxel of this part changed its key
+    if len(hit) > 1:
+        return None
+    (b,) = sources
+    a = mapping[b]
+    if a < 0:
+        keep_k = part.keys != b
+        keep_p = (part.owner != b) & (part.other != b)
+        return ContactPart(part.clock, part.keys[keep_k], part.surface[keep_k], part.owner[keep_p],
+                           part.other[keep_p], part.count[keep_p])
+    return ContactPart(part.clock, np.where(part.keys == b, a, part.keys), part.surface.copy(),
+                       np.where(part.owner == b, a, part.owner), np.where(part.other == b, a, part.other),
+                       part.count.copy())
+
+
+@dataclass
 class ChunkCopy:
     """What one chunk's read-out needs, copied under the lock: resident blocks (raw), stored tiles
     (blobs, decoded outside the lock), the slot table and the versions' clock."""
@@ -131,7 +204,57 @@ class TileReadouts:
         #: (tile, slot) -> values its summary part keeps per axis and side, above the default.
         self.keep: dict[tuple[Tile, int], int] = {}
         self._compactions = storage.compactions
-        self.stats = {"summary_tiles_read": 0, "contact_tiles_read": 0}
+        self.stats = {"summary_tiles_read": 0, "contact_tiles_read": 0, "parts_to_store": 0, "parts_from_store": 0,
+                      "contact_parts_relabelled": 0}
+        #: Stored parts found missing when parts were added up (dropped: their tiles are read again).
+        self.missing = 0
+        #: Parts of paged-out tiles (:mod:`openfusion.mapping.partstore`), opened at the first page-out.
+        self.part_store: MemoryParts | None = None
+        pager.on_page_out = self.paged_out
+
+    def close(self) -> None:
+        if self.part_store is not None:
+            self.part_store.close()
+            self.part_store = None
+
+    # ------------------------------------------------------------------ paged-out tiles' parts
+    def _parts_of(self, kind: str) -> dict[Tile, Any]:
+        return self.summaries if kind == "summaries" else self.contacts
+
+    def paged_out(self, tile: Tile) -> None:
+        """``tile`` left the grid (the pager's hook, under the volume's lock): its parts that are
+        current go to the part store (only a small index stays in memory); stale ones are dropped
+        (read again, once, by the next read-out that needs them)."""
+        newest = None
+        for kind in ("summaries", "contacts"):
+            parts = self._parts_of(kind)
+            part = parts.get(tile)
+            if part is None or isinstance(part, StoredPart):
+                continue
+            newest = self._newest_around(tile) if newest is None else newest
+            if newest > part.clock:
+                del parts[tile]
+                continue
+            self._store().put(kind, tile, part_arrays(part))
+            parts[tile] = StoredPart(part.clock, _present(kind, part))
+            self.stats["parts_to_store"] += 1
+
+    def _store(self) -> MemoryParts:
+        if self.part_store is None:
+            store = self.pager.store
+            self.part_store = open_part_store(None if store is None else store.path)
+        return self.part_store
+
+    def _load(self, kind: str, tile: Tile, stored: StoredPart) -> SummaryPart | ContactPart | None:
+        got = self.part_store.get(kind, tile) if self.part_store is not None else None
+        if got is None:
+            return None
+        self.stats["parts_from_store"] += 1
+        return part_of(kind, got)
+
+    def _drop_stored(self, kind: str, tile: Tile) -> None:
+        if self.part_store is not None:
+            self.part_store.delete(kind, tile)
 
     # ------------------------------------------------------------------ invalidation
     def forget(self) -> None:
@@ -139,22 +262,46 @@ class TileReadouts:
         self.summaries.clear()
         self.contacts.clear()
         self.keep.clear()
+        if self.part_store is not None:
+            self.part_store.clear()
         self._compactions = self.storage.compactions
 
     def relabelled(self, changed_slots: np.ndarray, mapping: dict[int, int]) -> None:
-        """Keys were merged or cleared (``mapping``; ``changed_slots`` now read another key)."""
+        """Keys were merged or cleared (``mapping``; ``changed_slots`` now read another key).
+        Contact parts are rewritten where that is exact (:func:`relabel_contacts`), else dropped;
+        summary parts speak slots: only those holding a cleared slot are dropped."""
         keys = np.array([k for pair in mapping.items() for k in pair if k >= 0], np.int64)
         if len(keys):
-            for t in [t for t, part in self.contacts.items() if part.holds(keys)]:
-                del self.contacts[t]
+            for t, part in [(t, p) for t, p in self.contacts.items() if p.holds(keys)]:
+                stored = isinstance(part, StoredPart)
+                full = self._load("contacts", t, part) if stored else part
+                new = relabel_contacts(full, mapping) if full is not None else None  # type: ignore[arg-type]
+                if new is None:
+                    del self.contacts[t]
+                    if stored:
+                        self._drop_stored("contacts", t)
+                    continue
+                if new is not full:
+                    self.stats["contact_parts_relabelled"] += 1
+                    if stored:
+                        self.part_store.put("contacts", t, part_arrays(new))  # type: ignore[union-attr]
+                        self.contacts[t] = StoredPart(new.clock, _present("contacts", new))
+                    else:
+                        self.contacts[t] = new
         cleared = np.asarray(changed_slots, np.int64)
         cleared = cleared[self.storage.slots.key1[cleared] <= 0] if len(cleared) else cleared
         if len(cleared):
-            for t in [t for t, part in self.summaries.items() if np.isin(part.slots, cleared).any()]:
+            for t, part in [(t, p) for t, p in self.summaries.items()
+                            if np.isin(p.present if isinstance(p, StoredPart) else p.slots, cleared).any()]:
                 del self.summaries[t]
+                if isinstance(part, StoredPart):
+                    self._drop_stored("summaries", t)
 
     def _check_compaction(self) -> None:
         if self.storage.compactions != self._compactions:  # slots were renumbered
+            for t, part in list(self.summaries.items()):
+                if isinstance(part, StoredPart):
+                    self._drop_stored("summaries", t)
             self.summaries.clear()
             self.keep.clear()
             self._compactions = self.storage.compactions
@@ -177,7 +324,8 @@ class TileReadouts:
         self._check_compaction()
         tiles = self._tiles()
         for t in [t for t in parts if t not in tiles]:
-            del parts[t]
+            if isinstance(parts.pop(t), StoredPart):
+                self._drop_stored("summaries" if parts is self.summaries else "contacts", t)
         chosen: list[Tile] = []
         for t in sorted(tiles):
             part = parts.get(t)
@@ -222,22 +370,55 @@ class TileReadouts:
         return ChunkCopy(list(chunk), self.pager.versions.clock, resident, stored, self.storage.slots.key1.copy(), keep)
 
     # ------------------------------------------------------------------ results
+    def _put(self, kind: str, parts: dict[Tile, Any]) -> None:
+        """Read-out results (resident or stored tiles: a stored tile's part is written to the part
+        store at once, so only its index stays in memory)."""
+        kept = self._parts_of(kind)
+        for t, part in parts.items():
+            if isinstance(kept.get(t), StoredPart):
+                self._drop_stored(kind, t)
+            if t in self.pager.stored_blocks:
+                self._store().put(kind, t, part_arrays(part))
+                kept[t] = StoredPart(part.clock, _present(kind, part))
+                self.stats["parts_to_store"] += 1
+            else:
+                kept[t] = part
+
     def put_summaries(self, parts: dict[Tile, SummaryPart]) -> None:
-        self.summaries.update(parts)
+        self._put("summaries", parts)
         self.stats["summary_tiles_read"] += len(parts)
 
     def put_contacts(self, parts: dict[Tile, ContactPart], radius_vox: int) -> None:
         if self.contact_radius != radius_vox:
+            for t, part in list(self.contacts.items()):
+                if isinstance(part, StoredPart):
+                    self._drop_stored("contacts", t)
             self.contacts.clear()
             self.contact_radius = radius_vox
-        self.contacts.update(parts)
+        self._put("contacts", parts)
         self.stats["contact_tiles_read"] += len(parts)
 
+    def _materialised(self, kind: str) -> list[tuple[Tile, Any]]:
+        """Every tile's part, paged-out tiles' read from the part store (a part missing there is
+        dropped: read out again next time)."""
+        parts = self._parts_of(kind)
+        out: list[tuple[Tile, Any]] = []
+        for t, part in list(parts.items()):
+            if isinstance(part, StoredPart):
+                full = self._load(kind, t, part)
+                if full is None:
+                    del parts[t]
+                    self.missing += 1
+                    continue
+                part = full
+            out.append((t, part))
+        return out
+
     def summary_parts(self) -> list[tuple[Tile, SummaryPart]]:
-        return list(self.summaries.items())
+        return self._materialised("summaries")
 
     def contact_parts(self) -> list[ContactPart]:
-        return list(self.contacts.values())
+        return [p for _, p in self._materialised("contacts")]
 
 
 # ---------------------------------------------------------------------------- chunk read-outs

@@ -219,6 +219,7 @@ class SemanticVolume:
         with self._lock:
             if self._grower is not None:
                 self._grower.close()
+            self._readouts.close()
             store = self._pager.store
             if store is not None:
                 store.close()
@@ -546,9 +547,13 @@ class SemanticVolume:
         of every labelled block). Kept per tile (:mod:`.tilereadouts`): only tiles whose
         neighbourhood changed since the last call are counted again, a chunk at a time, copied
         holding ``lock`` (a caller's reentrant lock, e.g. a service's) and the volume's lock."""
-        tilereadouts.refresh(self._lock, self._readouts, what="contacts", lock=lock, radius_vox=radius_vox)
-        with self._lock:
-            parts = self._readouts.contact_parts()
+        for _ in range(3):
+            tilereadouts.refresh(self._lock, self._readouts, what="contacts", lock=lock, radius_vox=radius_vox)
+            with self._lock:
+                missing = self._readouts.missing
+                parts = self._readouts.contact_parts()
+                if self._readouts.missing == missing:
+                    break  # else a stored part had gone missing: its tile is read out again
         return tilereadouts.combine_contacts(parts)
 
     def region_table(self, *, lock: Any = None) -> RegionTable:
@@ -562,7 +567,10 @@ class SemanticVolume:
             hold = attempt >= 3
             tilereadouts.refresh(self._lock, self._readouts, what="summaries", lock=lock, hold=hold)
             with tilereadouts.both(lock, self._lock) if hold else self._lock:
+                missing = self._readouts.missing
                 table, failing = tilereadouts.combine_summaries(self._readouts.summary_parts(), self._storage.slots.key1)
+                if self._readouts.missing != missing:
+                    continue  # a stored part had gone missing: its tile is read out again
                 if not failing:
                     return table
                 for (tile, slot), want in failing.items():
