@@ -183,3 +183,41 @@ def test_renders_read_resident_blocks_and_take_no_job(paged: SemanticVolume) -> 
         readout_worker.hooks.remove(hook)
     assert (view.depth_m > 0).any()
     assert readout_worker.STATS["jobs"] == jobs and not seen
+
+
+def test_summaries_that_do_not_settle_are_read_holding_the_locks_in_one_job(paged: SemanticVolume, monkeypatch) -> None:  # noqa: ANN001
+    """When the parts kept too few values three times (a map changing under the read-outs), the
+    fourth try reads holding both locks throughout, as one job of the worker, asked for by a thread
+    that holds neither (a service's save came here and failed before)."""
+    from openfusion.mapping import tilereadouts
+
+    real = tilereadouts.combine_summaries
+    calls = {"n": 0}
+
+    def unsettled(parts, key1):  # noqa: ANN001, ANN202
+        calls["n"] += 1
+        table, failing = real(parts, key1)
+        labelled = [(t, part) for t, part in parts if len(part.slots)]
+        if calls["n"] <= 3 and labelled:
+            t, part = labelled[0]
+            failing = {(t, int(part.slots[0])): 1}
+        return table, failing
+
+    monkeypatch.setattr(tilereadouts, "combine_summaries", unsettled)
+    service_lock = threading.RLock()
+    handle = readout_worker.register_lock(service_lock)
+    seen: list[str] = []
+
+    def hook(event: str, what: str) -> None:
+        if event == "start":
+            seen.append(what)
+
+    readout_worker.hooks.append(hook)
+    try:
+        table = paged.region_table(lock=service_lock)
+    finally:
+        readout_worker.hooks.remove(hook)
+        readout_worker.unregister_lock(handle)
+    assert calls["n"] >= 4 and "summaries" in seen
+    monkeypatch.setattr(tilereadouts, "combine_summaries", real)
+    np.testing.assert_array_equal(table.keys, paged.region_table().keys)

@@ -48,6 +48,8 @@ percent of the surface points' coordinates, 4 bytes each, and a few numbers per 
 from __future__ import annotations
 
 import contextlib
+import functools
+import logging
 import math
 import time
 from collections.abc import Iterator
@@ -66,6 +68,8 @@ from openfusion.mapping.storage import ATTR_NAMES, VoxelStorage
 from openfusion.mapping.summaries import BBOX_PERCENTILE, RegionTable
 from openfusion.mapping.tiles import pack_coords
 from openfusion.mapping.tilestore import decode_tile
+
+logger = logging.getLogger(__name__)
 
 Tile = tuple[int, int, int]
 #: Blocks of one chunk read out at once (8 MiB of compact voxels, plus the halo; measured on the
@@ -407,6 +411,8 @@ class TileReadouts:
             if isinstance(part, StoredPart):
                 full = self._load(kind, t, part)
                 if full is None:
+                    logger.warning("the %s part of paged-out tile %s is missing from the part store; reading the tile again",
+                                   kind, t)
                     del parts[t]
                     self.missing += 1
                     continue
@@ -739,8 +745,9 @@ def refresh(
         raise ValueError(f"what must be 'summaries' or 'contacts', got {what!r}")
     readout_worker.check_caller(what)
     if hold:
-        return readout_worker.run(what, _refresh, volume_lock, readouts, what=what, lock=lock,
-                                  settled_clock=settled_clock, radius_vox=radius_vox, hold=True, max_s=max_s)
+        return readout_worker.run(what, functools.partial(
+            _refresh, volume_lock, readouts, what=what, lock=lock, settled_clock=settled_clock, radius_vox=radius_vox,
+            hold=True, max_s=max_s))
     return _refresh(volume_lock, readouts, what=what, lock=lock, settled_clock=settled_clock,
                     radius_vox=radius_vox, hold=False, max_s=max_s)
 

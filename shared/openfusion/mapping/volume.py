@@ -136,6 +136,7 @@ class VolumeStats:
     blocks_refused: int = 0
     grow_events: int = 0
     renders: int = 0
+    render_budget_short: int = 0  # renders whose view did not fit the memory budget (rendered what was resident)
     updates: int = 0
     voxels_updated: int = 0
 
