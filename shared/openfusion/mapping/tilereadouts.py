@@ -72,9 +72,11 @@ from openfusion.mapping.tilestore import decode_tile
 logger = logging.getLogger(__name__)
 
 Tile = tuple[int, int, int]
-#: Blocks of one chunk read out at once (8 MiB of compact voxels, plus the halo; measured on the
-#: 10-room building: +69 MiB of RssAnon while a chunk is read out, +122 MiB at 2,048 blocks).
-CHUNK_BLOCKS = 1024
+#: Blocks of one chunk read out at once (4 MiB of compact voxels, plus the halo; measured on the
+#: 10-room building: +69 MiB of RssAnon while a chunk is read out at 1,024 blocks, +122 MiB at
+#: 2,048; on a 3-room map loaded lazily a summaries read-out peaked +87-93 MiB at 1,024 and +72-75
+#: at 512, 1.25x the time): one job of the read-out worker holds one chunk.
+CHUNK_BLOCKS = 512
 #: Values a summary part keeps per axis and side at least, and as a share of its points.
 KEEP_MIN = 64
 KEEP_SHARE = 0.02
