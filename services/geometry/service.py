@@ -100,6 +100,7 @@ from openfusion.mapping import (
     readout_worker,
     save_map,
 )
+from openfusion.mapping.heap import limit_malloc_arenas
 from openfusion.mapping.mapfile import resolve_map_path
 from openfusion.mapping.mapstore import checkpoint as checkpoint_store
 from openfusion.mapping.queries import RegionTable
@@ -177,6 +178,8 @@ def check_update(msg: SemanticUpdate) -> None:
         raise ValueError("depth_m must be finite and >= 0")
 
 
+#: glibc malloc arenas of a geometry process under a memory budget (measured in docs/SCALE.md).
+MALLOC_ARENAS = 2
 #: Renders kept for the semantic updates that follow them (the pool applies results in frame order).
 RECENT_RENDERS = 2
 #: A tile unchanged this long has settled: its region-summary part is read out as idle work.
@@ -191,6 +194,8 @@ class GeometryService(DictionaryFollower):
     def __init__(self, config: GeometryConfig) -> None:
         self.config = config
         self.section = config.geometry
+        if self.section.volume_params().memory_budget_mb is not None:  # under a budget, before threads start (heap's docstring)
+            limit_malloc_arenas(MALLOC_ARENAS)
         self._lock = threading.RLock()
         readout_worker.register_lock(self._lock, owner=self)  # read-out jobs take it: never asked for under it
         self.checkpoint_dir: Path | None = (
