@@ -194,10 +194,10 @@ def test_summaries_that_do_not_settle_are_read_holding_the_locks_in_one_job(page
     real = tilereadouts.combine_summaries
     calls = {"n": 0}
 
-    def unsettled(parts, key1):  # noqa: ANN001, ANN202
+    def unsettled(parts, key1, *args, index=None):  # noqa: ANN001, ANN002, ANN202
         calls["n"] += 1
-        table, failing = real(parts, key1)
-        labelled = [(t, part) for t, part in parts if len(part.slots)]
+        table, failing = real(parts, key1, *args, index=index)
+        labelled = [(t, part) for t, part in (index if index is not None else parts) if len(part.slots)]
         if calls["n"] <= 3 and labelled:
             t, part = labelled[0]
             failing = {(t, int(part.slots[0])): 1}
@@ -221,3 +221,38 @@ def test_summaries_that_do_not_settle_are_read_holding_the_locks_in_one_job(page
     assert calls["n"] >= 4 and "summaries" in seen
     monkeypatch.setattr(tilereadouts, "combine_summaries", real)
     np.testing.assert_array_equal(table.keys, paged.region_table().keys)
+
+
+def test_a_checkpoint_whose_passes_fall_behind_encodes_its_last_step_tile_by_tile(tmp_path, monkeypatch) -> None:  # noqa: ANN001
+    """When more than a slice of changed tiles is left for a checkpoint's last step (the camera
+    changed them faster than the passes wrote them), the step copies and encodes one tile at a time
+    instead of copying them all at once; the store then holds the map exactly."""
+    from openfusion.mapping import load_map, mapstore, paging
+
+    monkeypatch.setattr(mapstore, "PRECOPY_PASSES", 0)  # no pass: everything is left to the last step
+    monkeypatch.setattr(paging, "SLICE_BLOCKS", 64)
+    encoded: list[int] = []
+    real = paging.TilePager.encode
+
+    def counting(self, tiles):  # noqa: ANN001, ANN202
+        encoded.append(len(tiles))
+        return real(self, tiles)
+
+    monkeypatch.setattr(paging.TilePager, "encode", counting)
+    volume = SemanticVolume(VolumeParams(**BASE), store=TileStore(tmp_path / "map.ofz"))
+    try:
+        for f in FRAMES[:4]:
+            volume.integrate(f)
+        info = checkpoint(volume, None, {})
+        assert info["tiles"] == len(volume.pager.all_tiles()) > 1
+        assert max(encoded[:-1]) == 1  # one tile per copy under the lock (the last call: the empty rest)
+        loaded = load_map(tmp_path)
+        a, b = loaded.volume.to_arrays(), volume.to_arrays()
+        order_a, order_b = np.lexsort(a["block_coords"].T), np.lexsort(b["block_coords"].T)
+        for name in a:
+            np.testing.assert_array_equal(a[name][order_a], b[name][order_b], err_msg=name)
+        assert not volume.pager.precopy_plan()  # every tile clean and located in the store
+        assert all(volume.pager.location.get(t) == "own" for t in volume.pager.all_tiles())
+        loaded.volume.close()
+    finally:
+        volume.close()

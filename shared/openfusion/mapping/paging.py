@@ -91,6 +91,9 @@ class Snapshot:
     generation: int
     versions: dict[Tile, int]
     tiles: dict[Tile, tuple[np.ndarray, dict[str, np.ndarray]]] = field(default_factory=dict)
+    #: Tiles encoded at the last step already (more than a slice was left: copied and encoded one
+    #: tile at a time under the lock, so the step holds one tile's copy, not all of them).
+    blobs: dict[Tile, bytes] = field(default_factory=dict)
     slot_table: np.ndarray | None = None
     tile_index: np.ndarray | None = None  # int32 (T, 4): every tile of the map and its block count
 
@@ -396,8 +399,17 @@ class TilePager:
         if self.store is None:
             raise RuntimeError("a checkpoint needs a tile store")
         groups = self._resident_groups()
-        tiles, versions = self.copy_tiles(list(groups))
-        snap = Snapshot(self.store.begin_generation(), versions, tiles)
+        left = [t for t in groups if self._needs_writing(t)]
+        if sum(len(groups[t][1]) for t in left) <= SLICE_BLOCKS:
+            tiles, versions = self.copy_tiles(left)
+            snap = Snapshot(self.store.begin_generation(), versions, tiles)
+        else:  # the passes did not catch up (a camera changing much): bounded memory, a longer lock
+            snap = Snapshot(self.store.begin_generation(), {})
+            for t in left:
+                one, version = self.copy_tiles([t])
+                snap.blobs.update(self.encode(one))
+                snap.versions.update(version)
+                del one
         self._written_version = {}
         snap.slot_table = self.storage.slots.to_array()
         return snap
@@ -405,7 +417,7 @@ class TilePager:
     def committed(self, snap: Snapshot) -> None:
         """The snapshot's generation is durable: its tiles are clean at the versions copied."""
         self.versions.mark_written(snap.versions)
-        for t in snap.tiles:
+        for t in snap.versions:  # (snap.tiles is emptied once encoded: its keys were never set here)
             self.location[t] = "own"
 
     # ------------------------------------------------------------------ key compaction

@@ -120,9 +120,19 @@ class StoredPart:
 
     clock: int
     present: np.ndarray  # (n,) int64, sorted
+    #: A summary part's slots, point counts and coordinate sums (what adding parts up reads first).
+    slots: np.ndarray | None = None
+    count: np.ndarray | None = None
+    sums: np.ndarray | None = None
 
     def holds(self, keys: np.ndarray) -> bool:
         return bool(np.isin(self.present, keys).any())
+
+
+def _stored(kind: str, part: SummaryPart | ContactPart) -> StoredPart:
+    if isinstance(part, SummaryPart):
+        return StoredPart(part.clock, _present(kind, part), part.slots, part.count, part.sums)
+    return StoredPart(part.clock, _present(kind, part))
 
 
 def part_arrays(part: SummaryPart | ContactPart) -> dict[str, np.ndarray]:
@@ -242,7 +252,7 @@ class TileReadouts:
                 del parts[tile]
                 continue
             self._store().put(kind, tile, part_arrays(part))
-            parts[tile] = StoredPart(part.clock, _present(kind, part))
+            parts[tile] = _stored(kind, part)
             self.stats["parts_to_store"] += 1
 
     def _store(self) -> MemoryParts:
@@ -291,7 +301,7 @@ class TileReadouts:
                     self.stats["contact_parts_relabelled"] += 1
                     if stored:
                         self.part_store.put("contacts", t, part_arrays(new))  # type: ignore[union-attr]
-                        self.contacts[t] = StoredPart(new.clock, _present("contacts", new))
+                        self.contacts[t] = _stored("contacts", new)
                     else:
                         self.contacts[t] = new
         cleared = np.asarray(changed_slots, np.int64)
@@ -385,7 +395,7 @@ class TileReadouts:
                 self._drop_stored(kind, t)
             if t in self.pager.stored_blocks:
                 self._store().put(kind, t, part_arrays(part))
-                kept[t] = StoredPart(part.clock, _present(kind, part))
+                kept[t] = _stored(kind, part)
                 self.stats["parts_to_store"] += 1
             else:
                 kept[t] = part
@@ -424,6 +434,26 @@ class TileReadouts:
 
     def summary_parts(self) -> list[tuple[Tile, SummaryPart]]:
         return self._materialised("summaries")
+
+    def summary_index(self) -> list[tuple[Tile, Any]]:
+        """Every tile's summary part or, for a stored one, its index entry (slots, counts, sums:
+        what :func:`combine_summaries` reads first, without reading the part store)."""
+        return list(self.summaries.items())
+
+    def iter_summary_parts(self) -> Iterator[tuple[Tile, SummaryPart]]:
+        """Every tile's summary part, stored ones read from the part store one at a time (a part
+        missing there is dropped and counted in :attr:`missing`: read out again next time)."""
+        for t, part in list(self.summaries.items()):
+            if isinstance(part, StoredPart):
+                full = self._load("summaries", t, part)
+                if full is None:
+                    logger.warning("the summaries part of paged-out tile %s is missing from the part store; "
+                                   "reading the tile again", t)
+                    self.summaries.pop(t, None)
+                    self.missing += 1
+                    continue
+                part = full
+            yield t, part
 
     def contact_parts(self) -> list[ContactPart]:
         return [p for _, p in self._materialised("contacts")]
@@ -636,66 +666,79 @@ def _bounds(n: int, percentile: float) -> tuple[_Bound, _Bound]:
     return _Bound(l1, l2, lw), _Bound(n - 1 - h2, n - 1 - h1, hw)
 
 
-def combine_summaries(parts: list[tuple[Tile, SummaryPart]], key1: np.ndarray,
-                      percentile: float = BBOX_PERCENTILE) -> tuple[RegionTable, dict[tuple[Tile, int], int]]:
+def combine_summaries(parts: Any, key1: np.ndarray, percentile: float = BBOX_PERCENTILE, *,
+                      index: Any = None) -> tuple[RegionTable, dict[tuple[Tile, int], int]]:
     """The whole map's region table from every tile's part, and the (tile, slot) parts that kept
-    too few values for it to be exact, with how many they must keep (module docstring)."""
-    entries: dict[int, list[tuple[Tile, int, SummaryPart]]] = {}
-    for t, part in parts:
+    too few values for it to be exact, with how many they must keep (module docstring).
+
+    Streamed, so adding up a floor's parts never holds them all: ``index`` (default: ``parts``)
+    gives every tile's slots, counts and sums (the points and centroid per key, and so the ranks
+    each box bound needs); ``parts`` (a list of ``(tile, part)``, or a callable returning an
+    iterator over them, e.g. parts read from the part store one at a time) is then read once,
+    keeping per key, side and axis only the lowest values the bound's rank needs."""
+    first = index if index is not None else (parts() if callable(parts) else parts)
+    counts: dict[int, int] = {}
+    sums: dict[int, np.ndarray] = {}
+    for _t, part in first:
         for i, s in enumerate(part.slots):
             key = int(key1[int(s)]) - 1
             if key >= 0:
-                entries.setdefault(key, []).append((t, i, part))
-    keys = sorted(entries)
+                counts[key] = counts.get(key, 0) + int(part.count[i])
+                sums[key] = sums.get(key, np.zeros(3)) + np.asarray(part.sums[i], np.float64)
+    keys = sorted(counts)
+    row_of = {k: r for r, k in enumerate(keys)}
+    bounds = {k: _bounds(counts[k], percentile) for k in keys}
+    lowest: dict[tuple[int, int, int], np.ndarray] = {}
+    truncated: dict[tuple[int, int, int], list[tuple[Tile, int, float]]] = {}
+    for t, part in (parts() if callable(parts) else parts):
+        for i, s in enumerate(part.slots):
+            key = int(key1[int(s)]) - 1
+            if key < 0:
+                continue
+            n_i = int(part.count[i])
+            for side, values in ((0, part.low[i]), (1, part.high[i])):
+                k = bounds[key][side].r2 + 1
+                for axis in range(3):
+                    lst = values[axis]
+                    at = (key, side, axis)
+                    if len(lst) < n_i:
+                        truncated.setdefault(at, []).append((t, int(s), float(lst[-1]) if len(lst) else -math.inf))
+                    run = np.concatenate([lowest[at], lst]) if at in lowest else np.asarray(lst, np.float64)
+                    if len(run) > k:
+                        run = np.partition(run, k - 1)[:k]
+                    lowest[at] = run.astype(np.float64, copy=False)
     n_keys = len(keys)
-    counts = np.zeros(n_keys, np.int64)
+    count_arr = np.zeros(n_keys, np.int64)
     centroid = np.zeros((n_keys, 3), np.float32)
     bbox = np.zeros((2, n_keys, 3), np.float64)
     failing: dict[tuple[Tile, int], int] = {}
-    for row, key in enumerate(keys):
-        group = entries[key]
-        n = int(sum(int(p.count[i]) for _, i, p in group))
-        sums = np.sum([p.sums[i] for _, i, p in group], axis=0)
-        counts[row] = n
-        centroid[row] = (sums / max(n, 1)).astype(np.float32)
-        low_b, high_b = _bounds(n, percentile)
-        for side, bound in ((0, low_b), (1, high_b)):
+    for key in keys:
+        row = row_of[key]
+        n = counts[key]
+        count_arr[row] = n
+        centroid[row] = (sums[key] / max(n, 1)).astype(np.float32)
+        for side in (0, 1):
+            bound = bounds[key][side]
+            k = bound.r2 + 1
             for axis in range(3):
-                lists = [(p.low if side == 0 else p.high)[i][axis] for _, i, p in group]
-                value = _combined(group, lists, bound, failing)
-                if value is None:
+                at = (key, side, axis)
+                run = lowest.get(at, np.zeros(0))
+                cut = float(run.max()) if len(run) >= k else None
+                ok = True
+                for t, slot, last in truncated.get(at, []):
+                    if cut is None or last < cut:
+                        failing[(t, slot)] = max(failing.get((t, slot), 0), int(1.25 * k) + 16)
+                        ok = False
+                if not ok or cut is None:
                     continue
-                v1, v2 = value
+                ordered = np.sort(run)
+                v1, v2 = float(ordered[bound.r1]), float(ordered[bound.r2])
                 if side == 1:  # ranks of negated values: v[h1] = -v2, v[h2] = -v1 (negation is exact)
                     v1, v2 = -v2, -v1
                 bbox[side, row, axis] = v1 * (1.0 - bound.w) + v2 * bound.w
-    table = RegionTable(np.array(keys, np.int32), counts, centroid, bbox[0].astype(np.float32), bbox[1].astype(np.float32))
+    table = RegionTable(np.array(keys, np.int32), count_arr, centroid, bbox[0].astype(np.float32),
+                        bbox[1].astype(np.float32))
     return table, failing
-
-
-def _combined(group: list[tuple[Tile, int, SummaryPart]], lists: list[np.ndarray], bound: _Bound,
-              failing: dict[tuple[Tile, int], int]) -> tuple[float, float] | None:
-    """Ascending values at ranks ``bound.r1`` and ``bound.r2`` of the union of every part's values,
-    from the values the parts kept; None (and ``failing`` filled) when that is not exact."""
-    k = bound.r2 + 1
-    union = np.concatenate(lists).astype(np.float64)
-    truncated = [(j, lst) for j, lst in enumerate(lists) if len(lst) < int(group[j][2].count[group[j][1]])]
-    if len(union) < k:
-        cut = None
-    else:
-        cut = float(np.partition(union, k - 1)[k - 1])
-    ok = True
-    for j, lst in truncated:
-        if cut is None or float(lst[-1]) < cut:
-            t, i, part = group[j]
-            want = int(1.25 * k) + 16
-            slot_key = (t, int(part.slots[i]))
-            failing[slot_key] = max(failing.get(slot_key, 0), want)
-            ok = False
-    if not ok or cut is None:
-        return None
-    lowest = np.sort(np.partition(union, k - 1)[:k]) if k < len(union) else np.sort(union)
-    return float(lowest[bound.r1]), float(lowest[bound.r2])
 
 
 # ---------------------------------------------------------------------------- driving a refresh

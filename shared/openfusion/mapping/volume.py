@@ -569,7 +569,9 @@ class SemanticVolume:
             tilereadouts.refresh(self._lock, self._readouts, what="summaries", lock=lock, hold=hold)
             with tilereadouts.both(lock, self._lock) if hold else self._lock:
                 missing = self._readouts.missing
-                table, failing = tilereadouts.combine_summaries(self._readouts.summary_parts(), self._storage.slots.key1)
+                # Streamed: stored parts are read from the part store one at a time, never all at once.
+                table, failing = tilereadouts.combine_summaries(
+                    self._readouts.iter_summary_parts, self._storage.slots.key1, index=self._readouts.summary_index())
                 if self._readouts.missing != missing:
                     continue  # a stored part had gone missing: its tile is read out again
                 if not failing:
