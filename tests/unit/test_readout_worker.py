@@ -229,7 +229,7 @@ def test_a_checkpoint_whose_passes_fall_behind_encodes_its_last_step_tile_by_til
     instead of copying them all at once; the store then holds the map exactly."""
     from openfusion.mapping import load_map, mapstore, paging
 
-    monkeypatch.setattr(mapstore, "PRECOPY_PASSES", 0)  # no pass: everything is left to the last step
+    monkeypatch.setattr(mapstore, "PRECOPY_PASSES_MAX", 0)  # no pass: everything is left to the last step
     monkeypatch.setattr(paging, "SLICE_BLOCKS", 64)
     encoded: list[int] = []
     real = paging.TilePager.encode

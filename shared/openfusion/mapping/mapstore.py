@@ -99,12 +99,15 @@ def _summary_arrays(volume: SemanticVolume, regions: RegionTable | None, summary
     return {f"summary_{n}": np.ascontiguousarray(getattr(regions, n)) for n in SUMMARY_ARRAYS}
 
 
-#: Passes over the changed tiles before a checkpoint's last step, at most (each copies again what
-#: the camera changed during the one before, until a slice at most is left; the last step copies
-#: what is left under the lock, encoding tile by tile when more than a slice is: a checkpoint of
-#: 561 tiles on the 10-room walk through the services left +220 MiB of copies to its last step
-#: after 3 passes, the read-out worker's other jobs interleaved with its slices).
-PRECOPY_PASSES = 8
+#: Passes over the changed tiles before a checkpoint's last step: at least this many (each copies
+#: again what the camera changed during the one before), more (up to :data:`PRECOPY_PASSES_MAX`)
+#: while each pass leaves fewer tiles than the one before and more than a slice is left. The last
+#: step copies what is left under the lock, encoding tile by tile when more than a slice is (a
+#: checkpoint of 561 tiles on the 10-room walk through the services left +220 MiB of copies to
+#: its last step after 3 passes). Eight passes every time made checkpoints on a small budget take
+#: 7 s (the camera changes a slice's worth again during each pass).
+PRECOPY_PASSES = 3
+PRECOPY_PASSES_MAX = 6
 
 HeaderState = Callable[[], tuple[RegionDictionary, dict[str, Any]]]
 
@@ -173,11 +176,16 @@ def checkpoint(
 
     # Every slice and the last step is one job on the read-out worker (one chunk in hand in the
     # process at a time: openfusion.mapping.readout_worker); the caller holds no lock meanwhile.
-    for n in range(PRECOPY_PASSES):
+    left = None
+    for n in range(PRECOPY_PASSES_MAX):
         with guard:
             plan = volume.checkpoint_plan()
         if not plan or (n > 0 and len(plan) == 1):
             break  # what is left is small: the last step copies it
+        tiles_left = sum(len(s) for s in plan)
+        if n >= PRECOPY_PASSES and left is not None and tiles_left >= left:
+            break  # the passes no longer catch up: the last step encodes what is left tile by tile
+        left = tiles_left
         for tiles in plan:
             n_tiles, n_bytes = readout_worker.run("checkpoint", one_slice, tiles)
             if n_tiles or n_bytes:

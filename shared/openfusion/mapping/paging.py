@@ -37,7 +37,11 @@ Checkpoints (:mod:`openfusion.mapping.mapstore` drives them; the pager keeps the
     camera saw during the passes) are copied, the slot table and tile index taken and a new
     generation begun for page-outs; the last transaction commits the generation. So a checkpoint
     holds a slice, not the map's changes, in memory, and its cost follows what changed since
-    the last one, whatever the size of the map.
+    the last one, whatever the size of the map. When more than a slice is left for the last step
+    (the passes fell behind a camera changing much), it copies and encodes one tile at a time
+    under the lock: memory stays bounded, the lock is held longer. Each slice and the last step
+    is one job of the read-out worker (:mod:`openfusion.mapping.readout_worker`). A paged-out
+    tile's read-out parts go to disk with it (:attr:`TilePager.on_page_out`).
 
     A slice and a page-out can race for one tile (the slice copied it, then the camera changed it
     and it was paged out, both writing into the same generation): :meth:`TilePager.write_slice`

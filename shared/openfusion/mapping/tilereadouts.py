@@ -41,8 +41,16 @@ or one of its 26 neighbour tiles changed after the part's blocks were copied
 Cost and memory: a refresh reads out only stale tiles, in chunks of :data:`CHUNK_BLOCKS` blocks with
 their halo, copied under the volume's lock (and the caller's: a service's) and read out in a
 scratch grid outside it, so integration waits for a copy, never for a read-out, and the memory it
-needs is one chunk's, whatever the size of the map. The parts themselves are small (a few
-percent of the surface points' coordinates, 4 bytes each, and a few numbers per region and tile).
+needs is one chunk's, whatever the size of the map. Each chunk is one job of the read-out worker
+(:mod:`openfusion.mapping.readout_worker`): one chunk in hand in the process at a time, whatever
+else reads the map. The parts themselves are small (a few percent of the surface points'
+coordinates, 4 bytes each, and a few numbers per region and tile), but they grow with the area:
+a paged-out tile's parts go to disk with it (:mod:`openfusion.mapping.partstore`; memory keeps
+:class:`StoredPart`, an index of slots, counts and sums), and adding the summaries up is streamed
+(:func:`combine_summaries` reads the stored parts one at a time and keeps, per region, axis and
+side, only the lowest values its percentile's rank needs), so neither holds every part at once.
+A merge rewrites a contact part that holds the merged-away key but not the surviving one
+(:func:`relabel_contacts`: exact), so its tile is not counted again.
 """
 
 from __future__ import annotations

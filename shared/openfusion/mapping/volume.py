@@ -22,7 +22,9 @@ part of the story (read their docstrings for the rules):
   :mod:`openfusion.mapping.tilestore` -- tiles, the memory budget (``memory_budget_mb``: tiles
   paged out to the tile store and back in before a frame or a render reaches them), incremental
   checkpoints; :mod:`openfusion.mapping.wholemap` -- read-outs of the whole map while part of it
-  is paged out.
+  is paged out; :mod:`openfusion.mapping.readout_worker` -- every whole-map read-out (points,
+  meshes, summaries, contacts, checkpoint slices) as jobs of one worker thread, one chunk at a time
+  in the process; :mod:`openfusion.mapping.partstore` -- paged-out tiles' read-out parts on disk.
 
 Names that moved to those modules (``RayHits``, ``SurfacePoints``, ``fill_nearest_labels``, ...)
 are re-exported here, so ``from openfusion.mapping.volume import ...`` keeps working.

@@ -12,7 +12,8 @@ of the whole map in one grid (``tests/unit/test_mapping_paging.py`` checks it), 
 sorted order. With a key filter only the tiles holding one of the keys, and their neighbours, are
 read out (a query's points: a few tiles, not the building). Stored tiles are read from the store one at a time (a small cache keeps the
 neighbours of the current chunk), so the read-out needs the scratch grid and the result, never the
-whole map, in memory. Mesh vertices on a chunk seam appear once per chunk (triangles are not
+whole map, in memory; each read-out is one job of the read-out worker
+(:mod:`openfusion.mapping.readout_worker`), so two read-outs never hold their chunks at once. Mesh vertices on a chunk seam appear once per chunk (triangles are not
 duplicated, vertices are not welded across seams).
 """
 
