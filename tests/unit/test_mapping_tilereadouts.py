@@ -182,6 +182,11 @@ def test_paged_out_tiles_parts_come_from_the_part_store_without_decoding(monkeyp
         _assert_same_contacts(v.region_contacts(), block_contacts(*v.labelled_blocks()))
         assert parts.stats["contact_parts_relabelled"] > 0
         assert _read(v, "contact") - read < len(v.pager.all_tiles())
+        # A cleared key: its rows and pairs leave the parts that hold it, exactly.
+        relabelled = parts.stats["contact_parts_relabelled"]
+        v.relabel_keys({int(v.region_contacts().keys[1]): -1})
+        _assert_same_contacts(v.region_contacts(), block_contacts(*v.labelled_blocks()))
+        assert parts.stats["contact_parts_relabelled"] > relabelled
         # A stored part gone missing: dropped, and its tile read out again (exact all the same).
         parts.part_store.delete("summaries", quiet[0])
         _assert_same_table(v.region_table(), _reference(v))
