@@ -99,15 +99,15 @@ def _summary_arrays(volume: SemanticVolume, regions: RegionTable | None, summary
     return {f"summary_{n}": np.ascontiguousarray(getattr(regions, n)) for n in SUMMARY_ARRAYS}
 
 
-#: Passes over the changed tiles before a checkpoint's last step: at least this many (each copies
-#: again what the camera changed during the one before), more (up to :data:`PRECOPY_PASSES_MAX`)
-#: while each pass leaves fewer tiles than the one before and more than a slice is left. The last
-#: step copies what is left under the lock, encoding tile by tile when more than a slice is (a
-#: checkpoint of 561 tiles on the 10-room walk through the services left +220 MiB of copies to
-#: its last step after 3 passes). Eight passes every time made checkpoints on a small budget take
-#: 7 s (the camera changes a slice's worth again during each pass).
+#: Passes over the changed tiles before a checkpoint's last step (each copies again what the
+#: camera changed during the one before); more (up to :data:`PRECOPY_PASSES_MAX`) only while each
+#: pass leaves fewer tiles than the one before. The last step copies what is left under the lock,
+#: and encodes it tile by tile when more than a slice is left (a checkpoint of 561 tiles on the
+#: 10-room walk through the services had left +220 MiB of copies to it). Up to 6 passes made
+#: checkpoints on a 40 MiB budget take 5-7 s instead of 1.5-3.5 (the camera changes a slice's worth
+#: again during each pass): kept at 3, the tile-by-tile last step bounds the memory.
 PRECOPY_PASSES = 3
-PRECOPY_PASSES_MAX = 6
+PRECOPY_PASSES_MAX = 3
 
 HeaderState = Callable[[], tuple[RegionDictionary, dict[str, Any]]]
 
