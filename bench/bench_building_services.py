@@ -94,6 +94,20 @@ def _at(samples: list[tuple[float, float, float]], q: float, col: int) -> float:
     return [s[col] for s in samples if s[0] <= when][-1]
 
 
+def _quarter_medians(samples: list[tuple[float, float, float]], col: int) -> list[float]:
+    """The median of the samples in each quarter of geometry's life (the level a quarter holds,
+    where one sample may catch a read-out's chunk or not)."""
+    import statistics
+
+    t0, t1 = samples[0][0], samples[-1][0]
+    out = []
+    for q in range(4):
+        lo, hi = t0 + q / 4 * (t1 - t0), t0 + (q + 1) / 4 * (t1 - t0)
+        vals = [s[col] for s in samples if lo <= s[0] <= hi]
+        out.append(statistics.median(vals) if vals else float("nan"))
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     from openfusion.sources import open_source
 
@@ -140,6 +154,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {r['budget']} | {r['exit']} | " + " | ".join(f"{v:.0f}" for v in rss) + f" | {peak_rss:.0f} | "
               + " | ".join(f"{v:.0f}" for v in anon) + f" | {peak_anon:.0f} | {over} | {frames} | {r['wall_s']:.0f} | "
               f"{mib:.1f} | {float(r['map_bytes']) / 1e6 / floor_m2:.3f} | {'yes' if r['mesh'] else 'no'} |")
+    print("\nRssAnon median per quarter of geometry's life (MiB; the last quarter includes its exit):\n")
+    print("| budget MiB | q1 | q2 | q3 | q4 | q2-q4 max / q1 |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        s = r["samples"]
+        if s:
+            med = _quarter_medians(s, 2)  # type: ignore[arg-type]
+            print(f"| {r['budget']} | " + " | ".join(f"{v:.0f}" for v in med) + f" | {max(med[1:]) / med[0]:.2f} |")
     for r in rows:
         if r["exit"] != 0:
             print(f"\nbudget {r['budget']}: exit {r['exit']}; stderr tail:\n{r['stderr']}")

@@ -83,7 +83,7 @@ def load_other(path: Path, params: VolumeParams, checkpoint_dir: Path | None) ->
 
 def _with_store(volume: SemanticVolume, params: VolumeParams, checkpoint_dir: Path) -> SemanticVolume:
     """``volume``'s blocks in a new volume whose own store is the checkpoint folder's (emptied)."""
-    arrays = volume.to_arrays()
+    arrays = volume.unshared_arrays()  # a volume only this thread knows: no read-out job (the caller holds locks)
     volume.close()
     fresh = new_volume(params, checkpoint_dir, fresh=True)
     if len(arrays["block_coords"]):

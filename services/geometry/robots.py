@@ -175,7 +175,9 @@ class RobotJoiner:
                 for frame in chunk:
                     window.add(frame)
                 windows.append((window.points, window.frames))
-            map_points = service.volume.extract_points().points.astype(np.float64)
+            volume = service.volume
+        # A whole-map read-out: a job of the read-out worker, asked for holding no lock (its rule 1).
+        map_points = volume.extract_points().points.astype(np.float64)
         guess = robot.spec.T_map_odom if robot.spec.mode == "guess" else None
 
         def render_depth(T_map_cam: np.ndarray, K) -> np.ndarray:  # noqa: ANN001

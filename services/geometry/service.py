@@ -97,8 +97,10 @@ from openfusion.mapping import (
     RegionDictionary,
     RenderedView,
     SemanticVolume,
+    readout_worker,
     save_map,
 )
+from openfusion.mapping.heap import limit_malloc_arenas
 from openfusion.mapping.mapfile import resolve_map_path
 from openfusion.mapping.mapstore import checkpoint as checkpoint_store
 from openfusion.mapping.queries import RegionTable
@@ -176,6 +178,8 @@ def check_update(msg: SemanticUpdate) -> None:
         raise ValueError("depth_m must be finite and >= 0")
 
 
+#: glibc malloc arenas of a geometry process under a memory budget (measured in docs/SCALE.md).
+MALLOC_ARENAS = 2
 #: Renders kept for the semantic updates that follow them (the pool applies results in frame order).
 RECENT_RENDERS = 2
 #: A tile unchanged this long has settled: its region-summary part is read out as idle work.
@@ -190,9 +194,12 @@ class GeometryService(DictionaryFollower):
     def __init__(self, config: GeometryConfig) -> None:
         self.config = config
         self.section = config.geometry
+        if self.section.volume_params().memory_budget_mb is not None:  # under a budget, before threads start (heap's docstring)
+            limit_malloc_arenas(MALLOC_ARENAS)
         self._lock = threading.RLock()
         #: Which geometry shard this is (docs/SHARDS.md): 0/1, the whole map, unless ``shard`` says.
         self.shard = self.section.shard_service
+        readout_worker.register_lock(self._lock, owner=self)  # read-out jobs take it: never asked for under it
         self.checkpoint_dir: Path | None = (
             sharding.checkpoint_dir(self.section.map_dir / config.map_id, self.shard)
             if self.section.map_dir is not None else None
@@ -351,11 +358,14 @@ class GeometryService(DictionaryFollower):
                                             lock=self._lock, state=state)
                     tiles = int(info["tiles"])
                     written = store.path if own else store.copy_to(Path(target) / STORE_DIR_NAME)
-                else:  # no store of its own (no map_dir), or a version-1 file named: under the lock
-                    with self._lock:
-                        dictionary, meta = state()
-                        written = save_map(target, volume, dictionary, meta=meta, regions=regions,
-                                           summary=regions is not None)
+                else:  # no store of its own (no map_dir), or a version-1 file named: under the lock, one read-out job
+                    def save_locked() -> Path:
+                        with self._lock:
+                            dictionary, meta = state()
+                            return save_map(target, volume, dictionary, meta=meta, regions=regions,
+                                            summary=regions is not None)
+
+                    written = readout_worker.run("save", save_locked)
             except OSError as exc:
                 # Disk full, read-only folder...: the store (or file) is as it was before; the map
                 # stays in memory and the next period tries again.
@@ -632,7 +642,8 @@ class GeometryService(DictionaryFollower):
     def handle_points(self, req: PointsRequest) -> PointsReply:
         cap = self._points_cap(req.max_points)
         with self._lock:
-            pts = self.volume.extract_points(keys=req.keys, max_points=None)
+            volume = self.volume
+        pts = volume.extract_points(keys=req.keys, max_points=None)  # a read-out job: asked for holding no lock
         n = len(pts.points)
         if n > cap:
             idx = np.sort(np.random.default_rng(0).choice(n, size=cap, replace=False))
@@ -670,7 +681,8 @@ class GeometryService(DictionaryFollower):
 
     def handle_mesh(self, req: MeshRequest) -> MeshReply:
         with self._lock:
-            mesh = self.volume.extract_mesh(keys=req.keys)
+            volume = self.volume
+        mesh = volume.extract_mesh(keys=req.keys)  # a read-out job: asked for holding no lock
         if len(mesh.vertices) > self.section.max_points_reply:
             raise RequestError(
                 "too_large",

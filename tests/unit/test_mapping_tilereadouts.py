@@ -128,3 +128,68 @@ def test_a_chunk_whose_labelled_points_all_lie_in_its_halo_gives_empty_parts(mon
         _assert_same_table(volume.region_table(), _reference(volume))
     finally:
         volume.close()
+
+
+def test_paged_out_tiles_parts_come_from_the_part_store_without_decoding(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Parts of tiles that leave the grid go to the part store (memory keeps an index); the next
+    summaries and contacts read those small parts, never decode the tiles again while nothing
+    changed around them, and still equal the whole map's. A merge rewrites the stored contact parts
+    that hold only its merged-away key instead of counting their tiles again. Bad input tried: a
+    part store entry that went missing (the part is dropped and its tile read out again)."""
+    probe = SemanticVolume(VolumeParams(**BASE))
+    _labelled(probe, FRAMES)
+    budget = 0.75 * probe.num_blocks * 8192 / 2**20
+    probe.close()
+    v = SemanticVolume(VolumeParams(**BASE, memory_budget_mb=budget))
+    try:
+        _labelled(v, FRAMES[:6])
+        v.region_table()
+        v.region_contacts()
+        _labelled(v, FRAMES[6:])  # walk on: tiles read out above leave the grid
+        parts = v._readouts
+        stored = [t for t in v.pager.stored_blocks if isinstance(parts.summaries.get(t), tilereadouts.StoredPart)]
+        assert stored and parts.stats["parts_to_store"] >= len(stored)
+        assert all(isinstance(parts.contacts.get(t), tilereadouts.StoredPart) for t in stored)
+        decoded: list[tuple] = []
+        real = tilereadouts.decode_tile
+
+        def counted(codec, blob, where="tile"):  # noqa: ANN001, ANN202
+            decoded.append(where)
+            return real(codec, blob, where)
+
+        monkeypatch.setattr(tilereadouts, "decode_tile", counted)
+        stale = {t for chunk in parts.stale(dict(parts.summaries)) for t in chunk}
+        stale |= {t for chunk in parts.stale(dict(parts.contacts)) for t in chunk}
+        before = parts.stats["parts_from_store"]
+        _assert_same_table(v.region_table(), _reference(v))
+        _assert_same_contacts(v.region_contacts(), block_contacts(*v.labelled_blocks()))
+        assert parts.stats["parts_from_store"] - before >= 2 * len(stored)
+        # Every decode was of a stale tile or a stale tile's neighbour (its halo), none of the stored
+        # tiles whose neighbourhood is unchanged.
+        halo = {(t[0] + dx, t[1] + dy, t[2] + dz) for t in stale for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)}
+        quiet = [t for t in stored if t not in halo]
+        assert quiet
+        assert not [w for w in decoded if any(w == f"tile {t}" for t in quiet)]
+        decoded.clear()
+        v.region_table()
+        v.region_contacts()
+        assert not decoded  # nothing changed: nothing decoded at all
+        # A merge of a key into one a stored part does not hold: rewritten in place, not recounted.
+        c = v.region_contacts()
+        read = _read(v, "contact")
+        b, a = int(c.keys[-1]), int(c.keys[0])
+        v.relabel_keys({b: a})
+        _assert_same_contacts(v.region_contacts(), block_contacts(*v.labelled_blocks()))
+        assert parts.stats["contact_parts_relabelled"] > 0
+        assert _read(v, "contact") - read < len(v.pager.all_tiles())
+        # A cleared key: its rows and pairs leave the parts that hold it, exactly.
+        relabelled = parts.stats["contact_parts_relabelled"]
+        v.relabel_keys({int(v.region_contacts().keys[1]): -1})
+        _assert_same_contacts(v.region_contacts(), block_contacts(*v.labelled_blocks()))
+        assert parts.stats["contact_parts_relabelled"] > relabelled
+        # A stored part gone missing: dropped, and its tile read out again (exact all the same).
+        parts.part_store.delete("summaries", quiet[0])
+        _assert_same_table(v.region_table(), _reference(v))
+    finally:
+        v.close()
+    assert v._readouts.part_store is None

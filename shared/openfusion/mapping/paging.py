@@ -37,7 +37,11 @@ Checkpoints (:mod:`openfusion.mapping.mapstore` drives them; the pager keeps the
     camera saw during the passes) are copied, the slot table and tile index taken and a new
     generation begun for page-outs; the last transaction commits the generation. So a checkpoint
     holds a slice, not the map's changes, in memory, and its cost follows what changed since
-    the last one, whatever the size of the map.
+    the last one, whatever the size of the map. When more than a slice is left for the last step
+    (the passes fell behind a camera changing much), it copies and encodes one tile at a time
+    under the lock: memory stays bounded, the lock is held longer. Each slice and the last step
+    is one job of the read-out worker (:mod:`openfusion.mapping.readout_worker`). A paged-out
+    tile's read-out parts go to disk with it (:attr:`TilePager.on_page_out`).
 
     A slice and a page-out can race for one tile (the slice copied it, then the camera changed it
     and it was paged out, both writing into the same generation): :meth:`TilePager.write_slice`
@@ -48,7 +52,7 @@ Checkpoints (:mod:`openfusion.mapping.mapstore` drives them; the pager keeps the
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -91,6 +95,9 @@ class Snapshot:
     generation: int
     versions: dict[Tile, int]
     tiles: dict[Tile, tuple[np.ndarray, dict[str, np.ndarray]]] = field(default_factory=dict)
+    #: Tiles encoded at the last step already (more than a slice was left: copied and encoded one
+    #: tile at a time under the lock, so the step holds one tile's copy, not all of them).
+    blobs: dict[Tile, bytes] = field(default_factory=dict)
     slot_table: np.ndarray | None = None
     tile_index: np.ndarray | None = None  # int32 (T, 4): every tile of the map and its block count
 
@@ -125,6 +132,9 @@ class TilePager:
         self._written_version: dict[Tile, int] = {}
         self.stats = PagerStats()
         self.camera_m = np.zeros(3)
+        #: Called with a tile after it was paged out (under the volume's lock): the read-out parts
+        #: of it go to disk (:meth:`openfusion.mapping.tilereadouts.TileReadouts.paged_out`).
+        self.on_page_out: Callable[[Tile], None] | None = None
         storage.on_compact_keys = self._compact_stored_keys
 
     # ------------------------------------------------------------------ bookkeeping
@@ -264,6 +274,8 @@ class TilePager:
         self.last_used.pop(tile, None)
         self.stored_blocks[tile] = len(buf)
         self.stats.tiles_paged_out += 1
+        if self.on_page_out is not None:
+            self.on_page_out(tile)
 
     def _store_of(self, tile: Tile) -> TileStore:
         store = self.base if self.location.get(tile) == "base" else self.store
@@ -391,8 +403,17 @@ class TilePager:
         if self.store is None:
             raise RuntimeError("a checkpoint needs a tile store")
         groups = self._resident_groups()
-        tiles, versions = self.copy_tiles(list(groups))
-        snap = Snapshot(self.store.begin_generation(), versions, tiles)
+        left = [t for t in groups if self._needs_writing(t)]
+        if sum(len(groups[t][1]) for t in left) <= SLICE_BLOCKS:
+            tiles, versions = self.copy_tiles(left)
+            snap = Snapshot(self.store.begin_generation(), versions, tiles)
+        else:  # the passes did not catch up (a camera changing much): bounded memory, a longer lock
+            snap = Snapshot(self.store.begin_generation(), {})
+            for t in left:
+                one, version = self.copy_tiles([t])
+                snap.blobs.update(self.encode(one))
+                snap.versions.update(version)
+                del one
         self._written_version = {}
         snap.slot_table = self.storage.slots.to_array()
         return snap
@@ -400,7 +421,7 @@ class TilePager:
     def committed(self, snap: Snapshot) -> None:
         """The snapshot's generation is durable: its tiles are clean at the versions copied."""
         self.versions.mark_written(snap.versions)
-        for t in snap.tiles:
+        for t in snap.versions:  # (snap.tiles is emptied once encoded: its keys were never set here)
             self.location[t] = "own"
 
     # ------------------------------------------------------------------ key compaction

@@ -41,13 +41,23 @@ or one of its 26 neighbour tiles changed after the part's blocks were copied
 Cost and memory: a refresh reads out only stale tiles, in chunks of :data:`CHUNK_BLOCKS` blocks with
 their halo, copied under the volume's lock (and the caller's: a service's) and read out in a
 scratch grid outside it, so integration waits for a copy, never for a read-out, and the memory it
-needs is one chunk's, whatever the size of the map. The parts themselves are small (a few
-percent of the surface points' coordinates, 4 bytes each, and a few numbers per region and tile).
+needs is one chunk's, whatever the size of the map. Each chunk is one job of the read-out worker
+(:mod:`openfusion.mapping.readout_worker`): one chunk in hand in the process at a time, whatever
+else reads the map. The parts themselves are small (a few percent of the surface points'
+coordinates, 4 bytes each, and a few numbers per region and tile), but they grow with the area:
+a paged-out tile's parts go to disk with it (:mod:`openfusion.mapping.partstore`; memory keeps
+:class:`StoredPart`, an index of slots, counts and sums), and adding the summaries up is streamed
+(:func:`combine_summaries` reads the stored parts one at a time and keeps, per region, axis and
+side, only the lowest values its percentile's rank needs), so neither holds every part at once.
+A merge rewrites a contact part that holds the merged-away key but not the surviving one
+(:func:`relabel_contacts`: exact), so its tile is not counted again.
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
+import logging
 import math
 import time
 from collections.abc import Iterator
@@ -56,20 +66,25 @@ from typing import Any
 
 import numpy as np
 
-from openfusion.mapping import readout
+from openfusion.mapping import readout, readout_worker
 from openfusion.mapping.heap import release_freed_memory
 from openfusion.mapping.keyslots import KeySlots
 from openfusion.mapping.merging import RegionContacts, contact_counts, contacts_of_counts
 from openfusion.mapping.paging import TilePager
+from openfusion.mapping.partstore import MemoryParts, open_part_store
 from openfusion.mapping.storage import ATTR_NAMES, VoxelStorage
 from openfusion.mapping.summaries import BBOX_PERCENTILE, RegionTable
 from openfusion.mapping.tiles import pack_coords
 from openfusion.mapping.tilestore import decode_tile
 
+logger = logging.getLogger(__name__)
+
 Tile = tuple[int, int, int]
-#: Blocks of one chunk read out at once (8 MiB of compact voxels, plus the halo; measured on the
-#: 10-room building: +69 MiB of RssAnon while a chunk is read out, +122 MiB at 2,048 blocks).
-CHUNK_BLOCKS = 1024
+#: Blocks of one chunk read out at once (4 MiB of compact voxels, plus the halo; measured on the
+#: 10-room building: +69 MiB of RssAnon while a chunk is read out at 1,024 blocks, +122 MiB at
+#: 2,048; on a 3-room map loaded lazily a summaries read-out peaked +87-93 MiB at 1,024 and +72-75
+#: at 512, 1.25x the time): one job of the read-out worker holds one chunk.
+CHUNK_BLOCKS = 512
 #: Values a summary part keeps per axis and side at least, and as a share of its points.
 KEEP_MIN = 64
 KEEP_SHARE = 0.02
@@ -106,6 +121,88 @@ class ContactPart:
 
 
 @dataclass
+class StoredPart:
+    """A paged-out tile's part, kept in the part store (:mod:`openfusion.mapping.partstore`): in
+    memory only its clock and what a merge or a cleared key must know (the slots of a summary part;
+    the keys, owners and others of a contact part)."""
+
+    clock: int
+    present: np.ndarray  # (n,) int64, sorted
+    #: A summary part's slots, point counts and coordinate sums (what adding parts up reads first).
+    slots: np.ndarray | None = None
+    count: np.ndarray | None = None
+    sums: np.ndarray | None = None
+
+    def holds(self, keys: np.ndarray) -> bool:
+        return bool(np.isin(self.present, keys).any())
+
+
+def _stored(kind: str, part: SummaryPart | ContactPart) -> StoredPart:
+    if isinstance(part, SummaryPart):
+        return StoredPart(part.clock, _present(kind, part), part.slots, part.count, part.sums)
+    return StoredPart(part.clock, _present(kind, part))
+
+
+def part_arrays(part: SummaryPart | ContactPart) -> dict[str, np.ndarray]:
+    """A part as flat arrays (the part store's encoding)."""
+    if isinstance(part, ContactPart):
+        return {"clock": np.array([part.clock], np.int64), "keys": part.keys, "surface": part.surface,
+                "owner": part.owner, "other": part.other, "count": part.count}
+    lows = [v for per in part.low for v in per]
+    highs = [v for per in part.high for v in per]
+    return {"clock": np.array([part.clock], np.int64), "slots": part.slots, "count": part.count, "sums": part.sums,
+            "low_n": np.array([len(v) for v in lows], np.int64), "high_n": np.array([len(v) for v in highs], np.int64),
+            "low": np.concatenate(lows) if lows else np.zeros(0, np.float32),
+            "high": np.concatenate(highs) if highs else np.zeros(0, np.float32)}
+
+
+def part_of(kind: str, a: dict[str, np.ndarray]) -> SummaryPart | ContactPart:
+    """The inverse of :func:`part_arrays`."""
+    clock = int(a["clock"][0])
+    if kind == "contacts":
+        return ContactPart(clock, a["keys"], a["surface"], a["owner"], a["other"], a["count"])
+    part = SummaryPart(clock, a["slots"], a["count"], a["sums"])
+    for name, out in (("low", part.low), ("high", part.high)):
+        values = np.split(a[name], np.cumsum(a[f"{name}_n"])[:-1]) if len(a[f"{name}_n"]) else []
+        for i in range(len(part.slots)):
+            out.append(list(values[3 * i : 3 * i + 3]))
+    return part
+
+
+def _present(kind: str, part: SummaryPart | ContactPart) -> np.ndarray:
+    if isinstance(part, ContactPart):
+        return np.unique(np.concatenate([part.keys, part.owner, part.other]).astype(np.int64))
+    return np.unique(part.slots.astype(np.int64))
+
+
+def relabel_contacts(part: ContactPart, mapping: dict[int, int]) -> ContactPart | None:
+    """A contact part after keys were merged (``{b: a}``) or cleared (``{b: -1}``), exactly, or None
+    when it must be counted again. Contacts count, per (owner, other) key pair, the owner's voxels
+    touching at least one voxel of the other: renaming ``b`` to ``a`` is exact when the part holds
+    ``b`` and not ``a`` (no two counts merge into one), clearing ``b`` drops its rows and pairs
+    (the labelled voxels of other keys are unchanged). A part holding one of a merge's keys and
+    another key the mapping names (both ``a`` and ``b``, or two of its entries) is counted again."""
+    present = set(_present("contacts", part).tolist())
+    named = {k for pair in mapping.items() for k in pair if k >= 0}
+    hit = present & named
+    sources = hit & set(mapping)
+    if not sources:
+        return part  # only merge targets (or nothing) here: no voxel of this part changed its key
+    if len(hit) > 1:
+        return None
+    (b,) = sources
+    a = mapping[b]
+    if a < 0:
+        keep_k = part.keys != b
+        keep_p = (part.owner != b) & (part.other != b)
+        return ContactPart(part.clock, part.keys[keep_k], part.surface[keep_k], part.owner[keep_p],
+                           part.other[keep_p], part.count[keep_p])
+    return ContactPart(part.clock, np.where(part.keys == b, a, part.keys), part.surface.copy(),
+                       np.where(part.owner == b, a, part.owner), np.where(part.other == b, a, part.other),
+                       part.count.copy())
+
+
+@dataclass
 class ChunkCopy:
     """What one chunk's read-out needs, copied under the lock: resident blocks (raw), stored tiles
     (blobs, decoded outside the lock), the slot table and the versions' clock."""
@@ -131,10 +228,60 @@ class TileReadouts:
         #: (tile, slot) -> values its summary part keeps per axis and side, above the default.
         self.keep: dict[tuple[Tile, int], int] = {}
         self._compactions = storage.compactions
-        self.stats = {"summary_tiles_read": 0, "contact_tiles_read": 0}
+        self.stats = {"summary_tiles_read": 0, "contact_tiles_read": 0, "parts_to_store": 0, "parts_from_store": 0,
+                      "contact_parts_relabelled": 0}
+        #: Stored parts found missing when parts were added up (dropped: their tiles are read again).
+        self.missing = 0
         #: A geometry shard's: whether it owns a tile (only those are read out; the others' blocks
         #: it holds are ghosts, read as halo only: :mod:`openfusion.mapping.shards`).
         self.owns: Any = None
+        #: Parts of paged-out tiles (:mod:`openfusion.mapping.partstore`), opened at the first page-out.
+        self.part_store: MemoryParts | None = None
+        pager.on_page_out = self.paged_out
+
+    def close(self) -> None:
+        if self.part_store is not None:
+            self.part_store.close()
+            self.part_store = None
+
+    # ------------------------------------------------------------------ paged-out tiles' parts
+    def _parts_of(self, kind: str) -> dict[Tile, Any]:
+        return self.summaries if kind == "summaries" else self.contacts
+
+    def paged_out(self, tile: Tile) -> None:
+        """``tile`` left the grid (the pager's hook, under the volume's lock): its parts that are
+        current go to the part store (only a small index stays in memory); stale ones are dropped
+        (read again, once, by the next read-out that needs them)."""
+        newest = None
+        for kind in ("summaries", "contacts"):
+            parts = self._parts_of(kind)
+            part = parts.get(tile)
+            if part is None or isinstance(part, StoredPart):
+                continue
+            newest = self._newest_around(tile) if newest is None else newest
+            if newest > part.clock:
+                del parts[tile]
+                continue
+            self._store().put(kind, tile, part_arrays(part))
+            parts[tile] = _stored(kind, part)
+            self.stats["parts_to_store"] += 1
+
+    def _store(self) -> MemoryParts:
+        if self.part_store is None:
+            store = self.pager.store
+            self.part_store = open_part_store(None if store is None else store.path)
+        return self.part_store
+
+    def _load(self, kind: str, tile: Tile, stored: StoredPart) -> SummaryPart | ContactPart | None:
+        got = self.part_store.get(kind, tile) if self.part_store is not None else None
+        if got is None:
+            return None
+        self.stats["parts_from_store"] += 1
+        return part_of(kind, got)
+
+    def _drop_stored(self, kind: str, tile: Tile) -> None:
+        if self.part_store is not None:
+            self.part_store.delete(kind, tile)
 
     # ------------------------------------------------------------------ invalidation
     def forget(self) -> None:
@@ -142,22 +289,46 @@ class TileReadouts:
         self.summaries.clear()
         self.contacts.clear()
         self.keep.clear()
+        if self.part_store is not None:
+            self.part_store.clear()
         self._compactions = self.storage.compactions
 
     def relabelled(self, changed_slots: np.ndarray, mapping: dict[int, int]) -> None:
-        """Keys were merged or cleared (``mapping``; ``changed_slots`` now read another key)."""
+        """Keys were merged or cleared (``mapping``; ``changed_slots`` now read another key).
+        Contact parts are rewritten where that is exact (:func:`relabel_contacts`), else dropped;
+        summary parts speak slots: only those holding a cleared slot are dropped."""
         keys = np.array([k for pair in mapping.items() for k in pair if k >= 0], np.int64)
         if len(keys):
-            for t in [t for t, part in self.contacts.items() if part.holds(keys)]:
-                del self.contacts[t]
+            for t, part in [(t, p) for t, p in self.contacts.items() if p.holds(keys)]:
+                stored = isinstance(part, StoredPart)
+                full = self._load("contacts", t, part) if stored else part
+                new = relabel_contacts(full, mapping) if full is not None else None  # type: ignore[arg-type]
+                if new is None:
+                    del self.contacts[t]
+                    if stored:
+                        self._drop_stored("contacts", t)
+                    continue
+                if new is not full:
+                    self.stats["contact_parts_relabelled"] += 1
+                    if stored:
+                        self.part_store.put("contacts", t, part_arrays(new))  # type: ignore[union-attr]
+                        self.contacts[t] = _stored("contacts", new)
+                    else:
+                        self.contacts[t] = new
         cleared = np.asarray(changed_slots, np.int64)
         cleared = cleared[self.storage.slots.key1[cleared] <= 0] if len(cleared) else cleared
         if len(cleared):
-            for t in [t for t, part in self.summaries.items() if np.isin(part.slots, cleared).any()]:
+            for t, part in [(t, p) for t, p in self.summaries.items()
+                            if np.isin(p.present if isinstance(p, StoredPart) else p.slots, cleared).any()]:
                 del self.summaries[t]
+                if isinstance(part, StoredPart):
+                    self._drop_stored("summaries", t)
 
     def _check_compaction(self) -> None:
         if self.storage.compactions != self._compactions:  # slots were renumbered
+            for t, part in list(self.summaries.items()):
+                if isinstance(part, StoredPart):
+                    self._drop_stored("summaries", t)
             self.summaries.clear()
             self.keep.clear()
             self._compactions = self.storage.compactions
@@ -182,7 +353,8 @@ class TileReadouts:
         self._check_compaction()
         tiles = self._tiles()
         for t in [t for t in parts if t not in tiles]:
-            del parts[t]
+            if isinstance(parts.pop(t), StoredPart):
+                self._drop_stored("summaries" if parts is self.summaries else "contacts", t)
         chosen: list[Tile] = []
         for t in sorted(tiles):
             part = parts.get(t)
@@ -227,22 +399,77 @@ class TileReadouts:
         return ChunkCopy(list(chunk), self.pager.versions.clock, resident, stored, self.storage.slots.key1.copy(), keep)
 
     # ------------------------------------------------------------------ results
+    def _put(self, kind: str, parts: dict[Tile, Any]) -> None:
+        """Read-out results (resident or stored tiles: a stored tile's part is written to the part
+        store at once, so only its index stays in memory)."""
+        kept = self._parts_of(kind)
+        for t, part in parts.items():
+            if isinstance(kept.get(t), StoredPart):
+                self._drop_stored(kind, t)
+            if t in self.pager.stored_blocks:
+                self._store().put(kind, t, part_arrays(part))
+                kept[t] = _stored(kind, part)
+                self.stats["parts_to_store"] += 1
+            else:
+                kept[t] = part
+
     def put_summaries(self, parts: dict[Tile, SummaryPart]) -> None:
-        self.summaries.update(parts)
+        self._put("summaries", parts)
         self.stats["summary_tiles_read"] += len(parts)
 
     def put_contacts(self, parts: dict[Tile, ContactPart], radius_vox: int) -> None:
         if self.contact_radius != radius_vox:
+            for t, part in list(self.contacts.items()):
+                if isinstance(part, StoredPart):
+                    self._drop_stored("contacts", t)
             self.contacts.clear()
             self.contact_radius = radius_vox
-        self.contacts.update(parts)
+        self._put("contacts", parts)
         self.stats["contact_tiles_read"] += len(parts)
 
+    def _materialised(self, kind: str) -> list[tuple[Tile, Any]]:
+        """Every tile's part, paged-out tiles' read from the part store (a part missing there is
+        dropped: read out again next time)."""
+        parts = self._parts_of(kind)
+        out: list[tuple[Tile, Any]] = []
+        for t, part in list(parts.items()):
+            if isinstance(part, StoredPart):
+                full = self._load(kind, t, part)
+                if full is None:
+                    logger.warning("the %s part of paged-out tile %s is missing from the part store; reading the tile again",
+                                   kind, t)
+                    del parts[t]
+                    self.missing += 1
+                    continue
+                part = full
+            out.append((t, part))
+        return out
+
     def summary_parts(self) -> list[tuple[Tile, SummaryPart]]:
+        return self._materialised("summaries")
+
+    def summary_index(self) -> list[tuple[Tile, Any]]:
+        """Every tile's summary part or, for a stored one, its index entry (slots, counts, sums:
+        what :func:`combine_summaries` reads first, without reading the part store)."""
         return list(self.summaries.items())
 
+    def iter_summary_parts(self) -> Iterator[tuple[Tile, SummaryPart]]:
+        """Every tile's summary part, stored ones read from the part store one at a time (a part
+        missing there is dropped and counted in :attr:`missing`: read out again next time)."""
+        for t, part in list(self.summaries.items()):
+            if isinstance(part, StoredPart):
+                full = self._load("summaries", t, part)
+                if full is None:
+                    logger.warning("the summaries part of paged-out tile %s is missing from the part store; "
+                                   "reading the tile again", t)
+                    self.summaries.pop(t, None)
+                    self.missing += 1
+                    continue
+                part = full
+            yield t, part
+
     def contact_parts(self) -> list[ContactPart]:
-        return list(self.contacts.values())
+        return [p for _, p in self._materialised("contacts")]
 
 
 # ---------------------------------------------------------------------------- chunk read-outs
@@ -452,66 +679,79 @@ def _bounds(n: int, percentile: float) -> tuple[_Bound, _Bound]:
     return _Bound(l1, l2, lw), _Bound(n - 1 - h2, n - 1 - h1, hw)
 
 
-def combine_summaries(parts: list[tuple[Tile, SummaryPart]], key1: np.ndarray,
-                      percentile: float = BBOX_PERCENTILE) -> tuple[RegionTable, dict[tuple[Tile, int], int]]:
+def combine_summaries(parts: Any, key1: np.ndarray, percentile: float = BBOX_PERCENTILE, *,
+                      index: Any = None) -> tuple[RegionTable, dict[tuple[Tile, int], int]]:
     """The whole map's region table from every tile's part, and the (tile, slot) parts that kept
-    too few values for it to be exact, with how many they must keep (module docstring)."""
-    entries: dict[int, list[tuple[Tile, int, SummaryPart]]] = {}
-    for t, part in parts:
+    too few values for it to be exact, with how many they must keep (module docstring).
+
+    Streamed, so adding up a floor's parts never holds them all: ``index`` (default: ``parts``)
+    gives every tile's slots, counts and sums (the points and centroid per key, and so the ranks
+    each box bound needs); ``parts`` (a list of ``(tile, part)``, or a callable returning an
+    iterator over them, e.g. parts read from the part store one at a time) is then read once,
+    keeping per key, side and axis only the lowest values the bound's rank needs."""
+    first = index if index is not None else (parts() if callable(parts) else parts)
+    counts: dict[int, int] = {}
+    sums: dict[int, np.ndarray] = {}
+    for _t, part in first:
         for i, s in enumerate(part.slots):
             key = int(key1[int(s)]) - 1
             if key >= 0:
-                entries.setdefault(key, []).append((t, i, part))
-    keys = sorted(entries)
+                counts[key] = counts.get(key, 0) + int(part.count[i])
+                sums[key] = sums.get(key, np.zeros(3)) + np.asarray(part.sums[i], np.float64)
+    keys = sorted(counts)
+    row_of = {k: r for r, k in enumerate(keys)}
+    bounds = {k: _bounds(counts[k], percentile) for k in keys}
+    lowest: dict[tuple[int, int, int], np.ndarray] = {}
+    truncated: dict[tuple[int, int, int], list[tuple[Tile, int, float]]] = {}
+    for t, part in (parts() if callable(parts) else parts):
+        for i, s in enumerate(part.slots):
+            key = int(key1[int(s)]) - 1
+            if key < 0:
+                continue
+            n_i = int(part.count[i])
+            for side, values in ((0, part.low[i]), (1, part.high[i])):
+                k = bounds[key][side].r2 + 1
+                for axis in range(3):
+                    lst = values[axis]
+                    at = (key, side, axis)
+                    if len(lst) < n_i:
+                        truncated.setdefault(at, []).append((t, int(s), float(lst[-1]) if len(lst) else -math.inf))
+                    run = np.concatenate([lowest[at], lst]) if at in lowest else np.asarray(lst, np.float64)
+                    if len(run) > k:
+                        run = np.partition(run, k - 1)[:k]
+                    lowest[at] = run.astype(np.float64, copy=False)
     n_keys = len(keys)
-    counts = np.zeros(n_keys, np.int64)
+    count_arr = np.zeros(n_keys, np.int64)
     centroid = np.zeros((n_keys, 3), np.float32)
     bbox = np.zeros((2, n_keys, 3), np.float64)
     failing: dict[tuple[Tile, int], int] = {}
-    for row, key in enumerate(keys):
-        group = entries[key]
-        n = int(sum(int(p.count[i]) for _, i, p in group))
-        sums = np.sum([p.sums[i] for _, i, p in group], axis=0)
-        counts[row] = n
-        centroid[row] = (sums / max(n, 1)).astype(np.float32)
-        low_b, high_b = _bounds(n, percentile)
-        for side, bound in ((0, low_b), (1, high_b)):
+    for key in keys:
+        row = row_of[key]
+        n = counts[key]
+        count_arr[row] = n
+        centroid[row] = (sums[key] / max(n, 1)).astype(np.float32)
+        for side in (0, 1):
+            bound = bounds[key][side]
+            k = bound.r2 + 1
             for axis in range(3):
-                lists = [(p.low if side == 0 else p.high)[i][axis] for _, i, p in group]
-                value = _combined(group, lists, bound, failing)
-                if value is None:
+                at = (key, side, axis)
+                run = lowest.get(at, np.zeros(0))
+                cut = float(run.max()) if len(run) >= k else None
+                ok = True
+                for t, slot, last in truncated.get(at, []):
+                    if cut is None or last < cut:
+                        failing[(t, slot)] = max(failing.get((t, slot), 0), int(1.25 * k) + 16)
+                        ok = False
+                if not ok or cut is None:
                     continue
-                v1, v2 = value
+                ordered = np.sort(run)
+                v1, v2 = float(ordered[bound.r1]), float(ordered[bound.r2])
                 if side == 1:  # ranks of negated values: v[h1] = -v2, v[h2] = -v1 (negation is exact)
                     v1, v2 = -v2, -v1
                 bbox[side, row, axis] = v1 * (1.0 - bound.w) + v2 * bound.w
-    table = RegionTable(np.array(keys, np.int32), counts, centroid, bbox[0].astype(np.float32), bbox[1].astype(np.float32))
+    table = RegionTable(np.array(keys, np.int32), count_arr, centroid, bbox[0].astype(np.float32),
+                        bbox[1].astype(np.float32))
     return table, failing
-
-
-def _combined(group: list[tuple[Tile, int, SummaryPart]], lists: list[np.ndarray], bound: _Bound,
-              failing: dict[tuple[Tile, int], int]) -> tuple[float, float] | None:
-    """Ascending values at ranks ``bound.r1`` and ``bound.r2`` of the union of every part's values,
-    from the values the parts kept; None (and ``failing`` filled) when that is not exact."""
-    k = bound.r2 + 1
-    union = np.concatenate(lists).astype(np.float64)
-    truncated = [(j, lst) for j, lst in enumerate(lists) if len(lst) < int(group[j][2].count[group[j][1]])]
-    if len(union) < k:
-        cut = None
-    else:
-        cut = float(np.partition(union, k - 1)[k - 1])
-    ok = True
-    for j, lst in truncated:
-        if cut is None or float(lst[-1]) < cut:
-            t, i, part = group[j]
-            want = int(1.25 * k) + 16
-            slot_key = (t, int(part.slots[i]))
-            failing[slot_key] = max(failing.get(slot_key, 0), want)
-            ok = False
-    if not ok or cut is None:
-        return None
-    lowest = np.sort(np.partition(union, k - 1)[:k]) if k < len(union) else np.sort(union)
-    return float(lowest[bound.r1]), float(lowest[bound.r2])
 
 
 # ---------------------------------------------------------------------------- driving a refresh
@@ -553,11 +793,25 @@ def refresh(
     max_s: float | None = None,
 ) -> int:
     """Read out the stale tiles' parts (``what``: ``"summaries"`` or ``"contacts"``), a chunk at a
-    time: copied holding ``lock`` (the caller's, e.g. a service's) and the volume's lock, read out
-    holding neither (``hold``: holding both throughout; both must be reentrant). ``max_s``: stop
-    after the chunk that passes this many seconds (idle work). Returns the tiles read out."""
+    time, each chunk one job on the read-out worker (:mod:`openfusion.mapping.readout_worker`: one
+    chunk in hand in the process at a time): copied holding ``lock`` (the caller's, e.g. a
+    service's) and the volume's lock, read out holding neither (``hold``: the whole refresh one
+    job holding both throughout; both must be reentrant). The caller must hold neither lock
+    (the worker's rule 1). ``max_s``: stop after the chunk that passes this many seconds (idle
+    work). Returns the tiles read out."""
     if what not in ("summaries", "contacts"):
         raise ValueError(f"what must be 'summaries' or 'contacts', got {what!r}")
+    readout_worker.check_caller(what)
+    if hold:
+        return readout_worker.run(what, functools.partial(
+            _refresh, volume_lock, readouts, what=what, lock=lock, settled_clock=settled_clock, radius_vox=radius_vox,
+            hold=True, max_s=max_s))
+    return _refresh(volume_lock, readouts, what=what, lock=lock, settled_clock=settled_clock,
+                    radius_vox=radius_vox, hold=False, max_s=max_s)
+
+
+def _refresh(volume_lock: Any, readouts: TileReadouts, *, what: str, lock: Any, settled_clock: int | None,
+             radius_vox: int, hold: bool, max_s: float | None) -> int:
     pager, storage = readouts.pager, readouts.storage
     res, tile_blocks = storage.params.block_resolution, pager.grid.tile_blocks
     done = 0
@@ -568,22 +822,26 @@ def refresh(
                 readouts.contact_radius = radius_vox
             parts = readouts.summaries if what == "summaries" else readouts.contacts
             chunks = readouts.stale(parts, settled_clock=settled_clock)
-        scratch = Scratch(storage) if what == "summaries" else None
-        started = time.monotonic()
-        for chunk in chunks:
-            if max_s is not None and done and time.monotonic() - started >= max_s:
-                break
+
+        def one(chunk: list[Tile]) -> None:
+            """One chunk: copied under the locks, read out outside them, its parts kept."""
             with both(lock, volume_lock):
                 copy = readouts.copy_chunk(chunk, keys_only=what == "contacts")
-            if scratch is not None:
-                got_s = summarise_chunk(copy, scratch, tile_blocks)
+            if what == "summaries":  # a scratch grid of this chunk's size, freed with the job
+                got_s = summarise_chunk(copy, Scratch(storage), tile_blocks)
                 with volume_lock:
                     readouts.put_summaries(got_s)
             else:
                 got_c = count_contacts_chunk(copy, tile_blocks, res, radius_vox)
                 with volume_lock:
                     readouts.put_contacts(got_c, radius_vox)
-            done += len(chunk)
             del copy
             release_freed_memory()  # the chunk's copies and read-out arrays: back to the OS
+
+        started = time.monotonic()
+        for chunk in chunks:
+            if max_s is not None and done and time.monotonic() - started >= max_s:
+                break
+            readout_worker.run(what, one, chunk)
+            done += len(chunk)
     return done

@@ -22,7 +22,9 @@ part of the story (read their docstrings for the rules):
   :mod:`openfusion.mapping.tilestore` -- tiles, the memory budget (``memory_budget_mb``: tiles
   paged out to the tile store and back in before a frame or a render reaches them), incremental
   checkpoints; :mod:`openfusion.mapping.wholemap` -- read-outs of the whole map while part of it
-  is paged out.
+  is paged out; :mod:`openfusion.mapping.readout_worker` -- every whole-map read-out (points,
+  meshes, summaries, contacts, checkpoint slices) as jobs of one worker thread, one chunk at a time
+  in the process; :mod:`openfusion.mapping.partstore` -- paged-out tiles' read-out parts on disk.
 
 Names that moved to those modules (``RayHits``, ``SurfacePoints``, ``fill_nearest_labels``, ...)
 are re-exported here, so ``from openfusion.mapping.volume import ...`` keeps working.
@@ -47,7 +49,15 @@ import open3d as o3d
 import open3d.core as o3c
 
 from openfusion.frame import CameraIntrinsics, Frame
-from openfusion.mapping import integration, raycast, readout, shards, tilereadouts, view_update
+from openfusion.mapping import (
+    integration,
+    raycast,
+    readout,
+    readout_worker,
+    shards,
+    tilereadouts,
+    view_update,
+)
 from openfusion.mapping.errors import CapacityError
 from openfusion.mapping.growth import GridGrower
 from openfusion.mapping.merging import RegionContacts
@@ -137,6 +147,7 @@ class VolumeStats:
     blocks_refused: int = 0
     grow_events: int = 0
     renders: int = 0
+    render_budget_short: int = 0  # renders whose view did not fit the memory budget (rendered what was resident)
     updates: int = 0
     voxels_updated: int = 0
 
@@ -160,6 +171,21 @@ def _locked(method: _F) -> _F:
     return wrapper  # type: ignore[return-value]
 
 
+def _read_out(method: _F) -> _F:
+    """A whole-map read-out: one job on the read-out worker (:mod:`.readout_worker`: one at a time
+    in the process, so its chunks never overlap another read-out's), holding the volume's lock there."""
+
+    @functools.wraps(method)
+    def wrapper(self: SemanticVolume, *args: Any, **kwargs: Any) -> Any:
+        def job() -> Any:
+            with self._lock:
+                return method(self, *args, **kwargs)
+
+        return readout_worker.run(method.__name__, job)
+
+    return wrapper  # type: ignore[return-value]
+
+
 class SemanticVolume:
     """Semantic TSDF volume; the module docstring says which module holds each rule.
 
@@ -177,6 +203,7 @@ class SemanticVolume:
                 f"device {self.params.device} requested but this Open3D build has no CUDA; use device='CPU:0'"
             )
         self._lock = threading.RLock()
+        readout_worker.register_lock(self._lock, owner=self)  # read-out jobs take it (rule 1 there)
         self.stats = VolumeStats()
         self._intrinsic_cache: dict[CameraIntrinsics, o3c.Tensor] = {}
         budget = None
@@ -212,6 +239,7 @@ class SemanticVolume:
         with self._lock:
             if self._grower is not None:
                 self._grower.close()
+            self._readouts.close()
             store = self._pager.store
             if store is not None:
                 store.close()
@@ -530,7 +558,7 @@ class SemanticVolume:
         """
         return self._storage.relabel_keys(mapping)
 
-    @_locked
+    @_read_out
     def labelled_voxels(self) -> tuple[np.ndarray, np.ndarray]:
         """(integer voxel coordinates (n, 3) int64, keys (n,) int64) of every voxel carrying a key."""
         coords, keys = self.labelled_blocks()
@@ -538,7 +566,7 @@ class SemanticVolume:
 
         return voxels_of_labelled(coords, keys, self.params.block_resolution)
 
-    @_locked
+    @_read_out
     def labelled_blocks(self) -> tuple[np.ndarray, np.ndarray]:
         """(block coordinates (N, 3), keys (N, R, R, R) [z, y, x], -1 = none) of the blocks holding a key."""
         coords, keys = self._storage.labelled_blocks()
@@ -560,9 +588,13 @@ class SemanticVolume:
         of every labelled block). Kept per tile (:mod:`.tilereadouts`): only tiles whose
         neighbourhood changed since the last call are counted again, a chunk at a time, copied
         holding ``lock`` (a caller's reentrant lock, e.g. a service's) and the volume's lock."""
-        tilereadouts.refresh(self._lock, self._readouts, what="contacts", lock=lock, radius_vox=radius_vox)
-        with self._lock:
-            parts = self._readouts.contact_parts()
+        for _ in range(3):
+            tilereadouts.refresh(self._lock, self._readouts, what="contacts", lock=lock, radius_vox=radius_vox)
+            with self._lock:
+                missing = self._readouts.missing
+                parts = self._readouts.contact_parts()
+                if self._readouts.missing == missing:
+                    break  # else a stored part had gone missing: its tile is read out again
         return tilereadouts.combine_contacts(parts)
 
     def region_table(self, *, lock: Any = None) -> RegionTable:
@@ -576,7 +608,12 @@ class SemanticVolume:
             hold = attempt >= 3
             tilereadouts.refresh(self._lock, self._readouts, what="summaries", lock=lock, hold=hold)
             with tilereadouts.both(lock, self._lock) if hold else self._lock:
-                table, failing = tilereadouts.combine_summaries(self._readouts.summary_parts(), self._storage.slots.key1)
+                missing = self._readouts.missing
+                # Streamed: stored parts are read from the part store one at a time, never all at once.
+                table, failing = tilereadouts.combine_summaries(
+                    self._readouts.iter_summary_parts, self._storage.slots.key1, index=self._readouts.summary_index())
+                if self._readouts.missing != missing:
+                    continue  # a stored part had gone missing: its tile is read out again
                 if not failing:
                     return table
                 for (tile, slot), want in failing.items():
@@ -603,7 +640,7 @@ class SemanticVolume:
         return self._pager.versions.clock
 
     # ------------------------------------------------------------------ read-out
-    @_locked
+    @_read_out
     def extract_points(
         self,
         keys: np.ndarray | list[int] | None = None,
@@ -636,7 +673,7 @@ class SemanticVolume:
             return wholemap.extract_points(self._storage, self._pager, keys, max_points, seed=seed)
         return readout.extract_points(self._storage, keys, max_points, seed=seed)
 
-    @_locked
+    @_read_out
     def extract_mesh(self, keys: np.ndarray | list[int] | None = None) -> SurfaceMesh:
         """Surface mesh (marching cubes); with ``keys``, only triangles whose 3 vertices carry one of
         those keys (unreferenced vertices dropped)."""
@@ -661,7 +698,7 @@ class SemanticVolume:
         return SurfaceMesh(mesh.vertices[used], remap[tris].astype(np.int32), mesh.colors[used], mesh.normals[used],
                            mesh.keys[used], mesh.conf[used])
 
-    @_locked
+    @_read_out
     def mesh_parts(self, keys: np.ndarray | list[int] | None = None) -> list[SurfaceMesh]:
         """The mesh in parts of at most ``wholemap.CHUNK_BLOCKS`` blocks each (a large map's mesh
         written or sent part by part; one part for a map with nothing paged out)."""
@@ -672,7 +709,7 @@ class SemanticVolume:
         return [self._own_mesh(m) for m in wholemap.iter_mesh_parts(self._storage, self._pager, keys)]
 
     # ------------------------------------------------------------------ arrays (save / load)
-    @_locked
+    @_read_out
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Every block (resident and paged out) as plain arrays (``key`` holds real keys, -1 = none)."""
         arrays = self._storage.to_arrays()
@@ -680,6 +717,13 @@ class SemanticVolume:
             return arrays
         parts = [arrays, *self._pager.stored_arrays()]
         return {name: np.concatenate([p[name] for p in parts]) for name in arrays}
+
+    def unshared_arrays(self) -> dict[str, np.ndarray]:
+        """:meth:`to_arrays` on the calling thread, not as a read-out job: only for a volume no other
+        thread can reach yet (a loaded map being moved into another volume by a caller that
+        holds a service's lock, which a job may not be asked for under)."""
+        with self._lock:
+            return SemanticVolume.to_arrays.__wrapped__(self)  # type: ignore[attr-defined]
 
     @property
     def num_blocks_total(self) -> int:

@@ -12,7 +12,8 @@ of the whole map in one grid (``tests/unit/test_mapping_paging.py`` checks it), 
 sorted order. With a key filter only the tiles holding one of the keys, and their neighbours, are
 read out (a query's points: a few tiles, not the building). Stored tiles are read from the store one at a time (a small cache keeps the
 neighbours of the current chunk), so the read-out needs the scratch grid and the result, never the
-whole map, in memory. Mesh vertices on a chunk seam appear once per chunk (triangles are not
+whole map, in memory; each read-out is one job of the read-out worker
+(:mod:`openfusion.mapping.readout_worker`), so two read-outs never hold their chunks at once. Mesh vertices on a chunk seam appear once per chunk (triangles are not
 duplicated, vertices are not welded across seams).
 """
 
@@ -31,13 +32,14 @@ from openfusion.mapping.storage import ATTR_NAMES, VoxelStorage
 from openfusion.mapping.tiles import pack_coords
 
 Tile = tuple[int, int, int]
-#: Blocks read out at once (8 MiB of compact voxels, plus the halo and Open3D's read-out buffers):
-#: the size :mod:`openfusion.mapping.tilereadouts` measured (+69 MiB of RssAnon per chunk on the
-#: 10-room building, +122 MiB at 2,048), so a query's points stay within the budget's overhead.
-CHUNK_BLOCKS = 1024
+#: Blocks read out at once (4 MiB of compact voxels, plus the halo and Open3D's read-out buffers).
+#: Measured (a 3-room map loaded lazily, key-filtered points, RssAnon above the loaded map): +127
+#: MiB per read-out at 1,024 blocks with a 2,048-block cache, +73 MiB at 512 and 512 (the 1,024 one
+#: also made a default-sized 128 MiB scratch grid first: +161 before that fix), 1.2x the time.
+CHUNK_BLOCKS = 512
 #: Decoded stored tiles kept for the halos of the next chunks, bounded by their blocks (a tile
 #: holds up to 512 blocks, 4 MiB: 48 whole tiles, the bound before, could hold 190 MiB).
-_CACHE_BLOCKS = 2 * CHUNK_BLOCKS
+_CACHE_BLOCKS = CHUNK_BLOCKS
 
 
 class _TileSource:
@@ -171,8 +173,11 @@ def _iter_scratch(
         coords = np.concatenate(own_coords + halo_coords)
         raw = {k: np.concatenate([r[k] for r in raws + halo_raws]) for k in ATTR_NAMES}
         if scratch is None or scratch.capacity_blocks < len(coords):
-            scratch = VoxelStorage(storage.params.with_changes(memory_budget_mb=None), storage.device)
-            scratch.reset(capacity=max(len(coords), 2 * CHUNK_BLOCKS))
+            # Made at the chunk's size at once: a default-sized grid first (16,384 blocks, 128 MiB,
+            # touched by Open3D at creation) was a transient +128 MiB per read-out (measured).
+            scratch = None
+            scratch = VoxelStorage(storage.params.with_changes(memory_budget_mb=None), storage.device,
+                                   capacity=len(coords) + len(coords) // 8)
         else:
             c_old, b_old = scratch.active_blocks()
             scratch.erase_blocks(c_old, b_old)
