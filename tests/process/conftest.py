@@ -1,4 +1,5 @@
-"""Fixtures of the process tests: the production-security bundle and router (deploy_support.py)."""
+"""Fixtures of the process tests: the production-security bundle and router (deploy_support.py), and a
+second host in a network namespace (netns_support.py)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ from collections.abc import Iterator
 
 import pytest
 from deploy_support import Bundle, Router, make_bundle, running_router
+from netns_support import NetNs, netns_unavailable
 
 
 @pytest.fixture(scope="session")
@@ -19,3 +21,17 @@ def router(bundle: Bundle) -> Iterator[Router]:
     """The committed production router config running in this process on a free loopback port."""
     with running_router(bundle) as running:
         yield running
+
+
+@pytest.fixture
+def netns() -> Iterator[NetNs]:
+    """A network namespace joined to this host (a second host); skipped with the reason where none can be made."""
+    reason = netns_unavailable()
+    if reason:
+        pytest.skip(reason)
+    ns = NetNs()
+    ns.create()
+    try:
+        yield ns
+    finally:
+        ns.delete()

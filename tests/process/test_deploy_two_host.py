@@ -8,20 +8,17 @@ Skipped with the reason when namespaces cannot be created (not root, no iproute2
 
 from __future__ import annotations
 
-import os
-import shutil
 import subprocess
 import sys
 import time
-import uuid
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from netns_support import NetNs, counter
 
 from openfusion.app.launcher import Cluster, wait_for_services
-from openfusion.bus import collect_health, live_services, open_session
 from openfusion.bus import free_loopback_port as free_port
+from openfusion.bus import live_services, open_session
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.testing.bus import subprocess_env, unique_map_id, wait_until
@@ -31,71 +28,6 @@ ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml"
 
 
 pytestmark = [pytest.mark.netns, pytest.mark.timeout(600)]
-
-
-def _ip(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(["ip", *args], capture_output=True, text=True, check=check, timeout=20)
-
-
-class NetNs:
-    """A namespace ``name`` with address ``ns_addr`` on a veth pair to this host's ``host_addr``."""
-
-    def __init__(self) -> None:
-        tag = uuid.uuid4().hex[:6]
-        self.name = f"ofz-{tag}"
-        self.host_if, self.ns_if = f"ofh{tag}", f"ofn{tag}"
-        octet = int(tag[:2], 16) % 250 + 1
-        self.host_addr, self.ns_addr = f"10.231.{octet}.1", f"10.231.{octet}.2"
-
-    def create(self) -> None:
-        _ip("netns", "add", self.name)
-        _ip("link", "add", self.host_if, "type", "veth", "peer", "name", self.ns_if)
-        _ip("link", "set", self.ns_if, "netns", self.name)
-        _ip("addr", "add", f"{self.host_addr}/30", "dev", self.host_if)
-        _ip("link", "set", self.host_if, "up")
-        for cmd in (["addr", "add", f"{self.ns_addr}/30", "dev", self.ns_if], ["link", "set", self.ns_if, "up"],
-                    ["link", "set", "lo", "up"]):
-            _ip("netns", "exec", self.name, "ip", *cmd)
-
-    def link(self, up: bool) -> None:
-        _ip("link", "set", self.host_if, "up" if up else "down")
-
-    def delete(self) -> None:
-        _ip("link", "del", self.host_if, check=False)
-        _ip("netns", "del", self.name, check=False)
-
-
-def _netns_unavailable() -> str | None:
-    if os.geteuid() != 0:
-        return "network namespaces need root"
-    if shutil.which("ip") is None:
-        return "iproute2 (`ip`) is not installed"
-    probe = NetNs()
-    try:
-        probe.create()
-    except (subprocess.CalledProcessError, OSError) as exc:
-        return f"cannot create a network namespace here: {getattr(exc, 'stderr', exc)}"
-    finally:
-        probe.delete()
-    return None
-
-
-@pytest.fixture
-def netns() -> Iterator[NetNs]:
-    reason = _netns_unavailable()
-    if reason:
-        pytest.skip(reason)
-    ns = NetNs()
-    ns.create()
-    try:
-        yield ns
-    finally:
-        ns.delete()
-
-
-def _counter(client: OpenFusionClient, service: str, name: str) -> float:
-    stats = collect_health(client.session, client.keys, timeout_s=1.5).get(service)
-    return float(stats.counters.get(name, 0.0)) if stats else 0.0
 
 
 def test_semantic_on_a_second_host_maps_survives_a_link_cut_and_reconnects(netns: NetNs, tmp_path: Path) -> None:
@@ -120,23 +52,23 @@ def test_semantic_on_a_second_host_maps_survives_a_link_cut_and_reconnects(netns
         wait_until(lambda: "semantic" in live_services(client.session, client.keys), timeout_s=240)
 
         def play(frames: int) -> None:
-            before = _counter(client, "geometry", "frames_integrated")
+            before = counter(client, "geometry", "frames_integrated")
             cluster.start("bridge", ["--source", f"synthetic:seed=2,frames={frames},width=320,height=240",
                                      "--rate-hz", "8"], env=env)
-            wait_until(lambda: _counter(client, "geometry", "frames_integrated") >= before + frames, timeout_s=240)
+            wait_until(lambda: counter(client, "geometry", "frames_integrated") >= before + frames, timeout_s=240)
             cluster.stop("bridge")
             cluster.processes.pop("bridge")
 
         # Across the link: semantic maps, the query service answers from its dictionary.
         play(16)
-        wait_until(lambda: _counter(client, "semantic", "semantic_frames") >= 2, timeout_s=60)
+        wait_until(lambda: counter(client, "semantic", "semantic_frames") >= 2, timeout_s=60)
         assert client.query_text("chair", top_k=1).regions
 
         # Link cut: geometry keeps integrating and query keeps answering.
         netns.link(up=False)
-        integrated = _counter(client, "geometry", "frames_integrated")
+        integrated = counter(client, "geometry", "frames_integrated")
         play(8)
-        assert _counter(client, "geometry", "frames_integrated") >= integrated + 8
+        assert counter(client, "geometry", "frames_integrated") >= integrated + 8
         assert client.query_text("table", top_k=1).regions
         assert semantic.poll() is None, "the semantic service died while the link was down"
         # The cut is real: once Zenoh's lease expires the router drops the semantic session.
@@ -150,7 +82,7 @@ def test_semantic_on_a_second_host_maps_survives_a_link_cut_and_reconnects(netns
         wait_until(lambda: "semantic" in live_services(client.session, client.keys), timeout_s=120)
 
         def decided() -> float:
-            return _counter(client, "semantic", "semantic_frames") + _counter(client, "semantic", "skipped_no_gain")
+            return counter(client, "semantic", "semantic_frames") + counter(client, "semantic", "skipped_no_gain")
 
         before = decided()
         deadline = time.monotonic() + 120

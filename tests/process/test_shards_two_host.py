@@ -20,13 +20,12 @@ import os
 import signal
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 from openfusion.app.launcher import Cluster, wait_for_services
-from openfusion.bus import QueryError, collect_health, live_services, open_session
+from openfusion.bus import QueryError, live_services, open_session
 from openfusion.bus import free_loopback_port as free_port
 from openfusion.client import OpenFusionClient
 from openfusion.config import ServiceConfig, ZenohSettings
@@ -34,7 +33,7 @@ from openfusion.testing.bus import subprocess_env, unique_map_id, wait_until
 from openfusion.wire.counters import BridgeCounter, GeometryCounter, SemanticCounter
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from test_deploy_two_host import NetNs, _netns_unavailable  # noqa: E402
+from netns_support import NetNs, counter  # noqa: E402
 
 ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
 N = 45
@@ -42,24 +41,6 @@ SOURCE = f"synthetic:seed=1,frames={N},lap=120,width=320,height=240"  # as `open
 RATE_HZ = 3
 
 pytestmark = [pytest.mark.netns, pytest.mark.slow, pytest.mark.timeout(600)]
-
-
-@pytest.fixture
-def netns() -> Iterator[NetNs]:
-    reason = _netns_unavailable()
-    if reason:
-        pytest.skip(reason)
-    ns = NetNs()
-    ns.create()
-    try:
-        yield ns
-    finally:
-        ns.delete()
-
-
-def _counter(client: OpenFusionClient, service: str, name: str) -> float:
-    stats = collect_health(client.session, client.keys, timeout_s=1.5).get(service)
-    return float(stats.counters.get(name, 0.0)) if stats else 0.0
 
 
 def test_shard_primary_killed_its_replica_on_another_host_carries_on(netns: NetNs, tmp_path: Path) -> None:
@@ -95,7 +76,7 @@ def test_shard_primary_killed_its_replica_on_another_host_carries_on(netns: NetN
         cluster.start("bridge", ["--source", SOURCE, "--rate-hz", str(RATE_HZ), "--geometry-shards", "2"], env=env)
 
         # Mid-run: the primary of shard 0 dies (SIGKILL: no checkpoint, no goodbye).
-        wait_until(lambda: _counter(client, "geometry-0of2", GeometryCounter.FRAMES_INTEGRATED) >= N // 3,
+        wait_until(lambda: counter(client, "geometry-0of2", GeometryCounter.FRAMES_INTEGRATED) >= N // 3,
                    timeout_s=240)
         primary = cluster.processes["geometry-0of2"]
         os.kill(primary.proc.pid, signal.SIGKILL)
@@ -110,12 +91,12 @@ def test_shard_primary_killed_its_replica_on_another_host_carries_on(netns: NetN
                 return False
 
         wait_until(answered, timeout_s=120, interval_s=0.5)  # queries answered with shard 0 on its replica
-        wait_until(lambda: _counter(client, "bridge", BridgeCounter.PLAYBACK_DONE) >= 1, timeout_s=240)
+        wait_until(lambda: counter(client, "bridge", BridgeCounter.PLAYBACK_DONE) >= 1, timeout_s=240)
         for name in ("geometry-1of2", "geometry-0of2-r1"):
-            wait_until(lambda name=name: _counter(client, name, GeometryCounter.FRAMES_INTEGRATED) >= N, timeout_s=120)
+            wait_until(lambda name=name: counter(client, name, GeometryCounter.FRAMES_INTEGRATED) >= N, timeout_s=120)
             # Exactly once: the count is of frames taken in order (a replayed frame it holds is a duplicate).
-            assert _counter(client, name, GeometryCounter.FRAMES_INTEGRATED) == N, name
-        assert _counter(client, "semantic", SemanticCounter.SEMANTIC_FRAMES) >= 2
+            assert counter(client, name, GeometryCounter.FRAMES_INTEGRATED) == N, name
+        assert counter(client, "semantic", SemanticCounter.SEMANTIC_FRAMES) >= 2
         assert client.query_text("table", top_k=1).regions
 
         # The map: shard 0's part from its replica, shard 1's; one map, the surface of one volume.
