@@ -703,8 +703,13 @@ class GeometryService(DictionaryFollower):
         if req.action != action:
             raise RequestError("bad_request", f"this key takes action {action!r}, got {req.action!r}")
         if action == "save":
-            self.merge_before_save()
-            path = self.save(sharding.part_path(Path(req.path), self.shard) if req.path else None)
+            try:
+                self.merge_before_save()
+                path = self.save(sharding.part_path(Path(req.path), self.shard) if req.path else None)
+            except Exception:  # counted (an asker whose request timed out learns it from health), then raised
+                self._count(GeometryCounter.SAVE_FAILURES)
+                raise
+            self._count(GeometryCounter.SAVES)
             return ControlReply(ok=True, message=f"saved to {path}")
         if action == "load":
             # A named file is read strictly; our own checkpoint falls back to its .prev file.

@@ -5,9 +5,11 @@ Save (:func:`save_and_wait`)
     surface read-out of the region summaries, the merge pass before it): when the request times
     out, the run keeps waiting while geometry is alive and its health says ``saving`` 1, printing
     how long it has waited every :data:`PROGRESS_EVERY_S`, and takes the save as done when
-    ``saving`` drops to 0 with one more ``checkpoints``. It never gives up on a fixed timeout;
-    it stops waiting only when geometry dies (:class:`~openfusion.app.launcher.RunError`) or a
-    second signal aborts the run.
+    ``saves`` (control saves completed) goes up, as failed when ``save_failures`` does (a periodic
+    checkpoint meanwhile is not the save). With geometry shards the counters are the shards'
+    combined view (:func:`openfusion.app.shard_run.combined_geometry`: saved when every shard
+    saved). It never gives up on a fixed timeout; it stops waiting only when geometry dies or the
+    save failed (:class:`~openfusion.app.launcher.RunError`), or a second signal aborts the run.
 
 Mesh (:func:`fetch_mesh`)
     ``geometry/mesh`` answers in one reply up to ``max_points_reply`` vertices. A larger mesh is
@@ -42,7 +44,11 @@ def _timed_out(exc: QueryError) -> bool:
 
 
 def _geometry_counters(client: Any) -> dict[str, float] | None:
-    stats = client.health(timeout_s=2.0).get("geometry")
+    """Geometry's counters: one service's, or the shards' combined view."""
+    from openfusion.app.shard_run import combined_geometry
+
+    health = client.health(timeout_s=2.0)
+    stats = combined_geometry(health).get("geometry") or health.get("geometry")
     return None if stats is None else dict(stats.counters)
 
 
@@ -61,7 +67,8 @@ def save_and_wait(
             raise
     from openfusion.app.launcher import RunError
 
-    checkpoints = before.get(GeometryCounter.CHECKPOINTS, 0.0)
+    saves = before.get(GeometryCounter.SAVES, 0.0)
+    failures = before.get(GeometryCounter.SAVE_FAILURES, 0.0)
     last_said = time.monotonic()
     while True:
         if not alive():
@@ -69,8 +76,9 @@ def save_and_wait(
         if should_stop():
             raise RunError(f"stopped while geometry was saving the map to {map_dir}")
         counters = _geometry_counters(client)
-        if counters is not None and counters.get(GeometryCounter.SAVING, 0.0) == 0.0 and \
-                counters.get(GeometryCounter.CHECKPOINTS, 0.0) > checkpoints:
+        if counters is not None and counters.get(GeometryCounter.SAVE_FAILURES, 0.0) > failures:
+            raise RunError(f"geometry could not save the map to {map_dir} (its log says why)")
+        if counters is not None and counters.get(GeometryCounter.SAVES, 0.0) > saves:
             say(f"saved the map ({time.monotonic() - started:.0f} s)")
             return
         if time.monotonic() - last_said >= PROGRESS_EVERY_S:

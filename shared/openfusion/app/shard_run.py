@@ -21,7 +21,7 @@ from openfusion.wire.schemas import HealthStats
 _SLOWEST = {
     GeometryCounter.FRAMES_INTEGRATED, GeometryCounter.UPDATES_APPLIED, GeometryCounter.CHECKPOINTS,
     GeometryCounter.CHECKPOINT_LAST_FRAME_ID, GeometryCounter.LAST_FRAME_ID, GeometryCounter.LAST_UPDATE_FRAME_ID,
-    GeometryCounter.FRAMES_DUPLICATE, GeometryCounter.FRAMES_OUT_OF_ORDER,
+    GeometryCounter.FRAMES_DUPLICATE, GeometryCounter.FRAMES_OUT_OF_ORDER, GeometryCounter.SAVES,
 }
 #: Counters that say "at least one shard is busy with it".
 _ANY = {GeometryCounter.SAVING}

@@ -65,6 +65,8 @@ class GeometryCounter(StrEnum):
     VOXELS_RELABELLED = "voxels_relabelled"  # voxels whose key a merge (delta or resync) changed to the surviving key
     UPDATES_REUSED_RENDER = "updates_reused_render"  # updates written through their frame's render (no second ray cast)
     SAVE_MERGES = "save_merges"  # merge passes the semantic service ran because this service was saving
+    SAVES = "saves"  # control/save requests that completed (the map written where asked)
+    SAVE_FAILURES = "save_failures"  # control/save requests that failed (the error went to the asker, and the log)
     SAVE_MERGE_FAILURES = "save_merge_failures"  # saves that went ahead without one (semantic gone or silent)
     ROBOTS = "robots"  # robots whose frames this map has taken
     ROBOTS_HELD = "robots_held"  # of them, not joined to the map's frame yet (their frames wait in their submaps)
