@@ -149,6 +149,7 @@ class RosPublishCommand:
                         line += f", map cloud of {count} points"
                     print(line, file=sys.stderr, flush=True)
                     if args.once:
+                        publisher.flush(args.timeout)  # the round has left before the session closes
                         return 0
                     time.sleep(args.every)
             except KeyboardInterrupt:

@@ -547,6 +547,15 @@ class Ros2Publisher:
         self._seq[key] = seq
         pub.put(payload, attachment=make_attachment(seq, time.time_ns(), self._gids[key], keyed=self.keyed_attachment))
 
+    def flush(self, timeout_s: float = 10.0) -> None:
+        """Return once what was put has left this session: one query through the router on a key
+        no queryable serves (the router's final reply comes back on the same link, after the puts
+        queued before the query). Closing a session drops what its queue still holds: a one-shot
+        round's map cloud (megabytes, sent last) was lost that way when ``--once`` exited at once."""
+        replies = self.session.get(f"openfusion/@flush/{os.urandom(8).hex()}", timeout=timeout_s)
+        for _reply in replies:  # none expected: the iteration ends with the router's final reply
+            pass
+
     def close(self) -> None:
         for pub in self._publishers.values():
             pub.undeclare()
