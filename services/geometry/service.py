@@ -37,7 +37,9 @@ read-only folder) is logged in one line naming the path and reason, counted as
 again one ``checkpoint_period_s`` later. Every bad message is counted and dropped before it
 reaches the volume; a bad request is answered with ``reply_err`` naming the limit or field.
 
-Merges, the dictionary replica and its resync: :mod:`.dictionary_follower`.
+The service is one class made of parts: frames in (:mod:`.frame_intake`), saves, checkpoints and
+loads (:mod:`.persistence`), merges, the dictionary replica and its resync
+(:mod:`.dictionary_follower`); requests, wiring and the loop are here.
 
 Resume with nothing lost (playback): frames of a playback the bridge can replay carry the
 playback's name and ``prev_frame_id`` (the frame published before them). The service takes such a
@@ -87,30 +89,28 @@ from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
-import zenoh
 
 from openfusion.bus import Publisher, RequestError, ServiceRunner, Subscriber
-from openfusion.frame import Frame
 from openfusion.mapping import (
-    CapacityError,
     MapFormatError,
-    RegionDictionary,
     RenderedView,
-    SemanticVolume,
     readout_worker,
-    save_map,
 )
 from openfusion.mapping.heap import limit_malloc_arenas
 from openfusion.mapping.mapfile import resolve_map_path
-from openfusion.mapping.mapstore import checkpoint as checkpoint_store
-from openfusion.mapping.queries import RegionTable
-from openfusion.mapping.robot_streams import Admission, RobotStream, RobotStreams, parse_robot_frames
-from openfusion.mapping.tilestore import STORE_DIR_NAME
+from openfusion.mapping.robot_streams import RobotStream, RobotStreams, parse_robot_frames
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
 from openfusion.services.geometry import checkpoints, sharding
 from openfusion.services.geometry.dictionary_follower import DictionaryFollower
+from openfusion.services.geometry.frame_intake import FrameIntake
 from openfusion.services.geometry.memory import MemoryPeaks, publish_map_size
+from openfusion.services.geometry.persistence import (  # re-exported: tests and callers name them here
+    NO_EMBEDDING_SPACE as NO_EMBEDDING_SPACE,
+)
+from openfusion.services.geometry.persistence import NO_FRAME_ID as NO_FRAME_ID
+from openfusion.services.geometry.persistence import CheckpointFailed as CheckpointFailed
+from openfusion.services.geometry.persistence import MapPersistence, has_checkpoint
 from openfusion.services.geometry.robots import RobotJoiner
 from openfusion.services.geometry.section import GeometryConfig, SummaryCache
 from openfusion.services.geometry.section import (
@@ -135,7 +135,6 @@ from openfusion.wire.schemas import (
     ControlRequest,
     DictionaryRequest,
     DictionarySnapshot,
-    GeometryProgress,
     MeshReply,
     MeshRequest,
     PointsReply,
@@ -149,22 +148,8 @@ from openfusion.wire.schemas import (
     RgbdFrame,
     SemanticUpdate,
 )
-from openfusion.wire.schemas.base import DEFAULT_ROBOT
 
 logger = logging.getLogger(__name__)
-
-NO_EMBEDDING_SPACE = "none"
-NO_FRAME_ID = -1  # the checkpoint_last_frame_id counter when no checkpoint records one
-
-
-class CheckpointFailed(RequestError):
-    """A checkpoint could not be written (``OSError``: disk full, read-only folder); already
-    logged and counted. The in-memory map is unchanged."""
-
-    def __init__(self, path: Path, reason: str) -> None:
-        super().__init__("checkpoint_failed", f"checkpoint to {path} failed: {reason}; the map is kept in memory")
-        self.path = path
-
 
 def check_update(msg: SemanticUpdate) -> None:
     """Refuse an update that would corrupt the map (keys below -1, confidences outside [0, 1])."""
@@ -188,7 +173,7 @@ SETTLE_S = 5.0
 IDLE_READOUT_S = 0.5
 
 
-class GeometryService(DictionaryFollower):
+class GeometryService(FrameIntake, MapPersistence, DictionaryFollower):
     """The geometry service's logic; every handler is a plain method tests call without a bus."""
 
     def __init__(self, config: GeometryConfig) -> None:
@@ -204,7 +189,7 @@ class GeometryService(DictionaryFollower):
             sharding.checkpoint_dir(self.section.map_dir / config.map_id, self.shard)
             if self.section.map_dir is not None else None
         )
-        load = self.section.load_on_start and self.checkpoint_dir is not None and _has_checkpoint(self.checkpoint_dir)
+        load = self.section.load_on_start and self.checkpoint_dir is not None and has_checkpoint(self.checkpoint_dir)
         self.volume = checkpoints.new_volume(self.section.volume_params(), None if load else self.checkpoint_dir)
         self.replica = DictionaryReplica()
         self.frames_integrated = 0
@@ -270,159 +255,9 @@ class GeometryService(DictionaryFollower):
             return self.robots.get(name, map_empty=self._map_empty())
 
     # ------------------------------------------------------------------ state changes
-    def _load(self, path: Path, *, fallback: bool = False, restore_counts: bool = False) -> None:
-        """Load a map file; ``fallback``: a checkpoint of ours, the ``.prev`` one when the newest is bad;
-        ``restore_counts``: (a restart) take ``frames_integrated`` and ``integrate_busy_s`` from it."""
-        params = self.section.volume_params()
-        own = self.checkpoint_dir is not None and Path(path).resolve() == self.checkpoint_dir.resolve()
-        if not own:
-            checkpoints.validate(path)  # a bad map is refused before the current one is let go
-        with self._lock:
-            # The checkpoint folder's store is reopened (own) or replaced (a copy of the other map).
-            self.volume.close()
-            try:
-                loaded = (checkpoints.load_own(path, params, fallback=fallback) if own
-                          else checkpoints.load_other(path, params, self.checkpoint_dir))
-            except BaseException:
-                self.volume = checkpoints.reopen(params, self.checkpoint_dir)
-                self._map_changed(reset_keys=True)
-                raise
-        if restore_counts:
-            self.frames_integrated = int(loaded.meta.get("frames_integrated") or 0)
-            self.integrate_busy_s = float(loaded.meta.get("integrate_busy_s") or 0.0)
-        with self._lock:
-            if self.volume is not loaded.volume:
-                self.volume.close()
-            self.volume = loaded.volume
-            has_semantics = loaded.dictionary.embedding_space != NO_EMBEDDING_SPACE
-            self.replica.reset(loaded.dictionary if has_semantics else None)
-            self.robots.restore(loaded.meta, default_robot=DEFAULT_ROBOT)
-            first = self._first_robot()
-            self.checkpoint_last_frame_id = None if first is None else first.map_last_frame_id
-            self._map_changed(reset_keys=True)
-            self._dirty = False
-        self._set_checkpoint_frame()
-        logger.info(
-            "geometry: loaded map %s (%d blocks, %d regions, last frame %s)",
-            loaded.path or path,
-            self.volume.num_blocks,
-            len(loaded.dictionary) if loaded.dictionary is not None else 0,
-            "none" if self.checkpoint_last_frame_id is None else self.checkpoint_last_frame_id,
-        )
-
-    def save(self, path: Path | None = None, *, summary: bool = True) -> Path:
-        """Save the map to ``path`` or checkpoint it into the checkpoint folder's store. ``summary=False``
-        (the periodic checkpoints) leaves out the region summaries unless they are at hand for this
-        map version; a save asked for on ``control/save`` stores them (kept per tile: only tiles
-        changed since they were last read out are read again, :mod:`openfusion.mapping.tilereadouts`).
-        Integration goes on while a checkpoint writes: the lock is held for a slice's copy and the
-        checkpoint's last step (:mod:`openfusion.mapping.mapstore`), whose instant the checkpoint's
-        meta (``last_frame_id``...) describes."""
-        target = path or self.checkpoint_dir
-        if target is None:
-            raise RequestError(
-                "no_map_dir", "no path given and the geometry service has no map_dir configured"
-            )
-        own = self.checkpoint_dir is not None and Path(target).resolve() == self.checkpoint_dir.resolve()
-        started = time.monotonic()
-        captured: dict[str, int | None] = {}
-
-        def state() -> tuple[RegionDictionary, dict[str, object]]:
-            """The checkpoint's instant (called holding the lock): what it holds, and the map clean."""
-            first = self._first_robot()
-            # The map's chain for readers from before robots: its first robot's.
-            last = None if first is None else first.map_last_frame_id
-            captured["last"] = last
-            self._dirty = False  # a change after this sets it again
-            meta = {
-                "map_id": self.config.map_id,
-                "frames_integrated": self.frames_integrated,
-                "integrate_busy_s": self.integrate_busy_s,
-                "last_frame_id": last,
-                "playback": "" if first is None else first.map_playback,
-                **self.robots.to_meta(),  # each robot's chain and transform, in the same snapshot
-            }
-            # A geometry-only map (semantics off) is saved with an empty placeholder dictionary.
-            return self.replica.dictionary or RegionDictionary(NO_EMBEDDING_SPACE, 1), meta
-
-        with self._swap_lock:  # a load or reset waits for the save (the volume stays the same)
-            self._set_saving(True)
-            try:
-                with self._lock:
-                    volume, version = self.volume, self.map_version
-                regions = self._regions_for_save(volume, version, compute=summary)
-                tiles = 0
-                store = volume.store
-                if store is not None and (own or Path(target).suffix != ".npz"):
-                    info = checkpoint_store(volume, None, None, regions=regions, summary=regions is not None,
-                                            lock=self._lock, state=state)
-                    tiles = int(info["tiles"])
-                    written = store.path if own else store.copy_to(Path(target) / STORE_DIR_NAME)
-                else:  # no store of its own (no map_dir), or a version-1 file named: under the lock, one read-out job
-                    def save_locked() -> Path:
-                        with self._lock:
-                            dictionary, meta = state()
-                            return save_map(target, volume, dictionary, meta=meta, regions=regions,
-                                            summary=regions is not None)
-
-                    written = readout_worker.run("save", save_locked)
-            except OSError as exc:
-                # Disk full, read-only folder...: the store (or file) is as it was before; the map
-                # stays in memory and the next period tries again.
-                self._dirty = True
-                self._last_checkpoint = time.monotonic()
-                self.checkpoint_failures += 1
-                self._count(GeometryCounter.CHECKPOINT_FAILURES)
-                failed = resolve_map_path(target)
-                reason = exc.strerror or str(exc)
-                logger.error("geometry: checkpoint to %s failed: %s; the map is kept in memory", failed, reason)
-                raise CheckpointFailed(failed, reason) from exc
-            except BaseException:
-                self._dirty = True  # not saved: the next period tries again
-                raise
-            finally:
-                self._set_saving(False)
-        last = captured.get("last")
-        self.checkpoint_last_frame_id = last
-        self._last_checkpoint = time.monotonic()
-        self._count(GeometryCounter.CHECKPOINTS)
-        self._set_checkpoint_frame()
-        if self._runner is not None:
-            self._runner.stats.set(GeometryCounter.CHECKPOINT_LAST_S, self._last_checkpoint - started)
-            self._runner.stats.set(GeometryCounter.CHECKPOINT_LAST_TILES, tiles)
-        logger.info("geometry: saved map to %s (last frame %s, %d tiles written, %.2f s)", written,
-                    "none" if last is None else last, tiles, self._last_checkpoint - started)
-        return Path(written)
-
-    def _regions_for_save(self, volume: SemanticVolume, version: int, *, compute: bool) -> RegionTable | None:
-        """The region table a save stores: the cached one of this map version, else (``compute``)
-        the volume's, kept as the cache (the queries after a save, e.g. the end of ``openfusion
-        run``, are answered from it)."""
-        cached = self._summary
-        if cached is not None and cached.map_version == version:
-            return cached.table
-        if not compute:
-            return None
-        table = volume.region_table(lock=self._lock)
-        horizon = max(self._key_horizon, int(table.keys[-1]) + 1 if len(table) else 0)
-        with self._lock:
-            if self.volume is volume:
-                self._summary = SummaryCache(version, horizon, table)
-        return table
-
-    def _set_saving(self, saving: bool) -> None:
-        self.saving = saving
-        if self._runner is not None:
-            self._runner.stats.set(GeometryCounter.SAVING, 1 if saving else 0)
-
     def _set_memory_stats(self) -> None:
         if self._runner is not None:
             publish_map_size(self._runner.stats, self.volume)
-
-    def _set_checkpoint_frame(self) -> None:
-        if self._runner is not None:
-            last = self.checkpoint_last_frame_id
-            self._runner.stats.set(GeometryCounter.CHECKPOINT_LAST_FRAME_ID, NO_FRAME_ID if last is None else last)
 
     def _map_changed(self, *, reset_keys: bool = False) -> None:
         """Call with ``self._lock`` held after any change of the volume."""
@@ -436,149 +271,6 @@ class GeometryService(DictionaryFollower):
             self._runner.stats.incr(name, by)
 
     # ---------------------------------------------------------------------- handlers
-    def announce(self, robot: RobotStream | None = None) -> None:
-        """Publish where a robot's playback should continue (``resume`` announcement on
-        ``geometry/progress``), for ``robot`` or for every robot that waits for frames."""
-        if self._progress_pub is None:
-            return
-        for r in [robot] if robot is not None else self.robots.announcements_due():
-            r.announce_due = False
-            playback, held = r.announcement()
-            try:
-                self._progress_pub.put(GeometryProgress(
-                    frame_id=-1, stamp_ns=0, integrated=False, frames_integrated=self.frames_integrated, queued=0,
-                    incarnation=self.incarnation, holds_playback=playback, holds_frame_id=held, resume=r.resume,
-                    robot=r.name))
-            except zenoh.ZError as exc:  # repeated every second while waiting
-                logger.warning("geometry: resume announcement for robot %s not published: %s", r.name, exc)
-
-    def announce_robots(self) -> None:
-        """Announce for the robots that need one now (a join that asks for a replay)."""
-        with self._lock:
-            due = [r for r in self.robots if r.announce_due]
-        for robot in due:
-            self.announce(robot)
-
-    def on_frame(self, msg: RgbdFrame) -> None:
-        robot = self._robot(msg.robot)
-        self._note_queue(robot)
-        gaps = robot.frames_gap
-        admission = robot.admit(playback=msg.playback, frame_id=msg.frame_id, prev_frame_id=msg.prev_frame_id)
-        if robot.frames_gap > gaps:
-            self._count(GeometryCounter.FRAMES_GAP, robot.frames_gap - gaps)
-        if admission is not Admission.TAKE:
-            self._count(GeometryCounter.FRAMES_DUPLICATE if admission is Admission.DUPLICATE
-                        else GeometryCounter.FRAMES_OUT_OF_ORDER)
-            if robot.announce_due:
-                self.announce(robot)
-            self._acknowledge(msg, integrated=False)
-            return
-        frame = msg.to_frame()
-        with self._lock:  # the join (another thread) changes the state under this lock
-            robot.took(playback=msg.playback, frame_id=msg.frame_id)
-            held = robot.state == "held"
-            if held:  # into its submap and hold, never into the map (robot_streams)
-                robot.hold(frame, playback=msg.playback, frame_id=msg.frame_id, prev_frame_id=msg.prev_frame_id)
-            else:
-                if robot.recheck_due():
-                    self.joiner.queue_recheck(robot, frame)
-                robot.recent.append(frame)
-        if held:
-            self._count(GeometryCounter.FRAMES_HELD)
-            self._acknowledge(msg, integrated=False)
-            self.joiner.wake()
-            return
-        integrated = self._integrate(robot, frame, playback=msg.playback)
-        self._acknowledge(msg, integrated=integrated)
-
-    def _note_queue(self, robot: RobotStream) -> None:
-        """Which publisher is this robot's, and how long its frame waited (health: queued, lag)."""
-        sub = self._frames_sub
-        if sub is None:
-            return
-        self._robot_sources[sub.current_source] = robot.name
-        robot.lag_s = max(0.0, time.monotonic() - sub.current_arrival_s)
-
-    def _integrate(self, robot: RobotStream, frame: Frame, *, playback: str) -> bool:
-        """Integrate one of a joined robot's frames through its transform; a frame that fails is
-        logged, counted and taken as done (a replay never retries it). True when integrated."""
-        started = time.monotonic()
-        try:
-            with self._lock:
-                self.volume.integrate(robot.to_map(frame))
-                self.frames_integrated += 1
-                robot.frames_integrated += 1
-                robot.in_map(playback=playback, frame_id=frame.frame_id)
-                self.last_integrated_frame_id = frame.frame_id
-                self._map_changed()
-                self._dirty = True
-        except CapacityError as exc:
-            logger.warning("geometry: frame %d of robot %s refused: %s", frame.frame_id, robot.name, exc)
-            robot.in_map(playback=playback, frame_id=frame.frame_id)  # taken: the playback goes on after it
-            robot.skipped["capacity"] += 1
-            self._count(GeometryCounter.CAPACITY_REFUSED)
-            return False
-        except Exception:  # anything else on this one frame: logged, counted, taken (a replay never retries it)
-            logger.exception("geometry: frame %d of robot %s (%s) failed to integrate and was skipped",
-                             frame.frame_id, robot.name, frame.source)
-            robot.in_map(playback=playback, frame_id=frame.frame_id)
-            robot.skipped["failed"] += 1
-            self._count(GeometryCounter.FRAMES_FAILED)
-            if self._runner is not None:
-                self._runner.stats.add_error()
-            return False
-        ended = time.monotonic()
-        elapsed = ended - started
-        self.integrate_busy_s += elapsed
-        if self._runner is not None:
-            self._runner.stats.record(elapsed)
-            self._runner.stats.set(GeometryCounter.INTEGRATE_BUSY_S, self.integrate_busy_s)
-            self._runner.stats.set(GeometryCounter.LAST_INTEGRATED_AT_S, ended)
-            self._runner.stats.set(GeometryCounter.FRAMES_INTEGRATED, self.frames_integrated)
-            self._set_memory_stats()
-            self._runner.stats.set(GeometryCounter.LAST_FRAME_ID, frame.frame_id)
-        return True
-
-    def _integrate_held(self, robot: RobotStream, frames: list) -> None:
-        """A robot just joined: its held frames, in order, through the transform found (the
-        joiner calls this with the lock held)."""
-        for held in frames:
-            self._integrate(robot, held.frame, playback=held.playback)
-
-    def robot_status(self) -> dict[str, dict]:
-        """Each robot's stream for health (:class:`~openfusion.wire.schemas.admin.RobotStatus`)."""
-        queued: dict[str, int] = {}
-        if self._frames_sub is not None:
-            for source, (n, _oldest) in self._frames_sub.queued_by_source().items():
-                name = self._robot_sources.get(source)
-                if name is not None:
-                    queued[name] = queued.get(name, 0) + n
-        with self._lock:
-            robots = list(self.robots)
-            status = {}
-            for robot in robots:
-                robot.queued = queued.get(robot.name, 0)
-                status[robot.name] = robot.status(map_blocks=self.volume.num_blocks)
-        if self._runner is not None:
-            self._runner.stats.set(GeometryCounter.ROBOTS, len(robots))
-            self._runner.stats.set(GeometryCounter.ROBOTS_HELD, sum(r.state == "held" for r in robots))
-        return status
-
-    def _acknowledge(self, msg: RgbdFrame, *, integrated: bool) -> None:
-        """Tell the robot's bridge this frame left the queue (its flow control waits for this)."""
-        if self._progress_pub is None:
-            return
-        queued = self._frames_sub.queued if self._frames_sub is not None else 0
-        robot = self.robots.robots.get(msg.robot)
-        playback, held = robot.holds() if robot is not None else ("", NO_FRAME_ID)
-        try:
-            self._progress_pub.put(GeometryProgress(frame_id=msg.frame_id, stamp_ns=msg.stamp_ns, integrated=integrated,
-                                                    frames_integrated=self.frames_integrated, queued=queued,
-                                                    incarnation=self.incarnation, holds_playback=playback,
-                                                    holds_frame_id=held, robot=msg.robot, shard=self.shard.service))
-        except zenoh.ZError as exc:  # the map is fine; the bridge falls back to open loop
-            logger.warning("geometry: progress for frame %d not published: %s", msg.frame_id, exc)
-
     def _map_pose(self, robot_name: str, T_odom_cam: np.ndarray) -> np.ndarray:
         """A robot's pose in the map's frame; a robot not joined yet is refused (``robot_not_joined``)."""
         robot = self._robot(robot_name)
@@ -715,7 +407,7 @@ class GeometryService(DictionaryFollower):
             # A named file is read strictly; our own checkpoint falls back to its .prev file.
             path = sharding.part_path(Path(req.path), self.shard) if req.path else self.checkpoint_dir
             own = not req.path
-            if path is None or not (_has_checkpoint(path) if own else resolve_map_path(path).exists()):
+            if path is None or not (has_checkpoint(path) if own else resolve_map_path(path).exists()):
                 raise RequestError("not_found", f"no map at {path}")
             try:
                 with self._swap_lock:
@@ -821,11 +513,6 @@ class GeometryService(DictionaryFollower):
             with contextlib.suppress(CheckpointFailed):  # logged by save()
                 self.save()  # with summaries: this one is what `query --map-dir` reads after a stop
         self.volume.close()
-
-
-def _has_checkpoint(path: Path) -> bool:
-    """A checkpoint (a committed tile store, or a version-1 file or the one before it) is at ``path``."""
-    return checkpoints.has_checkpoint(path)
 
 
 DEFINITION = ServiceDefinition(

@@ -58,7 +58,7 @@ def test_a_checkpoint_that_raises_leaves_the_loop_running(tmp_path: Path, monkey
         calls["n"] += 1
         raise ValueError("cannot pack the dictionary")
 
-    monkeypatch.setattr("openfusion.services.geometry.service.checkpoint_store", broken)
+    monkeypatch.setattr("openfusion.services.geometry.persistence.checkpoint_store", broken)
     waits = {"n": 0}
 
     def wait(_timeout_s: float | None = None) -> bool:
