@@ -13,8 +13,9 @@ sorted order. With a key filter only the tiles holding one of the keys, and thei
 read out (a query's points: a few tiles, not the building). Stored tiles are read from the store one at a time (a small cache keeps the
 neighbours of the current chunk), so the read-out needs the scratch grid and the result, never the
 whole map, in memory; each read-out is one job of the read-out worker
-(:mod:`openfusion.mapping.readout_worker`), so two read-outs never hold their chunks at once. Mesh vertices on a chunk seam appear once per chunk (triangles are not
-duplicated, vertices are not welded across seams).
+(:mod:`openfusion.mapping.readout_worker`), so two read-outs never hold their chunks at once. Triangles
+are never duplicated; a vertex on a chunk seam appears once per chunk in :func:`iter_mesh_parts`
+(parts sent one by one) and once in :func:`extract_mesh` (welded: :mod:`openfusion.mapping.mesh_weld`).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import numpy as np
 
 from openfusion.mapping import readout
 from openfusion.mapping.heap import release_freed_memory
+from openfusion.mapping.mesh_weld import weld_vertices
 from openfusion.mapping.paging import TilePager
 from openfusion.mapping.readout import SurfaceMesh, SurfacePoints
 from openfusion.mapping.storage import ATTR_NAMES, VoxelStorage
@@ -246,16 +248,17 @@ def iter_mesh_parts(
 
 
 def extract_mesh(storage: VoxelStorage, pager: TilePager, keys: np.ndarray | list[int] | None = None) -> SurfaceMesh:
-    """The whole map's mesh in one (the parts of :func:`iter_mesh_parts` joined)."""
+    """The whole map's mesh in one: the parts of :func:`iter_mesh_parts` joined and their seams
+    welded (:mod:`openfusion.mapping.mesh_weld`), so it equals the mesh read out in one grid."""
     parts = list(iter_mesh_parts(storage, pager, keys))
     if not parts:
         return readout._empty_mesh()
     offset = np.cumsum([0] + [len(m.vertices) for m in parts[:-1]])
-    return SurfaceMesh(
+    return weld_vertices(SurfaceMesh(
         np.concatenate([m.vertices for m in parts]),
         np.concatenate([m.triangles + o for m, o in zip(parts, offset, strict=True)]).astype(np.int32),
         np.concatenate([m.colors for m in parts]),
         np.concatenate([m.normals for m in parts]),
         np.concatenate([m.keys for m in parts]),
         np.concatenate([m.conf for m in parts]),
-    )
+    ))
