@@ -365,16 +365,15 @@ class SemanticVolume:
         pager.tick(camera_center(frame.T_world_cam))
         coords_np = block_coords.cpu().numpy()
         if self._shard.sharded:  # a geometry shard: only the blocks of its own tiles (mapping/shards.py)
-            owned = shards.owned_blocks(coords_np, p.tile_blocks, self._shard)
-            taken = owned | shards.ghost_blocks(coords_np, owned, p.tile_blocks, self._shard)  # read-outs across seams
+            owned, taken = shards.take_blocks(coords_np, p.tile_blocks, self._shard)  # + ghosts: read-outs across seams
             result.blocks_not_owned = int((~owned).sum())
             self._others.add(coords_np[~taken])  # coordinates only: its ray casts stand in for them
             if not owned.any():
                 self.stats.frames_integrated += 1  # taken: nothing of it is this shard's
                 return result
             if not taken.all():
-                coords_np = coords_np[taken]
-                block_coords = block_coords[o3c.Tensor(np.flatnonzero(taken).astype(np.int64), device=block_coords.device)]
+                coords_np = np.ascontiguousarray(coords_np[taken])
+                block_coords = o3c.Tensor.from_numpy(coords_np).to(block_coords.device)  # shares coords_np on the CPU
         if pager.budget_blocks is not None or pager.stored_blocks:
             self._page_in_for(coords_np, frame.frame_id)
         if self._grower is not None:
