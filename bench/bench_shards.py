@@ -19,8 +19,20 @@ close the composited render of the shards is to the single volume's (share of pi
 within one voxel and the same region key, frames' instances as keys), with the single volume's own
 spread under a 1 mm camera shift as the floor of what a render can agree on.
 
+A third table (``--phases``, in this process): where a frame's CPU goes in one geometry and in each
+shard, phase by phase (process CPU time around each step of ``SemanticVolume.integrate``: the frame's
+wire decode, its Open3D images, Open3D's touched-block pass over the whole frame, the shard's split
+into own blocks + ghosts and its record of the others', Open3D's ``integrate``, the rest): the part
+that does not shrink with the share of blocks is what keeps a shard above half of one geometry.
+
+A fourth table (``--ownership``, no integration): Open3D's touched blocks of every frame split by
+ownership schemes (the tile hash that runs, tile columns, stripes along x) at several tile sizes:
+the slowest shard's share of the blocks one geometry integrates (own + ghosts), and ghosts per own
+block. It is why the hash of 8-block tiles stays (docs/SHARDS.md).
+
     .venv/bin/python bench/bench_shards.py --quick    # 60 frames at 320x240 and 640x480, 1 and 2 shards
     .venv/bin/python bench/bench_shards.py --full     # 150 frames, 1, 2 and 3 shards (also the default)
+    .venv/bin/python bench/bench_shards.py --quick --phases --ownership --no-services --no-in-process
 """
 
 from __future__ import annotations
@@ -158,6 +170,166 @@ def _agreement(single: object, parts: list, frames: list, voxel_m: float) -> tup
     return depth_ok / pixels, keys_ok / pixels, floor_ok / floor_px
 
 
+def _services_table(sizes: list[tuple[int, int]], counts: list[int], frames: int, repeat: int) -> None:
+    """The services table (module docstring): every row ``repeat`` times, each run's ratio against
+    one geometry's CPU in the same run."""
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="bench-shards-") as tmp:
+        for run in range(repeat):
+            for width, height in sizes:
+                for n in counts:
+                    rows.append({**_run_one(n, width, height, frames, Path(tmp)), "run": run})
+                    print(f"  done: {n} shard(s) at {width}x{height} (run {run + 1})", file=sys.stderr)
+    print(f"\ngeometry shards, {frames} frames of the synthetic room, playback as fast as the shards take it")
+    print(f"{'size':>8} {'run':>3} {'shards':>6} {'CPU ms/frame per shard':>28} {'max':>7} {'ratio':>6} "
+          f"{'integrate ms/frame':>22} {'blocks per shard':>22} {'fps':>6}")
+    base: dict[tuple[str, int], float] = {}
+    for r in rows:
+        cpu = r["cpu_ms"][: r["shards"]]  # type: ignore[index]
+        worst = max(cpu)
+        key = (r["size"], r["run"])
+        if r["shards"] == 1:
+            base[key] = worst  # type: ignore[index]
+        ratio = worst / base[key] if key in base else float("nan")  # type: ignore[index]
+        print(f"{r['size']:>8} {r['run'] + 1:>3} {r['shards']:>6} {' '.join(f'{c:6.1f}' for c in cpu):>28} "
+              f"{worst:7.1f} {ratio:6.2f} {' '.join(f'{b:5.1f}' for b in r['busy_ms']):>22} "  # type: ignore[union-attr]
+              f"{' '.join(f'{int(b):6d}' for b in r['blocks']):>22} {r['fps']:6.1f}")  # type: ignore[union-attr]
+    print("\nratio: the slowest shard's CPU per frame / one geometry's in the same run (target <= 0.6 at 2 shards)")
+
+
+def _phases(shard: str, width: int, height: int, frames: int) -> dict[str, float]:
+    """CPU ms per frame of each phase of a frame's integration in one volume (module docstring),
+    frames after the first 5 (the grid grown, Open3D's buffers made)."""
+    from openfusion.mapping import SemanticVolume, VolumeParams, integration, shards
+    from openfusion.sources import open_source
+    from openfusion.wire import codec
+    from openfusion.wire.schemas import RgbdFrame
+
+    spent: dict[str, float] = {}
+
+    def timed(label: str, fn):  # noqa: ANN001, ANN202
+        def run(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+            t = time.process_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                spent[label] = spent.get(label, 0.0) + time.process_time() - t
+        return run
+
+    class Grid:  # Open3D's grid with its two kernels timed
+        def __init__(self, vbg: object) -> None:
+            self.vbg = vbg
+            self.compute_unique_block_coordinates = timed("touched blocks (Open3D)", vbg.compute_unique_block_coordinates)
+            self.integrate = timed("integrate (Open3D)", vbg.integrate)
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(self.vbg, name)
+
+    wire = [codec.encode(RgbdFrame.from_frame(f, with_instance=False))
+            for f in open_source(f"synthetic:seed=1,width={width},height={height},frames={frames}")]
+    saved = (integration.frame_images, shards.take_blocks, shards.OtherBlocks.add)
+    integration.frame_images = timed("frame images", integration.frame_images)
+    shards.take_blocks = timed("own blocks + ghosts", shards.take_blocks)
+    shards.OtherBlocks.add = timed("others' blocks record", shards.OtherBlocks.add)
+    try:
+        vol = SemanticVolume(VolumeParams(shard=shard))
+        total = 0.0
+        for n, data in enumerate(wire):
+            if n == 5:
+                spent.clear()
+                total = 0.0
+            t = time.process_time()
+            frame = timed("wire decode", codec.decode)(data, expected=RgbdFrame).to_frame()
+            vbg = vol._storage.vbg
+            vol._storage.vbg = Grid(vbg)  # type: ignore[assignment]
+            try:
+                vol.integrate(frame)
+            finally:
+                if isinstance(vol._storage.vbg, Grid):
+                    vol._storage.vbg = vbg
+            total += time.process_time() - t
+    finally:
+        integration.frame_images, shards.take_blocks, shards.OtherBlocks.add = saved
+    n = max(len(wire) - 5, 1)
+    out = {k: 1000 * v / n for k, v in spent.items()}
+    out["rest (Python: pager, counters, ...)"] = 1000 * total / n - sum(out.values())
+    out["total"] = 1000 * total / n
+    return out
+
+
+def _print_phases(sizes: list[tuple[int, int]], counts: list[int], frames: int) -> None:
+    for width, height in sizes:
+        cols = [("one", "0/1")] + [(f"{i}/{n}", f"{i}/{n}") for n in counts if n > 1 for i in range(n)]
+        runs = {name: _phases(shard, width, height, frames) for name, shard in cols}
+        print(f"\nCPU ms per frame by phase, {width}x{height}, {frames} frames, in this process "
+              "(shard columns: share of one geometry's)")
+        labels = list(runs["one"]) + [k for k in runs[cols[-1][0]] if k not in runs["one"]]
+        labels = [k for k in labels if k != "total"] + ["total"]
+        print(f"{'phase':>36} " + " ".join(f"{name:>14}" for name, _ in cols))
+        for label in labels:
+            base = runs["one"].get(label, 0.0)
+            cells = [f"{runs['one'].get(label, 0.0):14.2f}"]
+            for name, _ in cols[1:]:
+                v = runs[name].get(label, 0.0)
+                cells.append(f"{v:6.2f} ({v / base:4.2f})" if base > 0.05 else f"{v:14.2f}")
+            print(f"{label:>36} " + " ".join(cells))
+
+
+def _ownership(width: int, height: int, frames: int) -> None:
+    """The ownership table (module docstring): Open3D's touched blocks of each frame, split."""
+    import numpy as np
+    import open3d.core as o3c
+
+    from openfusion.mapping import SemanticVolume, VolumeParams, integration
+    from openfusion.mapping.shards import _UPPER, _mix64
+    from openfusion.mapping.tiles import pack_coords
+    from openfusion.poses import invert_pose
+    from openfusion.sources import open_source
+
+    vol = SemanticVolume(VolumeParams())
+    p, vbg = vol.params, vol._storage.vbg
+    touched = []
+    for f in open_source(f"synthetic:seed=1,width={width},height={height},frames={frames}"):
+        depth, _, scale = integration.frame_images(vol._storage, f)
+        extrinsic = o3c.Tensor(invert_pose(np.asarray(f.T_world_cam, np.float64)))
+        coords = vbg.compute_unique_block_coordinates(depth, o3c.Tensor(f.intrinsics.K, o3c.float64), extrinsic, scale,
+                                                      p.depth_max_m, p.trunc_voxels)
+        touched.append(coords.cpu().numpy().astype(np.int64))
+    total = sum(len(t) for t in touched)
+
+    def owner(kind: str, tb: int, n: int):  # noqa: ANN202
+        def of(blocks: np.ndarray) -> np.ndarray:
+            units = np.floor_divide(blocks, tb)
+            if kind == "x stripes":
+                return np.mod(units[:, 0], n)
+            if kind == "tile columns":
+                units = units.copy()
+                units[:, 2] = 0
+            return (_mix64(pack_coords(units).astype(np.uint64)) % np.uint64(n)).astype(np.int64)
+        return of
+
+    print(f"\nownership schemes: Open3D's touched blocks of {len(touched)} frames at {width}x{height} "
+          f"({total / len(touched):.0f} a frame), split; share = (own + ghosts) / one geometry's blocks")
+    print(f"{'scheme':>14} {'tile blocks':>11} {'shards':>6} {'share per shard':>24} {'slowest':>8} {'ghosts/own':>18}")
+    for n in (2, 3):
+        for kind in ("tile hash", "tile columns", "x stripes"):
+            for tb in (4, 8, 16):
+                of = owner(kind, tb, n)
+                taken, own = np.zeros(n), np.zeros(n)
+                for b in touched:
+                    s = of(b)
+                    below = [of(b - u) for u in _UPPER]
+                    for i in range(n):
+                        mine = s == i
+                        ghost = ~mine & np.logical_or.reduce([x == i for x in below])
+                        own[i] += mine.sum()
+                        taken[i] += mine.sum() + ghost.sum()
+                share = taken / total
+                marker = "  <- runs" if kind == "tile hash" and tb == p.tile_blocks else ""
+                print(f"{kind:>14} {tb:>11} {n:>6} {' '.join(f'{x:.3f}' for x in share):>24} {share.max():8.3f} "
+                      f"{' '.join(f'{x:.2f}' for x in (taken - own) / np.maximum(own, 1)):>18}{marker}")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     size = parser.add_mutually_exclusive_group()
@@ -166,31 +338,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--shards", default=None, help="comma-separated shard counts (default 1,2,3; quick 1,2)")
     parser.add_argument("--sizes", default="320x240,640x480")
-    parser.add_argument("--no-in-process", action="store_true", help="only the services table")
+    parser.add_argument("--no-in-process", action="store_true", help="no in-process volumes table")
+    parser.add_argument("--no-services", action="store_true", help="no services table")
+    parser.add_argument("--phases", action="store_true", help="CPU per frame by phase (in this process)")
+    parser.add_argument("--ownership", action="store_true", help="ownership schemes' shares of the blocks")
+    parser.add_argument("--repeat", type=int, default=1, help="services table: runs of every row (the spread)")
     args = parser.parse_args(argv)
     frames = args.frames or (60 if args.quick else 150)
     counts = [int(x) for x in (args.shards or ("1,2" if args.quick else "1,2,3")).split(",")]
     sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
-    rows = []
-    with tempfile.TemporaryDirectory(prefix="bench-shards-") as tmp:
-        for width, height in sizes:
-            for n in counts:
-                rows.append(_run_one(n, width, height, frames, Path(tmp)))
-                print(f"  done: {n} shard(s) at {width}x{height}", file=sys.stderr)
-    print(f"\ngeometry shards, {frames} frames of the synthetic room, playback as fast as the shards take it")
-    print(f"{'size':>8} {'shards':>6} {'CPU ms/frame per shard':>28} {'max':>7} {'ratio':>6} "
-          f"{'integrate ms/frame':>22} {'blocks per shard':>22} {'fps':>6}")
-    base: dict[str, float] = {}
-    for r in rows:
-        cpu = r["cpu_ms"][: r["shards"]]  # type: ignore[index]
-        worst = max(cpu)
-        if r["shards"] == 1:
-            base[r["size"]] = worst  # type: ignore[index]
-        ratio = worst / base[r["size"]] if r["size"] in base else float("nan")
-        print(f"{r['size']:>8} {r['shards']:>6} {' '.join(f'{c:6.1f}' for c in cpu):>28} {worst:7.1f} {ratio:6.2f} "
-              f"{' '.join(f'{b:5.1f}' for b in r['busy_ms']):>22} "  # type: ignore[union-attr]
-              f"{' '.join(f'{int(b):6d}' for b in r['blocks']):>22} {r['fps']:6.1f}")  # type: ignore[union-attr]
-    print("\nratio: the slowest shard's CPU per frame / one geometry's (target <= 0.6 at 2 shards)")
+    if not args.no_services:
+        _services_table(sizes, counts, frames, args.repeat)
+    if args.phases:
+        _print_phases(sizes, counts, frames)
+    if args.ownership:
+        _ownership(*sizes[-1], frames)
     if args.no_in_process:
         return 0
     from openfusion.sources import open_source
