@@ -197,9 +197,10 @@ def _services_table(sizes: list[tuple[int, int]], counts: list[int], frames: int
     print("\nratio: the slowest shard's CPU per frame / one geometry's in the same run (target <= 0.6 at 2 shards)")
 
 
-def _phases(shard: str, width: int, height: int, frames: int) -> dict[str, float]:
-    """CPU ms per frame of each phase of a frame's integration in one volume (module docstring),
-    frames after the first 5 (the grid grown, Open3D's buffers made)."""
+def _phases(shard_specs: list[str], width: int, height: int, frames: int) -> list[dict[str, float]]:
+    """CPU ms per frame of each phase of a frame's integration (module docstring) in one volume per
+    entry of ``shard_specs``, frames after the first 5 (the grid grown, Open3D's buffers made). The
+    volumes take each frame in turn, so load from other work on the box falls on all of them alike."""
     from openfusion.mapping import SemanticVolume, VolumeParams, integration, shards
     from openfusion.sources import open_source
     from openfusion.wire import codec
@@ -231,44 +232,50 @@ def _phases(shard: str, width: int, height: int, frames: int) -> dict[str, float
     integration.frame_images = timed("frame images", integration.frame_images)
     shards.take_blocks = timed("own blocks + ghosts", shards.take_blocks)
     shards.OtherBlocks.add = timed("others' blocks record", shards.OtherBlocks.add)
+    vols = [SemanticVolume(VolumeParams(shard=spec)) for spec in shard_specs]
+    sums: list[dict[str, float]] = [{} for _ in vols]
     try:
-        vol = SemanticVolume(VolumeParams(shard=shard))
-        total = 0.0
         for n, data in enumerate(wire):
-            if n == 5:
+            for vol, acc in zip(vols, sums, strict=True):
                 spent.clear()
-                total = 0.0
-            t = time.process_time()
-            frame = timed("wire decode", codec.decode)(data, expected=RgbdFrame).to_frame()
-            vbg = vol._storage.vbg
-            vol._storage.vbg = Grid(vbg)  # type: ignore[assignment]
-            try:
-                vol.integrate(frame)
-            finally:
-                if isinstance(vol._storage.vbg, Grid):
-                    vol._storage.vbg = vbg
-            total += time.process_time() - t
+                t = time.process_time()
+                frame = timed("wire decode", codec.decode)(data, expected=RgbdFrame).to_frame()
+                vbg = vol._storage.vbg
+                vol._storage.vbg = Grid(vbg)  # type: ignore[assignment]
+                try:
+                    vol.integrate(frame)
+                finally:
+                    if isinstance(vol._storage.vbg, Grid):
+                        vol._storage.vbg = vbg
+                total = time.process_time() - t
+                if n >= 5:
+                    for k, v in spent.items():
+                        acc[k] = acc.get(k, 0.0) + v
+                    acc["total"] = acc.get("total", 0.0) + total
     finally:
         integration.frame_images, shards.take_blocks, shards.OtherBlocks.add = saved
-    n = max(len(wire) - 5, 1)
-    out = {k: 1000 * v / n for k, v in spent.items()}
-    out["rest (Python: pager, counters, ...)"] = 1000 * total / n - sum(out.values())
-    out["total"] = 1000 * total / n
+        for vol in vols:
+            vol.close()
+    out = []
+    for acc in sums:
+        ms = {k: 1000 * v / max(len(wire) - 5, 1) for k, v in acc.items()}
+        ms["rest (Python: pager, counters, ...)"] = ms["total"] - sum(v for k, v in ms.items() if k != "total")
+        out.append(ms)
     return out
 
 
 def _print_phases(sizes: list[tuple[int, int]], counts: list[int], frames: int) -> None:
     for width, height in sizes:
         cols = [("one", "0/1")] + [(f"{i}/{n}", f"{i}/{n}") for n in counts if n > 1 for i in range(n)]
-        runs = {name: _phases(shard, width, height, frames) for name, shard in cols}
+        runs = dict(zip([c[0] for c in cols], _phases([c[1] for c in cols], width, height, frames), strict=True))
         print(f"\nCPU ms per frame by phase, {width}x{height}, {frames} frames, in this process "
               "(shard columns: share of one geometry's)")
-        labels = list(runs["one"]) + [k for k in runs[cols[-1][0]] if k not in runs["one"]]
-        labels = [k for k in labels if k != "total"] + ["total"]
+        labels = ["wire decode", "frame images", "touched blocks (Open3D)", "own blocks + ghosts",
+                  "others' blocks record", "integrate (Open3D)", "rest (Python: pager, counters, ...)", "total"]
         print(f"{'phase':>36} " + " ".join(f"{name:>14}" for name, _ in cols))
         for label in labels:
             base = runs["one"].get(label, 0.0)
-            cells = [f"{runs['one'].get(label, 0.0):14.2f}"]
+            cells = [f"{base:14.2f}"]
             for name, _ in cols[1:]:
                 v = runs[name].get(label, 0.0)
                 cells.append(f"{v:6.2f} ({v / base:4.2f})" if base > 0.05 else f"{v:14.2f}")
