@@ -26,23 +26,25 @@ part of the story (read their docstrings for the rules):
   meshes, summaries, contacts, checkpoint slices) as jobs of one worker thread, one chunk at a time
   in the process; :mod:`openfusion.mapping.partstore` -- paged-out tiles' read-out parts on disk.
 
+The volume's own methods are in three modules: this one (construction, integration, render and
+update), :mod:`openfusion.mapping.volume_readouts` (points, meshes, labelled voxels, region
+summaries and contacts) and :mod:`openfusion.mapping.volume_checkpoints` (arrays and checkpoint
+steps), mixed into :class:`SemanticVolume`; :mod:`openfusion.mapping.volume_locks` holds how a
+method takes the volume's lock.
+
 Names that moved to those modules (``RayHits``, ``SurfacePoints``, ``fill_nearest_labels``, ...)
 are re-exported here, so ``from openfusion.mapping.volume import ...`` keeps working.
 """
 
 from __future__ import annotations
 
-import contextlib
-import functools
 import logging
 import shutil
 import tempfile
 import threading
 import weakref
-from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
 
 import numpy as np
 import open3d as o3d
@@ -52,16 +54,13 @@ from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.mapping import (
     integration,
     raycast,
-    readout,
     readout_worker,
     shards,
-    tilereadouts,
     view_update,
 )
 from openfusion.mapping.errors import CapacityError
 from openfusion.mapping.growth import GridGrower
-from openfusion.mapping.merging import RegionContacts
-from openfusion.mapping.paging import Snapshot, TilePager, budget_blocks, camera_center
+from openfusion.mapping.paging import TilePager, budget_blocks, camera_center
 from openfusion.mapping.params import VolumeParams
 from openfusion.mapping.raycast import RayHits, range_map_down_factor
 from openfusion.mapping.readout import FILL_MIN_NORMAL_COS, SurfaceMesh, SurfacePoints, fill_nearest_labels
@@ -72,10 +71,12 @@ from openfusion.mapping.storage import (
     VoxelStorage,
     check_arrays,
 )
-from openfusion.mapping.summaries import RegionTable
 from openfusion.mapping.tilereadouts import TileReadouts
 from openfusion.mapping.tiles import TileGrid
 from openfusion.mapping.tilestore import TileStore
+from openfusion.mapping.volume_checkpoints import VolumeCheckpoints
+from openfusion.mapping.volume_locks import locked as _locked
+from openfusion.mapping.volume_readouts import VolumeReadOuts
 from openfusion.poses import check_pose, invert_pose
 
 __all__ = [
@@ -152,41 +153,12 @@ class VolumeStats:
     voxels_updated: int = 0
 
 
-_F = TypeVar("_F", bound=Callable[..., Any])
-
-
 def _remove_scratch(store: TileStore, folder: str) -> None:
     store.close()
     shutil.rmtree(folder, ignore_errors=True)
 
 
-def _locked(method: _F) -> _F:
-    """Serialise a public method on the volume's lock (Open3D's grid is not thread-safe)."""
-
-    @functools.wraps(method)
-    def wrapper(self: SemanticVolume, *args: Any, **kwargs: Any) -> Any:
-        with self._lock:
-            return method(self, *args, **kwargs)
-
-    return wrapper  # type: ignore[return-value]
-
-
-def _read_out(method: _F) -> _F:
-    """A whole-map read-out: one job on the read-out worker (:mod:`.readout_worker`: one at a time
-    in the process, so its chunks never overlap another read-out's), holding the volume's lock there."""
-
-    @functools.wraps(method)
-    def wrapper(self: SemanticVolume, *args: Any, **kwargs: Any) -> Any:
-        def job() -> Any:
-            with self._lock:
-                return method(self, *args, **kwargs)
-
-        return readout_worker.run(method.__name__, job)
-
-    return wrapper  # type: ignore[return-value]
-
-
-class SemanticVolume:
+class SemanticVolume(VolumeReadOuts, VolumeCheckpoints):
     """Semantic TSDF volume; the module docstring says which module holds each rule.
 
     Public methods are serialised on an internal lock, so a service may integrate on one thread
@@ -556,226 +528,6 @@ class SemanticVolume:
         Returns the number of voxels changed. Confidences are kept (cleared voxels get 0).
         """
         return self._storage.relabel_keys(mapping)
-
-    @_read_out
-    def labelled_voxels(self) -> tuple[np.ndarray, np.ndarray]:
-        """(integer voxel coordinates (n, 3) int64, keys (n,) int64) of every voxel carrying a key."""
-        coords, keys = self.labelled_blocks()
-        from openfusion.mapping.storage import voxels_of_labelled
-
-        return voxels_of_labelled(coords, keys, self.params.block_resolution)
-
-    @_read_out
-    def labelled_blocks(self) -> tuple[np.ndarray, np.ndarray]:
-        """(block coordinates (N, 3), keys (N, R, R, R) [z, y, x], -1 = none) of the blocks holding a key."""
-        coords, keys = self._storage.labelled_blocks()
-        if not self._pager.stored_blocks:
-            return coords, keys
-        from openfusion.mapping.storage import labelled_of
-
-        parts_c, parts_k = [coords], [keys]
-        res = self.params.block_resolution
-        for _, tc, raw in self._pager.iter_stored():
-            c, k = labelled_of(tc, self._storage.slots.key1_of(raw["key"].reshape(len(tc), -1)), res)
-            parts_c.append(c)
-            parts_k.append(k)
-        return np.concatenate(parts_c), np.concatenate(parts_k)
-
-    def region_contacts(self, *, radius_vox: int = 1, lock: Any = None) -> RegionContacts:
-        """Which regions' labelled voxels touch, how much, and each region's labelled voxel count
-        (what a merge pass decides on; equal to :func:`openfusion.mapping.merging.block_contacts`
-        of every labelled block). Kept per tile (:mod:`.tilereadouts`): only tiles whose
-        neighbourhood changed since the last call are counted again, a chunk at a time, copied
-        holding ``lock`` (a caller's reentrant lock, e.g. a service's) and the volume's lock."""
-        for _ in range(3):
-            tilereadouts.refresh(self._lock, self._readouts, what="contacts", lock=lock, radius_vox=radius_vox)
-            with self._lock:
-                missing = self._readouts.missing
-                parts = self._readouts.contact_parts()
-                if self._readouts.missing == missing:
-                    break  # else a stored part had gone missing: its tile is read out again
-        return tilereadouts.combine_contacts(parts)
-
-    def region_table(self, *, lock: Any = None) -> RegionTable:
-        """Per-region surface summaries of the whole map (equal to ``RegionTable.of_points`` of
-        :meth:`extract_points`), kept per tile (:mod:`.tilereadouts`): only the tiles whose
-        neighbourhood changed since the last call are read out again, a chunk at a time, copied
-        holding ``lock`` and the volume's lock and read out holding neither. A map that changes
-        meanwhile gives a table of the tiles as each was read; when the parts kept too few values
-        for an exact box, those tiles are read again (the last try holds the locks throughout)."""
-        for attempt in range(6):
-            hold = attempt >= 3
-            tilereadouts.refresh(self._lock, self._readouts, what="summaries", lock=lock, hold=hold)
-            with tilereadouts.both(lock, self._lock) if hold else self._lock:
-                missing = self._readouts.missing
-                # Streamed: stored parts are read from the part store one at a time, never all at once.
-                table, failing = tilereadouts.combine_summaries(
-                    self._readouts.iter_summary_parts, self._storage.slots.key1, index=self._readouts.summary_index())
-                if self._readouts.missing != missing:
-                    continue  # a stored part had gone missing: its tile is read out again
-                if not failing:
-                    return table
-                for (tile, slot), want in failing.items():
-                    self._readouts.keep[(tile, slot)] = max(self._readouts.keep.get((tile, slot), 0), want)
-                    self._readouts.summaries.pop(tile, None)
-        raise RuntimeError("region summaries did not settle: the parts kept too few values six times")
-
-    def refresh_region_table(self, *, settled_clock: int | None = None, lock: Any = None,
-                             max_s: float | None = None) -> int:
-        """Read out the stale summary parts of tiles whose neighbourhood last changed at or before
-        ``settled_clock`` (a service's idle work, so a save has little left), for at most about
-        ``max_s`` seconds; returns the tiles read."""
-        return tilereadouts.refresh(self._lock, self._readouts, what="summaries", lock=lock,
-                                    settled_clock=settled_clock, max_s=max_s)
-
-    @property
-    def readout_stats(self) -> dict[str, int]:
-        """Tiles read out for region summaries and contacts so far (:mod:`.tilereadouts`)."""
-        return dict(self._readouts.stats)
-
-    @property
-    def change_clock(self) -> int:
-        """The tile versions' clock (grows with every change of the map's voxels)."""
-        return self._pager.versions.clock
-
-    # ------------------------------------------------------------------ read-out
-    @_read_out
-    def extract_points(
-        self,
-        keys: np.ndarray | list[int] | None = None,
-        max_points: int | None = None,
-        *,
-        seed: int = 0,
-    ) -> SurfacePoints:
-        """Surface points (zero crossings of voxels observed ``min_weight`` times) with keys.
-
-        Points are sorted by (x, y, z), so the same map always gives the same array. ``keys`` keeps
-        only points of those regions; ``max_points`` subsamples uniformly at random
-        (deterministic for a given ``seed``).
-        """
-        self._settle_growth()
-        if self._shard.sharded:  # only the points its own tiles own, then the cap
-            pts = self._extract_points(keys, None, seed)
-            p = self.params
-            keep = shards.own_points(pts.points, p.voxel_size_m, p.block_resolution, p.tile_blocks, self._shard)
-            pts = SurfacePoints(pts.points[keep], pts.colors[keep], pts.keys[keep], pts.conf[keep])
-            if max_points is not None and len(pts) > max_points:
-                sel = np.sort(np.random.default_rng(seed).choice(len(pts), size=max_points, replace=False))
-                pts = SurfacePoints(pts.points[sel], pts.colors[sel], pts.keys[sel], pts.conf[sel])
-            return pts
-        return self._extract_points(keys, max_points, seed)
-
-    def _extract_points(self, keys: np.ndarray | list[int] | None, max_points: int | None, seed: int) -> SurfacePoints:
-        if self._pager.stored_blocks:
-            from openfusion.mapping import wholemap
-
-            return wholemap.extract_points(self._storage, self._pager, keys, max_points, seed=seed)
-        return readout.extract_points(self._storage, keys, max_points, seed=seed)
-
-    @_read_out
-    def extract_mesh(self, keys: np.ndarray | list[int] | None = None) -> SurfaceMesh:
-        """Surface mesh (marching cubes); with ``keys``, only triangles whose 3 vertices carry one of
-        those keys (unreferenced vertices dropped)."""
-        if self._pager.stored_blocks:
-            from openfusion.mapping import wholemap
-
-            return self._own_mesh(wholemap.extract_mesh(self._storage, self._pager, keys))
-        return self._own_mesh(readout.extract_mesh(self._storage, keys))
-
-    def _own_mesh(self, mesh: SurfaceMesh) -> SurfaceMesh:
-        """A shard's mesh: the triangles whose cube its own tiles own (unreferenced vertices dropped)."""
-        if not self._shard.sharded or len(mesh.triangles) == 0:
-            return mesh
-        p = self.params
-        keep = shards.own_points(mesh.vertices[mesh.triangles].mean(axis=1), p.voxel_size_m, p.block_resolution,
-                                 p.tile_blocks, self._shard)
-        tris = mesh.triangles[keep]
-        used = np.zeros(len(mesh.vertices), bool)
-        used[tris.reshape(-1)] = True
-        remap = np.full(len(mesh.vertices), -1, np.int64)
-        remap[used] = np.arange(int(used.sum()))
-        return SurfaceMesh(mesh.vertices[used], remap[tris].astype(np.int32), mesh.colors[used], mesh.normals[used],
-                           mesh.keys[used], mesh.conf[used])
-
-    @_read_out
-    def mesh_parts(self, keys: np.ndarray | list[int] | None = None) -> list[SurfaceMesh]:
-        """The mesh in parts of at most ``wholemap.CHUNK_BLOCKS`` blocks each (a large map's mesh
-        written or sent part by part; one part for a map with nothing paged out)."""
-        from openfusion.mapping import wholemap
-
-        if not self._pager.stored_blocks and self._storage.num_blocks <= wholemap.CHUNK_BLOCKS:
-            return [self._own_mesh(readout.extract_mesh(self._storage, keys))]
-        return [self._own_mesh(m) for m in wholemap.iter_mesh_parts(self._storage, self._pager, keys)]
-
-    # ------------------------------------------------------------------ arrays (save / load)
-    @_read_out
-    def to_arrays(self) -> dict[str, np.ndarray]:
-        """Every block (resident and paged out) as plain arrays (``key`` holds real keys, -1 = none)."""
-        arrays = self._storage.to_arrays()
-        if not self._pager.stored_blocks:
-            return arrays
-        parts = [arrays, *self._pager.stored_arrays()]
-        return {name: np.concatenate([p[name] for p in parts]) for name in arrays}
-
-    def unshared_arrays(self) -> dict[str, np.ndarray]:
-        """:meth:`to_arrays` on the calling thread, not as a read-out job: only for a volume no other
-        thread can reach yet (a loaded map being moved into another volume by a caller that
-        holds a service's lock, which a job may not be asked for under)."""
-        with self._lock:
-            return SemanticVolume.to_arrays.__wrapped__(self)  # type: ignore[attr-defined]
-
-    @property
-    def num_blocks_total(self) -> int:
-        """Blocks of the whole map: resident and paged out."""
-        return self._storage.num_blocks + sum(self._pager.stored_blocks.values())
-
-    # ------------------------------------------------------------------ checkpoints (tile store)
-    # The steps of :func:`openfusion.mapping.mapstore.checkpoint` (the rules: :mod:`.paging`).
-    @_locked
-    def checkpoint_plan(self, *, every_tile: bool = False) -> list[list[tuple[int, int, int]]]:
-        """Slices of the resident tiles a checkpoint must write (``every_tile``: all)."""
-        self._settle_growth()
-        return self._pager.precopy_plan(every_tile=every_tile)
-
-    @_locked
-    def checkpoint_copy(self, tiles: list[tuple[int, int, int]]) -> tuple[dict, dict]:
-        """Raw copies of one slice's tiles (still to be written) and their versions."""
-        return self._pager.copy_tiles(tiles)
-
-    @_locked
-    def checkpoint_slice_written(self, versions: dict[tuple[int, int, int], int]) -> None:
-        self._pager.slice_written(versions)
-
-    @_locked
-    def checkpoint_end(self) -> Snapshot:
-        """A checkpoint's last step (:meth:`~openfusion.mapping.paging.TilePager.end_snapshot`)."""
-        self._settle_growth()
-        snap = self._pager.end_snapshot()
-        snap.tile_index = self._tile_index()
-        return snap
-
-    @_locked
-    def tile_index(self) -> np.ndarray:
-        """int32 (T, 4): every tile of the map (x, y, z, block count)."""
-        return self._tile_index()
-
-    def _tile_index(self) -> np.ndarray:
-        groups = self._pager._resident_groups()
-        rows = [(*t, len(g[1])) for t, g in groups.items()] + [
-            (*t, n) for t, n in self._pager.stored_blocks.items()
-        ]
-        return np.array(sorted(rows), np.int32).reshape(-1, 4)
-
-    @_locked
-    def checkpoint_committed(self, snap: Snapshot) -> None:
-        """``snap``'s generation is durable in the store (bookkeeping of what is dirty)."""
-        self._pager.committed(snap)
-
-    @contextlib.contextmanager
-    def locked(self) -> Iterator[None]:
-        """Hold the volume's lock (nothing changes the map meanwhile): a save into a new store."""
-        with self._lock:
-            yield
 
     @classmethod
     def from_arrays(cls, params: VolumeParams, arrays: dict[str, np.ndarray]) -> SemanticVolume:
