@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from openfusion.mapping import shards
+from openfusion.mapping import SemanticVolume, VolumeParams, shards
+from openfusion.sources import open_source
 from openfusion.wire.keys import ShardId
 
 
@@ -71,3 +72,13 @@ def test_other_blocks_batched_record_answers_as_each_frame_merged() -> None:
     record.add(np.array([[100, 100, 100]]))
     record.clear()
     assert len(record) == 0 and len(record.tiles()) == 0
+
+
+def test_a_cleared_shard_forgets_the_other_shards_blocks() -> None:
+    frame = next(iter(open_source("synthetic:seed=1,frames=1,width=80,height=60")))
+    volume = SemanticVolume(VolumeParams(voxel_size_m=0.03, tile_blocks=4, shard="1/2"))
+    stats = volume.integrate(frame)
+    assert stats.blocks_not_owned > 0 and len(volume._others) > 0
+    volume.clear()  # a reset: no stand-ins remain for blocks of the map that was
+    assert len(volume._others) == 0 and volume.num_blocks == 0
+    volume.close()

@@ -297,6 +297,7 @@ class SemanticVolume(VolumeReadOuts, VolumeCheckpoints):
             self._grower.close()
         self._storage.reset()
         self._readouts.forget()
+        self._others.clear()  # the other shards' blocks of the map dropped: no stand-ins for them
 
     def _intrinsic_tensor(self, intrinsics: CameraIntrinsics) -> o3c.Tensor:
         K = self._intrinsic_cache.get(intrinsics)
