@@ -324,7 +324,7 @@ def load_map(
         return _load_store(store_path, device=device, writable=writable, memory_budget_mb=memory_budget_mb)
     parts = shardmaps.shard_parts(path) if not writable else None  # saved by geometry shards: merged
     if parts is not None:
-        return shardmaps.load_sharded(parts, load_map, device=device)
+        return shardmaps.load_sharded(parts, load_map, device=device, memory_budget_mb=memory_budget_mb)
     target = resolve_map_path(path)
     return _guarded(target, lambda npz: _load_archive(target, npz, device))
 
