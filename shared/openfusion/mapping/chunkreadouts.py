@@ -23,9 +23,9 @@ from openfusion.mapping import readout
 from openfusion.mapping.keyslots import KeySlots
 from openfusion.mapping.merging import contact_counts
 from openfusion.mapping.storage import ATTR_NAMES, VoxelStorage
+from openfusion.mapping.tilecodec import decode_tile
 from openfusion.mapping.tileparts import ContactPart, SummaryPart, Tile
 from openfusion.mapping.tiles import pack_coords
-from openfusion.mapping.tilestore import decode_tile
 
 #: Values a summary part keeps per axis and side at least, and as a share of its points.
 KEEP_MIN = 64
