@@ -443,7 +443,7 @@ def install_store(tmp: Path, target: Path) -> None:
     if target.exists():
         os.replace(target, old)
     os.replace(tmp, target)
-    _fsync_dir(target.parent)
+    fsync_dir(target.parent)
     if old.exists():
         shutil.rmtree(old, ignore_errors=True)
 
@@ -458,7 +458,8 @@ def find_store(folder: Path) -> Path | None:
     return None
 
 
-def _fsync_dir(folder: Path) -> None:
+def fsync_dir(folder: Path) -> None:
+    """Make a rename in ``folder`` durable (fsync of the folder; a no-op where that is not supported)."""
     try:
         fd = os.open(folder, os.O_RDONLY)
     except OSError:
