@@ -86,7 +86,7 @@ from openfusion.mapping.errors import MapFormatError
 from openfusion.mapping.params import VolumeParams
 from openfusion.mapping.queries import RegionTable
 from openfusion.mapping.relevancy import calibration_for
-from openfusion.mapping.tilestore import STORE_DIR_NAME, TileStore, find_store
+from openfusion.mapping.tilestore import STORE_DIR_NAME, TileStore, find_store, fsync_dir
 from openfusion.wire.schemas import DictionarySnapshot
 
 if TYPE_CHECKING:  # Open3D: imported only where a volume is built (load_map), not for summaries
@@ -265,7 +265,7 @@ def _install(tmp: Path, target: Path, *, keep_previous: bool) -> None:
     previous = previous_map_path(target) if keep_previous and target.is_file() else None
     if previous is not None:
         os.replace(target, previous)
-        _fsync_dir(target.parent)
+        fsync_dir(target.parent)
     try:
         os.replace(tmp, target)
     except BaseException:
@@ -275,7 +275,7 @@ def _install(tmp: Path, target: Path, *, keep_previous: bool) -> None:
             except OSError as exc:
                 logger.warning("could not rename %s back to %s: %s", previous, target, exc)
         raise
-    _fsync_dir(target.parent)
+    fsync_dir(target.parent)
 
 
 def _remove_stale_temps(target: Path) -> None:
@@ -288,19 +288,6 @@ def _remove_stale_temps(target: Path) -> None:
                 logger.info("removed %s, left by an interrupted save", leftover)
         except OSError as exc:  # gone meanwhile, or not ours to remove: not this save's problem
             logger.debug("leftover %s not removed: %s", leftover, exc)
-
-
-def _fsync_dir(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        logger.debug("fsync of folder %s not supported", folder)
-    finally:
-        os.close(fd)
 
 
 def load_map(
