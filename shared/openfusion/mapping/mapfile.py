@@ -83,6 +83,7 @@ import numpy as np
 from openfusion.mapping import shardmaps
 from openfusion.mapping.dictionary import RegionDictionary
 from openfusion.mapping.errors import MapFormatError
+from openfusion.mapping.mapstore import header_meta
 from openfusion.mapping.params import VolumeParams
 from openfusion.mapping.queries import RegionTable
 from openfusion.mapping.relevancy import calibration_for
@@ -330,7 +331,7 @@ def _load_store(path: Path, *, device: str | None, writable: bool, memory_budget
     dictionary = _dictionary(header, arrays)
     logger.info("loaded map %s: %d blocks (%d resident), %d regions", path, volume.num_blocks_total,
                 volume.num_blocks, len(dictionary))
-    return LoadedMap(volume, dictionary, _meta(header), path, header.get("relevancy"))
+    return LoadedMap(volume, dictionary, header_meta(header), path, header.get("relevancy"))
 
 
 def load_latest_map(path: str | os.PathLike[str], *, device: str | None = None, writable: bool = False) -> LoadedMap:
@@ -417,7 +418,7 @@ def _load_store_summary(path: Path) -> MapSummary | None:
     regions = _region_table(path, arrays)
     params = VolumeParams.from_dict(header["volume_params"])
     logger.info("read map summary %s: %d regions, %d with surface points", path, len(dictionary), len(regions))
-    return MapSummary(dictionary, regions, params, _meta(header), header.get("relevancy"))
+    return MapSummary(dictionary, regions, params, header_meta(header), header.get("relevancy"))
 
 
 def _guarded(target: Path, read: Any) -> Any:
@@ -507,12 +508,6 @@ def _dictionary(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> Region
     return RegionDictionary.from_snapshot(snapshot)
 
 
-def _meta(header: dict[str, Any]) -> dict[str, Any]:
-    meta = dict(header.get("meta", {}))
-    meta.setdefault("created_unix_s", header.get("created_unix_s"))
-    return meta
-
-
 def _region_table(target: Path, arrays: dict[str, np.ndarray]) -> RegionTable:
     table = RegionTable(**{n: arrays[f"summary_{n}"] for n in _SUMMARY_ARRAYS})
     n = len(table.keys)
@@ -531,7 +526,7 @@ def _load_summary(target: Path, npz: np.lib.npyio.NpzFile) -> MapSummary | None:
     regions = _region_table(target, arrays)
     params = VolumeParams.from_dict(header["volume_params"])
     logger.info("read map summary %s: %d regions, %d with surface points", target, len(dictionary), len(regions))
-    return MapSummary(dictionary, regions, params, _meta(header), header.get("relevancy"))
+    return MapSummary(dictionary, regions, params, header_meta(header), header.get("relevancy"))
 
 
 def _load_archive(target: Path, npz: np.lib.npyio.NpzFile, device: str | None) -> LoadedMap:
@@ -556,4 +551,4 @@ def _load_archive(target: Path, npz: np.lib.npyio.NpzFile, device: str | None) -
             "%s: %d voxel keys have no dictionary entry (e.g. %s)", target, len(unknown), unknown[:5]
         )
     logger.info("loaded map %s: %d blocks, %d regions", target, volume.num_blocks, len(dictionary))
-    return LoadedMap(volume, dictionary, _meta(header), target, header.get("relevancy"))
+    return LoadedMap(volume, dictionary, header_meta(header), target, header.get("relevancy"))

@@ -130,12 +130,11 @@ def load_sharded(parts: list[Path], load_map: Callable[..., Any], *, device: str
 
 def part_meta(part: Path) -> dict[str, Any]:
     """A part's meta from its header alone (no tile read)."""
-    from openfusion.mapping.mapfile import _meta
-    from openfusion.mapping.mapstore import read_header
+    from openfusion.mapping.mapstore import header_meta, read_header
     from openfusion.mapping.tilestore import STORE_DIR_NAME, TileStore
 
     with TileStore(Path(part) / STORE_DIR_NAME, readonly=True) as store:
-        return _meta(read_header(store))
+        return header_meta(read_header(store))
 
 
 def load_sharded_summary(parts: list[Path], load_map_summary: Callable[[Path], Any]) -> Any:
