@@ -23,8 +23,8 @@ import numpy as np
 
 
 def main(argv: list[str] | None = None) -> int:
-    from openfusion.mapping.tilestore import _Zstd as Zstd  # the store's codec, at other levels too
-    from openfusion.mapping.tilestore import decode_tile, encode_tile
+    from openfusion.mapping.tilecodec import _Zstd as Zstd  # the store's codec, at other levels too
+    from openfusion.mapping.tilecodec import decode_tile, encode_tile
     from openfusion.sources import open_source
     from openfusion.testing.maps import volume_with_every_tile
 

@@ -19,34 +19,24 @@ relabels the voxels of the merges the lost delta carried.
 
 from __future__ import annotations
 
-import logging
 from typing import TYPE_CHECKING
 
-from openfusion.bus import QueryError, ServiceRunner
+from openfusion.bus import QueryError
 from openfusion.bus.health import live_services
-from openfusion.mapping import RegionDictionary, SemanticVolume
-from openfusion.services.dictionary_replica import DictionaryReplica
-from openfusion.services.geometry.section import GeometrySection
+from openfusion.mapping import RegionDictionary
+from openfusion.services.geometry.parts import ServiceParts, logger
 from openfusion.wire.counters import GeometryCounter
 from openfusion.wire.endpoints import SEMANTIC_DICTIONARY, SEMANTIC_MERGE
 from openfusion.wire.schemas import DictionaryDelta, DictionarySnapshot, MergeRequest
 
 if TYPE_CHECKING:
-    import threading
-
-logger = logging.getLogger("openfusion.services.geometry.service")
+    pass
 
 
-class DictionaryFollower:
+class DictionaryFollower(ServiceParts):
     """The dictionary half of the geometry service (mixed into it)."""
 
-    _lock: threading.RLock
-    volume: SemanticVolume
-    replica: DictionaryReplica
-    section: GeometrySection
-    _runner: ServiceRunner | None
-    _dirty: bool
-    # and the service's _map_changed() and _count()
+    # and the service's helpers (parts.py)
 
     def on_delta(self, msg: DictionaryDelta) -> None:
         merges = RegionDictionary.merges_of(msg)

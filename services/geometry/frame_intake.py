@@ -14,17 +14,16 @@ service's module docstring has the resume story in full.
 
 from __future__ import annotations
 
-import logging
-import threading
 import time
 from typing import TYPE_CHECKING
 
 import zenoh
 
-from openfusion.bus import Publisher, ServiceRunner, Subscriber
+from openfusion.bus import Publisher, Subscriber
 from openfusion.frame import Frame
-from openfusion.mapping import CapacityError, SemanticVolume
-from openfusion.mapping.robot_streams import Admission, RobotStream, RobotStreams
+from openfusion.mapping import CapacityError
+from openfusion.mapping.robot_streams import Admission, RobotStream
+from openfusion.services.geometry.parts import ServiceParts, logger
 from openfusion.services.geometry.persistence import NO_FRAME_ID
 from openfusion.wire.counters import GeometryCounter
 from openfusion.wire.keys import ShardId
@@ -33,27 +32,18 @@ from openfusion.wire.schemas import GeometryProgress, RgbdFrame
 if TYPE_CHECKING:
     from openfusion.services.geometry.robots import RobotJoiner
 
-logger = logging.getLogger("openfusion.services.geometry.service")
 
-
-class FrameIntake:
+class FrameIntake(ServiceParts):
     """The frame half of the geometry service (mixed into it)."""
 
-    _lock: threading.RLock
-    volume: SemanticVolume
-    robots: RobotStreams
     joiner: RobotJoiner
     shard: ShardId
     incarnation: str
-    frames_integrated: int
-    integrate_busy_s: float
     last_integrated_frame_id: int | None
-    _dirty: bool
     _robot_sources: dict[bytes, str]
-    _runner: ServiceRunner | None
     _frames_sub: Subscriber[RgbdFrame] | None
     _progress_pub: Publisher | None
-    # and the service's _robot(), _map_changed(), _count() and _set_memory_stats()
+    # and the service's helpers (parts.py)
 
     def announce(self, robot: RobotStream | None = None) -> None:
         """Publish where a robot's playback should continue (``resume`` announcement on

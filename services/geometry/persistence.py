@@ -15,28 +15,26 @@ story (periodic checkpoints, ``control/save``, the shutdown checkpoint, resume).
 
 from __future__ import annotations
 
-import logging
 import threading
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from openfusion.bus import RequestError, ServiceRunner
+from openfusion.bus import RequestError
 from openfusion.mapping import RegionDictionary, SemanticVolume, readout_worker, save_map
 from openfusion.mapping.mapfile import resolve_map_path
 from openfusion.mapping.mapstore import checkpoint as checkpoint_store
 from openfusion.mapping.queries import RegionTable
 from openfusion.mapping.tilestore import STORE_DIR_NAME
-from openfusion.services.dictionary_replica import DictionaryReplica
 from openfusion.services.geometry import checkpoints
-from openfusion.services.geometry.section import GeometryConfig, GeometrySection, SummaryCache
+from openfusion.services.geometry.parts import ServiceParts, logger
+from openfusion.services.geometry.section import SummaryCache
 from openfusion.wire.counters import GeometryCounter
 from openfusion.wire.schemas.base import DEFAULT_ROBOT
 
 if TYPE_CHECKING:
-    from openfusion.mapping.robot_streams import RobotStreams
+    pass
 
-logger = logging.getLogger("openfusion.services.geometry.service")
 
 NO_EMBEDDING_SPACE = "none"
 NO_FRAME_ID = -1  # the checkpoint_last_frame_id counter when no checkpoint records one
@@ -51,35 +49,24 @@ class CheckpointFailed(RequestError):
         self.path = path
 
 
-
 def has_checkpoint(path: Path) -> bool:
     """A checkpoint (a committed tile store, or a version-1 file or the one before it) is at ``path``."""
     return checkpoints.has_checkpoint(path)
 
 
-class MapPersistence:
+class MapPersistence(ServiceParts):
     """The save and load half of the geometry service (mixed into it)."""
 
-    config: GeometryConfig
-    section: GeometrySection
-    _lock: threading.RLock
     _swap_lock: threading.Lock
-    volume: SemanticVolume
-    replica: DictionaryReplica
-    robots: RobotStreams
     checkpoint_dir: Path | None
     checkpoint_last_frame_id: int | None
     checkpoint_failures: int
-    frames_integrated: int
-    integrate_busy_s: float
     map_version: int
     saving: bool
     _key_horizon: int
     _summary: SummaryCache | None
-    _dirty: bool
     _last_checkpoint: float
-    _runner: ServiceRunner | None
-    # and the service's _first_robot(), _map_changed() and _count()
+    # and the service's helpers (parts.py)
 
     def _load(self, path: Path, *, fallback: bool = False, restore_counts: bool = False) -> None:
         """Load a map file; ``fallback``: a checkpoint of ours, the ``.prev`` one when the newest is bad;

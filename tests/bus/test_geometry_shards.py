@@ -16,14 +16,13 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from openfusion.bus import QueryError, open_session
-from openfusion.config import ServiceConfig, ZenohSettings
+from openfusion.bus import QueryError
 from openfusion.mapping import SemanticVolume, VolumeParams, load_map
 from openfusion.services.bridge.service import BridgeConfig, BridgeSection, BridgeService
 from openfusion.services.geometry.service import GeometryConfig, GeometrySection, GeometryService
 from openfusion.shard_client import GeometryReader
 from openfusion.sources import open_source
-from openfusion.testing.bus import ServiceThread, free_port, unique_map_id, wait_until
+from openfusion.testing.bus import LoopbackRouter, ServiceThread, wait_until
 from openfusion.wire.counters import GeometryCounter
 from openfusion.wire.schemas import ControlRequest, PointsRequest, RegionSummaryRequest, RenderRequest
 
@@ -36,19 +35,10 @@ VOLUME = {"voxel_size_m": 0.04, "tile_blocks": 4, "initial_block_count": 2048}
 
 @pytest.fixture
 def net() -> Iterator[dict]:
-    map_id = unique_map_id("shards")
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-
-    def cfg(mode: str) -> dict:
-        where = {"listen": [endpoint]} if mode == "router" else {"connect": [endpoint]}
-        return {"map_id": map_id, "zenoh": ZenohSettings(mode=mode, multicast_scouting=False, **where),
-                "health_period_s": 0.2}
-
-    router = open_session(ServiceConfig(**cfg("router")))
-    session = open_session(ServiceConfig(**cfg("client")))
-    yield {"cfg": cfg, "session": session, "keys": ServiceConfig(**cfg("client")).keys}
-    session.close()
-    router.close()
+    with LoopbackRouter("shards") as router:
+        session = router.open_client()
+        yield {"router": router, "session": session, "keys": router.keys}
+        session.close()
 
 
 def test_a_shard_spec_is_checked() -> None:
@@ -59,17 +49,17 @@ def test_a_shard_spec_is_checked() -> None:
 
 
 def test_two_shards_serve_one_map(net: dict, tmp_path: Path) -> None:
-    cfg = net["cfg"]
-    shards = [GeometryService(GeometryConfig(**cfg("client"), geometry=GeometrySection(
+    router: LoopbackRouter = net["router"]
+    shards = [GeometryService(router.config(GeometryConfig, geometry=GeometrySection(
         shard=f"{i}/2", map_dir=tmp_path / "ckpt", checkpoint_period_s=0, **VOLUME))) for i in range(2)]
-    threads = [ServiceThread(s, GeometryConfig(**cfg("client")), s.shard.service) for s in shards]
+    threads = [ServiceThread(s, router.config(GeometryConfig), s.shard.service) for s in shards]
     for t in threads:
         t.__enter__()
     try:
-        bridge = BridgeService(BridgeConfig(**cfg("client"), bridge=BridgeSection(
+        bridge = BridgeService(router.config(BridgeConfig, bridge=BridgeSection(
             source=SOURCE, max_frames=N, rate_hz=0, max_in_flight=2, geometry_shards=2)))
         reader = GeometryReader(net["session"], net["keys"])
-        with ServiceThread(bridge, BridgeConfig(**cfg("client")), "bridge"):
+        with ServiceThread(bridge, router.config(BridgeConfig), "bridge"):
             wait_until(lambda: all(t.counter(GeometryCounter.FRAMES_INTEGRATED) >= N for t in threads),
                        timeout_s=60)
         assert bridge.window is not None and bridge.window.timeouts == 0  # paced by both shards' acks

@@ -13,14 +13,13 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from openfusion.bus import Queryable, QueryError, get_all, open_session
+from openfusion.bus import Queryable, QueryError, get_all
 from openfusion.bus.query import RETRY_UNANSWERED_S
 from openfusion.client import OpenFusionClient
-from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.encoders import make_text_encoder
 from openfusion.mapping import RegionDictionary
 from openfusion.services.query.service import DEFINITION, QueryConfig, QuerySection, QueryService
-from openfusion.testing.bus import ServiceThread, free_port, unique_map_id, wait_until
+from openfusion.testing.bus import LoopbackRouter, ServiceThread, wait_until
 from openfusion.wire.counters import QueryCounter
 from openfusion.wire.endpoints import GEOMETRY_REGIONS, QUERY_TEXT, SEMANTIC_DICTIONARY
 from openfusion.wire.schemas import (
@@ -57,37 +56,28 @@ def _summaries() -> RegionSummaryReply:
 
 @pytest.fixture
 def bus() -> Iterator[dict]:
-    map_id = unique_map_id("queries")
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-
-    def cfg(mode: str) -> dict:
-        where = {"listen": [endpoint]} if mode == "router" else {"connect": [endpoint]}
-        return {"map_id": map_id, "zenoh": ZenohSettings(mode=mode, multicast_scouting=False, **where),
-                "health_period_s": 0.2}
-
-    router = open_session(ServiceConfig(**cfg("router")))
-    stand_in = open_session(ServiceConfig(**cfg("client")))
-    keys = ServiceConfig(**cfg("client")).keys
-    dictionary, summaries = _dictionary(), _summaries()
-    qbls = [Queryable(stand_in, SEMANTIC_DICTIONARY.key(keys), DictionaryRequest, lambda _r: dictionary.snapshot()),
-            Queryable(stand_in, GEOMETRY_REGIONS.key(keys), RegionSummaryRequest, lambda _r: summaries)]
-    client = OpenFusionClient.from_config(ServiceConfig(**cfg("client")), timeout_s=20.0)
-    yield {"cfg": cfg, "client": client}
-    client.close()
-    for q in qbls:
-        q.close()
-    stand_in.close()
-    router.close()
+    with LoopbackRouter("queries") as router:
+        stand_in = router.open_client()
+        keys = router.keys
+        dictionary, summaries = _dictionary(), _summaries()
+        qbls = [Queryable(stand_in, SEMANTIC_DICTIONARY.key(keys), DictionaryRequest, lambda _r: dictionary.snapshot()),
+                Queryable(stand_in, GEOMETRY_REGIONS.key(keys), RegionSummaryRequest, lambda _r: summaries)]
+        client = OpenFusionClient.from_config(router.config(), timeout_s=20.0)
+        yield {"router": router, "client": client}
+        client.close()
+        for q in qbls:
+            q.close()
+        stand_in.close()
 
 
-def _query_service(cfg, instance: int | None) -> ServiceThread:
-    config = QueryConfig(**cfg("client"), query=QuerySection(text_encoder="hash", instance=instance))
+def _query_service(router: LoopbackRouter, instance: int | None) -> ServiceThread:
+    config = router.config(QueryConfig, query=QuerySection(text_encoder="hash", instance=instance))
     return ServiceThread(QueryService(config, text_encoder=TEXT), config, DEFINITION.instance_name(config))
 
 
 def test_two_query_services_answer_each_request_once_and_survive_one_closing(bus) -> None:
     client: OpenFusionClient = bus["client"]
-    first, second = _query_service(bus["cfg"], None), _query_service(bus["cfg"], 2)
+    first, second = _query_service(bus["router"], None), _query_service(bus["router"], 2)
     first.__enter__()
     second.__enter__()
     try:

@@ -8,44 +8,23 @@ Skipped with the reason when namespaces cannot be created (not root, no iproute2
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
-from netns_support import NetNs, counter
+from netns_support import NetNs, TwoHosts, counter
 
-from openfusion.app.launcher import Cluster, wait_for_services
-from openfusion.bus import free_loopback_port as free_port
-from openfusion.bus import live_services, open_session
-from openfusion.client import OpenFusionClient
-from openfusion.config import ServiceConfig, ZenohSettings
-from openfusion.testing.bus import subprocess_env, unique_map_id, wait_until
-
-#: The repository root (deploy files, docs, the README's commands).
-ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
-
+from openfusion.app.launcher import wait_for_services
+from openfusion.bus import live_services
+from openfusion.testing.bus import wait_until
 
 pytestmark = [pytest.mark.netns, pytest.mark.timeout(600)]
 
 
 def test_semantic_on_a_second_host_maps_survives_a_link_cut_and_reconnects(netns: NetNs, tmp_path: Path) -> None:
-    map_id = unique_map_id("twohost")
-    port = free_port()
-    local, remote = f"tcp/127.0.0.1:{port}", f"tcp/{netns.host_addr}:{port}"
-    router = open_session(ServiceConfig(map_id=map_id, zenoh=ZenohSettings(
-        mode="router", listen=[local, remote], multicast_scouting=False)))
-    cluster = Cluster(map_id, local, tmp_path / "logs")
-    client = OpenFusionClient.from_config(ServiceConfig(map_id=map_id, zenoh=ZenohSettings(
-        mode="client", connect=[local], multicast_scouting=False)), timeout_s=20)
-    env = subprocess_env(HF_HUB_OFFLINE="1")
-    log = open(tmp_path / "semantic-netns.log", "wb")  # noqa: SIM115 - closed in finally
-    semantic = subprocess.Popen(
-        ["ip", "netns", "exec", netns.name, sys.executable, "-m", "openfusion.app.cli", "service", "semantic",
-         "--map", map_id, "--mode", "client", "--connect", remote, "--no-multicast"],
-        stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
-    try:
+    with TwoHosts(netns, "twohost", tmp_path / "logs") as hosts:
+        cluster, client, env = hosts.cluster, hosts.client, hosts.env
+        semantic = hosts.start_remote("semantic", [], tmp_path / "semantic-netns.log")
         cluster.start("geometry", ["--checkpoint-period-s", "0"], env=env)
         cluster.start("query", [], env=env)
         wait_for_services(client, cluster, {"geometry", "query"}, 240)
@@ -89,13 +68,3 @@ def test_semantic_on_a_second_host_maps_survives_a_link_cut_and_reconnects(netns
         while decided() <= before and time.monotonic() < deadline:
             play(6)
         assert decided() > before
-    finally:
-        semantic.terminate()
-        try:
-            semantic.wait(20)
-        except subprocess.TimeoutExpired:
-            semantic.kill()
-        log.close()
-        cluster.stop()
-        client.close()
-        router.close()

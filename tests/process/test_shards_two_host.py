@@ -24,16 +24,13 @@ from pathlib import Path
 
 import pytest
 
-from openfusion.app.launcher import Cluster, wait_for_services
-from openfusion.bus import QueryError, live_services, open_session
-from openfusion.bus import free_loopback_port as free_port
-from openfusion.client import OpenFusionClient
-from openfusion.config import ServiceConfig, ZenohSettings
-from openfusion.testing.bus import subprocess_env, unique_map_id, wait_until
+from openfusion.app.launcher import wait_for_services
+from openfusion.bus import QueryError, live_services
+from openfusion.testing.bus import wait_until
 from openfusion.wire.counters import BridgeCounter, GeometryCounter, SemanticCounter
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from netns_support import NetNs, counter  # noqa: E402
+from netns_support import NetNs, TwoHosts, counter  # noqa: E402
 
 ROOT = next(p for p in Path(__file__).resolve().parents if (p / "pyproject.toml").is_file())
 N = 45
@@ -44,26 +41,11 @@ pytestmark = [pytest.mark.netns, pytest.mark.slow, pytest.mark.timeout(600)]
 
 
 def test_shard_primary_killed_its_replica_on_another_host_carries_on(netns: NetNs, tmp_path: Path) -> None:
-    map_id = unique_map_id("shards2h")
-    port = free_port()
-    local, remote = f"tcp/127.0.0.1:{port}", f"tcp/{netns.host_addr}:{port}"
-    router = open_session(ServiceConfig(map_id=map_id, zenoh=ZenohSettings(
-        mode="router", listen=[local, remote], multicast_scouting=False)))
-    cluster = Cluster(map_id, local, tmp_path / "logs")
-    client = OpenFusionClient.from_config(ServiceConfig(map_id=map_id, zenoh=ZenohSettings(
-        mode="client", connect=[local], multicast_scouting=False)), timeout_s=20)
-    env = subprocess_env(HF_HUB_OFFLINE="1")
-    host2: list[subprocess.Popen[bytes]] = []
-    logs = []
-    try:
+    with TwoHosts(netns, "shards2h", tmp_path / "logs") as hosts:
+        cluster, client, env = hosts.cluster, hosts.client, hosts.env
         for name, extra in (("geometry-1of2", ["--shard", "1/2"]), ("geometry-0of2-r1", ["--shard", "0/2", "--replica", "1"])):
-            log = (tmp_path / f"{name}-netns.log").open("wb")
-            logs.append(log)
-            host2.append(subprocess.Popen(
-                ["ip", "netns", "exec", netns.name, sys.executable, "-m", "openfusion.app.cli", "service", "geometry",
-                 "--map", map_id, "--mode", "client", "--connect", remote, "--no-multicast",
-                 "--map-dir", str(tmp_path / "host2"), "--checkpoint-period-s", "0", *extra],
-                stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, env=env))
+            hosts.start_remote("geometry", ["--map-dir", str(tmp_path / "host2"), "--checkpoint-period-s", "0", *extra],
+                               tmp_path / f"{name}-netns.log")
         cluster.start("geometry-0of2", ["--shard", "0/2", "--map-dir", str(tmp_path / "host1"),
                                         "--checkpoint-period-s", "0"], service="geometry", env=env)
         # Every frame encoded in order, at a pace the semantic service keeps: the map's semantics do
@@ -130,16 +112,3 @@ def test_shard_primary_killed_its_replica_on_another_host_carries_on(netns: NetN
         # Measured 0.9335 / 0.9315 on a quiet box; the semantic service's timing moves either run by a
         # few hundredths on a loaded one (test_geometry_shards_run.py), so the bound is that spread.
         assert q1 > 0.3 and abs(q1 - q2) <= 0.04, (q1, q2)
-    finally:
-        for proc in host2:
-            proc.terminate()
-        for proc in host2:
-            try:
-                proc.wait(20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-        for log in logs:
-            log.close()
-        cluster.stop()
-        client.close()
-        router.close()

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from openfusion.mapping import SemanticVolume, VolumeParams, tilereadouts
+from openfusion.mapping import SemanticVolume, VolumeParams, chunkreadouts, tilereadouts
 from openfusion.mapping.merging import RegionContacts, block_contacts
 from openfusion.mapping.summaries import RegionTable
 from openfusion.sources import open_source
@@ -93,8 +93,8 @@ def test_summaries_per_tile_equal_the_whole_surface_and_only_changed_tiles_are_r
 def test_a_part_that_kept_too_few_values_is_read_again_until_the_box_is_exact(monkeypatch: pytest.MonkeyPatch) -> None:
     """With parts keeping 2 values per axis, most regions' percentiles need more of some tile: the
     check finds them, those tiles are read again keeping enough, and the box comes out exact."""
-    monkeypatch.setattr(tilereadouts, "KEEP_MIN", 2)
-    monkeypatch.setattr(tilereadouts, "KEEP_SHARE", 0.0)
+    monkeypatch.setattr(chunkreadouts, "KEEP_MIN", 2)
+    monkeypatch.setattr(chunkreadouts, "KEEP_SHARE", 0.0)
     volume = SemanticVolume(VolumeParams(**BASE))
     _labelled(volume, FRAMES[:6])
     _assert_same_table(volume.region_table(), _reference(volume))
@@ -151,13 +151,13 @@ def test_paged_out_tiles_parts_come_from_the_part_store_without_decoding(monkeyp
         assert stored and parts.stats["parts_to_store"] >= len(stored)
         assert all(isinstance(parts.contacts.get(t), tilereadouts.StoredPart) for t in stored)
         decoded: list[tuple] = []
-        real = tilereadouts.decode_tile
+        real = chunkreadouts.decode_tile
 
         def counted(codec, blob, where="tile"):  # noqa: ANN001, ANN202
             decoded.append(where)
             return real(codec, blob, where)
 
-        monkeypatch.setattr(tilereadouts, "decode_tile", counted)
+        monkeypatch.setattr(chunkreadouts, "decode_tile", counted)
         stale = {t for chunk in parts.stale(dict(parts.summaries)) for t in chunk}
         stale |= {t for chunk in parts.stale(dict(parts.contacts)) for t in chunk}
         before = parts.stats["parts_from_store"]

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from openfusion.mapping import SemanticVolume, VolumeParams, readout_worker
+from openfusion.mapping import chunkreadouts as chunk_mod
 from openfusion.mapping import paging as paging_mod
 from openfusion.mapping import tilereadouts as readouts_mod
 from openfusion.mapping.mapstore import checkpoint
@@ -91,7 +92,7 @@ def test_concurrent_read_outs_never_hold_more_than_one_chunk(paged: SemanticVolu
     v._readouts.forget()  # read every tile out again below, on five threads
     ledger = _Ledger()
     monkeypatch.setattr(paging_mod, "decode_tile", ledger.wrap(paging_mod.decode_tile))
-    monkeypatch.setattr(readouts_mod, "decode_tile", ledger.wrap(readouts_mod.decode_tile))
+    monkeypatch.setattr(chunk_mod, "decode_tile", ledger.wrap(chunk_mod.decode_tile))
     monkeypatch.setattr(readouts_mod, "CHUNK_BLOCKS", 64)  # many chunks: the read-outs interleave
     readout_worker.hooks.append(ledger.hook)
     results: dict[str, object] = {}

@@ -83,10 +83,11 @@ import numpy as np
 from openfusion.mapping import shardmaps
 from openfusion.mapping.dictionary import RegionDictionary
 from openfusion.mapping.errors import MapFormatError
+from openfusion.mapping.mapstore import header_meta
 from openfusion.mapping.params import VolumeParams
 from openfusion.mapping.queries import RegionTable
 from openfusion.mapping.relevancy import calibration_for
-from openfusion.mapping.tilestore import STORE_DIR_NAME, TileStore, find_store
+from openfusion.mapping.tilestore import STORE_DIR_NAME, TileStore, find_store, fsync_dir
 from openfusion.wire.schemas import DictionarySnapshot
 
 if TYPE_CHECKING:  # Open3D: imported only where a volume is built (load_map), not for summaries
@@ -265,7 +266,7 @@ def _install(tmp: Path, target: Path, *, keep_previous: bool) -> None:
     previous = previous_map_path(target) if keep_previous and target.is_file() else None
     if previous is not None:
         os.replace(target, previous)
-        _fsync_dir(target.parent)
+        fsync_dir(target.parent)
     try:
         os.replace(tmp, target)
     except BaseException:
@@ -275,7 +276,7 @@ def _install(tmp: Path, target: Path, *, keep_previous: bool) -> None:
             except OSError as exc:
                 logger.warning("could not rename %s back to %s: %s", previous, target, exc)
         raise
-    _fsync_dir(target.parent)
+    fsync_dir(target.parent)
 
 
 def _remove_stale_temps(target: Path) -> None:
@@ -288,19 +289,6 @@ def _remove_stale_temps(target: Path) -> None:
                 logger.info("removed %s, left by an interrupted save", leftover)
         except OSError as exc:  # gone meanwhile, or not ours to remove: not this save's problem
             logger.debug("leftover %s not removed: %s", leftover, exc)
-
-
-def _fsync_dir(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        logger.debug("fsync of folder %s not supported", folder)
-    finally:
-        os.close(fd)
 
 
 def load_map(
@@ -324,7 +312,7 @@ def load_map(
         return _load_store(store_path, device=device, writable=writable, memory_budget_mb=memory_budget_mb)
     parts = shardmaps.shard_parts(path) if not writable else None  # saved by geometry shards: merged
     if parts is not None:
-        return shardmaps.load_sharded(parts, load_map, device=device)
+        return shardmaps.load_sharded(parts, load_map, device=device, memory_budget_mb=memory_budget_mb)
     target = resolve_map_path(path)
     return _guarded(target, lambda npz: _load_archive(target, npz, device))
 
@@ -343,7 +331,7 @@ def _load_store(path: Path, *, device: str | None, writable: bool, memory_budget
     dictionary = _dictionary(header, arrays)
     logger.info("loaded map %s: %d blocks (%d resident), %d regions", path, volume.num_blocks_total,
                 volume.num_blocks, len(dictionary))
-    return LoadedMap(volume, dictionary, _meta(header), path, header.get("relevancy"))
+    return LoadedMap(volume, dictionary, header_meta(header), path, header.get("relevancy"))
 
 
 def load_latest_map(path: str | os.PathLike[str], *, device: str | None = None, writable: bool = False) -> LoadedMap:
@@ -430,7 +418,7 @@ def _load_store_summary(path: Path) -> MapSummary | None:
     regions = _region_table(path, arrays)
     params = VolumeParams.from_dict(header["volume_params"])
     logger.info("read map summary %s: %d regions, %d with surface points", path, len(dictionary), len(regions))
-    return MapSummary(dictionary, regions, params, _meta(header), header.get("relevancy"))
+    return MapSummary(dictionary, regions, params, header_meta(header), header.get("relevancy"))
 
 
 def _guarded(target: Path, read: Any) -> Any:
@@ -520,12 +508,6 @@ def _dictionary(header: dict[str, Any], arrays: dict[str, np.ndarray]) -> Region
     return RegionDictionary.from_snapshot(snapshot)
 
 
-def _meta(header: dict[str, Any]) -> dict[str, Any]:
-    meta = dict(header.get("meta", {}))
-    meta.setdefault("created_unix_s", header.get("created_unix_s"))
-    return meta
-
-
 def _region_table(target: Path, arrays: dict[str, np.ndarray]) -> RegionTable:
     table = RegionTable(**{n: arrays[f"summary_{n}"] for n in _SUMMARY_ARRAYS})
     n = len(table.keys)
@@ -544,7 +526,7 @@ def _load_summary(target: Path, npz: np.lib.npyio.NpzFile) -> MapSummary | None:
     regions = _region_table(target, arrays)
     params = VolumeParams.from_dict(header["volume_params"])
     logger.info("read map summary %s: %d regions, %d with surface points", target, len(dictionary), len(regions))
-    return MapSummary(dictionary, regions, params, _meta(header), header.get("relevancy"))
+    return MapSummary(dictionary, regions, params, header_meta(header), header.get("relevancy"))
 
 
 def _load_archive(target: Path, npz: np.lib.npyio.NpzFile, device: str | None) -> LoadedMap:
@@ -569,4 +551,4 @@ def _load_archive(target: Path, npz: np.lib.npyio.NpzFile, device: str | None) -
             "%s: %d voxel keys have no dictionary entry (e.g. %s)", target, len(unknown), unknown[:5]
         )
     logger.info("loaded map %s: %d blocks, %d regions", target, volume.num_blocks, len(dictionary))
-    return LoadedMap(volume, dictionary, _meta(header), target, header.get("relevancy"))
+    return LoadedMap(volume, dictionary, header_meta(header), target, header.get("relevancy"))

@@ -261,6 +261,13 @@ def _write_new_store(tmp: Path, volume: SemanticVolume, dictionary: RegionDictio
         store.env.sync(True)
 
 
+def header_meta(header: dict[str, Any]) -> dict[str, Any]:
+    """The caller's meta a map header holds, with the map's ``created_unix_s``."""
+    meta = dict(header.get("meta", {}))
+    meta.setdefault("created_unix_s", header.get("created_unix_s"))
+    return meta
+
+
 def read_header(store: TileStore) -> dict[str, Any]:
     return check_header(store, store.read_header())
 

@@ -81,13 +81,22 @@ def _merged_meta(metas: list[dict[str, Any]], count: int) -> dict[str, Any]:
     return meta
 
 
-def load_sharded(parts: list[Path], load_map: Callable[..., Any], *, device: str | None = None) -> Any:
+def load_sharded(parts: list[Path], load_map: Callable[..., Any], *, device: str | None = None,
+                 memory_budget_mb: float | None | str = None) -> Any:
     """One :class:`~openfusion.mapping.mapfile.LoadedMap` of the parts (module docstring), each
     read with ``load_map`` (:func:`openfusion.mapping.load_map`): every tile in one resident
-    volume of shard 0/1."""
+    volume of shard 0/1; with a budget (``memory_budget_mb``: MiB, or ``"map"``, the parts' own)
+    the parts are merged into one scratch tile store read under it (:mod:`.shardstore`)."""
+    from openfusion.mapping import shardstore
     from openfusion.mapping.shards import owned_blocks
     from openfusion.mapping.volume import SemanticVolume
 
+    if memory_budget_mb is not None and shardstore.parts_are_stores(parts):
+        budget = shardstore.budget_of_parts(parts) if memory_budget_mb == "map" else float(memory_budget_mb)
+        if budget is not None:
+            metas = [part_meta(part) for part in parts]
+            return shardstore.load_budgeted(parts, load_map, merged_meta=_merged_meta(metas, len(parts)),
+                                            memory_budget_mb=budget, device=device)
     loaded = [load_map(part, device=device, memory_budget_mb=None) for part in parts]
     try:
         params = loaded[0].volume.params.with_changes(shard="0/1", memory_budget_mb=None)
@@ -117,6 +126,15 @@ def load_sharded(parts: list[Path], load_map: Callable[..., Any], *, device: str
     finally:
         for part in loaded:
             part.volume.close()
+
+
+def part_meta(part: Path) -> dict[str, Any]:
+    """A part's meta from its header alone (no tile read)."""
+    from openfusion.mapping.mapstore import header_meta, read_header
+    from openfusion.mapping.tilestore import STORE_DIR_NAME, TileStore
+
+    with TileStore(Path(part) / STORE_DIR_NAME, readonly=True) as store:
+        return header_meta(read_header(store))
 
 
 def load_sharded_summary(parts: list[Path], load_map_summary: Callable[[Path], Any]) -> Any:

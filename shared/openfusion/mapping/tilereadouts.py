@@ -51,6 +51,11 @@ a paged-out tile's parts go to disk with it (:mod:`openfusion.mapping.partstore`
 side, only the lowest values its percentile's rank needs), so neither holds every part at once.
 A merge rewrites a contact part that holds the merged-away key but not the surviving one
 (:func:`relabel_contacts`: exact), so its tile is not counted again.
+
+Where the code is: the parts, their encoding and adding them up in :mod:`.tileparts`; one chunk's
+read-out outside the lock in :mod:`.chunkreadouts`; here the bookkeeping (which parts are stale,
+paged-out tiles' parts, merges and cleared keys) and the refresh that drives the chunks (the
+names of the other two are re-exported here).
 """
 
 from __future__ import annotations
@@ -58,161 +63,49 @@ from __future__ import annotations
 import contextlib
 import functools
 import logging
-import math
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from openfusion.mapping import readout, readout_worker
+from openfusion.mapping import readout_worker
+from openfusion.mapping.chunkreadouts import KEEP_MIN as KEEP_MIN  # re-exported, as the parts' names
+from openfusion.mapping.chunkreadouts import KEEP_SHARE as KEEP_SHARE
+from openfusion.mapping.chunkreadouts import (
+    NEIGHBOUR_OFFSETS,
+    ChunkCopy,
+    Scratch,
+    count_contacts_chunk,
+    next_to_chunk,
+    summarise_chunk,
+)
+from openfusion.mapping.chunkreadouts import keep_for as keep_for
 from openfusion.mapping.heap import release_freed_memory
-from openfusion.mapping.keyslots import KeySlots
-from openfusion.mapping.merging import RegionContacts, contact_counts, contacts_of_counts
 from openfusion.mapping.paging import TilePager
 from openfusion.mapping.partstore import MemoryParts, open_part_store
 from openfusion.mapping.storage import ATTR_NAMES, VoxelStorage
-from openfusion.mapping.summaries import BBOX_PERCENTILE, RegionTable
-from openfusion.mapping.tiles import pack_coords
-from openfusion.mapping.tilestore import decode_tile
+from openfusion.mapping.tileparts import (
+    ContactPart,
+    StoredPart,
+    SummaryPart,
+    Tile,
+    part_arrays,
+    part_of,
+    relabel_contacts,
+    stored_index,
+)
+from openfusion.mapping.tileparts import combine_contacts as combine_contacts
+from openfusion.mapping.tileparts import combine_summaries as combine_summaries
 
 logger = logging.getLogger(__name__)
 
-Tile = tuple[int, int, int]
 #: Blocks of one chunk read out at once (4 MiB of compact voxels, plus the halo; measured on the
 #: 10-room building: +69 MiB of RssAnon while a chunk is read out at 1,024 blocks, +122 MiB at
 #: 2,048; on a 3-room map loaded lazily a summaries read-out peaked +87-93 MiB at 1,024 and +72-75
 #: at 512, 1.25x the time): one job of the read-out worker holds one chunk.
 CHUNK_BLOCKS = 512
-#: Values a summary part keeps per axis and side at least, and as a share of its points.
-KEEP_MIN = 64
-KEEP_SHARE = 0.02
-_OFFSETS = np.array([(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)], np.int64)
-_NEIGHBOURS = [tuple(int(v) for v in o) for o in _OFFSETS]
-
-
-@dataclass
-class SummaryPart:
-    """One tile's surface points, per key slot (module docstring). ``low[i][a]``: the lowest values
-    of slot ``i`` along axis ``a``, ascending; ``high[i][a]``: the highest, negated, ascending."""
-
-    clock: int
-    slots: np.ndarray  # (S,) int64
-    count: np.ndarray  # (S,) int64
-    sums: np.ndarray  # (S, 3) float64
-    low: list[list[np.ndarray]] = field(default_factory=list)
-    high: list[list[np.ndarray]] = field(default_factory=list)
-
-
-@dataclass
-class ContactPart:
-    """One tile's contact counts, in keys (module docstring)."""
-
-    clock: int
-    keys: np.ndarray  # (R,) int64
-    surface: np.ndarray  # (R,) int64
-    owner: np.ndarray  # (P,) int64
-    other: np.ndarray  # (P,) int64
-    count: np.ndarray  # (P,) int64
-
-    def holds(self, keys: np.ndarray) -> bool:
-        return bool(np.isin(self.keys, keys).any() or np.isin(self.other, keys).any())
-
-
-@dataclass
-class StoredPart:
-    """A paged-out tile's part, kept in the part store (:mod:`openfusion.mapping.partstore`): in
-    memory only its clock and what a merge or a cleared key must know (the slots of a summary part;
-    the keys, owners and others of a contact part)."""
-
-    clock: int
-    present: np.ndarray  # (n,) int64, sorted
-    #: A summary part's slots, point counts and coordinate sums (what adding parts up reads first).
-    slots: np.ndarray | None = None
-    count: np.ndarray | None = None
-    sums: np.ndarray | None = None
-
-    def holds(self, keys: np.ndarray) -> bool:
-        return bool(np.isin(self.present, keys).any())
-
-
-def _stored(kind: str, part: SummaryPart | ContactPart) -> StoredPart:
-    if isinstance(part, SummaryPart):
-        return StoredPart(part.clock, _present(kind, part), part.slots, part.count, part.sums)
-    return StoredPart(part.clock, _present(kind, part))
-
-
-def part_arrays(part: SummaryPart | ContactPart) -> dict[str, np.ndarray]:
-    """A part as flat arrays (the part store's encoding)."""
-    if isinstance(part, ContactPart):
-        return {"clock": np.array([part.clock], np.int64), "keys": part.keys, "surface": part.surface,
-                "owner": part.owner, "other": part.other, "count": part.count}
-    lows = [v for per in part.low for v in per]
-    highs = [v for per in part.high for v in per]
-    return {"clock": np.array([part.clock], np.int64), "slots": part.slots, "count": part.count, "sums": part.sums,
-            "low_n": np.array([len(v) for v in lows], np.int64), "high_n": np.array([len(v) for v in highs], np.int64),
-            "low": np.concatenate(lows) if lows else np.zeros(0, np.float32),
-            "high": np.concatenate(highs) if highs else np.zeros(0, np.float32)}
-
-
-def part_of(kind: str, a: dict[str, np.ndarray]) -> SummaryPart | ContactPart:
-    """The inverse of :func:`part_arrays`."""
-    clock = int(a["clock"][0])
-    if kind == "contacts":
-        return ContactPart(clock, a["keys"], a["surface"], a["owner"], a["other"], a["count"])
-    part = SummaryPart(clock, a["slots"], a["count"], a["sums"])
-    for name, out in (("low", part.low), ("high", part.high)):
-        values = np.split(a[name], np.cumsum(a[f"{name}_n"])[:-1]) if len(a[f"{name}_n"]) else []
-        for i in range(len(part.slots)):
-            out.append(list(values[3 * i : 3 * i + 3]))
-    return part
-
-
-def _present(kind: str, part: SummaryPart | ContactPart) -> np.ndarray:
-    if isinstance(part, ContactPart):
-        return np.unique(np.concatenate([part.keys, part.owner, part.other]).astype(np.int64))
-    return np.unique(part.slots.astype(np.int64))
-
-
-def relabel_contacts(part: ContactPart, mapping: dict[int, int]) -> ContactPart | None:
-    """A contact part after keys were merged (``{b: a}``) or cleared (``{b: -1}``), exactly, or None
-    when it must be counted again. Contacts count, per (owner, other) key pair, the owner's voxels
-    touching at least one voxel of the other: renaming ``b`` to ``a`` is exact when the part holds
-    ``b`` and not ``a`` (no two counts merge into one), clearing ``b`` drops its rows and pairs
-    (the labelled voxels of other keys are unchanged). A part holding one of a merge's keys and
-    another key the mapping names (both ``a`` and ``b``, or two of its entries) is counted again."""
-    present = set(_present("contacts", part).tolist())
-    named = {k for pair in mapping.items() for k in pair if k >= 0}
-    hit = present & named
-    sources = hit & set(mapping)
-    if not sources:
-        return part  # only merge targets (or nothing) here: no voxel of this part changed its key
-    if len(hit) > 1:
-        return None
-    (b,) = sources
-    a = mapping[b]
-    if a < 0:
-        keep_k = part.keys != b
-        keep_p = (part.owner != b) & (part.other != b)
-        return ContactPart(part.clock, part.keys[keep_k], part.surface[keep_k], part.owner[keep_p],
-                           part.other[keep_p], part.count[keep_p])
-    return ContactPart(part.clock, np.where(part.keys == b, a, part.keys), part.surface.copy(),
-                       np.where(part.owner == b, a, part.owner), np.where(part.other == b, a, part.other),
-                       part.count.copy())
-
-
-@dataclass
-class ChunkCopy:
-    """What one chunk's read-out needs, copied under the lock: resident blocks (raw), stored tiles
-    (blobs, decoded outside the lock), the slot table and the versions' clock."""
-
-    tiles: list[Tile]
-    clock: int
-    resident: list[tuple[np.ndarray, dict[str, np.ndarray]]]
-    stored: list[tuple[Tile, bytes, Any, int]]  # (tile, blob, codec, its blocks)
-    key1: np.ndarray  # the slot table (key + 1 per slot) at the copy
-    keep: dict[tuple[Tile, int], int]
+_NEIGHBOURS = [tuple(int(v) for v in o) for o in NEIGHBOUR_OFFSETS]
 
 
 class TileReadouts:
@@ -263,7 +156,7 @@ class TileReadouts:
                 del parts[tile]
                 continue
             self._store().put(kind, tile, part_arrays(part))
-            parts[tile] = _stored(kind, part)
+            parts[tile] = stored_index(kind, part)
             self.stats["parts_to_store"] += 1
 
     def _store(self) -> MemoryParts:
@@ -312,7 +205,7 @@ class TileReadouts:
                     self.stats["contact_parts_relabelled"] += 1
                     if stored:
                         self.part_store.put("contacts", t, part_arrays(new))  # type: ignore[union-attr]
-                        self.contacts[t] = _stored("contacts", new)
+                        self.contacts[t] = stored_index("contacts", new)
                     else:
                         self.contacts[t] = new
         cleared = np.asarray(changed_slots, np.int64)
@@ -387,7 +280,7 @@ class TileReadouts:
             if t in groups:
                 coords, buf = groups[t]
                 if t not in chunk_set:
-                    sel = _next_to(coords, chunk_set, self.pager.grid.tile_blocks)
+                    sel = next_to_chunk(coords, chunk_set, self.pager.grid.tile_blocks)
                     coords, buf = coords[sel], buf[sel]
                 if len(buf):
                     raw = self.storage.read_raw_blocks(buf, names=names)
@@ -408,7 +301,7 @@ class TileReadouts:
                 self._drop_stored(kind, t)
             if t in self.pager.stored_blocks:
                 self._store().put(kind, t, part_arrays(part))
-                kept[t] = _stored(kind, part)
+                kept[t] = stored_index(kind, part)
                 self.stats["parts_to_store"] += 1
             else:
                 kept[t] = part
@@ -470,288 +363,6 @@ class TileReadouts:
 
     def contact_parts(self) -> list[ContactPart]:
         return [p for _, p in self._materialised("contacts")]
-
-
-# ---------------------------------------------------------------------------- chunk read-outs
-def _next_to(coords: np.ndarray, chunk: set[Tile], tile_blocks: int) -> np.ndarray:
-    """Rows of ``coords`` (blocks of a tile outside ``chunk``) with a block of a chunk tile among
-    their 26 neighbours' places."""
-    if not len(coords):
-        return np.zeros(0, bool)
-    chunk_keys = pack_coords(np.array(sorted(chunk), np.int64))
-    near = (np.asarray(coords, np.int64)[:, None, :] + _OFFSETS[None]).reshape(-1, 3)
-    hit = np.isin(pack_coords(np.floor_divide(near, tile_blocks)), chunk_keys).reshape(len(coords), -1)
-    return hit.any(axis=1)
-
-
-def _parts_of(copy: ChunkCopy, tile_blocks: int, names: tuple[str, ...]) -> Iterator[tuple[np.ndarray, dict[str, np.ndarray]]]:
-    """The blocks of a chunk copy part by part (stored tiles decoded now, their far blocks left
-    out); each resident part is let go of as it is handed out."""
-    chunk_set = set(copy.tiles)
-    while copy.resident:
-        c, r = copy.resident.pop()
-        yield c, {k: r[k] for k in names}
-    while copy.stored:
-        t, blob, codec, _ = copy.stored.pop()
-        c, raw = decode_tile(codec, blob, f"tile {t}")
-        if t not in chunk_set:
-            sel = _next_to(c, chunk_set, tile_blocks)
-            c, raw = c[sel], {k: v[sel] for k, v in raw.items()}
-        yield c, {k: raw[k] for k in names}
-
-
-def _blocks_of(copy: ChunkCopy, tile_blocks: int, names: tuple[str, ...]) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Every block of a chunk copy in one array per attribute (the key slots, for contacts)."""
-    parts = list(_parts_of(copy, tile_blocks, names))
-    if not parts:
-        return np.zeros((0, 3), np.int32), {}
-    return (np.concatenate([c for c, _ in parts]).astype(np.int32),
-            {k: np.concatenate([r[k] for _, r in parts]) for k in names})
-
-
-def _identity_slots(key1: np.ndarray) -> KeySlots:
-    """A slot table under which every labelled slot reads its own number (a read-out's keys are
-    then slots) and every other slot reads none."""
-    table = KeySlots(len(key1) - 1)
-    table.key1 = np.where(key1 > 0, np.arange(len(key1), dtype=np.int64) + 1, 0).astype(np.int32)
-    table.key1[0] = 0
-    return table
-
-
-class Scratch:
-    """A grid to read chunks out in, reused from chunk to chunk (made again when a chunk needs more)."""
-
-    def __init__(self, storage: VoxelStorage) -> None:
-        self.params = storage.params.with_changes(memory_budget_mb=None)
-        self.device = storage.device
-        self.grid: VoxelStorage | None = None
-
-    def load(self, copy: ChunkCopy, tile_blocks: int) -> VoxelStorage | None:
-        """The chunk's blocks in the grid; None when the chunk holds none. Stored tiles are decoded
-        first (their far blocks dropped at once, so the grid is sized by the blocks it gets, not
-        by whole neighbour tiles), then every part is written and let go of."""
-        parts = [(c, r) for c, r in _parts_of(copy, tile_blocks, ATTR_NAMES) if len(c)]
-        count = sum(len(c) for c, _ in parts)
-        if count == 0:
-            return None
-        if self.grid is None or self.grid.capacity_blocks < count:
-            self.grid = None  # the old one is freed before the new one is made
-            self.grid = VoxelStorage(self.params, self.device, capacity=count + count // 8)
-        else:
-            c_old, b_old = self.grid.active_blocks()
-            self.grid.erase_blocks(c_old, b_old)
-        while parts:
-            coords, raw = parts.pop()
-            self.grid.write_raw_blocks(np.asarray(coords, np.int32), raw)
-        return self.grid
-
-
-def summarise_chunk(copy: ChunkCopy, scratch: Scratch, tile_blocks: int) -> dict[Tile, SummaryPart]:
-    """The summary parts of a chunk's tiles (outside the lock: reads only the copy)."""
-    out = {t: _empty_summary(copy.clock) for t in copy.tiles}
-    grid = scratch.load(copy, tile_blocks)
-    if grid is None:
-        return out
-    grid.slots = _identity_slots(copy.key1)
-    pts = readout.extract_points(grid)
-    p = grid.params
-    owner = np.floor_divide(np.floor(pts.points.astype(np.float64) / p.voxel_size_m + 1e-4).astype(np.int64), p.block_resolution)
-    tile_of = np.floor_divide(owner, tile_blocks)
-    slot = pts.keys.astype(np.int64)
-    labelled = slot > 0
-    points, tile_of, slot = pts.points[labelled], tile_of[labelled], slot[labelled]
-    if not len(points):
-        return out
-    tkey = pack_coords(tile_of)
-    wanted = {int(pack_coords(np.array([t]))[0]): t for t in copy.tiles}
-    inside = np.isin(tkey, np.fromiter(wanted, np.int64))
-    points, tkey, slot = points[inside], tkey[inside], slot[inside]
-    if not len(points):  # the chunk's labelled points all belong to halo blocks of other tiles
-        return out
-    order = np.lexsort((slot, tkey))
-    points, tkey, slot = points[order], tkey[order], slot[order]
-    starts = np.flatnonzero(np.r_[True, (tkey[1:] != tkey[:-1]) | (slot[1:] != slot[:-1])])
-    ends = np.r_[starts[1:], len(order)]
-    by_tile: dict[Tile, list[tuple[int, np.ndarray]]] = {}
-    for a, b in zip(starts, ends, strict=True):
-        by_tile.setdefault(wanted[int(tkey[a])], []).append((int(slot[a]), points[a:b]))
-    for t, groups in by_tile.items():
-        out[t] = _summary_part(copy.clock, groups, {s: copy.keep.get((t, s), 0) for s, _ in groups})
-    return out
-
-
-def _empty_summary(clock: int) -> SummaryPart:
-    z = np.zeros(0, np.int64)
-    return SummaryPart(clock, z, z.copy(), np.zeros((0, 3)))
-
-
-def keep_for(n: int, wanted: int = 0) -> int:
-    """Values a part keeps per axis and side for a slot with ``n`` points (module docstring)."""
-    return min(n, max(KEEP_MIN, math.ceil(KEEP_SHARE * n), wanted))
-
-
-def _lowest(values: np.ndarray, k: int) -> np.ndarray:
-    if k >= len(values):
-        return np.sort(values)
-    return np.sort(np.partition(values, k - 1)[:k])
-
-
-def _summary_part(clock: int, groups: list[tuple[int, np.ndarray]], wanted: dict[int, int]) -> SummaryPart:
-    part = SummaryPart(clock, np.array([s for s, _ in groups], np.int64),
-                       np.array([len(p) for _, p in groups], np.int64),
-                       np.stack([p.astype(np.float64).sum(axis=0) for _, p in groups]))
-    for s, pts in groups:
-        k = keep_for(len(pts), wanted.get(s, 0))
-        part.low.append([_lowest(pts[:, a], k) for a in range(3)])
-        part.high.append([_lowest(-pts[:, a], k) for a in range(3)])
-    return part
-
-
-def count_contacts_chunk(copy: ChunkCopy, tile_blocks: int, res: int, radius_vox: int) -> dict[Tile, ContactPart]:
-    """The contact parts of a chunk's tiles (outside the lock: reads only the copy)."""
-    coords, raw = _blocks_of(copy, tile_blocks, ("key",))
-    out: dict[Tile, ContactPart] = {}
-    z = np.zeros(0, np.int64)
-    for t in copy.tiles:
-        out[t] = ContactPart(copy.clock, z, z.copy(), z.copy(), z.copy(), z.copy())
-    if not len(coords):
-        return out
-    slots = raw["key"].reshape(len(coords), -1)
-    keep = (slots > 0).any(axis=1)
-    coords, slots = coords[keep].astype(np.int64), slots[keep]
-    if not len(coords):
-        return out
-    keys = (copy.key1[slots.astype(np.intp)].astype(np.int32) - 1).reshape(-1, res, res, res)
-    tiles = np.floor_divide(coords, tile_blocks)
-    index = {t: i for i, t in enumerate(copy.tiles)}
-    group = np.array([index.get((int(a), int(b), int(c)), -1) for a, b, c in tiles], np.int64)
-    counts = contact_counts(coords, keys, radius_vox=radius_vox, group=group)
-    for i, t in enumerate(copy.tiles):
-        s = counts.surface_group == i
-        q = counts.pair_group == i
-        out[t] = ContactPart(copy.clock, counts.surface_key[s], counts.surface_count[s], counts.pair_owner[q],
-                             counts.pair_other[q], counts.pair_count[q])
-    return out
-
-
-# ---------------------------------------------------------------------------- adding parts up
-def combine_contacts(parts: list[ContactPart]) -> RegionContacts:
-    """The whole map's contacts from every tile's part (sums)."""
-    if not parts:
-        return RegionContacts.empty()
-    keys = np.concatenate([p.keys for p in parts])
-    if not len(keys):
-        return RegionContacts.empty()
-    surface = np.concatenate([p.surface for p in parts])
-    uk, inv = np.unique(keys, return_inverse=True)
-    total = np.bincount(inv.reshape(-1), weights=surface, minlength=len(uk)).astype(np.int64)
-    owner = np.concatenate([p.owner for p in parts])
-    other = np.concatenate([p.other for p in parts])
-    count = np.concatenate([p.count for p in parts])
-    if len(owner):
-        pairs, inv = np.unique(np.stack([owner, other], axis=1), axis=0, return_inverse=True)
-        summed = np.bincount(inv.reshape(-1), weights=count, minlength=len(pairs)).astype(np.int64)
-        owner, other, count = pairs[:, 0], pairs[:, 1], summed
-    return contacts_of_counts(uk, total, owner, other, count)
-
-
-@dataclass
-class _Bound:
-    """One percentile bound to find: ascending ranks ``r1 <= r2`` interpolated with weight ``w``."""
-
-    r1: int
-    r2: int
-    w: float
-
-
-def _bounds(n: int, percentile: float) -> tuple[_Bound, _Bound]:
-    """The low and high bound of :func:`openfusion.mapping.queries.region_summaries` for ``n`` points
-    (the high one in ranks of the negated values)."""
-    q = float(percentile) / 100.0
-    out = []
-    for frac in (q, 1.0 - q):
-        pos = frac * (n - 1)
-        lo = int(math.floor(pos))
-        hi = min(lo + 1, n - 1)
-        out.append((lo, hi, pos - lo))
-    (l1, l2, lw), (h1, h2, hw) = out
-    # High side on negated values: ascending rank i of v is rank n - 1 - i of -v.
-    return _Bound(l1, l2, lw), _Bound(n - 1 - h2, n - 1 - h1, hw)
-
-
-def combine_summaries(parts: Any, key1: np.ndarray, percentile: float = BBOX_PERCENTILE, *,
-                      index: Any = None) -> tuple[RegionTable, dict[tuple[Tile, int], int]]:
-    """The whole map's region table from every tile's part, and the (tile, slot) parts that kept
-    too few values for it to be exact, with how many they must keep (module docstring).
-
-    Streamed, so adding up a floor's parts never holds them all: ``index`` (default: ``parts``)
-    gives every tile's slots, counts and sums (the points and centroid per key, and so the ranks
-    each box bound needs); ``parts`` (a list of ``(tile, part)``, or a callable returning an
-    iterator over them, e.g. parts read from the part store one at a time) is then read once,
-    keeping per key, side and axis only the lowest values the bound's rank needs."""
-    first = index if index is not None else (parts() if callable(parts) else parts)
-    counts: dict[int, int] = {}
-    sums: dict[int, np.ndarray] = {}
-    for _t, part in first:
-        for i, s in enumerate(part.slots):
-            key = int(key1[int(s)]) - 1
-            if key >= 0:
-                counts[key] = counts.get(key, 0) + int(part.count[i])
-                sums[key] = sums.get(key, np.zeros(3)) + np.asarray(part.sums[i], np.float64)
-    keys = sorted(counts)
-    row_of = {k: r for r, k in enumerate(keys)}
-    bounds = {k: _bounds(counts[k], percentile) for k in keys}
-    lowest: dict[tuple[int, int, int], np.ndarray] = {}
-    truncated: dict[tuple[int, int, int], list[tuple[Tile, int, float]]] = {}
-    for t, part in (parts() if callable(parts) else parts):
-        for i, s in enumerate(part.slots):
-            key = int(key1[int(s)]) - 1
-            if key < 0:
-                continue
-            n_i = int(part.count[i])
-            for side, values in ((0, part.low[i]), (1, part.high[i])):
-                k = bounds[key][side].r2 + 1
-                for axis in range(3):
-                    lst = values[axis]
-                    at = (key, side, axis)
-                    if len(lst) < n_i:
-                        truncated.setdefault(at, []).append((t, int(s), float(lst[-1]) if len(lst) else -math.inf))
-                    run = np.concatenate([lowest[at], lst]) if at in lowest else np.asarray(lst, np.float64)
-                    if len(run) > k:
-                        run = np.partition(run, k - 1)[:k]
-                    lowest[at] = run.astype(np.float64, copy=False)
-    n_keys = len(keys)
-    count_arr = np.zeros(n_keys, np.int64)
-    centroid = np.zeros((n_keys, 3), np.float32)
-    bbox = np.zeros((2, n_keys, 3), np.float64)
-    failing: dict[tuple[Tile, int], int] = {}
-    for key in keys:
-        row = row_of[key]
-        n = counts[key]
-        count_arr[row] = n
-        centroid[row] = (sums[key] / max(n, 1)).astype(np.float32)
-        for side in (0, 1):
-            bound = bounds[key][side]
-            k = bound.r2 + 1
-            for axis in range(3):
-                at = (key, side, axis)
-                run = lowest.get(at, np.zeros(0))
-                cut = float(run.max()) if len(run) >= k else None
-                ok = True
-                for t, slot, last in truncated.get(at, []):
-                    if cut is None or last < cut:
-                        failing[(t, slot)] = max(failing.get((t, slot), 0), int(1.25 * k) + 16)
-                        ok = False
-                if not ok or cut is None:
-                    continue
-                ordered = np.sort(run)
-                v1, v2 = float(ordered[bound.r1]), float(ordered[bound.r2])
-                if side == 1:  # ranks of negated values: v[h1] = -v2, v[h2] = -v1 (negation is exact)
-                    v1, v2 = -v2, -v1
-                bbox[side, row, axis] = v1 * (1.0 - bound.w) + v2 * bound.w
-    table = RegionTable(np.array(keys, np.int32), count_arr, centroid, bbox[0].astype(np.float32),
-                        bbox[1].astype(np.float32))
-    return table, failing
 
 
 # ---------------------------------------------------------------------------- driving a refresh

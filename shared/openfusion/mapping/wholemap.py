@@ -27,7 +27,7 @@ import numpy as np
 
 from openfusion.mapping import readout
 from openfusion.mapping.heap import release_freed_memory
-from openfusion.mapping.mesh_weld import weld_vertices
+from openfusion.mapping.mesh_weld import join_welded
 from openfusion.mapping.paging import TilePager
 from openfusion.mapping.readout import SurfaceMesh, SurfacePoints
 from openfusion.mapping.storage import ATTR_NAMES, VoxelStorage
@@ -253,12 +253,4 @@ def extract_mesh(storage: VoxelStorage, pager: TilePager, keys: np.ndarray | lis
     parts = list(iter_mesh_parts(storage, pager, keys))
     if not parts:
         return readout._empty_mesh()
-    offset = np.cumsum([0] + [len(m.vertices) for m in parts[:-1]])
-    return weld_vertices(SurfaceMesh(
-        np.concatenate([m.vertices for m in parts]),
-        np.concatenate([m.triangles + o for m, o in zip(parts, offset, strict=True)]).astype(np.int32),
-        np.concatenate([m.colors for m in parts]),
-        np.concatenate([m.normals for m in parts]),
-        np.concatenate([m.keys for m in parts]),
-        np.concatenate([m.conf for m in parts]),
-    ))
+    return join_welded(parts)

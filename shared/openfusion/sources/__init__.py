@@ -22,6 +22,7 @@ module                 what
 ``live``               Azure Kinect + Intel T265 (optional extra ``live``)
 ``cdr``                ROS 2 messages in CDR through ``rosbags`` (thin adapter, image pixels)
 ``ros2``               live ROS 2 topics over Zenoh (bridge and rmw_zenoh layouts), publisher
+``ros2_frames``        ROS 2 messages -> frames: topics, config, ``Ros2FrameAssembler`` (no bus)
 ``ros_layout``         ROS 2 topic -> Zenoh key in both layouts, rmw_zenoh attachment
 ``rosbag``             rosbag2 recordings (folder, .mcap, .db3) via ``rosbags``
 ``rosbag_writer``      ``write_rosbag``: any source -> rosbag2

@@ -2,9 +2,9 @@
 runner for service subprocesses, and waiting on events instead of sleeping.
 
 Part of :mod:`openfusion.testing` (shipped so that benches and users' own tests can use it; no
-product code imports it). Every session these helpers make is peer mode on tcp/127.0.0.1 with
-multicast scouting OFF, so tests never discover other runs on the same machine; map ids are
-unique per call.
+product code imports it). Every session these helpers make is on tcp/127.0.0.1 with multicast
+scouting OFF (peer mode, or a router and its clients: :class:`LoopbackRouter`), so tests never
+discover other runs on the same machine; map ids are unique per call.
 
 Waiting: tests wait for the state they need (a liveliness token, a counter, a reply), never for
 a fixed time. Deadlines are generous (a busy 2-core machine is slow, not broken) and scale with
@@ -55,16 +55,17 @@ def unique_map_id(stem: str = "test") -> str:
 
 def loopback_config(
     map_id: str, *, listen: Sequence[int] = (), connect: Sequence[int] = (), model: type[ServiceConfig] = ServiceConfig,
-    **fields: Any,
+    mode: str = "peer", **fields: Any,
 ) -> Any:
-    """Peer config on loopback, multicast off, listening/connecting on the given ports: a ``model``
+    """Config on loopback, multicast off, listening/connecting on the given ports: a ``model``
     (a service's config class, e.g. ``SemanticConfig``) with ``fields`` (its section:
-    ``semantic={"select": "latest"}``)."""
+    ``semantic={"select": "latest"}``). ``mode``: the Zenoh mode (peer; a router and its clients:
+    :class:`LoopbackRouter`)."""
     return model.model_validate(
         {
             "map_id": map_id,
             "zenoh": {
-                "mode": "peer",
+                "mode": mode,
                 "listen": [endpoint(p) for p in listen],
                 "connect": [endpoint(p) for p in connect],
                 "multicast_scouting": False,
@@ -72,6 +73,42 @@ def loopback_config(
             **fields,
         }
     )
+
+
+class LoopbackRouter:
+    """A Zenoh router on a free loopback port, and the configs of services and clients that join it
+    in client mode: a deployment's layout (every process a client of one router) inside one test
+    process. ``health_period_s`` (default 0.2 s) goes into every client config, so health and
+    liveliness show within a test's patience. Close it (or use ``with``) after its clients."""
+
+    def __init__(self, stem: str = "test", *, health_period_s: float = 0.2) -> None:
+        self.map_id = unique_map_id(stem)
+        self.port = free_port()
+        self.health_period_s = health_period_s
+        self.session = open_session(loopback_config(self.map_id, listen=[self.port], mode="router"))
+
+    def config(self, model: type[ServiceConfig] = ServiceConfig, **fields: Any) -> Any:
+        """A ``model`` config of a client of this router, with ``fields`` (a service's section)."""
+        return loopback_config(self.map_id, connect=[self.port], model=model, mode="client",
+                               health_period_s=self.health_period_s, **fields)
+
+    @property
+    def keys(self) -> Any:
+        """The map's key space (``ServiceConfig.keys``) its clients use."""
+        return self.config().keys
+
+    def open_client(self) -> zenoh.Session:
+        """A session of a client of this router (the caller closes it)."""
+        return open_session(self.config())
+
+    def close(self) -> None:
+        self.session.close()
+
+    def __enter__(self) -> LoopbackRouter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def loopback_args(map_id: str, *, listen: Sequence[int] = (), connect: Sequence[int] = ()) -> list[str]:
