@@ -25,6 +25,8 @@ frame joined with its ``InstanceFrame`` (same frame id and stamp; the bridge sen
 frame whose instance image has not come within ``instance_wait_s`` is skipped and counted in
 ``skipped_no_instance`` (a frame that carries its own instance image uses that). The semantic switch: ``every_k = 0`` turns semantics off,
 ``every_k = k`` uses every k-th frame (by frame id), ``max_hz`` caps the rate.
+The settings and the switch are :mod:`~openfusion.services.semantic.section`; the loop with an
+encoder pool is :mod:`~openfusion.services.semantic.pool_loop`.
 On start the service asks geometry for the dictionary it checkpointed, so a restarted semantic
 service continues with the same keys and embeddings.
 
@@ -44,8 +46,6 @@ under one lock by the frame loop and by that request, so deltas go out in versio
 
 from __future__ import annotations
 
-import heapq
-import itertools
 import logging
 import threading
 import time
@@ -53,11 +53,9 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from pydantic import Field
 
 from openfusion.bus import Publisher, QueryError, ServiceRunner, Subscriber
 from openfusion.bus.instance_join import InstanceBuffer
-from openfusion.config import ServiceConfig
 from openfusion.encoders import RegionObservation
 from openfusion.frame import Frame, resize_nearest
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
@@ -66,15 +64,21 @@ from openfusion.mapping.params import MatchParams, MergeParams, SelectParams
 from openfusion.mapping.selection import CandidateWindow, CoverageScorer
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.encoder.options import (
-    EncoderOptions,
     encoder_identity_from_section,
-    region_encoder_from_section,
+    region_encoder_from_section,  # noqa: F401 (re-exported: bench/bench_laps.py)
     warm_up_encoder,
 )
-from openfusion.services.semantic.pool import EncoderPool, PoolResult
+from openfusion.services.semantic.pool import EncoderPool
+from openfusion.services.semantic.pool_loop import PoolDispatch
+from openfusion.services.semantic.section import (  # noqa: F401 (re-exported: the service's settings lived here)
+    EVERY_QUEUE,
+    SemanticConfig,
+    SemanticSection,
+    SemanticSwitch,
+)
 from openfusion.services.semantic.selection import CandidateFeeder, Pending
 from openfusion.shard_client import reader_for
-from openfusion.wire.counters import ENCODED_BY_PREFIX, PoolCounter, SemanticCounter
+from openfusion.wire.counters import PoolCounter, SemanticCounter
 from openfusion.wire.endpoints import (
     DICTIONARY_DELTA,
     SEMANTIC_DICTIONARY,
@@ -87,7 +91,6 @@ from openfusion.wire.keys import PoolKeys
 from openfusion.wire.schemas import (
     DictionaryRequest,
     DictionarySnapshot,
-    EncodeRequest,
     InstanceFrame,
     MergeReply,
     MergeRequest,
@@ -99,65 +102,6 @@ from openfusion.wire.schemas import (
 from openfusion.wire.schemas.base import DEFAULT_ROBOT
 
 logger = logging.getLogger(__name__)
-
-
-class SemanticSection(MatchParams, MergeParams, SelectParams, EncoderOptions):
-    """The semantic service's settings: every matching, merging and frame-selection parameter
-    (:class:`MatchParams`, :class:`MergeParams`, :class:`SelectParams`, declared there once), the
-    local encoder (:class:`EncoderOptions`, shared with the encoder workers) and the service's own."""
-
-    encoder_pool: bool = Field(
-        False, description="send frames to the encoder pool's workers (openfusion service encoder) instead of "
-        "encoding them here"
-    )
-    local_encoder: bool = Field(True, description="with encoder_pool: encode here while no worker is alive")
-    pool_reorder_wait_s: float = Field(
-        1.0, ge=0, description="with encoder_pool: a result waits at most this long for older frames still in "
-        "flight, so results apply in frame order without dropping the older ones")
-    pool_timeout_s: float = Field(30.0, gt=0, description="with encoder_pool: a worker that has not answered a frame "
-                                  "within this many seconds is taken for dead")
-    every_k: int = Field(
-        1, ge=0, description="semantics on every k-th frame id (0 = off)", json_schema_extra={"flag": "--semantic-every"}
-    )
-    max_hz: float | None = Field(None, gt=0, description="at most this many semantic frames per second")
-    render_timeout_s: float = Field(5.0, gt=0, description="wait this long for geometry's render of a frame")
-    contacts_timeout_s: float = Field(
-        30.0, gt=0, description="a merge pass waits this long for geometry's region contacts (a floor's first "
-        "pass after a long walk reads out many tiles: over 5 s on 2 cores, when every pass was skipped)")
-    merge_min_interval_s: float = Field(
-        2.0, ge=0, description="at least this long between two periodic merge passes (a pass costs geometry a "
-        "contacts read-out; with a fast encoder pool merge_every frames come many times a second)")
-    instance_wait_s: float = Field(
-        0.5, ge=0, le=10, description="gt encoder: wait this long for a frame's instance image, then skip the frame"
-    )
-    recover_timeout_s: float = Field(
-        10.0, ge=0, description="at start, try this long to recover the map's dictionary from geometry (0 = never)"
-    )
-
-
-#: select=every: frames waiting for the encoder (a slower encoder drops the oldest, counted as drops).
-EVERY_QUEUE = 64
-
-
-class SemanticConfig(ServiceConfig):
-    semantic: SemanticSection = Field(default_factory=SemanticSection)
-
-
-class SemanticSwitch:
-    """Decides which frames get semantics: off (every_k=0), every k-th frame id, at most max_hz."""
-
-    def __init__(self, every_k: int, max_hz: float | None) -> None:
-        self.every_k = every_k
-        self.max_hz = max_hz
-        self._last_s: float | None = None
-
-    def accept(self, frame_id: int, now_s: float) -> bool:
-        if self.every_k == 0 or frame_id % self.every_k != 0:
-            return False
-        if self.max_hz is not None and self._last_s is not None and now_s - self._last_s < 1.0 / self.max_hz:
-            return False
-        self._last_s = now_s
-        return True
 
 
 class SemanticService:
@@ -191,11 +135,6 @@ class SemanticService:
         self._published_version = self.dictionary.version
         self._frames_without_instance = 0
         self._pool: EncoderPool | None = None
-        self._last_applied = -1  # the seq of the newest frame whose result was applied (pool mode)
-        # Results waiting for frames taken before them, still in flight: (seq, arrival order, arrived at, result).
-        self._held: list[tuple[int, int, float, PoolResult]] = []
-        self._arrivals = itertools.count()
-        self._waited: set[int] = set()  # arrival numbers of held results already counted as held
         # Held while the dictionary changes and its delta is published: the frame loop and a
         # merge requested on semantic/merge (another thread) change it.
         self._dictionary_lock = threading.RLock()
@@ -393,7 +332,7 @@ class SemanticService:
             feeding.start()
         try:
             if self._pool is not None:
-                self._loop_pool(runner, self._pool)
+                PoolDispatch(self, self._pool).run(runner)
                 return
             while not runner.stopping:
                 self._local_step(runner)
@@ -455,91 +394,6 @@ class SemanticService:
             runner.stats.incr(SemanticCounter.FRAMES_FAILED)
             runner.stats.add_error()
 
-    def _loop_pool(self, runner: ServiceRunner, pool: EncoderPool) -> None:
-        """Frames go to the pool's workers, at most ``max_in_flight`` per worker, the newest frame
-        whenever one has room; results are applied in frame order: a result whose older frames
-        are still in flight waits for them up to ``pool_reorder_wait_s`` (``results_held``), and
-        an older result than one applied is dropped and counted (``results_stale``); with no worker alive the local encoder (if configured)
-        takes the frames, else they are skipped and health says ``no_encoder``.
-
-        Results are applied on a thread of their own (:meth:`_apply_loop`): applying one asks
-        geometry for a render, and while this loop waited on it no worker got a new frame (with
-        four workers on two cores, about a third of their time went idle that way)."""
-        assert self._frames is not None
-        stats = runner.stats
-        applier = threading.Thread(target=self._apply_loop, args=(runner, pool), name="semantic-apply", daemon=True)
-        applier.start()
-        try:
-            while not runner.stopping:
-                try:
-                    self._pool_step(runner, pool)
-                except Exception:  # one frame's or result's failure never ends the service: logged, counted
-                    logger.exception("semantic: a step of the encoder pool loop failed; going on")
-                    stats.incr(SemanticCounter.FRAMES_FAILED)
-                    stats.add_error()
-        finally:
-            applier.join(timeout=max(self.section.render_timeout_s, 1.0) + 1.0)
-
-    def _apply_loop(self, runner: ServiceRunner, pool: EncoderPool) -> None:
-        """Apply the pool's results in frame order as they come (the thread :meth:`_loop_pool` starts)."""
-        while not runner.stopping:
-            try:
-                self._apply_step(runner, pool)
-            except Exception:  # one result's failure never ends the service: logged, counted
-                logger.exception("semantic: applying the encoder pool's results failed; going on")
-                runner.stats.incr(SemanticCounter.FRAMES_FAILED)
-                runner.stats.add_error()
-
-    def _apply_step(self, runner: ServiceRunner, pool: EncoderPool) -> None:
-        now = time.monotonic()
-        for lost in pool.take_lost():  # frames the pool gave up on are done with too
-            if self._feeder is not None:
-                self._frame_done(runner, lost.frame_id, lost.stamp_ns)
-        for result in pool.take_results():
-            runner.stats.incr(SemanticCounter.ENCODER_CALLS)
-            runner.stats.incr(SemanticCounter.ENCODER_REGIONS, len(result.reply.conf_maps))
-            heapq.heappush(self._held, (result.seq, next(self._arrivals), now, result))
-        self._release_results(runner, pool)
-        pool.wait(0.2)  # a result, a worker change, or the reorder wait's next check
-
-    def _pool_step(self, runner: ServiceRunner, pool: EncoderPool) -> None:
-        """One turn of :meth:`_loop_pool`: re-send, then dispatch or encode one frame (the best
-        candidate with ``select=coverage``: the pool takes from the same window when it has more
-        candidates than free workers)."""
-        assert self._frames is not None
-        stats = runner.stats
-        pool.pump_resends(self._last_applied)
-        alive = pool.alive
-        stats.set(PoolCounter.NO_ENCODER, int(alive == 0 and not self.section.local_encoder))
-        if alive == 0 and self.section.local_encoder:
-            before = self._next_seq
-            self._local_step(runner)
-            if self._next_seq != before:  # a frame was taken and encoded here
-                stats.incr(PoolCounter.LOCAL_FRAMES)
-                self._last_applied = self._next_seq
-            return
-        if not pool.wait_for_capacity(0.2):
-            return
-        if self._feeder is not None:
-            pending = self._feeder.take(runner, timeout_s=0.05)
-            if pending is None:
-                return
-            msg = pending.msg
-            request: EncodeRequest | None = EncodeRequest.of(msg, pending.instance, map_id=runner.keys.map_id,
-                                                             embedding_space=self.dictionary.embedding_space)
-        else:
-            msg = self._frames.recv(timeout_s=0.05)
-            if msg is None:
-                return
-            request = self._pool_request(runner, msg)
-        if request is None:
-            self._frame_done(runner, msg.frame_id, msg.stamp_ns)
-            return
-        self._next_seq += 1
-        if not pool.submit(request, self._next_seq):  # the worker with room died in between
-            stats.incr(SemanticCounter.FRAMES_FAILED)
-            self._frame_done(runner, msg.frame_id, msg.stamp_ns)
-
     def _frame_done(self, runner: ServiceRunner, frame_id: int, stamp_ns: int) -> None:
         """A frame taken off the subscription is done with: ``last_frame_handled`` moves (with
         coverage, once every frame taken before it is done too: selection.HandledFrames)."""
@@ -550,60 +404,6 @@ class SemanticService:
         else:
             runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, frame_id)
 
-    def _release_results(self, runner: ServiceRunner, pool: EncoderPool) -> None:
-        """Apply held results in the order their frames were taken; one whose earlier frames are
-        still in flight waits for them up to ``pool_reorder_wait_s`` (a result that comes after a
-        later one was applied is dropped as stale by :meth:`_apply_pool_result`)."""
-        while self._held:
-            seq, order, arrived, result = self._held[0]
-            if (pool.older_in_flight(seq)
-                    and time.monotonic() - arrived < self.section.pool_reorder_wait_s):
-                if order not in self._waited:
-                    self._waited.add(order)
-                    runner.stats.incr(PoolCounter.RESULTS_HELD)
-                return
-            heapq.heappop(self._held)
-            self._waited.discard(order)
-            self._apply_pool_result(runner, result)
-
-    def _pool_request(self, runner: ServiceRunner, msg: RgbdFrame) -> EncodeRequest | None:
-        """The encode request of a frame the switch accepts (joined with its instance image when the
-        workers need it), or None when the frame is skipped (counted)."""
-        if not self.switch.accept(msg.frame_id, time.monotonic()):
-            runner.stats.incr(SemanticCounter.SKIPPED_SWITCH)
-            return None
-        instance = None
-        if self._instances is not None and msg.instance is None:
-            instance = self._instances.take(msg, timeout_s=self.section.instance_wait_s)
-            if instance is None:
-                self._skip_without_instance(runner, msg)
-                return None
-        return EncodeRequest.of(msg, instance, map_id=runner.keys.map_id,
-                                embedding_space=self.dictionary.embedding_space)
-
-    def _apply_pool_result(self, runner: ServiceRunner, result: PoolResult) -> None:
-        frame_id = result.request.frame_id
-        if result.seq <= self._last_applied:  # a later frame's result is in the map already
-            runner.stats.incr(PoolCounter.RESULTS_STALE)
-            if self._feeder is not None:  # the watermark waits for every frame taken
-                self._frame_done(runner, frame_id, result.request.stamp_ns)
-            return
-        try:
-            obs = RegionObservation(conf_maps=result.reply.conf_maps, embeddings=result.reply.embeddings,
-                                    embedding_space=result.reply.embedding_space)
-            obs.validate(dim=self.dictionary.dim)
-            self.apply_observation(runner, result.request.to_frame(), obs, time.monotonic(),
-                                   robot=result.request.robot)
-            self._last_applied = result.seq
-            runner.stats.incr(ENCODED_BY_PREFIX + result.worker_id)
-        except QueryError as exc:
-            self._skip_no_render(runner, result.request.robot, frame_id, exc)
-        except Exception:  # a bad result or a failed step: logged, counted, next result
-            logger.exception("semantic: the pool's result for frame %d failed and was skipped", frame_id)
-            runner.stats.incr(SemanticCounter.FRAMES_FAILED)
-            runner.stats.add_error()
-        finally:
-            self._frame_done(runner, frame_id, result.request.stamp_ns)
 
     def _skip_no_render(self, runner: ServiceRunner, robot: str, frame_id: int, exc: QueryError) -> None:
         """Geometry gave no render: a robot not joined to the map yet (counted apart, expected while
