@@ -20,7 +20,9 @@ from typing import Any
 
 from openfusion.bus import QueryError, ServiceRunner
 from openfusion.encoders import RegionObservation
+from openfusion.services.semantic.outcomes import note_frames
 from openfusion.services.semantic.pool import EncoderPool, PoolResult
+from openfusion.services.semantic.selection import Pending
 from openfusion.wire.counters import ENCODED_BY_PREFIX, PoolCounter, SemanticCounter
 from openfusion.wire.schemas import EncodeRequest, RgbdFrame
 
@@ -60,9 +62,8 @@ class PoolDispatch:
             while not runner.stopping:
                 try:
                     self._pool_step(runner)
-                except Exception:  # one frame's or result's failure never ends the service: logged, counted
+                except Exception:  # a failure of the loop itself never ends the service: logged, counted
                     logger.exception("semantic: a step of the encoder pool loop failed; going on")
-                    stats.incr(SemanticCounter.FRAMES_FAILED)
                     stats.add_error()
         finally:
             applier.join(timeout=max(self.service.section.render_timeout_s, 1.0) + 1.0)
@@ -72,9 +73,8 @@ class PoolDispatch:
         while not runner.stopping:
             try:
                 self._apply_step(runner)
-            except Exception:  # one result's failure never ends the service: logged, counted
+            except Exception:  # (a result's own failure is counted in _apply_pool_result) logged, counted
                 logger.exception("semantic: applying the encoder pool's results failed; going on")
-                runner.stats.incr(SemanticCounter.FRAMES_FAILED)
                 runner.stats.add_error()
 
     def _apply_step(self, runner: ServiceRunner) -> None:
@@ -95,6 +95,7 @@ class PoolDispatch:
         candidates than free workers)."""
         assert self.service._frames is not None
         stats = runner.stats
+        note_frames(stats, self.service._frames)
         self.pool.pump_resends(self._last_applied)
         alive = self.pool.alive
         stats.set(PoolCounter.NO_ENCODER, int(alive == 0 and not self.service.section.local_encoder))
@@ -112,19 +113,32 @@ class PoolDispatch:
             if pending is None:
                 return
             msg = pending.msg
+        else:
+            pending = None
+            msg = self.service.next_frame(runner, timeout_s=0.05)
+            if msg is None:
+                return
+        try:
+            self._dispatch(runner, msg, pending)
+        except Exception:  # this frame is done with: logged, counted as failed
+            logger.exception("semantic: frame %d could not go to the encoder pool; skipped", msg.frame_id)
+            stats.incr(SemanticCounter.FRAMES_FAILED)
+            stats.add_error()
+            self.service._frame_done(runner, msg.frame_id, msg.stamp_ns)
+
+    def _dispatch(self, runner: ServiceRunner, msg: RgbdFrame, pending: Pending | None) -> None:
+        """Send one frame taken off the window (``pending``) or the subscription to a worker."""
+        if pending is not None:
             request: EncodeRequest | None = EncodeRequest.of(msg, pending.instance, map_id=runner.keys.map_id,
                                                              embedding_space=self.service.dictionary.embedding_space)
         else:
-            msg = self.service._frames.recv(timeout_s=0.05)
-            if msg is None:
-                return
             request = self._pool_request(runner, msg)
         if request is None:
             self.service._frame_done(runner, msg.frame_id, msg.stamp_ns)
             return
         self.service._next_seq += 1
         if not self.pool.submit(request, self.service._next_seq):  # the worker with room died in between
-            stats.incr(SemanticCounter.FRAMES_FAILED)
+            runner.stats.incr(SemanticCounter.FRAMES_FAILED)
             self.service._frame_done(runner, msg.frame_id, msg.stamp_ns)
 
     def _release_results(self, runner: ServiceRunner) -> None:

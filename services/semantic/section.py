@@ -40,6 +40,9 @@ class SemanticSection(MatchParams, MergeParams, SelectParams, EncoderOptions):
     instance_wait_s: float = Field(
         0.5, ge=0, le=10, description="gt encoder: wait this long for a frame's instance image, then skip the frame"
     )
+    integrate_wait_s: float = Field(
+        2.0, ge=0, description="before rendering the map for a frame it fuses, wait this long at most for geometry "
+        "to have integrated the frame (its geometry/progress acknowledgement; 0 = never wait)")
     recover_timeout_s: float = Field(
         10.0, ge=0, description="at start, try this long to recover the map's dictionary from geometry (0 = never)"
     )

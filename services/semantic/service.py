@@ -68,6 +68,9 @@ from openfusion.services.encoder.options import (
     region_encoder_from_section,  # noqa: F401 (re-exported: bench/bench_laps.py)
     warm_up_encoder,
 )
+from openfusion.services.semantic.geometry_progress import IntegratedFrames, NewestTaken
+from openfusion.services.semantic.merge_worker import MergeWorker
+from openfusion.services.semantic.outcomes import note_frames
 from openfusion.services.semantic.pool import EncoderPool
 from openfusion.services.semantic.pool_loop import PoolDispatch
 from openfusion.services.semantic.section import (  # noqa: F401 (re-exported: the service's settings lived here)
@@ -81,6 +84,7 @@ from openfusion.shard_client import reader_for
 from openfusion.wire.counters import PoolCounter, SemanticCounter
 from openfusion.wire.endpoints import (
     DICTIONARY_DELTA,
+    GEOMETRY_PROGRESS,
     SEMANTIC_DICTIONARY,
     SEMANTIC_MERGE,
     SEMANTIC_UPDATE,
@@ -122,6 +126,10 @@ class SemanticService:
         self.merge_params = MergeParams.from_section(self.section)
         self._merge_schedule = MergeSchedule(self.merge_params, min_interval_s=self.section.merge_min_interval_s)
         self._empty_regions = EmptyRegions()
+        self._merges = MergeWorker(on_error=self._count_merge_error)
+        self._integrated = IntegratedFrames()  # geometry's acknowledgements (geometry/progress)
+        self._newest: NewestTaken | None = None  # select=latest (setup)
+        self._stats: Any = None  # the runner's stats, for the merge worker's errors (set in setup)
         self.switch = SemanticSwitch(self.section.every_k, self.section.max_hz)
         self.select_params = SelectParams.from_section(self.section)
         # coverage: candidates are scored on a thread of their own (selection.CandidateFeeder)
@@ -173,7 +181,7 @@ class SemanticService:
 
     def handle_merge(self, runner: ServiceRunner, _req: MergeRequest) -> MergeReply:
         """A merge pass now (geometry asks before saving); its delta is published before the reply."""
-        return self._merge(runner)
+        return self._merges.run_now(lambda: self._merge(runner))
 
     def process(self, runner: ServiceRunner, msg: RgbdFrame, instance: InstanceFrame | None = None) -> None:
         """One semantic step for one frame (called from the loop), with its instance image when
@@ -192,6 +200,10 @@ class SemanticService:
         h, w = obs.conf_maps.shape[1:] if obs.conf_maps.ndim == 3 else self.encoder.output_size(
             frame.intrinsics.height_px, frame.intrinsics.width_px)
         K_small = frame.intrinsics.scaled(w, h)
+        # Render once geometry holds the frame (services.semantic.geometry_progress)
+        if (self.section.integrate_wait_s > 0
+                and not self._integrated.wait(robot, frame.stamp_ns, self.section.integrate_wait_s)):
+            runner.stats.incr(SemanticCounter.INTEGRATE_WAIT_TIMEOUTS)
         reply = reader_for(runner).render(RenderRequest(frame_id=frame.frame_id, T_world_cam=frame.T_world_cam,
                                                         robot=robot, **RenderRequest.intrinsics_fields(K_small)),
                                           timeout_s=self.section.render_timeout_s)
@@ -226,8 +238,8 @@ class SemanticService:
         logger.debug("semantic: frame %d: %d regions, %d matched, %d new (dictionary v%d -> v%d)",
                      frame.frame_id, obs.conf_maps.shape[0], len(planned.matched), len(planned.new_keys),
                      prev_version, self.dictionary.version)
-        if self._merge_schedule.due():
-            self.merge_pass(runner)
+        if self._merge_schedule.due():  # on the merge worker's thread: the loop goes on (merge_worker)
+            self._merges.request(lambda: self._merge(runner))
 
     def _publish_delta(self) -> None:
         """Publish what changed in the dictionary since the last delta (nothing when nothing did)."""
@@ -240,11 +252,14 @@ class SemanticService:
     def merge_pass(self, runner: ServiceRunner) -> int:
         """Merge the regions that are one object (contacts from geometry, decision here), publish the
         merges as one delta; returns the number of regions merged away. A pass geometry does not
-        answer is logged, counted in ``merge_failures`` and skipped."""
-        return self._merge(runner).regions_merged
+        answer is logged, counted in ``merge_failures`` and skipped. On the caller's thread, after
+        a periodic pass still running."""
+        return self._merges.run_now(lambda: self._merge(runner)).regions_merged
 
     def _merge(self, runner: ServiceRunner) -> MergeReply:
         started = time.monotonic()
+        with self._dictionary_lock:  # the regions the contacts can know of (frames go on meanwhile)
+            known = {int(k) for k in self.dictionary.keys.tolist()}
         try:
             reply = reader_for(runner).contacts(
                 RegionContactsRequest(radius_vox=self.merge_params.merge_contact_radius_vox),
@@ -262,7 +277,7 @@ class SemanticService:
             contact_a=reply.contact_a.astype(np.int64), contact_b=reply.contact_b.astype(np.int64))
         with self._dictionary_lock:
             plan = plan_merges(self.dictionary, contacts, self.merge_params)
-            removed = (self._empty_regions.to_remove(self.dictionary, contacts)
+            removed = (self._empty_regions.to_remove(self.dictionary, contacts, known=known)
                        if self.merge_params.merge_prune_empty else [])
             if plan.merged_into or removed:
                 apply_merges(self.dictionary, plan.merged_into, embedding=self.merge_params.merge_embedding,
@@ -285,6 +300,7 @@ class SemanticService:
         return done
 
     def setup(self, runner: ServiceRunner) -> None:
+        self._stats = runner.stats
         if not self.section.encoder_pool or self.section.local_encoder:
             warm_up_encoder(self.encoder, "semantic")
         self.recover(runner)
@@ -297,14 +313,18 @@ class SemanticService:
         runner.queryable(SEMANTIC_MERGE, lambda req: self.handle_merge(runner, req))
         if self._instances is not None:
             runner.subscriber(SENSOR_INSTANCE, self._instances.add, queue_size=8)
-        # latest: the newest frame only; every: a queue (a slower encoder drops the oldest, counted);
+        if self.section.integrate_wait_s > 0 or self.select_params.select == "latest":
+            runner.subscriber(GEOMETRY_PROGRESS, self._integrated.on_progress, queue_size=256, measure=False)
+        # latest: a queue, of which the newest frame geometry has taken is encoded (the older ones are
+        # superseded, counted); every: a queue (a slower encoder drops the oldest, counted);
         # coverage: a queue the size of the window, emptied by the scoring thread
         mode = self.select_params.select
         # Coverage and every: a queue per robot's bridge served in turn (fair), so one robot's backlog
         # never keeps another's frames from being scored; coverage then picks across robots by gain.
-        self._frames = (runner.subscriber(SENSOR_RGBD, latest_only=True) if mode == "latest" else
-                        runner.subscriber(SENSOR_RGBD, queue_size=EVERY_QUEUE if mode == "every"
-                                          else self.select_params.select_window, fair=True))
+        self._frames = runner.subscriber(SENSOR_RGBD, queue_size=self.select_params.select_window if mode == "coverage"
+                                         else EVERY_QUEUE, fair=True)
+        if mode == "latest":  # the newest frame geometry has taken (geometry_progress.NewestTaken)
+            self._newest = NewestTaken(self._integrated, capacity=EVERY_QUEUE, wait_s=self.section.integrate_wait_s)
         if self._scorer is not None:
             self._feeder = CandidateFeeder(
                 frames=self._frames, window=CandidateWindow(self._scorer), scorer=self._scorer,
@@ -326,6 +346,7 @@ class SemanticService:
 
     def loop(self, runner: ServiceRunner) -> None:
         assert self._frames is not None
+        self._merges.start()
         feeding = None
         if self._feeder is not None:
             feeding = threading.Thread(target=self._feeder.run, args=(runner,), name="semantic-select", daemon=True)
@@ -341,23 +362,57 @@ class SemanticService:
                 self._feeder.window.close()
             if feeding is not None:
                 feeding.join(timeout=max(self.section.render_timeout_s, 1.0) + 1.0)
+            self._merges.stop(timeout_s=self.section.contacts_timeout_s + 1.0)
+
+    def _count_merge_error(self) -> None:
+        if self._stats is not None:
+            self._stats.incr(SemanticCounter.MERGE_FAILURES)
+            self._stats.add_error()
 
     def _local_step(self, runner: ServiceRunner) -> None:
         """Encode here the next frame: the best candidate (coverage), else the next one off the
         subscription (latest, every)."""
         assert self._frames is not None
+        note_frames(runner.stats, self._frames)
         if self._feeder is not None:
             pending = self._feeder.take(runner, timeout_s=0.2)
             if pending is not None:
                 self._encode_pending(runner, pending)
             return
-        msg = self._frames.recv(timeout_s=0.2)
+        msg = self.next_frame(runner, timeout_s=0.2)
         if msg is None:
             return
         try:
             self._next_seq += 1
             self._handle(runner, msg)
         finally:  # whatever became of it, the frame is done with: tests and tools wait on this
+            runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
+
+    def next_frame(self, runner: ServiceRunner, timeout_s: float) -> RgbdFrame | None:
+        """The next frame off the subscription (every), or the newest one geometry has taken
+        (latest: the older ones are superseded, counted), waiting up to ``timeout_s``."""
+        assert self._frames is not None
+        if self._newest is None:
+            return self._frames.recv(timeout_s=timeout_s)
+        deadline = time.monotonic() + timeout_s
+        msg = self._frames.recv(timeout_s=0.0)
+        while True:
+            while msg is not None:  # everything queued, into the buffer
+                self._supersede(runner, self._newest.add(msg, time.monotonic()))
+                msg = self._frames.recv(timeout_s=0.0)
+            chosen, passed = self._newest.take(time.monotonic())
+            self._supersede(runner, passed)
+            if chosen is not None:
+                return chosen
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return None
+            # a frame to come, or 10 ms for geometry to take one that waits here
+            msg = self._frames.recv(timeout_s=min(remaining, 0.01))
+
+    def _supersede(self, runner: ServiceRunner, frames: list[RgbdFrame]) -> None:
+        for msg in frames:
+            runner.stats.incr(SemanticCounter.FRAMES_SUPERSEDED)
             runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
 
     def _encode_pending(self, runner: ServiceRunner, pending: Pending) -> None:

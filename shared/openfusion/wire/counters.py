@@ -118,6 +118,13 @@ class SemanticCounter(StrEnum):
     SELECT_EVICTED = "select_evicted"  # candidates a full window let go for better ones (never encoded)
     SELECT_BUSY_S = "select_busy_s"  # time spent scoring candidates (render request + scoring)
     SELECT_WINDOW = "select_window"  # candidates waiting for the encoder now
+    # what became of the frames on sensor/rgbd (SEMANTIC_FRAME_OUTCOMES: each frame ends in one)
+    FRAMES_RECEIVED = "frames_received"  # frames that came on the subscription
+    FRAMES_DROPPED = "frames_dropped"  # let go by its bounded queue before the service took them
+    FRAMES_SUPERSEDED = "frames_superseded"  # select=latest: a newer frame geometry had taken was encoded instead
+    FRAMES_MALFORMED = "frames_malformed"  # could not be decoded (logged)
+    FRAMES_PENDING = "frames_pending"  # received, no outcome yet: queued, in the window, at the encoder
+    INTEGRATE_WAIT_TIMEOUTS = "integrate_wait_timeouts"  # rendered before geometry took the frame (integrate_wait_s)
 
 
 class EncoderCounter(StrEnum):
@@ -139,6 +146,16 @@ class PoolCounter(StrEnum):
     NO_ENCODER = "no_encoder"  # 1 while no worker is alive and there is no local encoder
     LOCAL_FRAMES = "local_frames"  # encoded by the local encoder (no worker alive)
 
+
+#: Every frame the semantic service receives (``frames_received``) ends in exactly one of these
+#: (``frames_pending`` until then): fused, or not encoded for the reason named. Outcomes of the
+#: encoder pool (``frames_lost``, ``results_stale``) are :class:`PoolCounter`'s.
+SEMANTIC_FRAME_OUTCOMES: tuple[str, ...] = (
+    SemanticCounter.SEMANTIC_FRAMES, SemanticCounter.SKIPPED_NO_GAIN, SemanticCounter.SELECT_EVICTED,
+    SemanticCounter.FRAMES_SUPERSEDED, SemanticCounter.SKIPPED_SWITCH, SemanticCounter.SKIPPED_NO_INSTANCE, SemanticCounter.SKIPPED_NO_RENDER,
+    SemanticCounter.SKIPPED_ROBOT_HELD, SemanticCounter.FRAMES_FAILED, SemanticCounter.FRAMES_DROPPED,
+    SemanticCounter.FRAMES_MALFORMED, PoolCounter.FRAMES_LOST, PoolCounter.RESULTS_STALE,
+)
 
 #: The semantic service's counter ``encoded_by:<worker id>``: results of that encoder worker
 #: applied to the map (one counter per worker; run.json's ``frames_encoded_per_worker``).
