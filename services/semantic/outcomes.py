@@ -11,11 +11,13 @@ failure, a malformed message, or the encoder pool lost it or its result came too
 ``frames_pending`` is the difference: frames queued, waiting in the window or at the encoder now;
 once the service is idle it is 0, and a frame that vanished would show there.
 
-The subscription counts samples on a Zenoh thread; the service copies them into its stats on
-each turn of its loops (:func:`note_frames`), at most about 0.2 s late.
+The subscription counts samples on a Zenoh thread; a thread of the service copies them into its
+stats every 0.1 s (:class:`FrameCounts`, :func:`note_frames`), also while the encoder is busy.
 """
 
 from __future__ import annotations
+
+import threading
 
 from openfusion.bus import ServiceStats, Subscriber
 from openfusion.wire.counters import SEMANTIC_FRAME_OUTCOMES, SemanticCounter
@@ -29,3 +31,28 @@ def note_frames(stats: ServiceStats, frames: Subscriber) -> None:
     stats.set(SemanticCounter.FRAMES_MALFORMED, frames.errors)
     ended = sum(stats.counters.get(name, 0.0) for name in SEMANTIC_FRAME_OUTCOMES)
     stats.set(SemanticCounter.FRAMES_PENDING, max(0.0, frames.arrived - ended))
+
+
+class FrameCounts:
+    """Calls :func:`note_frames` every ``period_s`` on a thread of its own until :meth:`stop`."""
+
+    def __init__(self, stats: ServiceStats, frames: Subscriber, *, period_s: float = 0.1) -> None:
+        self.stats = stats
+        self.frames = frames
+        self.period_s = period_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="semantic-frame-counts", daemon=True)
+
+    def start(self) -> FrameCounts:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=2.0)
+        note_frames(self.stats, self.frames)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            note_frames(self.stats, self.frames)

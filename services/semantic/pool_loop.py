@@ -20,7 +20,6 @@ from typing import Any
 
 from openfusion.bus import QueryError, ServiceRunner
 from openfusion.encoders import RegionObservation
-from openfusion.services.semantic.outcomes import note_frames
 from openfusion.services.semantic.pool import EncoderPool, PoolResult
 from openfusion.services.semantic.selection import Pending
 from openfusion.wire.counters import ENCODED_BY_PREFIX, PoolCounter, SemanticCounter
@@ -95,7 +94,6 @@ class PoolDispatch:
         candidates than free workers)."""
         assert self.service._frames is not None
         stats = runner.stats
-        note_frames(stats, self.service._frames)
         self.pool.pump_resends(self._last_applied)
         alive = self.pool.alive
         stats.set(PoolCounter.NO_ENCODER, int(alive == 0 and not self.service.section.local_encoder))

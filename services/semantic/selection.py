@@ -37,7 +37,6 @@ from openfusion.bus import QueryError, ServiceRunner, Subscriber
 from openfusion.bus.instance_join import InstanceBuffer
 from openfusion.frame import CameraIntrinsics
 from openfusion.mapping.selection import CandidateWindow, CoverageScorer, WindowChange
-from openfusion.services.semantic.outcomes import note_frames
 from openfusion.shard_client import reader_for
 from openfusion.wire.counters import SemanticCounter
 from openfusion.wire.schemas import InstanceFrame, RenderRequest, RgbdFrame
@@ -113,7 +112,6 @@ class CandidateFeeder:
     def run(self, runner: ServiceRunner) -> None:
         """Feed the window until the service stops (a thread of the service)."""
         while not runner.stopping:
-            note_frames(runner.stats, self.frames)
             msg = self.frames.recv(timeout_s=0.2)
             if msg is None:  # frames paused: a run of select_lookahead frames cut short is decided now
                 if self.window.undecided:

@@ -70,7 +70,7 @@ from openfusion.services.encoder.options import (
 )
 from openfusion.services.semantic.geometry_progress import IntegratedFrames, NewestTaken
 from openfusion.services.semantic.merge_worker import MergeWorker
-from openfusion.services.semantic.outcomes import note_frames
+from openfusion.services.semantic.outcomes import FrameCounts
 from openfusion.services.semantic.pool import EncoderPool
 from openfusion.services.semantic.pool_loop import PoolDispatch
 from openfusion.services.semantic.section import (  # noqa: F401 (re-exported: the service's settings lived here)
@@ -347,6 +347,7 @@ class SemanticService:
     def loop(self, runner: ServiceRunner) -> None:
         assert self._frames is not None
         self._merges.start()
+        counts = FrameCounts(runner.stats, self._frames).start()  # what became of each frame (outcomes)
         feeding = None
         if self._feeder is not None:
             feeding = threading.Thread(target=self._feeder.run, args=(runner,), name="semantic-select", daemon=True)
@@ -363,6 +364,7 @@ class SemanticService:
             if feeding is not None:
                 feeding.join(timeout=max(self.section.render_timeout_s, 1.0) + 1.0)
             self._merges.stop(timeout_s=self.section.contacts_timeout_s + 1.0)
+            counts.stop()
 
     def _count_merge_error(self) -> None:
         if self._stats is not None:
@@ -373,7 +375,6 @@ class SemanticService:
         """Encode here the next frame: the best candidate (coverage), else the next one off the
         subscription (latest, every)."""
         assert self._frames is not None
-        note_frames(runner.stats, self._frames)
         if self._feeder is not None:
             pending = self._feeder.take(runner, timeout_s=0.2)
             if pending is not None:

@@ -9,6 +9,7 @@ time, not silently in a report. Values are floats; times end in ``_s``.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from enum import StrEnum
 
 
@@ -156,6 +157,12 @@ SEMANTIC_FRAME_OUTCOMES: tuple[str, ...] = (
     SemanticCounter.SKIPPED_ROBOT_HELD, SemanticCounter.FRAMES_FAILED, SemanticCounter.FRAMES_DROPPED,
     SemanticCounter.FRAMES_MALFORMED, PoolCounter.FRAMES_LOST, PoolCounter.RESULTS_STALE,
 )
+
+def semantic_frame_outcomes(counters: Mapping[str, float]) -> dict[str, int]:
+    """What became of the frames the semantic service received, from its counters: each outcome
+    of :data:`SEMANTIC_FRAME_OUTCOMES` that happened, by name."""
+    return {str(name): int(counters[name]) for name in SEMANTIC_FRAME_OUTCOMES if counters.get(name)}
+
 
 #: The semantic service's counter ``encoded_by:<worker id>``: results of that encoder worker
 #: applied to the map (one counter per worker; run.json's ``frames_encoded_per_worker``).
