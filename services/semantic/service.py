@@ -4,6 +4,7 @@
 |---|---|---|
 | ``…/sensor/rgbd`` | subscribes (``select``: a window of candidates, the latest frame only, or a queue) | :class:`~openfusion.wire.schemas.RgbdFrame` |
 | ``…/sensor/instance`` | subscribes when the encoder reads instance images (gt) | :class:`~openfusion.wire.schemas.InstanceFrame` |
+| ``…/geometry/progress`` | subscribes (which frames geometry has integrated: a frame is rendered for its update after) | :class:`~openfusion.wire.schemas.GeometryProgress` |
 | ``…/geometry/render`` | queries (each frame it encodes; with ``select=coverage`` also each candidate, at the scored size) | RenderRequest → RenderReply |
 | ``…/geometry/dictionary`` | queries once on start (recovery) | DictionaryRequest → DictionarySnapshot |
 | ``…/geometry/contacts`` | queries every ``merge_every`` semantic frames | RegionContactsRequest → RegionContactsReply |
@@ -11,22 +12,25 @@
 | ``…/semantic/dictionary/delta`` | publishes | :class:`~openfusion.wire.schemas.DictionaryDelta` |
 | ``…/semantic/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot (with its merge table) |
 | ``…/semantic/merge`` | queryable (geometry asks before it saves) | MergeRequest → MergeReply |
-| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions``, ``merge_passes``, ``regions_merged``, ``regions_pruned``, ``merge_failures``, ``encoder_calls``, ``encoder_regions``, ``frames_scored``, ``skipped_no_gain``, ``select_evicted``, ``select_busy_s``, ``select_window`` |
+| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions``, ``merge_passes``, ``regions_merged``, ``regions_pruned``, ``merge_failures``, ``encoder_calls``, ``encoder_regions``, ``frames_scored``, ``skipped_no_gain``, ``select_evicted``, ``select_busy_s``, ``select_window``; what became of each frame: ``frames_received``, ``frames_dropped``, ``frames_superseded``, ``frames_malformed``, ``frames_pending`` (:mod:`~openfusion.services.semantic.outcomes`), ``integrate_wait_timeouts`` |
 
 Which frames are encoded (``select``, :class:`~openfusion.mapping.params.SelectParams`): with
 ``coverage`` (the default) a thread of its own scores every frame against the map
 (:mod:`openfusion.services.semantic.selection`, rules in :mod:`openfusion.mapping.selection`) and
 decides each as it comes with the in-process rule; the chosen frames wait in a window of
 ``select_window`` and the encoder (here, or the pool's workers) gets the one of highest gain
-whenever it is free, and a frame that adds too little is never encoded (``skipped_no_gain``). With ``latest`` the subscription keeps only the
-newest frame (the behaviour before selection), with ``every`` a queue of frames. Either way a slow
+whenever it is free, and a frame that adds too little is never encoded (``skipped_no_gain``). With ``latest`` the
+newest frame geometry has integrated (:mod:`~openfusion.services.semantic.geometry_progress`; the
+ones passed over are ``frames_superseded``), with ``every`` a queue of frames. Any frame is
+rendered for its update once geometry has integrated it (``integrate_wait_s`` at most). Either way a slow
 encoder never builds an unbounded queue: frames a full queue or window lets go are counted. An encoder that reads ground-truth instance images (gt) gets each
 frame joined with its ``InstanceFrame`` (same frame id and stamp; the bridge sends it first); a
 frame whose instance image has not come within ``instance_wait_s`` is skipped and counted in
 ``skipped_no_instance`` (a frame that carries its own instance image uses that). The semantic switch: ``every_k = 0`` turns semantics off,
 ``every_k = k`` uses every k-th frame (by frame id), ``max_hz`` caps the rate.
 The settings and the switch are :mod:`~openfusion.services.semantic.section`; the loop with an
-encoder pool is :mod:`~openfusion.services.semantic.pool_loop`.
+encoder pool is :mod:`~openfusion.services.semantic.pool_loop`; periodic merge passes run on
+:mod:`~openfusion.services.semantic.merge_worker`'s thread, off the frame loop.
 On start the service asks geometry for the dictionary it checkpointed, so a restarted semantic
 service continues with the same keys and embeddings.
 
