@@ -79,6 +79,8 @@ from openfusion.services.semantic.pool import EncoderPool
 from openfusion.services.semantic.pool_loop import PoolDispatch
 from openfusion.services.semantic.section import (  # noqa: F401 (re-exported: the service's settings lived here)
     EVERY_QUEUE,
+    LATEST_BUFFER,
+    LATEST_QUEUE,
     SemanticConfig,
     SemanticSection,
     SemanticSwitch,
@@ -325,10 +327,10 @@ class SemanticService:
         mode = self.select_params.select
         # Coverage and every: a queue per robot's bridge served in turn (fair), so one robot's backlog
         # never keeps another's frames from being scored; coverage then picks across robots by gain.
-        self._frames = runner.subscriber(SENSOR_RGBD, queue_size=self.select_params.select_window if mode == "coverage"
-                                         else EVERY_QUEUE, fair=True)
+        queue = {"coverage": self.select_params.select_window, "every": EVERY_QUEUE, "latest": LATEST_QUEUE}[mode]
+        self._frames = runner.subscriber(SENSOR_RGBD, queue_size=queue, fair=True)
         if mode == "latest":  # the newest frame geometry has taken (geometry_progress.NewestTaken)
-            self._newest = NewestTaken(self._integrated, capacity=EVERY_QUEUE, wait_s=self.section.integrate_wait_s)
+            self._newest = NewestTaken(self._integrated, capacity=LATEST_BUFFER, wait_s=self.section.integrate_wait_s)
         if self._scorer is not None:
             self._feeder = CandidateFeeder(
                 frames=self._frames, window=CandidateWindow(self._scorer), scorer=self._scorer,
