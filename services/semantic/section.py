@@ -51,10 +51,11 @@ class SemanticSection(MatchParams, MergeParams, SelectParams, EncoderOptions):
 #: select=every: frames waiting for the encoder (a slower encoder drops the oldest, counted as drops).
 EVERY_QUEUE = 64
 #: select=latest: frames waiting on the subscription while the encoder is busy (the oldest go first,
-#: counted ``frames_dropped``), and frames kept for geometry to take (about 1.5-2 MB each at 640x480;
-#: geometry runs up to the bridge's ``max_in_flight``, 16, behind the newest).
-LATEST_QUEUE = 8
-LATEST_BUFFER = 24
+#: counted ``frames_dropped``), and frames kept for geometry to take (about 2.8 MB each at 640x480;
+#: geometry runs at most the bridge's ``max_in_flight``, 16, behind the newest, and at camera rate a
+#: few): latest-only memory, a few frames in hand, not a queue of every frame.
+LATEST_QUEUE = 4
+LATEST_BUFFER = 16
 
 
 class SemanticConfig(ServiceConfig):

@@ -2,8 +2,8 @@
 (``wire.counters.SEMANTIC_FRAME_OUTCOMES``): on a real bus in this process, the real geometry and
 semantic services, frames published by the test as the bridge would, the encoder held busy on cue.
 
-Fed: with ``select=latest`` frames that come while the encoder is busy (all but the newest are
-superseded) and one malformed message on ``sensor/rgbd``; with ``select=coverage`` a window of one
+Fed: with ``select=latest`` frames that come while the encoder is busy (the older ones are let go
+by the subscription's queue or superseded by the newest geometry has taken) and one malformed message on ``sensor/rgbd``; with ``select=coverage`` a window of one
 and a subscription queue of one, so frames are dropped by the queue, evicted from the window or
 skipped for no gain. In each the outcomes add up to the frames received, ``frames_pending`` ends
 at 0, and the service keeps running after the malformed message."""
@@ -87,10 +87,12 @@ def test_latest_every_frame_received_ends_fused_superseded_or_malformed() -> Non
         received = _feed(semantic, rgbd, session, key, encoder, [_as(THERE if i % 2 else HERE, i) for i in range(1, 9)])
         outcomes = _outcomes(semantic)
         assert set(outcomes) <= set(SEMANTIC_FRAME_OUTCOMES)
-        # frame 0, then the newest frame geometry has taken: frame 8; the seven between are superseded
+        # frame 0, then the newest frames geometry has taken, ending with frame 8; the others that came
+        # while the encoder was held were let go by the subscription's queue of 4 or superseded
         assert encoder.encoded[0] == 0 and encoder.encoded[-1] == 8
-        assert outcomes[SemanticCounter.SEMANTIC_FRAMES] == len(encoder.encoded)
-        assert outcomes[SemanticCounter.FRAMES_SUPERSEDED] == received - 1 - len(encoder.encoded)
+        assert outcomes[SemanticCounter.SEMANTIC_FRAMES] == len(encoder.encoded) < received - 1
+        assert outcomes.get(SemanticCounter.FRAMES_SUPERSEDED, 0) + outcomes.get(SemanticCounter.FRAMES_DROPPED, 0) \
+            == received - 1 - len(encoder.encoded)
         assert semantic.counter(SemanticCounter.LAST_FRAME_HANDLED) == 8
 
 
