@@ -185,6 +185,15 @@ def _run(out: Path, scene: Path, frames: int, *args: str) -> tuple[dict, float, 
     return json.loads((out / "run.json").read_text()), wall, f"{load_before} -> {_load()}"
 
 
+def _outcomes(summary: dict) -> str:
+    """run.json's account of the semantic service's frames (services; in process: every frame)."""
+    if summary.get("mode") != "services":
+        return ""
+    parts = ", ".join(f"{k} {v}" for k, v in summary.get("semantic_outcomes", {}).items())
+    pending = summary.get("semantic_frames_pending", 0)
+    return f"{summary.get('semantic_frames_received', 0)}: {parts}" + (f", pending {pending}" if pending else "")
+
+
 def services(work: Path, frames: int, delay_ms: float, repeat: int, sets: list[str] = ()) -> None:
     """The services variants (and the in-process maps) of the scene; ``sets``: ``--set`` options of
     every run (``semantic.select_lookahead=3``), so each pair stays measured alike."""
@@ -196,8 +205,9 @@ def services(work: Path, frames: int, delay_ms: float, repeat: int, sets: list[s
           f"{'; every run with ' + ', '.join(sets) if sets else ''})")
     print()
     print("| run | mode | select | encoder workers | f-mIoU | Δ vs in-process every frame | mAcc | unlabelled | "
-          "encoder calls | skipped (no gain) | regions | calls per region | wall (s) | load 1/5 min before -> after |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "encoder calls | skipped (no gain) | regions | calls per region | wall (s) | load 1/5 min before -> after | "
+          "semantic frames received: outcomes |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     baseline = None
     variants = [("in-process", "every", 0), ("in-process", "coverage", 0), ("services", "latest", 0),
                 ("services", "coverage", 0),
@@ -221,7 +231,8 @@ def services(work: Path, frames: int, delay_ms: float, repeat: int, sets: list[s
             print(f"| {rep + 1} | {mode} | {select} | {workers} | {q['f_mIoU']:.4f} | {q['f_mIoU'] - baseline:+.4f} | "
                   f"{q['mAcc']:.4f} | {q['unlabelled_fraction']:.3f} | {summary['encoder_calls']} of "
                   f"{summary['frames_integrated']} | {summary['skipped_no_gain']} | {summary['regions']} | "
-                  f"{_f(summary.get('calls_per_region'), '{:.1f}')} | {wall:.0f} | {load} |", flush=True)
+                  f"{_f(summary.get('calls_per_region'), '{:.1f}')} | {wall:.0f} | {load} | {_outcomes(summary)} |",
+                  flush=True)
     print()
 
 

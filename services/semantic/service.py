@@ -4,6 +4,7 @@
 |---|---|---|
 | ``…/sensor/rgbd`` | subscribes (``select``: a window of candidates, the latest frame only, or a queue) | :class:`~openfusion.wire.schemas.RgbdFrame` |
 | ``…/sensor/instance`` | subscribes when the encoder reads instance images (gt) | :class:`~openfusion.wire.schemas.InstanceFrame` |
+| ``…/geometry/progress`` | subscribes (which frames geometry has integrated: a frame is rendered for its update after) | :class:`~openfusion.wire.schemas.GeometryProgress` |
 | ``…/geometry/render`` | queries (each frame it encodes; with ``select=coverage`` also each candidate, at the scored size) | RenderRequest → RenderReply |
 | ``…/geometry/dictionary`` | queries once on start (recovery) | DictionaryRequest → DictionarySnapshot |
 | ``…/geometry/contacts`` | queries every ``merge_every`` semantic frames | RegionContactsRequest → RegionContactsReply |
@@ -11,20 +12,25 @@
 | ``…/semantic/dictionary/delta`` | publishes | :class:`~openfusion.wire.schemas.DictionaryDelta` |
 | ``…/semantic/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot (with its merge table) |
 | ``…/semantic/merge`` | queryable (geometry asks before it saves) | MergeRequest → MergeReply |
-| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions``, ``merge_passes``, ``regions_merged``, ``regions_pruned``, ``merge_failures``, ``encoder_calls``, ``encoder_regions``, ``frames_scored``, ``skipped_no_gain``, ``select_evicted``, ``select_busy_s``, ``select_window`` |
+| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions``, ``merge_passes``, ``regions_merged``, ``regions_pruned``, ``merge_failures``, ``encoder_calls``, ``encoder_regions``, ``frames_scored``, ``skipped_no_gain``, ``select_evicted``, ``select_busy_s``, ``select_window``; what became of each frame: ``frames_received``, ``frames_dropped``, ``frames_superseded``, ``frames_malformed``, ``frames_pending`` (:mod:`~openfusion.services.semantic.outcomes`), ``integrate_wait_timeouts`` |
 
 Which frames are encoded (``select``, :class:`~openfusion.mapping.params.SelectParams`): with
 ``coverage`` (the default) a thread of its own scores every frame against the map
 (:mod:`openfusion.services.semantic.selection`, rules in :mod:`openfusion.mapping.selection`) and
 decides each as it comes with the in-process rule; the chosen frames wait in a window of
 ``select_window`` and the encoder (here, or the pool's workers) gets the one of highest gain
-whenever it is free, and a frame that adds too little is never encoded (``skipped_no_gain``). With ``latest`` the subscription keeps only the
-newest frame (the behaviour before selection), with ``every`` a queue of frames. Either way a slow
+whenever it is free, and a frame that adds too little is never encoded (``skipped_no_gain``). With ``latest`` the
+newest frame geometry has integrated (:mod:`~openfusion.services.semantic.geometry_progress`; the
+ones passed over are ``frames_superseded``), with ``every`` a queue of frames. Any frame is
+rendered for its update once geometry has integrated it (``integrate_wait_s`` at most). Either way a slow
 encoder never builds an unbounded queue: frames a full queue or window lets go are counted. An encoder that reads ground-truth instance images (gt) gets each
 frame joined with its ``InstanceFrame`` (same frame id and stamp; the bridge sends it first); a
 frame whose instance image has not come within ``instance_wait_s`` is skipped and counted in
 ``skipped_no_instance`` (a frame that carries its own instance image uses that). The semantic switch: ``every_k = 0`` turns semantics off,
 ``every_k = k`` uses every k-th frame (by frame id), ``max_hz`` caps the rate.
+The settings and the switch are :mod:`~openfusion.services.semantic.section`; the loop with an
+encoder pool is :mod:`~openfusion.services.semantic.pool_loop`; periodic merge passes run on
+:mod:`~openfusion.services.semantic.merge_worker`'s thread, off the frame loop.
 On start the service asks geometry for the dictionary it checkpointed, so a restarted semantic
 service continues with the same keys and embeddings.
 
@@ -44,8 +50,6 @@ under one lock by the frame loop and by that request, so deltas go out in versio
 
 from __future__ import annotations
 
-import heapq
-import itertools
 import logging
 import threading
 import time
@@ -53,11 +57,9 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from pydantic import Field
 
 from openfusion.bus import Publisher, QueryError, ServiceRunner, Subscriber
 from openfusion.bus.instance_join import InstanceBuffer
-from openfusion.config import ServiceConfig
 from openfusion.encoders import RegionObservation
 from openfusion.frame import Frame, resize_nearest
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
@@ -66,17 +68,29 @@ from openfusion.mapping.params import MatchParams, MergeParams, SelectParams
 from openfusion.mapping.selection import CandidateWindow, CoverageScorer
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.encoder.options import (
-    EncoderOptions,
     encoder_identity_from_section,
-    region_encoder_from_section,
+    region_encoder_from_section,  # noqa: F401 (re-exported: bench/bench_laps.py)
     warm_up_encoder,
 )
-from openfusion.services.semantic.pool import EncoderPool, PoolResult
+from openfusion.services.semantic.geometry_progress import IntegratedFrames, NewestTaken
+from openfusion.services.semantic.merge_worker import MergeWorker
+from openfusion.services.semantic.outcomes import FrameCounts
+from openfusion.services.semantic.pool import EncoderPool
+from openfusion.services.semantic.pool_loop import PoolDispatch
+from openfusion.services.semantic.section import (  # noqa: F401 (re-exported: the service's settings lived here)
+    EVERY_QUEUE,
+    LATEST_BUFFER,
+    LATEST_QUEUE,
+    SemanticConfig,
+    SemanticSection,
+    SemanticSwitch,
+)
 from openfusion.services.semantic.selection import CandidateFeeder, Pending
 from openfusion.shard_client import reader_for
-from openfusion.wire.counters import ENCODED_BY_PREFIX, PoolCounter, SemanticCounter
+from openfusion.wire.counters import PoolCounter, SemanticCounter
 from openfusion.wire.endpoints import (
     DICTIONARY_DELTA,
+    GEOMETRY_PROGRESS,
     SEMANTIC_DICTIONARY,
     SEMANTIC_MERGE,
     SEMANTIC_UPDATE,
@@ -87,7 +101,6 @@ from openfusion.wire.keys import PoolKeys
 from openfusion.wire.schemas import (
     DictionaryRequest,
     DictionarySnapshot,
-    EncodeRequest,
     InstanceFrame,
     MergeReply,
     MergeRequest,
@@ -99,65 +112,6 @@ from openfusion.wire.schemas import (
 from openfusion.wire.schemas.base import DEFAULT_ROBOT
 
 logger = logging.getLogger(__name__)
-
-
-class SemanticSection(MatchParams, MergeParams, SelectParams, EncoderOptions):
-    """The semantic service's settings: every matching, merging and frame-selection parameter
-    (:class:`MatchParams`, :class:`MergeParams`, :class:`SelectParams`, declared there once), the
-    local encoder (:class:`EncoderOptions`, shared with the encoder workers) and the service's own."""
-
-    encoder_pool: bool = Field(
-        False, description="send frames to the encoder pool's workers (openfusion service encoder) instead of "
-        "encoding them here"
-    )
-    local_encoder: bool = Field(True, description="with encoder_pool: encode here while no worker is alive")
-    pool_reorder_wait_s: float = Field(
-        1.0, ge=0, description="with encoder_pool: a result waits at most this long for older frames still in "
-        "flight, so results apply in frame order without dropping the older ones")
-    pool_timeout_s: float = Field(30.0, gt=0, description="with encoder_pool: a worker that has not answered a frame "
-                                  "within this many seconds is taken for dead")
-    every_k: int = Field(
-        1, ge=0, description="semantics on every k-th frame id (0 = off)", json_schema_extra={"flag": "--semantic-every"}
-    )
-    max_hz: float | None = Field(None, gt=0, description="at most this many semantic frames per second")
-    render_timeout_s: float = Field(5.0, gt=0, description="wait this long for geometry's render of a frame")
-    contacts_timeout_s: float = Field(
-        30.0, gt=0, description="a merge pass waits this long for geometry's region contacts (a floor's first "
-        "pass after a long walk reads out many tiles: over 5 s on 2 cores, when every pass was skipped)")
-    merge_min_interval_s: float = Field(
-        2.0, ge=0, description="at least this long between two periodic merge passes (a pass costs geometry a "
-        "contacts read-out; with a fast encoder pool merge_every frames come many times a second)")
-    instance_wait_s: float = Field(
-        0.5, ge=0, le=10, description="gt encoder: wait this long for a frame's instance image, then skip the frame"
-    )
-    recover_timeout_s: float = Field(
-        10.0, ge=0, description="at start, try this long to recover the map's dictionary from geometry (0 = never)"
-    )
-
-
-#: select=every: frames waiting for the encoder (a slower encoder drops the oldest, counted as drops).
-EVERY_QUEUE = 64
-
-
-class SemanticConfig(ServiceConfig):
-    semantic: SemanticSection = Field(default_factory=SemanticSection)
-
-
-class SemanticSwitch:
-    """Decides which frames get semantics: off (every_k=0), every k-th frame id, at most max_hz."""
-
-    def __init__(self, every_k: int, max_hz: float | None) -> None:
-        self.every_k = every_k
-        self.max_hz = max_hz
-        self._last_s: float | None = None
-
-    def accept(self, frame_id: int, now_s: float) -> bool:
-        if self.every_k == 0 or frame_id % self.every_k != 0:
-            return False
-        if self.max_hz is not None and self._last_s is not None and now_s - self._last_s < 1.0 / self.max_hz:
-            return False
-        self._last_s = now_s
-        return True
 
 
 class SemanticService:
@@ -178,6 +132,10 @@ class SemanticService:
         self.merge_params = MergeParams.from_section(self.section)
         self._merge_schedule = MergeSchedule(self.merge_params, min_interval_s=self.section.merge_min_interval_s)
         self._empty_regions = EmptyRegions()
+        self._merges = MergeWorker(on_error=self._count_merge_error)
+        self._integrated = IntegratedFrames()  # geometry's acknowledgements (geometry/progress)
+        self._newest: NewestTaken | None = None  # select=latest (setup)
+        self._stats: Any = None  # the runner's stats, for the merge worker's errors (set in setup)
         self.switch = SemanticSwitch(self.section.every_k, self.section.max_hz)
         self.select_params = SelectParams.from_section(self.section)
         # coverage: candidates are scored on a thread of their own (selection.CandidateFeeder)
@@ -191,11 +149,6 @@ class SemanticService:
         self._published_version = self.dictionary.version
         self._frames_without_instance = 0
         self._pool: EncoderPool | None = None
-        self._last_applied = -1  # the seq of the newest frame whose result was applied (pool mode)
-        # Results waiting for frames taken before them, still in flight: (seq, arrival order, arrived at, result).
-        self._held: list[tuple[int, int, float, PoolResult]] = []
-        self._arrivals = itertools.count()
-        self._waited: set[int] = set()  # arrival numbers of held results already counted as held
         # Held while the dictionary changes and its delta is published: the frame loop and a
         # merge requested on semantic/merge (another thread) change it.
         self._dictionary_lock = threading.RLock()
@@ -234,7 +187,7 @@ class SemanticService:
 
     def handle_merge(self, runner: ServiceRunner, _req: MergeRequest) -> MergeReply:
         """A merge pass now (geometry asks before saving); its delta is published before the reply."""
-        return self._merge(runner)
+        return self._merges.run_now(lambda: self._merge(runner))
 
     def process(self, runner: ServiceRunner, msg: RgbdFrame, instance: InstanceFrame | None = None) -> None:
         """One semantic step for one frame (called from the loop), with its instance image when
@@ -253,6 +206,10 @@ class SemanticService:
         h, w = obs.conf_maps.shape[1:] if obs.conf_maps.ndim == 3 else self.encoder.output_size(
             frame.intrinsics.height_px, frame.intrinsics.width_px)
         K_small = frame.intrinsics.scaled(w, h)
+        # Render once geometry holds the frame (services.semantic.geometry_progress)
+        if (self.section.integrate_wait_s > 0
+                and not self._integrated.wait(robot, frame.stamp_ns, self.section.integrate_wait_s)):
+            runner.stats.incr(SemanticCounter.INTEGRATE_WAIT_TIMEOUTS)
         reply = reader_for(runner).render(RenderRequest(frame_id=frame.frame_id, T_world_cam=frame.T_world_cam,
                                                         robot=robot, **RenderRequest.intrinsics_fields(K_small)),
                                           timeout_s=self.section.render_timeout_s)
@@ -287,8 +244,8 @@ class SemanticService:
         logger.debug("semantic: frame %d: %d regions, %d matched, %d new (dictionary v%d -> v%d)",
                      frame.frame_id, obs.conf_maps.shape[0], len(planned.matched), len(planned.new_keys),
                      prev_version, self.dictionary.version)
-        if self._merge_schedule.due():
-            self.merge_pass(runner)
+        if self._merge_schedule.due():  # on the merge worker's thread: the loop goes on (merge_worker)
+            self._merges.request(lambda: self._merge(runner))
 
     def _publish_delta(self) -> None:
         """Publish what changed in the dictionary since the last delta (nothing when nothing did)."""
@@ -301,11 +258,14 @@ class SemanticService:
     def merge_pass(self, runner: ServiceRunner) -> int:
         """Merge the regions that are one object (contacts from geometry, decision here), publish the
         merges as one delta; returns the number of regions merged away. A pass geometry does not
-        answer is logged, counted in ``merge_failures`` and skipped."""
-        return self._merge(runner).regions_merged
+        answer is logged, counted in ``merge_failures`` and skipped. On the caller's thread, after
+        a periodic pass still running."""
+        return self._merges.run_now(lambda: self._merge(runner)).regions_merged
 
     def _merge(self, runner: ServiceRunner) -> MergeReply:
         started = time.monotonic()
+        with self._dictionary_lock:  # the regions the contacts can know of (frames go on meanwhile)
+            known = {int(k) for k in self.dictionary.keys.tolist()}
         try:
             reply = reader_for(runner).contacts(
                 RegionContactsRequest(radius_vox=self.merge_params.merge_contact_radius_vox),
@@ -323,7 +283,7 @@ class SemanticService:
             contact_a=reply.contact_a.astype(np.int64), contact_b=reply.contact_b.astype(np.int64))
         with self._dictionary_lock:
             plan = plan_merges(self.dictionary, contacts, self.merge_params)
-            removed = (self._empty_regions.to_remove(self.dictionary, contacts)
+            removed = (self._empty_regions.to_remove(self.dictionary, contacts, known=known)
                        if self.merge_params.merge_prune_empty else [])
             if plan.merged_into or removed:
                 apply_merges(self.dictionary, plan.merged_into, embedding=self.merge_params.merge_embedding,
@@ -346,6 +306,7 @@ class SemanticService:
         return done
 
     def setup(self, runner: ServiceRunner) -> None:
+        self._stats = runner.stats
         if not self.section.encoder_pool or self.section.local_encoder:
             warm_up_encoder(self.encoder, "semantic")
         self.recover(runner)
@@ -358,14 +319,18 @@ class SemanticService:
         runner.queryable(SEMANTIC_MERGE, lambda req: self.handle_merge(runner, req))
         if self._instances is not None:
             runner.subscriber(SENSOR_INSTANCE, self._instances.add, queue_size=8)
-        # latest: the newest frame only; every: a queue (a slower encoder drops the oldest, counted);
+        if self.section.integrate_wait_s > 0 or self.select_params.select == "latest":
+            runner.subscriber(GEOMETRY_PROGRESS, self._integrated.on_progress, queue_size=256, measure=False)
+        # latest: a queue, of which the newest frame geometry has taken is encoded (the older ones are
+        # superseded, counted); every: a queue (a slower encoder drops the oldest, counted);
         # coverage: a queue the size of the window, emptied by the scoring thread
         mode = self.select_params.select
         # Coverage and every: a queue per robot's bridge served in turn (fair), so one robot's backlog
         # never keeps another's frames from being scored; coverage then picks across robots by gain.
-        self._frames = (runner.subscriber(SENSOR_RGBD, latest_only=True) if mode == "latest" else
-                        runner.subscriber(SENSOR_RGBD, queue_size=EVERY_QUEUE if mode == "every"
-                                          else self.select_params.select_window, fair=True))
+        queue = {"coverage": self.select_params.select_window, "every": EVERY_QUEUE, "latest": LATEST_QUEUE}[mode]
+        self._frames = runner.subscriber(SENSOR_RGBD, queue_size=queue, fair=True)
+        if mode == "latest":  # the newest frame geometry has taken (geometry_progress.NewestTaken)
+            self._newest = NewestTaken(self._integrated, capacity=LATEST_BUFFER, wait_s=self.section.integrate_wait_s)
         if self._scorer is not None:
             self._feeder = CandidateFeeder(
                 frames=self._frames, window=CandidateWindow(self._scorer), scorer=self._scorer,
@@ -387,13 +352,15 @@ class SemanticService:
 
     def loop(self, runner: ServiceRunner) -> None:
         assert self._frames is not None
+        self._merges.start()
+        counts = FrameCounts(runner.stats, self._frames).start()  # what became of each frame (outcomes)
         feeding = None
         if self._feeder is not None:
             feeding = threading.Thread(target=self._feeder.run, args=(runner,), name="semantic-select", daemon=True)
             feeding.start()
         try:
             if self._pool is not None:
-                self._loop_pool(runner, self._pool)
+                PoolDispatch(self, self._pool).run(runner)
                 return
             while not runner.stopping:
                 self._local_step(runner)
@@ -402,6 +369,13 @@ class SemanticService:
                 self._feeder.window.close()
             if feeding is not None:
                 feeding.join(timeout=max(self.section.render_timeout_s, 1.0) + 1.0)
+            self._merges.stop(timeout_s=self.section.contacts_timeout_s + 1.0)
+            counts.stop()
+
+    def _count_merge_error(self) -> None:
+        if self._stats is not None:
+            self._stats.incr(SemanticCounter.MERGE_FAILURES)
+            self._stats.add_error()
 
     def _local_step(self, runner: ServiceRunner) -> None:
         """Encode here the next frame: the best candidate (coverage), else the next one off the
@@ -412,13 +386,40 @@ class SemanticService:
             if pending is not None:
                 self._encode_pending(runner, pending)
             return
-        msg = self._frames.recv(timeout_s=0.2)
+        msg = self.next_frame(runner, timeout_s=0.2)
         if msg is None:
             return
         try:
             self._next_seq += 1
             self._handle(runner, msg)
         finally:  # whatever became of it, the frame is done with: tests and tools wait on this
+            runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
+
+    def next_frame(self, runner: ServiceRunner, timeout_s: float) -> RgbdFrame | None:
+        """The next frame off the subscription (every), or the newest one geometry has taken
+        (latest: the older ones are superseded, counted), waiting up to ``timeout_s``."""
+        assert self._frames is not None
+        if self._newest is None:
+            return self._frames.recv(timeout_s=timeout_s)
+        deadline = time.monotonic() + timeout_s
+        msg = self._frames.recv(timeout_s=0.0)
+        while True:
+            while msg is not None:  # everything queued, into the buffer
+                self._supersede(runner, self._newest.add(msg, time.monotonic()))
+                msg = self._frames.recv(timeout_s=0.0)
+            chosen, passed = self._newest.take(time.monotonic())
+            self._supersede(runner, passed)
+            if chosen is not None:
+                return chosen
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return None
+            # a frame to come, or 10 ms for geometry to take one that waits here
+            msg = self._frames.recv(timeout_s=min(remaining, 0.01))
+
+    def _supersede(self, runner: ServiceRunner, frames: list[RgbdFrame]) -> None:
+        for msg in frames:
+            runner.stats.incr(SemanticCounter.FRAMES_SUPERSEDED)
             runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
 
     def _encode_pending(self, runner: ServiceRunner, pending: Pending) -> None:
@@ -455,91 +456,6 @@ class SemanticService:
             runner.stats.incr(SemanticCounter.FRAMES_FAILED)
             runner.stats.add_error()
 
-    def _loop_pool(self, runner: ServiceRunner, pool: EncoderPool) -> None:
-        """Frames go to the pool's workers, at most ``max_in_flight`` per worker, the newest frame
-        whenever one has room; results are applied in frame order: a result whose older frames
-        are still in flight waits for them up to ``pool_reorder_wait_s`` (``results_held``), and
-        an older result than one applied is dropped and counted (``results_stale``); with no worker alive the local encoder (if configured)
-        takes the frames, else they are skipped and health says ``no_encoder``.
-
-        Results are applied on a thread of their own (:meth:`_apply_loop`): applying one asks
-        geometry for a render, and while this loop waited on it no worker got a new frame (with
-        four workers on two cores, about a third of their time went idle that way)."""
-        assert self._frames is not None
-        stats = runner.stats
-        applier = threading.Thread(target=self._apply_loop, args=(runner, pool), name="semantic-apply", daemon=True)
-        applier.start()
-        try:
-            while not runner.stopping:
-                try:
-                    self._pool_step(runner, pool)
-                except Exception:  # one frame's or result's failure never ends the service: logged, counted
-                    logger.exception("semantic: a step of the encoder pool loop failed; going on")
-                    stats.incr(SemanticCounter.FRAMES_FAILED)
-                    stats.add_error()
-        finally:
-            applier.join(timeout=max(self.section.render_timeout_s, 1.0) + 1.0)
-
-    def _apply_loop(self, runner: ServiceRunner, pool: EncoderPool) -> None:
-        """Apply the pool's results in frame order as they come (the thread :meth:`_loop_pool` starts)."""
-        while not runner.stopping:
-            try:
-                self._apply_step(runner, pool)
-            except Exception:  # one result's failure never ends the service: logged, counted
-                logger.exception("semantic: applying the encoder pool's results failed; going on")
-                runner.stats.incr(SemanticCounter.FRAMES_FAILED)
-                runner.stats.add_error()
-
-    def _apply_step(self, runner: ServiceRunner, pool: EncoderPool) -> None:
-        now = time.monotonic()
-        for lost in pool.take_lost():  # frames the pool gave up on are done with too
-            if self._feeder is not None:
-                self._frame_done(runner, lost.frame_id, lost.stamp_ns)
-        for result in pool.take_results():
-            runner.stats.incr(SemanticCounter.ENCODER_CALLS)
-            runner.stats.incr(SemanticCounter.ENCODER_REGIONS, len(result.reply.conf_maps))
-            heapq.heappush(self._held, (result.seq, next(self._arrivals), now, result))
-        self._release_results(runner, pool)
-        pool.wait(0.2)  # a result, a worker change, or the reorder wait's next check
-
-    def _pool_step(self, runner: ServiceRunner, pool: EncoderPool) -> None:
-        """One turn of :meth:`_loop_pool`: re-send, then dispatch or encode one frame (the best
-        candidate with ``select=coverage``: the pool takes from the same window when it has more
-        candidates than free workers)."""
-        assert self._frames is not None
-        stats = runner.stats
-        pool.pump_resends(self._last_applied)
-        alive = pool.alive
-        stats.set(PoolCounter.NO_ENCODER, int(alive == 0 and not self.section.local_encoder))
-        if alive == 0 and self.section.local_encoder:
-            before = self._next_seq
-            self._local_step(runner)
-            if self._next_seq != before:  # a frame was taken and encoded here
-                stats.incr(PoolCounter.LOCAL_FRAMES)
-                self._last_applied = self._next_seq
-            return
-        if not pool.wait_for_capacity(0.2):
-            return
-        if self._feeder is not None:
-            pending = self._feeder.take(runner, timeout_s=0.05)
-            if pending is None:
-                return
-            msg = pending.msg
-            request: EncodeRequest | None = EncodeRequest.of(msg, pending.instance, map_id=runner.keys.map_id,
-                                                             embedding_space=self.dictionary.embedding_space)
-        else:
-            msg = self._frames.recv(timeout_s=0.05)
-            if msg is None:
-                return
-            request = self._pool_request(runner, msg)
-        if request is None:
-            self._frame_done(runner, msg.frame_id, msg.stamp_ns)
-            return
-        self._next_seq += 1
-        if not pool.submit(request, self._next_seq):  # the worker with room died in between
-            stats.incr(SemanticCounter.FRAMES_FAILED)
-            self._frame_done(runner, msg.frame_id, msg.stamp_ns)
-
     def _frame_done(self, runner: ServiceRunner, frame_id: int, stamp_ns: int) -> None:
         """A frame taken off the subscription is done with: ``last_frame_handled`` moves (with
         coverage, once every frame taken before it is done too: selection.HandledFrames)."""
@@ -550,60 +466,6 @@ class SemanticService:
         else:
             runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, frame_id)
 
-    def _release_results(self, runner: ServiceRunner, pool: EncoderPool) -> None:
-        """Apply held results in the order their frames were taken; one whose earlier frames are
-        still in flight waits for them up to ``pool_reorder_wait_s`` (a result that comes after a
-        later one was applied is dropped as stale by :meth:`_apply_pool_result`)."""
-        while self._held:
-            seq, order, arrived, result = self._held[0]
-            if (pool.older_in_flight(seq)
-                    and time.monotonic() - arrived < self.section.pool_reorder_wait_s):
-                if order not in self._waited:
-                    self._waited.add(order)
-                    runner.stats.incr(PoolCounter.RESULTS_HELD)
-                return
-            heapq.heappop(self._held)
-            self._waited.discard(order)
-            self._apply_pool_result(runner, result)
-
-    def _pool_request(self, runner: ServiceRunner, msg: RgbdFrame) -> EncodeRequest | None:
-        """The encode request of a frame the switch accepts (joined with its instance image when the
-        workers need it), or None when the frame is skipped (counted)."""
-        if not self.switch.accept(msg.frame_id, time.monotonic()):
-            runner.stats.incr(SemanticCounter.SKIPPED_SWITCH)
-            return None
-        instance = None
-        if self._instances is not None and msg.instance is None:
-            instance = self._instances.take(msg, timeout_s=self.section.instance_wait_s)
-            if instance is None:
-                self._skip_without_instance(runner, msg)
-                return None
-        return EncodeRequest.of(msg, instance, map_id=runner.keys.map_id,
-                                embedding_space=self.dictionary.embedding_space)
-
-    def _apply_pool_result(self, runner: ServiceRunner, result: PoolResult) -> None:
-        frame_id = result.request.frame_id
-        if result.seq <= self._last_applied:  # a later frame's result is in the map already
-            runner.stats.incr(PoolCounter.RESULTS_STALE)
-            if self._feeder is not None:  # the watermark waits for every frame taken
-                self._frame_done(runner, frame_id, result.request.stamp_ns)
-            return
-        try:
-            obs = RegionObservation(conf_maps=result.reply.conf_maps, embeddings=result.reply.embeddings,
-                                    embedding_space=result.reply.embedding_space)
-            obs.validate(dim=self.dictionary.dim)
-            self.apply_observation(runner, result.request.to_frame(), obs, time.monotonic(),
-                                   robot=result.request.robot)
-            self._last_applied = result.seq
-            runner.stats.incr(ENCODED_BY_PREFIX + result.worker_id)
-        except QueryError as exc:
-            self._skip_no_render(runner, result.request.robot, frame_id, exc)
-        except Exception:  # a bad result or a failed step: logged, counted, next result
-            logger.exception("semantic: the pool's result for frame %d failed and was skipped", frame_id)
-            runner.stats.incr(SemanticCounter.FRAMES_FAILED)
-            runner.stats.add_error()
-        finally:
-            self._frame_done(runner, frame_id, result.request.stamp_ns)
 
     def _skip_no_render(self, runner: ServiceRunner, robot: str, frame_id: int, exc: QueryError) -> None:
         """Geometry gave no render: a robot not joined to the map yet (counted apart, expected while

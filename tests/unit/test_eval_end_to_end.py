@@ -62,6 +62,8 @@ def test_cli_writes_documented_json_and_markdown(tmp_path: Path, capsys: pytest.
         assert GEOMETRY_FIELDS <= set(scene["geometry"])
         assert SPEED_FIELDS <= set(scene["speed"])
         assert scene["speed"]["frames"] == scene["speed"]["semantic_frames"] > 0
+        speed = scene["speed"]  # every frame ends in one outcome: encoded, no gain, left out by --semantic-every
+        assert speed["frames"] == speed["encoder_calls"] + speed["skipped_no_gain"] + speed["skipped_switch"]
         assert set(scene["memory"]) == STORED_MAPS and set(scene["query"]) == {"region_map", "point_features"}
         assert scene["ground_truth"]["accuracy_reference"] == "mesh"
     summary = results["summary"]
@@ -71,7 +73,7 @@ def test_cli_writes_documented_json_and_markdown(tmp_path: Path, capsys: pytest.
     md = (out / "results.md").read_text()
     for section in ("## Quality", "## Per class", "## Geometry", "## Speed", "## Baselines", "## Targets"):
         assert section in md
-    assert "**all (summed)**" in md and "per-point features" in md
+    assert "**all (summed)**" in md and "per-point features" in md and "skipped (--semantic-every)" in md
     assert "f-mIoU" in capsys.readouterr().out
 
 

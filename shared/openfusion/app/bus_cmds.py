@@ -17,6 +17,7 @@ import zenoh
 from openfusion.bus import collect_health, live_services, open_session
 from openfusion.config import add_config_arguments, config_from_args, setup_logging
 from openfusion.errors import OpenFusionError, UsageError
+from openfusion.wire.counters import SemanticCounter, semantic_frame_outcomes
 
 logger = logging.getLogger(__name__)
 
@@ -120,6 +121,8 @@ class HealthCommand:
             print(json.dumps({"map_id": keys.map_id, "prefix": keys.prefix, "services": services}))
         elif live:
             print(_health_table(live, stats))
+            if "semantic" in stats:
+                print(semantic_frames_line(stats["semantic"].counters))
             robots = robots_table(stats)
             if robots:
                 print()
@@ -146,6 +149,15 @@ def _health_table(live: list[str], stats: dict[str, Any]) -> str:
             )
     widths = [max(len(r[i]) for r in rows) for i in range(len(header))]
     return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip() for row in rows)
+
+
+def semantic_frames_line(counters: dict[str, float]) -> str:
+    """What became of the frames the semantic service received: each ends in one outcome."""
+    outcomes = semantic_frame_outcomes(counters)
+    received = int(counters.get(SemanticCounter.FRAMES_RECEIVED, 0))
+    pending = max(0, received - sum(outcomes.values()))
+    parts = " + ".join(f"{name} {n}" for name, n in outcomes.items()) or "none"
+    return f"semantic frames: received {received} = {parts} + pending {pending}"
 
 
 def robots_table(stats: dict[str, Any]) -> str:

@@ -20,6 +20,7 @@ from openfusion.wire.counters import (
     GeometryCounter,
     PoolCounter,
     SemanticCounter,
+    semantic_frame_outcomes,
 )
 from openfusion.wire.schemas import HealthStats
 from openfusion.wire.schemas.base import DEFAULT_ROBOT as _DEFAULT_ROBOT
@@ -157,6 +158,13 @@ class RunSummary(BaseModel):
     encoder_regions: int = 0
     calls_per_region: float | None = None
     skipped_no_gain: int = 0
+    #: what became of every frame the semantic service received (``semantic_frames_received``): each
+    #: ends in one outcome (``semantic_outcomes``, by counter name: ``semantic_frames`` fused,
+    #: ``skipped_no_gain``, ``frames_superseded``, ``frames_dropped`` ...; wire.counters.SEMANTIC_FRAME_OUTCOMES);
+    #: ``semantic_frames_pending``: received with none yet when the run ended
+    semantic_frames_received: int = 0
+    semantic_outcomes: dict[str, int] = Field(default_factory=dict)
+    semantic_frames_pending: int = 0
     restarts: dict[str, int] = {}
     frames_replayed: int = 0
     frames_duplicate: int = 0
@@ -245,6 +253,7 @@ class RunSummary(BaseModel):
             **_selection(select, c("semantic", SemanticCounter.ENCODER_CALLS),
                          c("semantic", SemanticCounter.ENCODER_REGIONS), c("semantic", SemanticCounter.REGIONS),
                          c("semantic", SemanticCounter.SKIPPED_NO_GAIN)),
+            **_outcomes(stats.get("semantic")),
             restarts=dict(restarts or {}),
             frames_replayed=int(c("bridge", BridgeCounter.FRAMES_REPLAYED)),
             frames_duplicate=int(c("geometry", GeometryCounter.FRAMES_DUPLICATE)),
@@ -269,6 +278,16 @@ class RunSummary(BaseModel):
             frames_played=stats.frames_integrated if frames_played is None else frames_played, interrupted=interrupted,
             **_selection(stats.select, stats.encoder_calls, stats.encoder_regions, regions, stats.skipped_no_gain),
         )
+
+
+def _outcomes(semantic: HealthStats | None) -> dict:
+    """run.json's account of the semantic service's frames (services only)."""
+    if semantic is None:
+        return {}
+    outcomes = semantic_frame_outcomes(semantic.counters)
+    received = int(semantic.counter(SemanticCounter.FRAMES_RECEIVED))
+    return {"semantic_frames_received": received, "semantic_outcomes": outcomes,
+            "semantic_frames_pending": max(0, received - sum(outcomes.values()))}
 
 
 def _selection(select: str, calls: float, regions_encoded: float, regions: float, skipped: float) -> dict:

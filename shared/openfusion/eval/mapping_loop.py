@@ -42,6 +42,7 @@ class MappingRun:
     encoder_regions: int = 0  # regions it returned over those calls
     frames_scored: int = 0
     skipped_no_gain: int = 0
+    skipped_switch: int = 0  # frames left out by semantic_every (never offered to the selection)
     select_s: float = 0.0
 
 
@@ -136,7 +137,9 @@ def map_scene_for_eval(
         depth_m = frame.depth_m()
         if observed is not None:
             observed.add_view(depth_m, frame.intrinsics, frame.T_world_cam)
-        if i % semantic_every == 0:
+        if i % semantic_every != 0:
+            run.skipped_switch += 1
+        else:
             for chosen in selector.offer(frame):
                 semantic(chosen, depth_m if chosen is frame else chosen.depth_m())
     for chosen in selector.flush():

@@ -234,6 +234,7 @@ def evaluate_scene(
         "encoder_regions": run.encoder_regions,
         "frames_scored": run.frames_scored,
         "skipped_no_gain": run.skipped_no_gain,
+        "skipped_switch": run.skipped_switch,
         "select_s": run.select_s,
         "select_ms": 1e3 * run.select_s / run.frames_scored if run.frames_scored else None,
     }

@@ -91,6 +91,7 @@ def summarize(scenes: Sequence[dict], config: EvalConfig) -> dict:
         "encoder_calls": sum(s["speed"].get("encoder_calls", 0) for s in scenes),
         "encoder_regions": encoder_regions,
         "skipped_no_gain": sum(s["speed"].get("skipped_no_gain", 0) for s in scenes),
+        "skipped_switch": sum(s["speed"].get("skipped_switch", 0) for s in scenes),
         "select_ms": 1e3 * select_s / scored if scored else None,
         "semantic_step_ms": 1e3 * step_s / sem_frames if sem_frames else None,
     }

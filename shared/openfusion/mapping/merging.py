@@ -340,9 +340,13 @@ class EmptyRegions:
         self.passes = passes
         self._empty_for: dict[int, int] = {}
 
-    def to_remove(self, dictionary: Any, contacts: RegionContacts) -> list[int]:
+    def to_remove(self, dictionary: Any, contacts: RegionContacts, *, known: set[int] | None = None) -> list[int]:
+        """``known``: the keys the dictionary held when the contacts were asked for (the services
+        ask while frames go on); a region made since then is not taken for empty."""
         present = set(contacts.keys.tolist())
         empty_now = {int(k) for k in dictionary.keys.tolist()} - present
+        if known is not None:
+            empty_now &= known
         self._empty_for = {k: self._empty_for.get(k, 0) + 1 for k in empty_now}
         remove = sorted(k for k, n in self._empty_for.items() if n >= self.passes)
         for k in remove:

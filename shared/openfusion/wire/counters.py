@@ -9,6 +9,7 @@ time, not silently in a report. Values are floats; times end in ``_s``.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from enum import StrEnum
 
 
@@ -118,6 +119,13 @@ class SemanticCounter(StrEnum):
     SELECT_EVICTED = "select_evicted"  # candidates a full window let go for better ones (never encoded)
     SELECT_BUSY_S = "select_busy_s"  # time spent scoring candidates (render request + scoring)
     SELECT_WINDOW = "select_window"  # candidates waiting for the encoder now
+    # what became of the frames on sensor/rgbd (SEMANTIC_FRAME_OUTCOMES: each frame ends in one)
+    FRAMES_RECEIVED = "frames_received"  # frames that came on the subscription
+    FRAMES_DROPPED = "frames_dropped"  # let go by its bounded queue before the service took them
+    FRAMES_SUPERSEDED = "frames_superseded"  # select=latest: a newer frame geometry had taken was encoded instead
+    FRAMES_MALFORMED = "frames_malformed"  # could not be decoded (logged)
+    FRAMES_PENDING = "frames_pending"  # received, no outcome yet: queued, in the window, at the encoder
+    INTEGRATE_WAIT_TIMEOUTS = "integrate_wait_timeouts"  # rendered before geometry took the frame (integrate_wait_s)
 
 
 class EncoderCounter(StrEnum):
@@ -138,6 +146,22 @@ class PoolCounter(StrEnum):
     RESULTS_HELD = "results_held"  # waited for an older frame still in flight before being applied
     NO_ENCODER = "no_encoder"  # 1 while no worker is alive and there is no local encoder
     LOCAL_FRAMES = "local_frames"  # encoded by the local encoder (no worker alive)
+
+
+#: Every frame the semantic service receives (``frames_received``) ends in exactly one of these
+#: (``frames_pending`` until then): fused, or not encoded for the reason named. Outcomes of the
+#: encoder pool (``frames_lost``, ``results_stale``) are :class:`PoolCounter`'s.
+SEMANTIC_FRAME_OUTCOMES: tuple[str, ...] = (
+    SemanticCounter.SEMANTIC_FRAMES, SemanticCounter.SKIPPED_NO_GAIN, SemanticCounter.SELECT_EVICTED,
+    SemanticCounter.FRAMES_SUPERSEDED, SemanticCounter.SKIPPED_SWITCH, SemanticCounter.SKIPPED_NO_INSTANCE, SemanticCounter.SKIPPED_NO_RENDER,
+    SemanticCounter.SKIPPED_ROBOT_HELD, SemanticCounter.FRAMES_FAILED, SemanticCounter.FRAMES_DROPPED,
+    SemanticCounter.FRAMES_MALFORMED, PoolCounter.FRAMES_LOST, PoolCounter.RESULTS_STALE,
+)
+
+def semantic_frame_outcomes(counters: Mapping[str, float]) -> dict[str, int]:
+    """What became of the frames the semantic service received, from its counters: each outcome
+    of :data:`SEMANTIC_FRAME_OUTCOMES` that happened, by name."""
+    return {str(name): int(counters[name]) for name in SEMANTIC_FRAME_OUTCOMES if counters.get(name)}
 
 
 #: The semantic service's counter ``encoded_by:<worker id>``: results of that encoder worker
