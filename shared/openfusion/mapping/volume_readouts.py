@@ -126,12 +126,9 @@ class VolumeReadOuts:
         *,
         seed: int = 0,
     ) -> SurfacePoints:
-        """Surface points (zero crossings of voxels observed ``min_weight`` times) with keys.
-
-        Points are sorted by (x, y, z), so the same map always gives the same array. ``keys`` keeps
-        only points of those regions; ``max_points`` subsamples uniformly at random
-        (deterministic for a given ``seed``).
-        """
+        """The map's surface points with keys, as :func:`openfusion.mapping.readout.extract_points`
+        gives them (which points, their order, ``keys``, ``max_points`` and ``seed``), tiles paged out
+        included; a geometry shard's: those its own tiles own."""
         self._settle_growth()
         if self._shard.sharded:  # only the points its own tiles own, then the cap
             pts = self._extract_points(keys, None, seed)
