@@ -69,12 +69,9 @@ def test_two_shards_map_what_one_geometry_maps(tmp_path: Path) -> None:
     q2 = synthetic_map_quality(merged.volume, merged.dictionary, seed=1, text_encoder=text)
     print(f"f-mIoU one geometry {q1['f_mIoU']:.4f}, two shards {q2['f_mIoU']:.4f}; points {len(a)} / {len(b)}")
     assert q1["f_mIoU"] > 0.3
-    # Every frame encoded, in order, at a pace the semantic service keeps on a quiet box (its render
-    # of a frame then sees the same map in both runs: measured 0.9365 / 0.9317 and 0.9335 / 0.9315).
-    # On a loaded box the semantic service falls behind and renders later maps, in either run: one
-    # geometry's run alone went from 0.937 to 0.901. The geometry is compared exactly above; the
-    # semantics within what two runs of one geometry differ by.
-    assert abs(q1["f_mIoU"] - q2["f_mIoU"]) <= 0.04, (q1, q2)
+    # Every frame encoded, in order; the semantic service renders a frame once every shard has taken
+    # it (semantic.integrate_wait_s), so both runs label the same map (measured 0.9365 / 0.9328).
+    assert abs(q1["f_mIoU"] - q2["f_mIoU"]) <= 0.01, (q1, q2)
     # Queries on the saved map (summaries merged from the parts) and during the run.
     summary = load_map_summary(tmp_path / "two" / "map")
     assert summary is not None and len(summary.regions) > 5

@@ -9,8 +9,8 @@ third of the frames it is killed. The run completes: every frame is integrated e
 each live owner of its tiles (the replica and shard 1 count every frame once), queries keep being
 answered, and the map saved afterwards (shard 0's part from the replica, shard 1's) loads as one
 map whose surface equals one volume's of the same frames within 1 %, with the f-mIoU of one
-geometry's map of the same frames (``openfusion run``, same pace): 0.9315 against 0.9335 measured,
-asserted within the run-to-run spread of the semantic service's timing (0.04).
+geometry's map of the same frames (``openfusion run``, same pace) within 0.01 (0.9315 against 0.9335
+measured).
 
 Skipped with the reason when namespaces cannot be created (not root, no iproute2)."""
 
@@ -109,6 +109,6 @@ def test_shard_primary_killed_its_replica_on_another_host_carries_on(netns: NetN
         q1 = synthetic_map_quality(one.volume, one.dictionary, seed=1, text_encoder=text)["f_mIoU"]
         q2 = synthetic_map_quality(merged.volume, merged.dictionary, seed=1, text_encoder=text)["f_mIoU"]
         print(f"f-mIoU: one geometry {q1:.4f}, two shards with shard 0's primary killed {q2:.4f}")
-        # Measured 0.9335 / 0.9315 on a quiet box; the semantic service's timing moves either run by a
-        # few hundredths on a loaded one (test_geometry_shards_run.py), so the bound is that spread.
-        assert q1 > 0.3 and abs(q1 - q2) <= 0.04, (q1, q2)
+        # The issue's bound. The semantic service renders a frame once every shard has taken it
+        # (semantic.integrate_wait_s), so its labels no longer depend on how far geometry got.
+        assert q1 > 0.3 and abs(q1 - q2) <= 0.01, (q1, q2)
