@@ -200,11 +200,17 @@ class CopyResult:
     seconds: float
 
 
-def find_peers(session: zenoh.Session, keys: KeySpace, me: ShardId, *, timeout_s: float = PEERS_TIMEOUT_S) -> list[ShardId]:
-    """The live geometry processes of ``me``'s shard other than ``me`` (replica 0 first)."""
-    found = (ShardId.of_service(n) for n in live_services(session, keys, timeout_s=timeout_s))
+def peers_of(names: list[str], me: ShardId) -> list[ShardId]:
+    """Of the service ``names``, the geometry processes of ``me``'s shard other than ``me``
+    (replica 0 first)."""
+    found = (ShardId.of_service(n) for n in names)
     return sorted((s for s in found if s is not None and s.part == me.part and s.replica != me.replica),
                   key=lambda s: s.replica)
+
+
+def find_peers(session: zenoh.Session, keys: KeySpace, me: ShardId, *, timeout_s: float = PEERS_TIMEOUT_S) -> list[ShardId]:
+    """The live peers of ``me`` (:func:`peers_of` the services whose liveliness token is present)."""
+    return peers_of(live_services(session, keys, timeout_s=timeout_s), me)
 
 
 def copy_checkpoint(session: zenoh.Session, keys: KeySpace, peer: ShardId, into: Path, *, requester: str,
