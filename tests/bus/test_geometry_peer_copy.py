@@ -7,6 +7,9 @@
   the peer's, block for block and point for point; the playback continued (the same playback name,
   from its start) is followed: the replica drops the frames its copy holds as duplicates,
   integrates the rest once, and the two maps are equal again.
+- A live source (frames with no playback, never replayed): the frames the peer took after its
+  checkpoint and before the replica subscribed are not in the replica's map; the replica counts
+  them as ``frames_gap`` at the first live frame it takes, and takes the frames after it once.
 - Bad input: a chunk corrupted in transit (bytes flipped after the peer computed their digest),
   and a peer that goes away mid-copy (its session closed after its first chunk): each copy is
   logged, counted (``peer_copy_failures``) and discarded; the next peer is tried; with none left
@@ -29,7 +32,8 @@ from openfusion.services.geometry.service import GeometryConfig, GeometrySection
 from openfusion.testing.bus import ServiceThread, free_port, unique_map_id, wait_until
 from openfusion.wire.counters import GeometryCounter
 from openfusion.wire.keys import ShardId
-from openfusion.wire.schemas import CheckpointChunk
+from openfusion.sources import open_source
+from openfusion.wire.schemas import CheckpointChunk, RgbdFrame
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -112,6 +116,29 @@ def test_a_replica_with_no_checkpoint_copies_its_peers_then_follows(net: dict, t
             assert replica.frames_integrated == primary.frames_integrated == N + 4  # each frame once
             assert r_thread.counter(GeometryCounter.FRAMES_DUPLICATE) == N  # what its copy held
             _assert_same_map(primary, replica)
+        replica.close()
+    primary.close()
+
+
+def test_a_live_source_loses_only_the_frames_between_the_copy_and_the_start(net: dict, tmp_path: Path) -> None:
+    frames = [RgbdFrame.from_frame(f, with_instance=False) for f in open_source(f"{SOURCE},frames=12")]
+    primary, p_thread = _geometry(net, tmp_path / "host1", 0)
+    with p_thread:
+        for msg in frames[:6]:  # live frames: no playback, no predecessor
+            primary.on_frame(msg)
+        replica, r_thread = _geometry(net, tmp_path / "host2", 1)
+        with r_thread:
+            assert r_thread.counter(GeometryCounter.PEER_COPY_FRAME_ID) == frames[5].frame_id
+            _assert_same_map(primary, replica)
+            for msg in frames[6:8]:  # the peer goes on before the replica takes frames: lost for it
+                primary.on_frame(msg)
+            for msg in frames[8:]:
+                primary.on_frame(msg)
+                replica.on_frame(msg)
+            assert primary.frames_integrated == 12 and replica.frames_integrated == 10
+            assert r_thread.counter(GeometryCounter.FRAMES_GAP) == 2  # said, not silent
+            assert p_thread.counter(GeometryCounter.FRAMES_GAP) == 0
+            assert replica.last_frame_id == primary.last_frame_id == frames[-1].frame_id
         replica.close()
     primary.close()
 
