@@ -29,10 +29,10 @@ from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.services.bridge.service import BridgeConfig, BridgeSection, BridgeService
 from openfusion.services.geometry import checkpoints, peer_copy
 from openfusion.services.geometry.service import GeometryConfig, GeometrySection, GeometryService
+from openfusion.sources import open_source
 from openfusion.testing.bus import ServiceThread, free_port, unique_map_id, wait_until
 from openfusion.wire.counters import GeometryCounter
 from openfusion.wire.keys import ShardId
-from openfusion.sources import open_source
 from openfusion.wire.schemas import CheckpointChunk, RgbdFrame
 
 pytestmark = pytest.mark.timeout(180)
