@@ -41,7 +41,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import zenoh
@@ -78,7 +78,8 @@ from openfusion.wire.schemas import (
 )
 
 if TYPE_CHECKING:
-    from openfusion.services.geometry.service import GeometryService
+    from openfusion.mapping import SemanticVolume
+    from openfusion.services.geometry.section import GeometrySection
 
 logger = logging.getLogger("openfusion.services.geometry.service")
 
@@ -99,7 +100,7 @@ DISK_MARGIN_BYTES = 64 * 1024 * 1024
 class CheckpointServer:
     """Serves snapshots of one geometry's checkpoint to its peers (module docstring)."""
 
-    def __init__(self, service: GeometryService) -> None:
+    def __init__(self, service: PeerCopy) -> None:
         self.service = service
         assert service.checkpoint_dir is not None
         self.folder = service.checkpoint_dir / SNAPSHOTS_DIR
@@ -263,11 +264,24 @@ def wants_peer_copy(copy_from_peer: bool | None, shard: ShardId) -> bool:
 
 
 class PeerCopy:
-    """The start-up copy and the serving side, as a part of the geometry service (mixed into it)."""
+    """The start-up copy and the serving side, as a part of the geometry service (mixed into it;
+    the state it works on is the service's)."""
 
+    section: GeometrySection
+    shard: ShardId
+    checkpoint_dir: Path | None
+    volume: SemanticVolume
+    frames_integrated: int
+    _lock: threading.RLock
+    _swap_lock: threading.Lock
+    _dirty: bool
     checkpoint_server: CheckpointServer | None = None
+    # and the service's save(), _load() and _count()
+    save: Any
+    _load: Any
+    _count: Any
 
-    def serve_checkpoints(self: GeometryService, runner: ServiceRunner) -> None:  # type: ignore[misc]
+    def serve_checkpoints(self, runner: ServiceRunner) -> None:
         """Answer the peers' checkpoint requests (a geometry with a checkpoint folder)."""
         if self.checkpoint_dir is None:
             return
@@ -276,7 +290,7 @@ class PeerCopy:
         for name in (GeometryCounter.PEER_SNAPSHOTS_SERVED, GeometryCounter.PEER_BYTES_SERVED):
             runner.stats.set(name, 0)
 
-    def copy_from_peer_at_start(self: GeometryService, runner: ServiceRunner) -> bool:  # type: ignore[misc]
+    def copy_from_peer_at_start(self, runner: ServiceRunner) -> bool:
         """With no checkpoint of its own, copy a peer's and load it as a restart loads its own
         (module docstring). True when a copy was loaded."""
         stats = runner.stats
