@@ -3,7 +3,8 @@
 Two halves, both parts of the geometry service (the file steps are library code:
 :mod:`openfusion.mapping.checkpoint_copy`):
 
-Serving (every geometry with a checkpoint folder): :class:`CheckpointServer` answers, at the
+Serving (every geometry; one with no checkpoint folder answers ``no_checkpoint``):
+:class:`CheckpointServer` answers, at the
 process's own key (:meth:`~openfusion.wire.endpoints.Endpoint.peer_key`:
 ``…/geometry/checkpoint/list/geometry-0of2-r1``, so a listing and its chunks reach the one process
 that holds the snapshot):
@@ -102,11 +103,12 @@ class CheckpointServer:
 
     def __init__(self, service: PeerCopy) -> None:
         self.service = service
-        assert service.checkpoint_dir is not None
-        self.folder = service.checkpoint_dir / SNAPSHOTS_DIR
+        #: None: a geometry with no checkpoint folder answers every listing ``no_checkpoint`` at once.
+        self.folder = None if service.checkpoint_dir is None else service.checkpoint_dir / SNAPSHOTS_DIR
         self._lock = threading.Lock()
         self._snapshots: dict[str, tuple[Snapshot, float]] = {}  # id -> (snapshot, last used, monotonic s)
-        shutil.rmtree(self.folder, ignore_errors=True)  # a crash's leftovers
+        if self.folder is not None:
+            shutil.rmtree(self.folder, ignore_errors=True)  # a crash's leftovers
 
     def setup(self, runner: ServiceRunner) -> None:
         me = self.service.shard
@@ -120,6 +122,8 @@ class CheckpointServer:
 
     def handle_list(self, req: CheckpointListRequest) -> CheckpointListing:
         svc = self.service
+        if self.folder is None or svc.checkpoint_dir is None:
+            raise RequestError("no_checkpoint", f"{svc.shard.service} keeps no checkpoint (no map_dir)")
         self.expire()
         with self._lock:
             if len(self._snapshots) >= MAX_SNAPSHOTS:
@@ -185,7 +189,8 @@ class CheckpointServer:
             self._snapshots.clear()
         for snap in gone:
             snap.remove()
-        shutil.rmtree(self.folder, ignore_errors=True)
+        if self.folder is not None:
+            shutil.rmtree(self.folder, ignore_errors=True)
 
 
 @dataclass(frozen=True)
@@ -282,9 +287,7 @@ class PeerCopy:
     _count: Any
 
     def serve_checkpoints(self, runner: ServiceRunner) -> None:
-        """Answer the peers' checkpoint requests (a geometry with a checkpoint folder)."""
-        if self.checkpoint_dir is None:
-            return
+        """Answer the peers' checkpoint requests (without a checkpoint folder: ``no_checkpoint``, at once)."""
         self.checkpoint_server = CheckpointServer(self)
         self.checkpoint_server.setup(runner)
         for name in (GeometryCounter.PEER_SNAPSHOTS_SERVED, GeometryCounter.PEER_BYTES_SERVED):
@@ -310,6 +313,7 @@ class PeerCopy:
                            "empty (a recording is replayed from its start; a live source's earlier frames are not "
                            "in this map)", self.shard.service, self.shard.part)
             return False
+        failed = 0
         for peer in peers:
             into = folder / f"{INCOMING_PREFIX}{peer.service}"
             shutil.rmtree(into, ignore_errors=True)
@@ -317,8 +321,20 @@ class PeerCopy:
                 result = copy_checkpoint(session, runner.keys, peer, into, requester=self.shard.service,
                                          checkpoint_first=self.section.peer_copy_checkpoint_first,
                                          timeout_s=self.section.peer_copy_timeout_s)
-            except (QueryError, CheckpointCopyError, OSError) as exc:
+            except QueryError as exc:
                 shutil.rmtree(into, ignore_errors=True)
+                if exc.code == "no_checkpoint":  # a peer that started with this one: nothing to copy, not a failure
+                    logger.info("geometry: %s has no checkpoint to copy yet", peer.service)
+                    continue
+                failed += 1
+                stats.incr(GeometryCounter.PEER_COPY_FAILURES)
+                stats.add_error()
+                logger.warning("geometry: copying the checkpoint of %s failed (%s); the partial copy is discarded",
+                               peer.service, exc)
+                continue
+            except (CheckpointCopyError, OSError) as exc:
+                shutil.rmtree(into, ignore_errors=True)
+                failed += 1
                 stats.incr(GeometryCounter.PEER_COPY_FAILURES)
                 stats.add_error()
                 logger.warning("geometry: copying the checkpoint of %s failed (%s); the partial copy is discarded",
@@ -337,7 +353,10 @@ class PeerCopy:
                         "following from there", result.source, result.last_frame_id, result.frames_integrated,
                         result.tiles, result.bytes / 1e6, result.seconds)
             return True
-        logger.warning("geometry: no peer of shard %s gave a usable checkpoint (%s): starting empty (a recording is "
-                       "replayed from its start; a live source's earlier frames are not in this map)",
-                       self.shard.part, ", ".join(p.service for p in peers))
+        if failed:
+            logger.warning("geometry: no peer of shard %s gave a usable checkpoint (%s): starting empty (a recording "
+                           "is replayed from its start; a live source's earlier frames are not in this map)",
+                           self.shard.part, ", ".join(p.service for p in peers))
+        else:  # the shard's first start: its peers start empty too
+            logger.info("geometry: no peer of shard %s has a checkpoint yet: starting empty", self.shard.part)
         return False

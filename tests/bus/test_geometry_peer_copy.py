@@ -202,6 +202,22 @@ def test_a_corrupt_chunk_or_a_vanishing_peer_is_discarded_and_the_next_tried(
         second.close()
 
 
+def test_a_peer_with_nothing_to_copy_is_not_a_failure(net: dict, tmp_path: Path) -> None:
+    """A shard's first start (its peer holds no checkpoint yet) and a peer with no checkpoint folder:
+    answered ``no_checkpoint`` at once (a timeout would count a failure); the replica starts empty."""
+    fresh, f_thread = _geometry(net, tmp_path / "r0", 0)
+    nodisk = GeometryService(GeometryConfig(**net["cfg"](), geometry=GeometrySection(replica=2, **VOLUME)))
+    with f_thread, ServiceThread(nodisk, GeometryConfig(**net["cfg"]()), nodisk.shard.service):
+        replica, r_thread = _geometry(net, tmp_path / "r1", 1)
+        with r_thread:
+            assert r_thread.counter(GeometryCounter.PEER_COPY_FAILURES) == 0
+            assert r_thread.counter(GeometryCounter.PEER_COPIES) == 0
+            assert replica.volume.num_blocks == 0
+        replica.close()
+    fresh.close()
+    nodisk.close()
+
+
 def test_peers_are_the_other_replicas_of_the_same_shard() -> None:
     me = ShardId(0, 2, 1)
     names = ["bridge", "geometry-0of2", "geometry-1of2", "geometry-0of2-r1", "geometry-0of2-r3", "geometry-1of2-r1",
