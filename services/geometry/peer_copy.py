@@ -94,6 +94,8 @@ MAX_SNAPSHOTS = 2
 SNAPSHOT_IDLE_S = 120.0
 #: How long the liveliness query that finds the peers waits.
 PEERS_TIMEOUT_S = 1.0
+#: The shortest time one chunk is given (:func:`chunk_timeout`).
+MIN_CHUNK_TIMEOUT_S = 5.0
 #: Room left on the disk beyond the copy's size.
 DISK_MARGIN_BYTES = 64 * 1024 * 1024
 
@@ -219,6 +221,14 @@ def find_peers(session: zenoh.Session, keys: KeySpace, me: ShardId, *, timeout_s
     return peers_of(live_services(session, keys, timeout_s=timeout_s), me)
 
 
+def chunk_timeout(timeout_s: float) -> float:
+    """How long one chunk may take: a quarter of the listing's (which includes the peer's checkpoint
+    and snapshot; 15 s at the default 60 s: 4 MiB at 0.3 MB/s), at least :data:`MIN_CHUNK_TIMEOUT_S`
+    (never more than the listing's), so a peer gone mid-copy is given up sooner than one
+    checkpointing a large map."""
+    return min(timeout_s, max(MIN_CHUNK_TIMEOUT_S, timeout_s / 4))
+
+
 def copy_checkpoint(session: zenoh.Session, keys: KeySpace, peer: ShardId, into: Path, *, requester: str,
                     checkpoint_first: bool = True, timeout_s: float = 60.0) -> CopyResult:
     """Copy ``peer``'s checkpoint into the new folder ``into`` and check it (module docstring).
@@ -237,13 +247,14 @@ def copy_checkpoint(session: zenoh.Session, keys: KeySpace, peer: ShardId, into:
         receiver = CopyReceiver([FileEntry(f.name, f.size_bytes, f.sha256) for f in listing.files], into)
         try:
             chunk_key = GEOMETRY_CHECKPOINT_CHUNK.peer_key(keys, peer)
+            chunk_timeout_s = chunk_timeout(timeout_s)
             for f in listing.files:
                 while not receiver.done(f.name):
                     offset = receiver.next_offset(f.name)
                     length = min(listing.chunk_bytes, f.size_bytes - offset)
                     chunk = get(session, chunk_key, CheckpointChunkRequest(
                         snapshot_id=listing.snapshot_id, name=f.name, offset_bytes=offset, length_bytes=length),
-                        CheckpointChunk, timeout_s=timeout_s, service=peer.service)
+                        CheckpointChunk, timeout_s=chunk_timeout_s, service=peer.service)
                     if chunk.snapshot_id != listing.snapshot_id or chunk.name != f.name:
                         raise CheckpointCopyError("bad_chunk", f"asked {f.name} of snapshot {listing.snapshot_id}, "
                                                   f"got {chunk.name} of {chunk.snapshot_id}")
@@ -313,6 +324,8 @@ class PeerCopy:
                            "empty (a recording is replayed from its start; a live source's earlier frames are not "
                            "in this map)", self.shard.service, self.shard.part)
             return False
+        for stale in folder.glob(INCOMING_PREFIX + "*"):  # a copy a crash interrupted: never loaded
+            shutil.rmtree(stale, ignore_errors=True)
         failed = 0
         for peer in peers:
             into = folder / f"{INCOMING_PREFIX}{peer.service}"

@@ -54,7 +54,7 @@ class GeometrySection(VolumeParams, JoinParams):
         "frames between the peer's checkpoint and this start are not in the copy)")
     peer_copy_timeout_s: float = Field(
         60.0, gt=0, description="how long a peer may take to list its checkpoint (it checkpoints and copies its store "
-        "first) and to send each chunk; then the next peer is tried")
+        "first; each chunk: a quarter of this, at least 5 s); then the next peer is tried")
     regions_min_interval_s: float = Field(
         0.5, ge=0, description="a changed map's region summaries are recomputed at most this often (unless fresh)"
     )

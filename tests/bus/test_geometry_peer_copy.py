@@ -7,7 +7,7 @@
   the peer's, block for block and point for point; the playback continued (the same playback name,
   from its start) is followed: the replica drops the frames its copy holds as duplicates,
   integrates the rest once, and the two maps are equal again.
-- A live source (frames with no playback, never replayed): the frames the peer took after its
+- A live source (frames with no playback, never replayed; shard 0 of 2 and its replica): the frames the peer took after its
   checkpoint and before the replica subscribed are not in the replica's map; the replica counts
   them as ``frames_gap`` at the first live frame it takes, and takes the frames after it once.
 - Bad input: a chunk corrupted in transit (bytes flipped after the peer computed their digest),
@@ -122,13 +122,15 @@ def test_a_replica_with_no_checkpoint_copies_its_peers_then_follows(net: dict, t
 
 def test_a_live_source_loses_only_the_frames_between_the_copy_and_the_start(net: dict, tmp_path: Path) -> None:
     frames = [RgbdFrame.from_frame(f, with_instance=False) for f in open_source(f"{SOURCE},frames=12")]
-    primary, p_thread = _geometry(net, tmp_path / "host1", 0)
+    primary, p_thread = _geometry(net, tmp_path / "host1", 0, shard="0/2")  # one shard of two: its own keys
     with p_thread:
         for msg in frames[:6]:  # live frames: no playback, no predecessor
             primary.on_frame(msg)
-        replica, r_thread = _geometry(net, tmp_path / "host2", 1)
+        replica, r_thread = _geometry(net, tmp_path / "host2", 1, shard="0/2")
+        assert replica.shard.service == "geometry-0of2-r1"
         with r_thread:
             assert r_thread.counter(GeometryCounter.PEER_COPY_FRAME_ID) == frames[5].frame_id
+            assert replica.checkpoint_dir is not None and replica.checkpoint_dir.name == "shard-0of2-r1"
             _assert_same_map(primary, replica)
             for msg in frames[6:8]:  # the peer goes on before the replica takes frames: lost for it
                 primary.on_frame(msg)

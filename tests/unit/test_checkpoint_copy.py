@@ -5,7 +5,8 @@ other side, installed and loaded as the same map.
 Bad input tried: a chunk whose bytes were flipped in transit (digest), a chunk out of place (a
 skipped offset), a chunk past the file's end, a file whose whole digest disagrees with the listing,
 a copy cut short (incomplete), a copy whose bytes are right but not a map, file names that would
-escape the folder (``..``, absolute, hidden) in the wire schema, a folder with no checkpoint."""
+escape the folder (``..``, absolute, hidden) in the wire schema, a folder with no checkpoint, a
+snapshot that cannot be written."""
 
 from __future__ import annotations
 
@@ -139,6 +140,12 @@ def test_no_checkpoint_no_snapshot_and_names_cannot_escape(tmp_path: Path) -> No
     with pytest.raises(CheckpointCopyError, match="no checkpoint yet"):
         snapshot_checkpoint(tmp_path / "fresh", tmp_path / "snaps")
     assert not any((tmp_path / "snaps").glob("*")) if (tmp_path / "snaps").exists() else True
+    # A snapshot that cannot be written (here: a file where its folder goes; a full disk alike) is said.
+    _checkpointed(tmp_path / "peer", FRAMES[:2]).close()
+    (tmp_path / "not-a-folder").write_text("x")
+    with pytest.raises(CheckpointCopyError, match="could not snapshot") as err:
+        snapshot_checkpoint(tmp_path / "peer", tmp_path / "not-a-folder")
+    assert err.value.reason == "snapshot_failed"
     for bad in ("../x", "/etc/passwd", "map.ofz/../../x", ".hidden", "a/*/b", "a//b", ""):
         with pytest.raises(ValidationError, match="checkpoint file name"):
             CheckpointFile(name=bad, size_bytes=1, sha256="0" * 64)

@@ -38,6 +38,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import lmdb
+
 from openfusion.mapping.errors import MapFormatError, MappingError
 from openfusion.mapping.mapstore import check_header
 from openfusion.mapping.tilestore import STORE_DIR_NAME, TileStore, find_store, install_store
@@ -51,7 +53,7 @@ class CheckpointCopyError(MappingError):
     """A checkpoint copy that cannot be used (no checkpoint to serve, a chunk out of place, a
     digest or size that disagrees, a copy that does not open as a map); ``reason`` is a short code
     for counters and logs (``no_checkpoint``, ``bad_chunk``, ``bad_digest``, ``incomplete``,
-    ``bad_map``, ``no_space``, ``bad_name``)."""
+    ``bad_map``, ``no_space``, ``bad_name``, ``snapshot_failed``)."""
 
     def __init__(self, reason: str, message: str) -> None:
         super().__init__(message)
@@ -137,6 +139,9 @@ def snapshot_checkpoint(checkpoint_dir: Path, snapshots_dir: Path) -> Snapshot:
             info = _store_info(copy)
         return Snapshot(snapshot_id, folder, list_files(folder), info["last_frame_id"], info["frames_integrated"],
                         info["tiles"], info["meta"])
+    except (OSError, lmdb.Error) as exc:  # disk full, a folder it may not write...: said, not a crash
+        shutil.rmtree(folder, ignore_errors=True)
+        raise CheckpointCopyError("snapshot_failed", f"{checkpoint_dir}: could not snapshot the checkpoint: {exc}") from exc
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
         raise
