@@ -117,7 +117,7 @@ class CheckpointServer:
         for endpoint, handler in ((GEOMETRY_CHECKPOINT_LIST, self.handle_list),
                                   (GEOMETRY_CHECKPOINT_CHUNK, self.handle_chunk),
                                   (GEOMETRY_CHECKPOINT_RELEASE, self.handle_release)):
-            runner.queryable_at(endpoint.peer_key(runner.keys, me), endpoint.request, endpoint.reply, handler)
+            runner.queryable(endpoint.at_process(me), handler)
 
     def _count(self, name: str, by: float = 1.0) -> None:
         self.service._count(name, by)  # noqa: SLF001 (the service's counter helper)

@@ -100,11 +100,16 @@ class Endpoint(Generic[Q, R]):
         partial answer it mistakes for the whole."""
         return self.key(keys) if not shard.sharded else self.instance_key(keys, shard.part.service)
 
-    def peer_key(self, keys: KeySpace, shard: ShardId) -> str:
-        """The key of this endpoint at ONE geometry process, replica included
+    def at_process(self, shard: ShardId) -> Endpoint[Q, R]:
+        """This endpoint at ONE geometry process, replica included
         (``…/geometry/checkpoint/list/geometry-0of2-r1``): what a replica asks its peer on, so the
         listing and every chunk of one snapshot go to the process that holds it."""
-        return self.instance_key(keys, shard.service)
+        return Endpoint((*self.parts, validate_segment(shard.service, what="service name")), self.request,
+                        self.reply, self.owner)
+
+    def peer_key(self, keys: KeySpace, shard: ShardId) -> str:
+        """The key of :meth:`at_process` in the map ``keys``."""
+        return self.at_process(shard).key(keys)
 
     @property
     def path(self) -> str:
