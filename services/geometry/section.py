@@ -46,6 +46,15 @@ class GeometrySection(VolumeParams, JoinParams):
         0, ge=0, le=9, description="replica of this shard (docs/SHARDS.md): 0 = the shard; 1.. = the same shard run "
         "again (another host): same frames, same tiles, the same keys; named geometry[-IofN]-rR"
     )
+    copy_from_peer: bool | None = Field(
+        None, description="with no checkpoint of its own at start, copy the checkpoint of a live peer of its shard "
+        "(same shard, another replica) and follow from there (docs/SHARDS.md); none = on for a replica (replica >= 1)")
+    peer_copy_checkpoint_first: bool = Field(
+        True, description="ask the peer to checkpoint what it holds before it serves its checkpoint (a live source's "
+        "frames between the peer's checkpoint and this start are not in the copy)")
+    peer_copy_timeout_s: float = Field(
+        60.0, gt=0, description="how long a peer may take to list its checkpoint (it checkpoints and copies its store "
+        "first; each chunk: a quarter of this, at least 5 s); then the next peer is tried")
     regions_min_interval_s: float = Field(
         0.5, ge=0, description="a changed map's region summaries are recomputed at most this often (unless fresh)"
     )

@@ -13,9 +13,10 @@
 | ``…/geometry/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot (what the last checkpoint + deltas hold) |
 | ``…/geometry/contacts`` | queryable | RegionContactsRequest → RegionContactsReply (which regions' voxels touch; the semantic service's merges) |
 | ``…/control/{save,load,reset}`` | queryable (admin) | ControlRequest → ControlReply |
+| ``…/geometry/checkpoint/{list,chunk,release}/{itself}`` | queryables at its own name; queries a peer's at start | a snapshot of its checkpoint for a peer replica that starts without one (:mod:`.peer_copy`) |
 | ``…/semantic/merge`` | queries before ``control/save`` and the final save | MergeRequest → MergeReply |
 | ``…/semantic/dictionary`` | queries on a gap in the deltas (resync) | DictionaryRequest → DictionarySnapshot |
-| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC), ``voxels_relabelled``, ``save_merges``, ``save_merge_failures``, ``dictionary_resyncs``; the map's size and memory: ``num_blocks`` (all), ``resident_blocks``, ``resident_mb``, ``tiles_paged_out``, ``tiles_paged_in``, ``checkpoint_last_s``, ``checkpoint_last_tiles``, ``saving``, ``rss_mb``, ``rss_peak_mb``, ``rss_anon_peak_mb`` (:mod:`.memory`) |
+| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC), ``voxels_relabelled``, ``save_merges``, ``save_merge_failures``, ``dictionary_resyncs``; the map's size and memory: ``num_blocks`` (all), ``resident_blocks``, ``resident_mb``, ``tiles_paged_out``, ``tiles_paged_in``, ``checkpoint_last_s``, ``checkpoint_last_tiles``, ``saving``, ``rss_mb``, ``rss_peak_mb``, ``rss_anon_peak_mb`` (:mod:`.memory`); a copy of a peer's checkpoint: ``peer_copies``, ``peer_copy_failures``, ``peer_copy_tiles``, ``peer_copy_bytes``, ``peer_copy_s``, ``peer_copy_frame_id``, ``peer_snapshots_served``, ``peer_bytes_served`` (:mod:`.peer_copy`) |
 
 Checkpoints go to the tile store ``{map_dir}/{map_id}/map.ofz`` every ``checkpoint_period_s``
 (when something changed; without region summaries, which would cost a surface read-out under the
@@ -39,7 +40,7 @@ reaches the volume; a bad request is answered with ``reply_err`` naming the limi
 
 The service is one class made of parts: frames in (:mod:`.frame_intake`), saves, checkpoints and
 loads (:mod:`.persistence`), merges, the dictionary replica and its resync
-(:mod:`.dictionary_follower`); requests, wiring and the loop are here.
+(:mod:`.dictionary_follower`), a replica's copy of its peer's checkpoint (:mod:`.peer_copy`); requests, wiring and the loop are here.
 
 Resume with nothing lost (playback): frames of a playback the bridge can replay carry the
 playback's name and ``prev_frame_id`` (the frame published before them). The service takes such a
@@ -105,6 +106,7 @@ from openfusion.services.geometry import checkpoints, sharding
 from openfusion.services.geometry.dictionary_follower import DictionaryFollower
 from openfusion.services.geometry.frame_intake import FrameIntake
 from openfusion.services.geometry.memory import MemoryPeaks, publish_map_size
+from openfusion.services.geometry.peer_copy import PeerCopy
 from openfusion.services.geometry.persistence import (  # re-exported: tests and callers name them here
     NO_EMBEDDING_SPACE as NO_EMBEDDING_SPACE,
 )
@@ -173,7 +175,7 @@ SETTLE_S = 5.0
 IDLE_READOUT_S = 0.5
 
 
-class GeometryService(FrameIntake, MapPersistence, DictionaryFollower):
+class GeometryService(FrameIntake, MapPersistence, DictionaryFollower, PeerCopy):
     """The geometry service's logic; every handler is a plain method tests call without a bus."""
 
     def __init__(self, config: GeometryConfig) -> None:
@@ -428,6 +430,7 @@ class GeometryService(FrameIntake, MapPersistence, DictionaryFollower):
     # ------------------------------------------------------------------------ wiring
     def setup(self, runner: ServiceRunner) -> None:
         self._runner = runner
+        self.copy_from_peer_at_start(runner)  # a replica with no checkpoint: its peer's (peer_copy.py), before frames
         self._progress_pub = runner.publisher(GEOMETRY_PROGRESS)
         # One queue per robot's bridge, served in turn: one robot's backlog never starves another.
         self._frames_sub = runner.subscriber(SENSOR_RGBD, self.on_frame, queue_size=self.section.frame_queue_size,
@@ -445,6 +448,7 @@ class GeometryService(FrameIntake, MapPersistence, DictionaryFollower):
         for action, endpoint in CONTROL.items():
             sharding.serve(runner, endpoint, lambda req, action=action: self.handle_control(req, action=action),
                            self.shard)
+        self.serve_checkpoints(runner)  # its checkpoint to a peer that starts without one, at its own key
         runner.stats.set(GeometryCounter.FRAMES_INTEGRATED, self.frames_integrated)
         runner.stats.set(GeometryCounter.INTEGRATE_BUSY_S, self.integrate_busy_s)
         self._set_memory_stats()
@@ -483,6 +487,8 @@ class GeometryService(FrameIntake, MapPersistence, DictionaryFollower):
                     self._count(GeometryCounter.CHECKPOINT_FAILURES)
                     runner.stats.add_error()
             self._read_out_settled_tiles()
+            if self.checkpoint_server is not None:
+                self.checkpoint_server.expire()
 
     def _read_out_settled_tiles(self) -> None:
         """Idle work: read out the region-summary parts of tiles nothing changed for
@@ -508,6 +514,8 @@ class GeometryService(FrameIntake, MapPersistence, DictionaryFollower):
     def close(self) -> None:
         self.joiner.stop()
         self._memory.stop()
+        if self.checkpoint_server is not None:
+            self.checkpoint_server.close()
         # The session is closed by now: this last checkpoint is saved without a merge pass.
         if self._dirty and self.checkpoint_dir is not None:
             with contextlib.suppress(CheckpointFailed):  # logged by save()

@@ -470,6 +470,13 @@ def test_prod_acl_lets_every_service_serve_and_publish_its_own_keys() -> None:
     assert _allows("gpu-semantic", "ingress", "liveliness_token", pool.worker("w1"))
     assert _allows("gpu-semantic", "ingress", "liveliness_query", pool.workers)
     assert not _allows("query-client", "ingress", "query", "openfusion/lab-1/semantic/merge")
+    # A geometry replica with no checkpoint asks its peer (also geometry) for one, and gets the replies.
+    from openfusion.wire.endpoints import GEOMETRY_CHECKPOINT_CHUNK
+    from openfusion.wire.keys import ShardId
+
+    peer_key = GEOMETRY_CHECKPOINT_CHUNK.peer_key(keys, ShardId(0, 2))
+    assert _allows("geometry", "ingress", "query", peer_key) and _allows("geometry", "egress", "query", peer_key)
+    assert _allows("geometry", "ingress", "reply", peer_key) and _allows("geometry", "egress", "reply", peer_key)
 
 
 def test_two_host_shards_split_the_map_and_name_each_shard_as_its_health_key() -> None:

@@ -17,7 +17,8 @@ def test_keyspace_builds_the_documented_keys() -> None:
     keys = KeySpace("openfusion", "lab-1")
     documented = {
         "sensor/rgbd", "sensor/instance", "geometry/progress", "geometry/render", "geometry/points",
-        "geometry/mesh", "geometry/regions", "geometry/dictionary", "geometry/contacts", "semantic/update", "semantic/dictionary", "semantic/merge",
+        "geometry/mesh", "geometry/regions", "geometry/dictionary", "geometry/contacts",
+        "geometry/checkpoint/list", "geometry/checkpoint/chunk", "geometry/checkpoint/release", "semantic/update", "semantic/dictionary", "semantic/merge",
         "semantic/dictionary/delta", "query/text", "query/text_batch", "query/image", "query/point", "control/save", "control/load",
         "control/reset",
     }

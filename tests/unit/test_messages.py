@@ -147,6 +147,17 @@ EXAMPLES: dict[str, m.Message] = {
     ]),
     "control.request": m.ControlRequest(action="save", path="/tmp/map"),
     "control.reply": m.ControlReply(ok=False, message="no such file"),
+    "geometry.checkpoint_list_request": m.CheckpointListRequest(checkpoint_first=False, requester="geometry-0of2-r1"),
+    "geometry.checkpoint_listing": m.CheckpointListing(
+        snapshot_id="ab" * 16, source="geometry-0of2",
+        files=[m.CheckpointFile(name="map.ofz/data.mdb", size_bytes=123456, sha256="0f" * 32)],
+        chunk_bytes=4 << 20, last_frame_id=41, frames_integrated=42, tiles=17),
+    "geometry.checkpoint_chunk_request": m.CheckpointChunkRequest(
+        snapshot_id="ab" * 16, name="map.ofz/data.mdb", offset_bytes=4 << 20, length_bytes=4 << 20),
+    "geometry.checkpoint_chunk": m.CheckpointChunk(
+        snapshot_id="ab" * 16, name="map.ofz/data.mdb", offset_bytes=0, data=np.arange(10, dtype=np.uint8),
+        sha256="1e" * 32),
+    "geometry.checkpoint_release": m.CheckpointRelease(snapshot_id="ab" * 16),
     "health.stats": m.HealthStats(
         service="geometry",
         map_id="lab",

@@ -17,7 +17,8 @@ import zenoh
 from openfusion.bus import collect_health, live_services, open_session
 from openfusion.config import add_config_arguments, config_from_args, setup_logging
 from openfusion.errors import OpenFusionError, UsageError
-from openfusion.wire.counters import SemanticCounter, semantic_frame_outcomes
+from openfusion.wire.counters import GeometryCounter, SemanticCounter, semantic_frame_outcomes
+from openfusion.wire.keys import ShardId
 
 logger = logging.getLogger(__name__)
 
@@ -127,6 +128,10 @@ class HealthCommand:
             if robots:
                 print()
                 print(robots)
+            copies = peer_copy_table(stats)
+            if copies:
+                print()
+                print(copies)
         if not live:
             raise ServicesNotAlive(f"no live services on map {keys.map_id!r} (waited {args.timeout:g} s)")
         missing = sorted(set(args.require) - set(live))
@@ -158,6 +163,32 @@ def semantic_frames_line(counters: dict[str, float]) -> str:
     pending = max(0, received - sum(outcomes.values()))
     parts = " + ".join(f"{name} {n}" for name, n in outcomes.items()) or "none"
     return f"semantic frames: received {received} = {parts} + pending {pending}"
+
+
+def peer_copy_table(stats: dict[str, Any]) -> str:
+    """The geometry replicas that copied a peer's checkpoint at start, or served theirs (docs/SHARDS.md,
+    "Replicas"); "" when none did."""
+    header = ("geometry", "copied", "failed", "tiles", "MB", "up_to_frame", "copy_s", "served", "MB_served")
+    rows = [header]
+    for name, s in sorted(stats.items()):
+        if ShardId.of_service(name) is None:
+            continue
+        c = {k: s.counter(k) for k in (GeometryCounter.PEER_COPIES, GeometryCounter.PEER_COPY_FAILURES,
+                                       GeometryCounter.PEER_SNAPSHOTS_SERVED)}
+        if not any(c.values()):
+            continue
+        copied = c[GeometryCounter.PEER_COPIES] > 0
+        rows.append((name, str(int(c[GeometryCounter.PEER_COPIES])), str(int(c[GeometryCounter.PEER_COPY_FAILURES])),
+                     str(int(s.counter(GeometryCounter.PEER_COPY_TILES))),
+                     f"{s.counter(GeometryCounter.PEER_COPY_BYTES) / 1e6:.1f}",
+                     str(int(s.counter(GeometryCounter.PEER_COPY_FRAME_ID))) if copied else "-",
+                     f"{s.counter(GeometryCounter.PEER_COPY_S):.2f}" if copied else "-",
+                     str(int(c[GeometryCounter.PEER_SNAPSHOTS_SERVED])),
+                     f"{s.counter(GeometryCounter.PEER_BYTES_SERVED) / 1e6:.1f}"))
+    if len(rows) == 1:
+        return ""
+    widths = [max(len(row[i]) for row in rows) for i in range(len(header))]
+    return "\n".join("  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)).rstrip() for row in rows)
 
 
 def robots_table(stats: dict[str, Any]) -> str:

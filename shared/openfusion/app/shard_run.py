@@ -56,16 +56,26 @@ def combined_geometry(stats: dict[str, HealthStats]) -> dict[str, HealthStats]:
     return {"geometry": view}
 
 
+#: Each shard's (and replica's) own counts in run.json: progress, size, and its copy of a peer's
+#: checkpoint (docs/SHARDS.md, "Replicas").
+SHARD_COUNTERS = (
+    GeometryCounter.FRAMES_INTEGRATED, GeometryCounter.NUM_BLOCKS, GeometryCounter.INTEGRATE_BUSY_S,
+    GeometryCounter.UPDATES_APPLIED, GeometryCounter.CHECKPOINT_LAST_FRAME_ID, GeometryCounter.RSS_PEAK_MB,
+    GeometryCounter.PEER_COPIES, GeometryCounter.PEER_COPY_FAILURES, GeometryCounter.PEER_COPY_TILES,
+    GeometryCounter.PEER_COPY_BYTES, GeometryCounter.PEER_SNAPSHOTS_SERVED,
+)
+
+
 def shard_health(stats: dict[str, Any], count: int) -> dict[str, dict[str, float]]:
-    """Each shard's own counts for run.json (what ``openfusion health`` shows per shard)."""
+    """Each shard's own counts for run.json (what ``openfusion health`` shows per shard), and each
+    replica's of those shards that is live (``geometry-0of2-r1``)."""
     out: dict[str, dict[str, float]] = {}
-    for name in geometry_names(count):
+    replicas = sorted(n for n in stats if (s := ShardId.of_service(n)) is not None and s.replica and s.count == count)
+    for name in [*geometry_names(count), *replicas]:
         s = stats.get(name)
         if s is None:
             continue
-        out[name] = {str(k): s.counter(k) for k in (
-            GeometryCounter.FRAMES_INTEGRATED, GeometryCounter.NUM_BLOCKS, GeometryCounter.INTEGRATE_BUSY_S,
-            GeometryCounter.UPDATES_APPLIED, GeometryCounter.CHECKPOINT_LAST_FRAME_ID, GeometryCounter.RSS_PEAK_MB)}
+        out[name] = {str(k): s.counter(k) for k in SHARD_COUNTERS}
     return out
 
 

@@ -88,6 +88,15 @@ class GeometryCounter(StrEnum):
     RSS_MB = "rss_mb"  # the process's resident memory, sampled once a second
     RSS_PEAK_MB = "rss_peak_mb"  # ... its largest sample
     RSS_ANON_PEAK_MB = "rss_anon_peak_mb"  # largest sample of RssAnon (without the store's mapped file pages)
+    # A replica's copy of its peer's checkpoint (docs/SHARDS.md; services/geometry/peer_copy.py)
+    PEER_COPIES = "peer_copies"  # checkpoints copied from a peer and loaded at start (0 or 1)
+    PEER_COPY_FAILURES = "peer_copy_failures"  # copies given up (peer gone, bad digest, corrupt copy): discarded
+    PEER_COPY_TILES = "peer_copy_tiles"  # tiles in the checkpoint copied from the peer
+    PEER_COPY_BYTES = "peer_copy_bytes"  # bytes of checkpoint files copied from the peer
+    PEER_COPY_S = "peer_copy_s"  # seconds the copy took (listing to verified files)
+    PEER_COPY_FRAME_ID = "peer_copy_frame_id"  # last frame the copied checkpoint holds (-1: none or no copy)
+    PEER_SNAPSHOTS_SERVED = "peer_snapshots_served"  # snapshots of this geometry's checkpoint served to a peer
+    PEER_BYTES_SERVED = "peer_bytes_served"  # bytes of checkpoint files served to peers
 
 
 class SemanticCounter(StrEnum):

@@ -19,6 +19,11 @@ from typing import Generic, TypeVar
 from openfusion.wire.keys import CONTROL_ACTIONS, KeySpace, ShardId, validate_segment
 from openfusion.wire.message import Message
 from openfusion.wire.schemas import (
+    CheckpointChunk,
+    CheckpointChunkRequest,
+    CheckpointListing,
+    CheckpointListRequest,
+    CheckpointRelease,
     ControlReply,
     ControlRequest,
     DictionaryDelta,
@@ -95,6 +100,17 @@ class Endpoint(Generic[Q, R]):
         partial answer it mistakes for the whole."""
         return self.key(keys) if not shard.sharded else self.instance_key(keys, shard.part.service)
 
+    def at_process(self, shard: ShardId) -> Endpoint[Q, R]:
+        """This endpoint at ONE geometry process, replica included
+        (``…/geometry/checkpoint/list/geometry-0of2-r1``): what a replica asks its peer on, so the
+        listing and every chunk of one snapshot go to the process that holds it."""
+        return Endpoint((*self.parts, validate_segment(shard.service, what="service name")), self.request,
+                        self.reply, self.owner)
+
+    def peer_key(self, keys: KeySpace, shard: ShardId) -> str:
+        """The key of :meth:`at_process` in the map ``keys``."""
+        return self.at_process(shard).key(keys)
+
     @property
     def path(self) -> str:
         return "/".join(self.parts)
@@ -119,6 +135,15 @@ GEOMETRY_REGIONS = Endpoint(("geometry", "regions"), RegionSummaryRequest, Regio
 GEOMETRY_DICTIONARY = Endpoint(("geometry", "dictionary"), DictionaryRequest, DictionarySnapshot, owner="geometry")
 #: Which regions' labelled voxels touch, and how much (the semantic service decides merges on it).
 GEOMETRY_CONTACTS = Endpoint(("geometry", "contacts"), RegionContactsRequest, RegionContactsReply, owner="geometry")
+#: A replica with no checkpoint of its own copies its peer's (docs/SHARDS.md): the listing of a
+#: snapshot of the peer's newest checkpoint, its files in chunks, and letting the snapshot go. Each
+#: geometry process answers them only at its own :meth:`Endpoint.peer_key`.
+GEOMETRY_CHECKPOINT_LIST = Endpoint(("geometry", "checkpoint", "list"), CheckpointListRequest, CheckpointListing,
+                                    owner="geometry")
+GEOMETRY_CHECKPOINT_CHUNK = Endpoint(("geometry", "checkpoint", "chunk"), CheckpointChunkRequest, CheckpointChunk,
+                                     owner="geometry")
+GEOMETRY_CHECKPOINT_RELEASE = Endpoint(("geometry", "checkpoint", "release"), CheckpointRelease, ControlReply,
+                                       owner="geometry")
 SEMANTIC_DICTIONARY = Endpoint(("semantic", "dictionary"), DictionaryRequest, DictionarySnapshot, owner="semantic")
 #: A merge pass now (geometry asks before it saves a map, so a saved map holds objects, not fragments).
 SEMANTIC_MERGE = Endpoint(("semantic", "merge"), MergeRequest, MergeReply, owner="semantic")
@@ -150,5 +175,5 @@ CONTROL: dict[str, Endpoint[ControlRequest, ControlReply]] = {
 TOPICS: tuple[Topic, ...] = (SENSOR_RGBD, SENSOR_INSTANCE, GEOMETRY_PROGRESS, SEMANTIC_UPDATE, DICTIONARY_DELTA)
 ENDPOINTS: tuple[Endpoint, ...] = (
     GEOMETRY_RENDER, GEOMETRY_POINTS, GEOMETRY_MESH, GEOMETRY_REGIONS, GEOMETRY_DICTIONARY, GEOMETRY_CONTACTS,
-    SEMANTIC_DICTIONARY, SEMANTIC_MERGE, QUERY_TEXT, QUERY_TEXT_BATCH, QUERY_IMAGE, QUERY_POINT, *CONTROL.values(),
+    GEOMETRY_CHECKPOINT_LIST, GEOMETRY_CHECKPOINT_CHUNK, GEOMETRY_CHECKPOINT_RELEASE, SEMANTIC_DICTIONARY, SEMANTIC_MERGE, QUERY_TEXT, QUERY_TEXT_BATCH, QUERY_IMAGE, QUERY_POINT, *CONTROL.values(),
 )

@@ -11,6 +11,8 @@ limit is refused with the same one line wherever it is caught:
 | :data:`MAX_QUERY_POINTS` | 200,000 points in one query reply (the query service fetches at most this many from geometry for all its regions; a request's ``max_points`` per region is at most this too) | the wire schemas, the query service, the Python client |
 | :data:`MAX_SURFACE_POINTS` | 500,000 surface points or mesh vertices per geometry reply | the geometry service (``max_points_reply`` may lower it), ``openfusion web --max-points`` |
 | :data:`MAX_MESSAGE_BYTES` | 64 MiB per encoded message | the codec (:mod:`openfusion.wire.codec`), both ways |
+| :data:`MAX_CHECKPOINT_CHUNK_BYTES` | 4 MiB of checkpoint file per reply (a replica copying its peer's checkpoint, docs/SHARDS.md) | the wire schemas (:mod:`openfusion.wire.schemas.checkpoint`), the serving geometry |
+| :data:`MAX_CHECKPOINT_FILES` | 16 files in one checkpoint listing | the wire schemas |
 
 A refusal is a :class:`LimitError` (a :class:`~openfusion.errors.UserError`: one line, exit code 2
 in the ``openfusion`` commands; 400 with ``{"error": ...}`` on the page; ``reply_err`` with code
@@ -40,6 +42,10 @@ MAX_QUERY_POINTS = 200_000
 MAX_SURFACE_POINTS = 500_000
 #: Largest encoded message, either way.
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+#: Most bytes of a checkpoint file one reply carries (a 1 GB map is 256 replies, never one).
+MAX_CHECKPOINT_CHUNK_BYTES = 4 * 1024 * 1024
+#: Most files one checkpoint listing names (a tile store is one file; room for what a format adds).
+MAX_CHECKPOINT_FILES = 16
 
 
 class LimitError(UserError, ValueError):

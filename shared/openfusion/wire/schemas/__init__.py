@@ -29,6 +29,14 @@ from openfusion.wire.schemas.base import (
     Vec3f32,
     Vec3f64,
 )
+from openfusion.wire.schemas.checkpoint import (
+    CheckpointChunk,
+    CheckpointChunkRequest,
+    CheckpointFile,
+    CheckpointListing,
+    CheckpointListRequest,
+    CheckpointRelease,
+)
 from openfusion.wire.schemas.geometry import (
     GeometryProgress,
     MeshReply,
@@ -66,6 +74,12 @@ from openfusion.wire.schemas.semantic import (
 from openfusion.wire.schemas.sensor import InstanceFrame, RgbdFrame
 
 __all__ = [
+    "CheckpointChunk",
+    "CheckpointChunkRequest",
+    "CheckpointFile",
+    "CheckpointListRequest",
+    "CheckpointListing",
+    "CheckpointRelease",
     "MergeReply",
     "MergeRequest",
     "WorkerInfo",
