@@ -141,6 +141,12 @@ def test_composite_rules_and_bad_input() -> None:
 
 
 # ---------------------------------------------------------------------------- read-outs merged
+def _triangle_set(vertices: np.ndarray, triangles: np.ndarray) -> set[bytes]:
+    """Each triangle as the bytes of its three corner positions in a fixed order (any vertex order)."""
+    corners = np.ascontiguousarray(vertices[triangles], np.float32).view(np.dtype((np.void, 12))).reshape(len(triangles), 3)
+    return {row.tobytes() for row in np.sort(corners, axis=1)}
+
+
 def test_merged_read_outs_equal_the_single_volume(maps) -> None:  # noqa: ANN001
     whole, parts = maps
     ref_pts = whole.extract_points()
@@ -171,10 +177,16 @@ def test_merged_read_outs_equal_the_single_volume(maps) -> None:  # noqa: ANN001
     # Capped points: uniformly subsampled to the cap, said so.
     capped = shards.concat_points([(p.points, p.colors, p.keys) for p in part_pts], max_points=1000)
     assert len(capped[0]) == 1000 and capped[3]
-    # Meshes: one mesh, triangles index the right shard's vertices.
+    # Meshes: one mesh, its seams welded: the single volume's vertices and triangles.
     meshes = [p.extract_mesh() for p in parts]
     v, t, c, mk = shards.concat_meshes([(m.vertices, m.triangles, m.colors, m.keys) for m in meshes])
-    assert len(v) == sum(len(m.vertices) for m in meshes) and t.max() < len(v)
+    one = whole.extract_mesh()
+    assert len(v) < sum(len(m.vertices) for m in meshes)  # the seams' copies merged
+    assert len(v) == len(one.vertices)
+    # Every triangle is one of the single volume's; a shard keeps a triangle by its centroid's cube,
+    # so one lying flat on a seam face may be left by both sides (measured: 2 of 366,991).
+    got, ref = _triangle_set(v, t), _triangle_set(one.vertices, one.triangles)
+    assert got <= ref and len(ref) - len(got) <= 1e-4 * len(ref), (len(got), len(ref))
     np.testing.assert_array_equal(v[t[-1]], meshes[1].vertices[meshes[1].triangles[-1]])
 
 

@@ -334,9 +334,14 @@ def concat_meshes(
     parts: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(vertices, triangles, colors, keys)``: the shards' meshes (each ``(vertices (V, 3),
-    triangles (T, 3), colors (V, 3), keys (V,))``) as one mesh, triangle indices offset. A shard's
-    mesh ends at its tiles' borders (marching cubes sees only its own blocks), so the seams
-    between two shards' tiles are open by up to one voxel."""
+    triangles (T, 3), colors (V, 3), keys (V,))``) as one mesh, triangle indices offset, the
+    vertices a seam gives each side welded into one (:mod:`openfusion.mapping.mesh_weld`: each
+    shard's triangles of a seam cube read the same voxels through its ghosts, so the copies are
+    bit-identical)."""
+    from openfusion.mapping.mesh_weld import weld_plan
+
+    if not parts:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.uint8), np.zeros(0, np.int32)
     verts, tris, cols, keys = [], [], [], []
     offset = 0
     for v, t, c, k in parts:
@@ -346,7 +351,9 @@ def concat_meshes(
         cols.append(np.asarray(c, np.uint8).reshape(-1, 3))
         keys.append(np.asarray(k, np.int32).reshape(-1))
         offset += len(v)
-    if not verts:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros((0, 3), np.uint8), np.zeros(0, np.int32)
-    return (np.concatenate(verts), np.concatenate(tris).astype(np.int32), np.concatenate(cols),
-            np.concatenate(keys))
+    v_all, t_all, c_all, k_all = np.concatenate(verts), np.concatenate(tris), np.concatenate(cols), np.concatenate(keys)
+    plan = weld_plan(v_all, [len(v) for v in verts])
+    if plan is None:
+        return v_all, t_all.astype(np.int32), c_all, k_all
+    kept, remap = plan
+    return v_all[kept], remap[t_all].astype(np.int32), c_all[kept], k_all[kept]
