@@ -16,8 +16,12 @@ Geometry acknowledges every frame it takes (integrated, or refused for capacity)
 per shard (each shard integrates every frame's blocks it owns). A frame counts as taken when every
 shard has acknowledged it or a later frame of its robot (stamps order a robot's frames; a replica's
 acknowledgement stands for its shard). The wait is bounded (``integrate_wait_s``): a geometry that
-never acknowledges (none yet, or one that died) delays a frame by that much at most, and a robot
-no acknowledgement was ever seen for is not waited for at all.
+never acknowledges (none yet, or one that died) delays a frame by that much at most. A robot no
+acknowledgement was ever seen for is waited for too (its first frame: rendered before geometry had
+integrated it, the render was empty and the frame's labels were lost, so the next frame matched none
+of its regions and made each again: f-mIoU 0.902 instead of 0.937 in about half the runs of the
+built-in room); when that wait times out (a geometry that does not acknowledge) the robot is not
+waited for again until an acknowledgement of it arrives.
 """
 
 from __future__ import annotations
@@ -37,6 +41,7 @@ class IntegratedFrames:
         self._cond = threading.Condition()
         self._taken: dict[tuple[str, int], int] = {}  # (robot, shard index) -> newest stamp_ns taken
         self._shards: dict[str, int] = {}  # robot -> shard count its acknowledgements name
+        self._given_up: set[str] = set()  # robots never acknowledged whose wait timed out: not waited for
 
     def on_progress(self, msg: GeometryProgress) -> None:
         """An acknowledgement from geometry (the subscription's callback); announcements
@@ -49,18 +54,19 @@ class IntegratedFrames:
             if msg.stamp_ns > self._taken.get(key, -1):
                 self._taken[key] = msg.stamp_ns
             self._shards[msg.robot] = max(self._shards.get(msg.robot, 1), shard.count)
+            self._given_up.discard(msg.robot)
             self._cond.notify_all()
 
     def taken(self, robot: str, stamp_ns: int) -> bool:
         """True when every shard has taken this frame of ``robot`` or a later one, or when no
-        acknowledgement of ``robot``'s frames was ever seen (nothing to wait for)."""
+        acknowledgement of ``robot``'s frames was ever seen and a wait for one timed out."""
         with self._cond:
             return self._taken_locked(robot, stamp_ns)
 
     def _taken_locked(self, robot: str, stamp_ns: int) -> bool:
         count = self._shards.get(robot)
         if count is None:
-            return True
+            return robot in self._given_up
         return all(self._taken.get((robot, i), -1) >= stamp_ns for i in range(count))
 
     def wait(self, robot: str, stamp_ns: int, timeout_s: float) -> bool:
@@ -70,6 +76,8 @@ class IntegratedFrames:
             while not self._taken_locked(robot, stamp_ns):
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
+                    if robot not in self._shards:  # never acknowledged: a geometry that does not; stop waiting
+                        self._given_up.add(robot)
                     return False
                 self._cond.wait(remaining)
             return True

@@ -3,7 +3,8 @@ newest frame geometry holds (services.semantic.geometry_progress), and merge pas
 frame loop (services.semantic.merge_worker). No bus: acknowledgements are fed by hand.
 
 Bad input tried: a resume announcement (frame -1) acknowledges nothing; a geometry that never
-acknowledges delays a frame by ``wait_s`` at most; a merge pass that raises is counted and the
+acknowledges delays a frame by ``wait_s`` at most (a robot's first frame waits for the first
+acknowledgement, once); a merge pass that raises is counted and the
 next one still runs."""
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ def _frame(frame_id: int, robot: str = "robot0") -> SimpleNamespace:
 
 def test_a_frame_is_taken_once_geometry_acknowledged_it_or_a_later_one() -> None:
     frames = IntegratedFrames()
-    assert frames.taken("robot0", 500)  # no acknowledgement ever seen: nothing to wait for
+    assert not frames.taken("robot0", 500)  # no acknowledgement yet: the first frame waits for one
     frames.on_progress(_ack(3))
     assert frames.taken("robot0", 300) and not frames.taken("robot0", 400)
     frames.on_progress(_ack(-1))  # a resume announcement acknowledges no frame
@@ -36,7 +37,12 @@ def test_a_frame_is_taken_once_geometry_acknowledged_it_or_a_later_one() -> None
     assert frames.taken("robot0", 300) and not frames.taken("robot0", 400)
     frames.on_progress(_ack(6))
     assert frames.taken("robot0", 500)  # a later frame acknowledged: this one was taken (or refused) before it
-    assert frames.taken("robot1", 10**12)  # another robot, never acknowledged: not waited for
+    # Another robot, never acknowledged: waited for once (bounded), then not again until an acknowledgement.
+    assert not frames.taken("robot1", 100)
+    assert not frames.wait("robot1", 100, timeout_s=0.05)
+    assert frames.taken("robot1", 10**12) and frames.wait("robot1", 10**12, timeout_s=30)
+    frames.on_progress(_ack(2, robot="robot1"))
+    assert frames.taken("robot1", 200) and not frames.taken("robot1", 300)  # acknowledged: waited for again
 
 
 def test_with_shards_every_shard_must_have_taken_the_frame_and_a_replica_stands_for_its_shard() -> None:
