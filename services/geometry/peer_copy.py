@@ -334,19 +334,12 @@ class PeerCopy:
                 result = copy_checkpoint(session, runner.keys, peer, into, requester=self.shard.service,
                                          checkpoint_first=self.section.peer_copy_checkpoint_first,
                                          timeout_s=self.section.peer_copy_timeout_s)
-            except QueryError as exc:
+            except (QueryError, CheckpointCopyError, OSError) as exc:
                 shutil.rmtree(into, ignore_errors=True)
-                if exc.code == "no_checkpoint":  # a peer that started with this one: nothing to copy, not a failure
+                if isinstance(exc, QueryError) and exc.code == "no_checkpoint":
+                    # A peer that started with this one: nothing to copy, not a failure.
                     logger.info("geometry: %s has no checkpoint to copy yet", peer.service)
                     continue
-                failed += 1
-                stats.incr(GeometryCounter.PEER_COPY_FAILURES)
-                stats.add_error()
-                logger.warning("geometry: copying the checkpoint of %s failed (%s); the partial copy is discarded",
-                               peer.service, exc)
-                continue
-            except (CheckpointCopyError, OSError) as exc:
-                shutil.rmtree(into, ignore_errors=True)
                 failed += 1
                 stats.incr(GeometryCounter.PEER_COPY_FAILURES)
                 stats.add_error()
