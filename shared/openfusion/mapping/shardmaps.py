@@ -88,13 +88,15 @@ def load_sharded(parts: list[Path], load_map: Callable[..., Any], *, device: str
     volume of shard 0/1; with a budget (``memory_budget_mb``: MiB, or ``"map"``, the parts' own)
     the parts are merged into one scratch tile store read under it (:mod:`.shardstore`)."""
     from openfusion.mapping import shardstore
+    from openfusion.mapping.mapstore import header_meta
     from openfusion.mapping.shards import owned_blocks
     from openfusion.mapping.volume import SemanticVolume
 
     if memory_budget_mb is not None and shardstore.parts_are_stores(parts):
-        budget = shardstore.budget_of_parts(parts) if memory_budget_mb == "map" else float(memory_budget_mb)
+        headers = shardstore.part_headers(parts)  # read once: the budget and the merged meta
+        budget = shardstore.budget_of(headers) if memory_budget_mb == "map" else float(memory_budget_mb)
         if budget is not None:
-            metas = [part_meta(part) for part in parts]
+            metas = [header_meta(h) for h in headers]
             return shardstore.load_budgeted(parts, load_map, merged_meta=_merged_meta(metas, len(parts)),
                                             memory_budget_mb=budget, device=device)
     loaded = [load_map(part, device=device, memory_budget_mb=None) for part in parts]
@@ -126,15 +128,6 @@ def load_sharded(parts: list[Path], load_map: Callable[..., Any], *, device: str
     finally:
         for part in loaded:
             part.volume.close()
-
-
-def part_meta(part: Path) -> dict[str, Any]:
-    """A part's meta from its header alone (no tile read)."""
-    from openfusion.mapping.mapstore import header_meta, read_header
-    from openfusion.mapping.tilestore import STORE_DIR_NAME, TileStore
-
-    with TileStore(Path(part) / STORE_DIR_NAME, readonly=True) as store:
-        return header_meta(read_header(store))
 
 
 def load_sharded_summary(parts: list[Path], load_map_summary: Callable[[Path], Any]) -> Any:

@@ -42,7 +42,7 @@ from openfusion.mapping.tilestore import STORE_DIR_NAME, TileStore, decode_tile,
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["budget_of_parts", "merge_parts_into_store", "parts_are_stores"]
+__all__ = ["budget_of", "merge_parts_into_store", "part_headers", "parts_are_stores"]
 
 
 def parts_are_stores(parts: list[Path]) -> bool:
@@ -50,15 +50,18 @@ def parts_are_stores(parts: list[Path]) -> bool:
     return all(is_store(Path(p) / STORE_DIR_NAME) for p in parts)
 
 
-def budget_of_parts(parts: list[Path]) -> float | None:
-    """The memory budget (MiB) the parts were written with (the largest; None: none had one)."""
-    budgets = []
+def part_headers(parts: list[Path]) -> list[dict[str, Any]]:
+    """Each part's checked map header (no tile read), in the parts' order."""
+    headers = []
     for part in parts:
         with TileStore(Path(part) / STORE_DIR_NAME, readonly=True) as store:
-            header = check_header(store, store.read_header())
-        budget = header.get("volume_params", {}).get("memory_budget_mb")
-        if budget is not None:
-            budgets.append(float(budget))
+            headers.append(check_header(store, store.read_header()))
+    return headers
+
+
+def budget_of(headers: list[dict[str, Any]]) -> float | None:
+    """The memory budget (MiB) the parts were written with (the largest; None: none had one)."""
+    budgets = [float(b) for h in headers if (b := h.get("volume_params", {}).get("memory_budget_mb")) is not None]
     return max(budgets) if budgets else None
 
 
