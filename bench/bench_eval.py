@@ -12,6 +12,7 @@ measured in the same run with the gt encoder on synthetic scenes, noise off and 
         # every frame encoded (before) vs coverage-driven frame selection (after), same run: quality,
         # encoder calls (frames, regions, per ground-truth object), scoring cost; no baselines
     python bench/bench_eval.py --full --compare-select --select-also select_lookahead=3
+    python bench/bench_eval.py --full --compare-select --select-also select_embed_share=   # FIELD= is None
         # ... plus a row per --select-also (comma-separated FIELD=VALUE of select_*), same run
 
 Prints markdown tables (the ratios are to the region map). Exit 0 always unless it crashes;
@@ -83,9 +84,11 @@ def main(argv: list[str] | None = None) -> int:
     profiles = [p.strip() for p in args.noise.split(",") if p.strip()]
 
     if args.compare_select:
-        after = SelectParams.model_validate(dict(kv.split("=", 1) for kv in args.select_set))
-        also = [SelectParams.model_validate(dict(kv.split("=", 1) for kv in row.split(",") if kv))
-                for row in args.select_also]
+        def select_of(pairs: list[str]) -> SelectParams:  # FIELD= (empty) is None, as with --set
+            return SelectParams.model_validate({k: (v or None) for k, v in (kv.split("=", 1) for kv in pairs if kv)})
+
+        after = select_of(args.select_set)
+        also = [select_of(row.split(",")) for row in args.select_also]
         return compare_select(base, specs, profiles, after, also)
     if args.compare_merging:
         return compare_merging(base, specs, profiles, [e.strip() for e in args.merge_embedding.split(",") if e.strip()])

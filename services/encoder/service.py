@@ -30,6 +30,7 @@ from pydantic import Field, field_validator
 
 from openfusion.bus import RequestError, ServiceRunner
 from openfusion.config import ServiceConfig
+from openfusion.encoders.region_gate import encode_where
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.encoder.options import EncoderOptions, region_encoder_from_section, warm_up_encoder
 from openfusion.wire.counters import EncoderCounter
@@ -106,7 +107,7 @@ class EncoderWorker:
                 f"{self.encoder.embedding_space!r}; map {req.map_id!r} is in {req.embedding_space!r}",
             )
         started = time.monotonic()
-        obs = self.encoder.encode(req.to_frame())
+        obs = encode_where(self.encoder, req.to_frame(), req.embed_where, req.embed_share)
         spent = time.monotonic() - started
         stats.incr(EncoderCounter.FRAMES_ENCODED)
         stats.incr(EncoderCounter.ENCODE_BUSY_S, spent)
@@ -117,6 +118,7 @@ class EncoderWorker:
             conf_maps=obs.conf_maps,
             embeddings=obs.embeddings,
             encode_ms=1e3 * spent,
+            embedded=obs.embedded,
         )
 
     def setup(self, runner: ServiceRunner) -> None:

@@ -18,8 +18,11 @@ import threading
 import time
 from typing import Any
 
+import numpy as np
+
 from openfusion.bus import QueryError, ServiceRunner
 from openfusion.encoders import RegionObservation
+from openfusion.services.semantic.outcomes import count_embedded
 from openfusion.services.semantic.pool import EncoderPool, PoolResult
 from openfusion.services.semantic.selection import Pending
 from openfusion.wire.counters import ENCODED_BY_PREFIX, PoolCounter, SemanticCounter
@@ -83,7 +86,9 @@ class PoolDispatch:
                 self.service._frame_done(runner, lost.frame_id, lost.stamp_ns)
         for result in self.pool.take_results():
             runner.stats.incr(SemanticCounter.ENCODER_CALLS)
-            runner.stats.incr(SemanticCounter.ENCODER_REGIONS, len(result.reply.conf_maps))
+            reply = result.reply
+            n = len(reply.conf_maps)
+            count_embedded(runner.stats, n, n if reply.embedded is None else int(np.count_nonzero(reply.embedded)))
             heapq.heappush(self._held, (result.seq, next(self._arrivals), now, result))
         self._release_results(runner)
         self.pool.wait(0.2)  # a result, a worker change, or the reorder wait's next check
@@ -127,8 +132,11 @@ class PoolDispatch:
     def _dispatch(self, runner: ServiceRunner, msg: RgbdFrame, pending: Pending | None) -> None:
         """Send one frame taken off the window (``pending``) or the subscription to a worker."""
         if pending is not None:
-            request: EncodeRequest | None = EncodeRequest.of(msg, pending.instance, map_id=runner.keys.map_id,
-                                                             embedding_space=self.service.dictionary.embedding_space)
+            embed_where, embed_share = self.service.embed_gate(pending.wanted_px)
+            request: EncodeRequest | None = EncodeRequest.of(
+                msg, pending.instance, map_id=runner.keys.map_id,
+                embedding_space=self.service.dictionary.embedding_space, embed_where=embed_where,
+                embed_share=embed_share)
         else:
             request = self._pool_request(runner, msg)
         if request is None:
@@ -179,7 +187,7 @@ class PoolDispatch:
             return
         try:
             obs = RegionObservation(conf_maps=result.reply.conf_maps, embeddings=result.reply.embeddings,
-                                    embedding_space=result.reply.embedding_space)
+                                    embedding_space=result.reply.embedding_space, embedded=result.reply.embedded)
             obs.validate(dim=self.service.dictionary.dim)
             self.service.apply_observation(runner, result.request.to_frame(), obs, time.monotonic(),
                                            robot=result.request.robot)

@@ -33,6 +33,8 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from openfusion.bus import QueryError, ServiceRunner, Subscriber
 from openfusion.bus.instance_join import InstanceBuffer
 from openfusion.frame import CameraIntrinsics
@@ -80,6 +82,9 @@ class Pending:
 
     msg: RgbdFrame
     instance: InstanceFrame | None
+    #: the pixels worth an embedding (set when the window hands it out: the selection's decision,
+    #: :mod:`openfusion.encoders.region_gate`); None: every region is embedded
+    wanted_px: np.ndarray | None = None
 
 
 class CandidateFeeder:
@@ -165,7 +170,11 @@ class CandidateFeeder:
         """The best candidate for the encoder now (waiting up to ``timeout_s``), or None."""
         change = self.window.take(timeout_s)
         self.account(runner, change)
-        return change.taken.payload if change.taken is not None else None
+        if change.taken is None:
+            return None
+        pending = change.taken.payload
+        pending.wanted_px = change.taken.evidence.wanted_px
+        return pending
 
     def account(self, runner: ServiceRunner, change: WindowChange[Pending]) -> None:
         """Count the candidates that left without being encoded; they are done with."""

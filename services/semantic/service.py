@@ -61,6 +61,7 @@ import zenoh
 from openfusion.bus import Publisher, QueryError, ServiceRunner, Subscriber
 from openfusion.bus.instance_join import InstanceBuffer
 from openfusion.encoders import RegionObservation
+from openfusion.encoders.region_gate import encode_where
 from openfusion.frame import Frame, resize_nearest
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
 from openfusion.mapping.merging import EmptyRegions, MergeSchedule, RegionContacts, apply_merges, plan_merges
@@ -74,7 +75,7 @@ from openfusion.services.encoder.options import (
 )
 from openfusion.services.semantic.geometry_progress import IntegratedFrames, NewestTaken
 from openfusion.services.semantic.merge_worker import MergeWorker
-from openfusion.services.semantic.outcomes import FrameCounts
+from openfusion.services.semantic.outcomes import FrameCounts, count_embedded
 from openfusion.services.semantic.pool import EncoderPool
 from openfusion.services.semantic.pool_loop import PoolDispatch
 from openfusion.services.semantic.section import (  # noqa: F401 (re-exported: the service's settings lived here)
@@ -140,6 +141,8 @@ class SemanticService:
         self.select_params = SelectParams.from_section(self.section)
         # coverage: candidates are scored on a thread of their own (selection.CandidateFeeder)
         self._scorer = CoverageScorer(self.select_params) if self.select_params.select == "coverage" else None
+        if self._scorer is not None:
+            self._scorer.embedding_support = self._embedding_support
         self._feeder: CandidateFeeder | None = None
         self._next_seq = 0  # the order frames are taken for the encoder in (pool results apply in it)
         self._frames: Subscriber[RgbdFrame] | None = None
@@ -181,6 +184,16 @@ class SemanticService:
                     self.dictionary.version)
         return True
 
+    def _embedding_support(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        with self._dictionary_lock:  # called while a candidate is prepared, never under the scorer's lock
+            return self.dictionary.support_of(keys)
+
+    def embed_gate(self, wanted_px: np.ndarray | None) -> tuple[np.ndarray | None, float | None]:
+        """``(wanted_px, min_share)`` for a chosen frame's encoder call: ``(None, None)`` (every
+        region embedded) without a wanted mask or with ``select_embed_share`` none."""
+        share = self.select_params.select_embed_share
+        return (None, None) if wanted_px is None or share is None else (wanted_px, share)
+
     def handle_snapshot(self, _req: DictionaryRequest) -> DictionarySnapshot:
         with self._dictionary_lock:
             return self.dictionary.snapshot()
@@ -189,14 +202,16 @@ class SemanticService:
         """A merge pass now (geometry asks before saving); its delta is published before the reply."""
         return self._merges.run_now(lambda: self._merge(runner))
 
-    def process(self, runner: ServiceRunner, msg: RgbdFrame, instance: InstanceFrame | None = None) -> None:
+    def process(self, runner: ServiceRunner, msg: RgbdFrame, instance: InstanceFrame | None = None,
+                wanted_px: np.ndarray | None = None) -> None:
         """One semantic step for one frame (called from the loop), with its instance image when
-        the encoder reads them."""
+        the encoder reads them; ``wanted_px``: the selection's pixels worth an embedding (None:
+        every region, :mod:`openfusion.encoders.region_gate`)."""
         started = time.monotonic()
         frame = msg.to_frame(instance)
         runner.stats.incr(SemanticCounter.ENCODER_CALLS)
-        obs = self.encoder.encode(frame)
-        runner.stats.incr(SemanticCounter.ENCODER_REGIONS, len(obs.conf_maps))
+        obs = encode_where(self.encoder, frame, *self.embed_gate(wanted_px))
+        count_embedded(runner.stats, obs.num_regions, obs.num_embedded)
         self.apply_observation(runner, frame, obs, started, robot=msg.robot)
 
     def apply_observation(self, runner: ServiceRunner, frame: Frame, obs: RegionObservation, started: float, *,
@@ -427,7 +442,7 @@ class SemanticService:
         assert self._feeder is not None
         self._next_seq += 1
         try:
-            self._process_counted(runner, pending.msg, pending.instance)
+            self._process_counted(runner, pending.msg, pending.instance, pending.wanted_px)
         finally:
             self._feeder.finish(runner, pending.msg)
 
@@ -445,10 +460,11 @@ class SemanticService:
                 return
         self._process_counted(runner, msg, instance)
 
-    def _process_counted(self, runner: ServiceRunner, msg: RgbdFrame, instance: InstanceFrame | None) -> None:
+    def _process_counted(self, runner: ServiceRunner, msg: RgbdFrame, instance: InstanceFrame | None,
+                         wanted_px: np.ndarray | None = None) -> None:
         """:meth:`process`; a failure is logged and counted, never raised."""
         try:
-            self.process(runner, msg, instance)
+            self.process(runner, msg, instance, wanted_px)
         except QueryError as exc:  # geometry did not answer (or refused) the render request
             self._skip_no_render(runner, msg.robot, msg.frame_id, exc)
         except Exception:  # the encoder, a step or the bus failed on this frame: logged, counted, next frame

@@ -3,7 +3,8 @@ real geometry and semantic service objects (and an encoder worker of the pool), 
 by the test as the bridge would.
 
 Shown: a frame that adds nothing is not encoded even when the encoder is idle (``skipped_no_gain``),
-a frame with new surface is; while the encoder is busy the candidates wait in the window and the
+a frame with new surface is, with the pixels it adds for the encoder's per-region embeddings (here
+and through the pool: the mask goes with the request, the embedded flags come back, counted); while the encoder is busy the candidates wait in the window and the
 encoder gets the one that adds something, not the newest; the encoder pool dispatches from the
 same window. Bad input tried: no geometry to render candidates (each frame is counted in
 ``skipped_no_render``, ``last_frame_handled`` still moves, nothing is encoded, the service keeps
@@ -16,6 +17,7 @@ import threading
 from contextlib import ExitStack
 
 from openfusion.bus import Publisher, open_session
+from openfusion.encoders.region_gate import gate_observation
 from openfusion.services.encoder.service import EncoderConfig, EncoderWorker
 from openfusion.services.geometry.service import GeometryConfig, GeometryService
 from openfusion.services.semantic.service import SemanticConfig, SemanticService
@@ -62,6 +64,20 @@ class GatedEncoder(FlakyEncoder):
         return super().encode(frame)
 
 
+class GateRecorder(FlakyEncoder):
+    """Records what each call was asked to embed (the selection's wanted pixels and share) and
+    how many regions it returned and embedded."""
+
+    def __init__(self) -> None:
+        super().__init__(empty_on=(), fail_on=())
+        self.calls: list[tuple[object, float | None, int, int]] = []
+
+    def encode_where(self, frame, wanted_px, min_share):  # noqa: ANN001, ANN201
+        obs = gate_observation(self.encode(frame), wanted_px, min_share)
+        self.calls.append((wanted_px, min_share, obs.num_regions, obs.num_embedded))
+        return obs
+
+
 SELECT = {"select": "coverage", "select_tries": 1, "recover_timeout_s": 0, "instance_wait_s": 5}
 
 
@@ -91,9 +107,9 @@ def _send(rgbd: Publisher, frame) -> None:  # noqa: ANN001
 
 
 def test_a_frame_that_adds_nothing_is_not_encoded_even_when_the_encoder_is_idle() -> None:
+    encoder = GateRecorder()
     with ExitStack() as stack:
-        semantic, geometry, rgbd, _, _ = _rig(stack, encoder=FlakyEncoder(empty_on=(), fail_on=()),
-                                              semantic_values={})
+        semantic, geometry, rgbd, _, _ = _rig(stack, encoder=encoder, semantic_values={})
         send_until_handled(lambda: _send(rgbd, _as(HERE, 0)), lambda: _handled(semantic) == 0)
         assert semantic.counter(SemanticCounter.ENCODER_CALLS) == 1
         for i in range(1, 5):  # the same view four times: nothing new
@@ -108,6 +124,18 @@ def test_a_frame_that_adds_nothing_is_not_encoded_even_when_the_encoder_is_idle(
         assert semantic.counter(SemanticCounter.FRAMES_SCORED) == 6
         assert semantic.counter(SemanticCounter.ENCODER_REGIONS) >= len(semantic.app.dictionary) > 3
         wait_until(lambda: geometry.counter(GeometryCounter.UPDATES_APPLIED) == 2, timeout_s=60)
+        _assert_gated(semantic, encoder)
+
+
+def _assert_gated(semantic: ServiceThread, encoder: GateRecorder) -> None:
+    """Each chosen frame went to the encoder with the pixels it adds (the first: every surface pixel,
+    the map is empty, so every region is embedded) and the default share; the counters split the
+    returned regions into embedded and not."""
+    assert len(encoder.calls) == 2
+    assert all(mask is not None and share == 0.4 for mask, share, _, _ in encoder.calls)
+    assert encoder.calls[0][0].mean() > 0.5 and encoder.calls[0][3] == encoder.calls[0][2] > 3
+    assert semantic.counter(SemanticCounter.ENCODER_REGIONS) == sum(c[3] for c in encoder.calls)
+    assert semantic.counter(SemanticCounter.REGIONS_NOT_EMBEDDED) == sum(c[2] - c[3] for c in encoder.calls)
 
 
 def test_while_the_encoder_is_busy_it_gets_the_candidate_that_adds_something_not_the_newest() -> None:
@@ -136,8 +164,8 @@ def test_the_encoder_pool_dispatches_from_the_same_window() -> None:
             stack, encoder=FlakyEncoder(empty_on=(), fail_on=()),
             semantic_values={"encoder_pool": True, "local_encoder": False})
         cfg = loopback_config(unique_map_id("workers"), model=EncoderConfig, encoder={"worker_id": "w1"}, connect=[port])
-        stack.enter_context(ServiceThread(EncoderWorker(cfg, encoder=FlakyEncoder(empty_on=(), fail_on=())), cfg,
-                                          "encoder-w1"))
+        worker_encoder = GateRecorder()
+        stack.enter_context(ServiceThread(EncoderWorker(cfg, encoder=worker_encoder), cfg, "encoder-w1"))
         wait_until(lambda: semantic.counter(PoolCounter.ENCODER_WORKERS) == 1, timeout_s=60)
         send_until_handled(lambda: _send(rgbd, _as(HERE, 0)), lambda: _handled(semantic) == 0)
         for i in range(1, 4):
@@ -149,6 +177,7 @@ def test_the_encoder_pool_dispatches_from_the_same_window() -> None:
         assert semantic.counter(SemanticCounter.ENCODER_CALLS) == 2
         assert semantic.counter(SemanticCounter.SKIPPED_NO_GAIN) == 3
         assert semantic.counter("encoded_by:w1") == 2
+        _assert_gated(semantic, worker_encoder)  # the mask went with the frame, the flags came back
 
 
 def test_without_geometry_frames_are_counted_as_not_rendered_and_the_service_goes_on() -> None:

@@ -151,11 +151,14 @@ class RunSummary(BaseModel):
     #: the semantic service waits on them, so its busy time no longer bounds its rate
     semantic_rate_hz: float | None = None
     #: frame selection (``semantic.select``): frames the region encoder encoded (``encoder_calls``), the
-    #: regions it returned over them (``encoder_regions``), those per region of the final map
-    #: (``calls_per_region``), and frames not encoded because they added too little (``skipped_no_gain``)
+    #: regions it embedded over them (``encoder_regions``) and those it fused without an embedding
+    #: because they added nothing (``regions_not_embedded``, ``semantic.select_embed_share``), the
+    #: embedded ones per region of the final map (``calls_per_region``), and frames not encoded because
+    #: they added too little (``skipped_no_gain``)
     select: str = "coverage"
     encoder_calls: int = 0
     encoder_regions: int = 0
+    regions_not_embedded: int = 0
     calls_per_region: float | None = None
     skipped_no_gain: int = 0
     #: what became of every frame the semantic service received (``semantic_frames_received``): each
@@ -252,7 +255,8 @@ class RunSummary(BaseModel):
                                           c("semantic", SemanticCounter.LAST_FUSED_AT_S))),
             **_selection(select, c("semantic", SemanticCounter.ENCODER_CALLS),
                          c("semantic", SemanticCounter.ENCODER_REGIONS), c("semantic", SemanticCounter.REGIONS),
-                         c("semantic", SemanticCounter.SKIPPED_NO_GAIN)),
+                         c("semantic", SemanticCounter.SKIPPED_NO_GAIN),
+                         c("semantic", SemanticCounter.REGIONS_NOT_EMBEDDED)),
             **_outcomes(stats.get("semantic")),
             restarts=dict(restarts or {}),
             frames_replayed=int(c("bridge", BridgeCounter.FRAMES_REPLAYED)),
@@ -276,7 +280,8 @@ class RunSummary(BaseModel):
             rec_fps=_round(stats.rec_fps), sem_rec_fps=_round(stats.sem_rec_fps), wall_s=round(wall_s, 1),
             frames_requested=frames_requested,
             frames_played=stats.frames_integrated if frames_played is None else frames_played, interrupted=interrupted,
-            **_selection(stats.select, stats.encoder_calls, stats.encoder_regions, regions, stats.skipped_no_gain),
+            **_selection(stats.select, stats.encoder_calls, stats.encoder_regions, regions, stats.skipped_no_gain,
+                         stats.regions_not_embedded),
         )
 
 
@@ -290,8 +295,10 @@ def _outcomes(semantic: HealthStats | None) -> dict:
             "semantic_frames_pending": max(0, received - sum(outcomes.values()))}
 
 
-def _selection(select: str, calls: float, regions_encoded: float, regions: float, skipped: float) -> dict:
+def _selection(select: str, calls: float, regions_encoded: float, regions: float, skipped: float,
+               not_embedded: float) -> dict:
     """run.json's frame-selection fields (the same from health counters and from pipeline stats)."""
     return {"select": select, "encoder_calls": int(calls), "encoder_regions": int(regions_encoded),
+            "regions_not_embedded": int(not_embedded),
             "calls_per_region": _round(regions_encoded / regions) if regions else None,
             "skipped_no_gain": int(skipped)}

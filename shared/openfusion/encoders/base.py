@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from openfusion.encoders.region_gate import gate_observation
 from openfusion.errors import OpenFusionError, UserError
 from openfusion.frame import CameraIntrinsics, Frame
 
@@ -51,12 +52,30 @@ class RegionObservation:
     of the output grid belongs to region i. ``embeddings`` is (n, d) float32, unit L2 norm, in
     the space named ``embedding_space``. ``labels`` are optional per-region texts (the gt
     encoder fills in raw category names; vision backends leave it None).
+
+    ``embedded`` (bool (n,), None = every region) says which regions carry an embedding: a frame
+    encoded with :meth:`RegionEncoder.encode_where` embeds only the regions that show what the view
+    adds (:mod:`openfusion.encoders.region_gate`); the others keep their confidence map (their
+    pixels still update the map's region keys) and a zero row in ``embeddings``.
     """
 
     conf_maps: np.ndarray
     embeddings: np.ndarray
     embedding_space: str
     labels: list[str] | None = None
+    embedded: np.ndarray | None = None
+
+    @property
+    def embedded_mask(self) -> np.ndarray:
+        """bool (n,): the regions that carry an embedding (every one when ``embedded`` is None)."""
+        if self.embedded is None:
+            return np.ones(self.num_regions, bool)
+        return np.asarray(self.embedded, bool)
+
+    @property
+    def num_embedded(self) -> int:
+        """Regions embedded (what an encoder call paid for, OVI-MAP's VLM calls)."""
+        return self.num_regions if self.embedded is None else int(np.count_nonzero(self.embedded))
 
     @property
     def num_regions(self) -> int:
@@ -80,13 +99,21 @@ class RegionObservation:
             raise EncoderError(f"embeddings have dimension {e.shape[1]}, expected {dim}")
         if c.size and (not np.isfinite(c).all() or c.min() < 0.0 or c.max() > 1.0):
             raise EncoderError("conf_maps must be finite and within [0, 1]")
+        if self.embedded is not None:
+            m = self.embedded
+            if not isinstance(m, np.ndarray) or m.dtype != bool or m.shape != (c.shape[0],):
+                raise EncoderError(f"embedded must be ({c.shape[0]},) bool, got {_describe(m)}")
         if e.size:
             if not np.isfinite(e).all():
                 raise EncoderError("embeddings contain NaN or inf")
             norms = np.linalg.norm(e, axis=1)
-            bad = np.flatnonzero(np.abs(norms - 1.0) > norm_tolerance)
+            unit = np.abs(norms - 1.0) <= norm_tolerance
+            if self.embedded is not None:  # a region not embedded has a zero row
+                unit = np.where(self.embedded, unit, norms == 0.0)
+            bad = np.flatnonzero(~unit)
             if bad.size:
-                raise EncoderError(f"embedding {int(bad[0])} has norm {norms[bad[0]]:.4f}, expected 1")
+                want = "1" if self.embedded is None or self.embedded[bad[0]] else "0 (not embedded)"
+                raise EncoderError(f"embedding {int(bad[0])} has norm {norms[bad[0]]:.4f}, expected {want}")
         if not self.embedding_space:
             raise EncoderError("embedding_space must be a non-empty string")
         if self.labels is not None and len(self.labels) != c.shape[0]:
@@ -131,6 +158,19 @@ class RegionEncoder(abc.ABC):
     @abc.abstractmethod
     def encode(self, frame: Frame) -> RegionObservation:
         """Regions of ``frame`` at :meth:`output_size` of its image size."""
+
+    def encode_where(self, frame: Frame, wanted_px: np.ndarray | None, min_share: float | None) -> RegionObservation:
+        """:meth:`encode`, embedding only the regions with at least ``min_share`` of their pixels in
+        ``wanted_px`` (bool (h, w), any size: what the view adds, from the frame selection); the
+        others come back with ``embedded`` False (:mod:`openfusion.encoders.region_gate`).
+        ``wanted_px`` or ``min_share`` None: every region is embedded, as :meth:`encode`.
+
+        This default encodes every region and then drops the embeddings of the others, for
+        encoders that describe a frame at once (``clip-dense``: no saving) and for stand-ins (the gt
+        encoder stands for a crop encoder); an encoder that embeds region crops one by one
+        overrides it and does not compute the skipped ones
+        (:class:`~openfusion.encoders.proposal_encoder.ProposalRegionEncoder`)."""
+        return gate_observation(self.encode(frame), wanted_px, min_share)
 
     def warm_up(self, vocabulary: Sequence[str] = ()) -> None:
         """Do the first call's one-off work now (lazy model start-up, caches), so the first

@@ -12,6 +12,8 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
+
 from openfusion.encoders.base import RegionEncoder, RegionObservation
 from openfusion.frame import Frame
 
@@ -40,9 +42,12 @@ class DelayedRegionEncoder(RegionEncoder):
         self.inner.warm_up(vocabulary)  # no delay: the delay models a frame's cost
 
     def encode(self, frame: Frame) -> RegionObservation:
-        obs = self.inner.encode(frame)
+        return self.encode_where(frame, None, None)
+
+    def encode_where(self, frame: Frame, wanted_px: np.ndarray | None, min_share: float | None) -> RegionObservation:
+        obs = self.inner.encode_where(frame, wanted_px, min_share)
         if self.delay_s > 0:
-            time.sleep(self.delay_s)
+            time.sleep(self.delay_s)  # a frame's cost: a real crop encoder's share of it is per region
         return obs
 
     def __getattr__(self, name: str) -> Any:  # everything else (stats, encode_image, ...) is the inner encoder's

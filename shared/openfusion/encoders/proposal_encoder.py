@@ -24,7 +24,8 @@ from openfusion.encoders.base import (
     blank_frame,
     check_rgb,
 )
-from openfusion.encoders.crops import CropSpec, preprocess_image, region_crops
+from openfusion.encoders.crops import CropSpec, preprocess_image, region_boxes, region_crops
+from openfusion.encoders.region_gate import regions_wanted
 from openfusion.frame import Frame
 
 logger = logging.getLogger(__name__)
@@ -94,28 +95,46 @@ class ProposalRegionEncoder(RegionEncoder, ImageQueryEncoder):
         self._embed(np.zeros((self.batch_size, 3, s, s), np.float32))
 
     def encode(self, frame: Frame) -> RegionObservation:
+        return self.encode_where(frame, None, None)
+
+    def encode_where(self, frame: Frame, wanted_px: np.ndarray | None, min_share: float | None) -> RegionObservation:
+        """Proposals of ``frame``; crops embedded only for the regions
+        :func:`~openfusion.encoders.region_gate.regions_wanted` keeps (the others are not cropped
+        nor embedded: ``embedded`` False, a zero row). ``stats["regions_not_embedded"]`` counts them."""
         check_rgb(frame.color)
         out_hw = self.output_size(*frame.color.shape[:2])
         masks = np.asarray(self.proposer.propose(frame, out_hw), dtype=np.float32)
         if masks.ndim != 3 or masks.shape[1:] != out_hw:
             raise EncoderError(f"proposer {self.proposer.name!r} returned masks {masks.shape}, expected (n, {out_hw[0]}, {out_hw[1]})")
-        crops, kept = region_crops(frame.color, masks, self.embedder.crop_spec)
-        masks = masks[kept]
-        emb = self._embed(crops)
+        present = np.array([box is not None for box in region_boxes(masks, frame.color.shape[:2],
+                                                                        self.embedder.crop_spec.padding)], bool)
+        masks = masks[present] if len(masks) else masks
+        wanted = regions_wanted(masks, wanted_px, min_share)
+        crops, kept = region_crops(frame.color, masks[wanted], self.embedder.crop_spec)
+        emb_wanted = self._embed(crops)
+        emb = np.zeros((len(masks), self.dim), np.float32)
+        embedded = np.zeros(len(masks), bool)
+        rows = np.flatnonzero(wanted)[kept]
+        emb[rows] = emb_wanted
+        embedded[rows] = True
+        unwanted = ~wanted
         emb_ok = np.isfinite(emb).all(axis=1)
         norms = np.linalg.norm(np.where(emb_ok[:, None], emb, 0.0), axis=1)
-        ok = emb_ok & (norms > MIN_EMBEDDING_NORM)
+        ok = (emb_ok & (norms > MIN_EMBEDDING_NORM)) | unwanted
         if not ok.all():
             self.stats["dropped_zero_embedding"] += int((~ok).sum())
             logger.warning("frame %s: %d region(s) with zero/non-finite embeddings dropped", frame.frame_id, int((~ok).sum()))
-        emb = emb[ok] / norms[ok, None]
+        emb, embedded = emb[ok], embedded[ok]
+        emb[embedded] /= norms[ok][embedded, None]
         self.stats["frames"] += 1
-        self.stats["regions"] += int(ok.sum())
+        self.stats["regions"] += int(embedded.sum())
+        self.stats["regions_not_embedded"] = self.stats.get("regions_not_embedded", 0) + int((~embedded).sum())
         return RegionObservation(
             conf_maps=np.ascontiguousarray(np.clip(masks[ok], 0.0, 1.0), dtype=np.float32),
             embeddings=np.ascontiguousarray(emb, dtype=np.float32),
             embedding_space=self.embedding_space,
             labels=None,
+            embedded=None if embedded.all() else embedded,
         )
 
     def encode_image(self, rgb: np.ndarray) -> np.ndarray:

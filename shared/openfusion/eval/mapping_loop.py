@@ -1,6 +1,6 @@
 """The evaluation's mapping loop (one process, no bus; :func:`map_scene_for_eval`): for every frame
 ``volume.integrate(frame)`` (timed as geometry), and every ``semantic_every``-th frame
-``obs = region_encoder.encode(frame)`` then ``mapper.step(obs, T_world_cam, intrinsics, depth_m=...)``
+``obs = encode_where(region_encoder, frame, ...)`` then ``mapper.step(obs, T_world_cam, intrinsics, depth_m=...)``
 (the frame's depth enables the update's depth gate; timed as
 semantics). The same loop records what the baselines and the completeness metric need (the
 frame's depth for the observed-surface test and a compact copy of the encoder output). It is
@@ -13,6 +13,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+from openfusion.encoders.region_gate import encode_where
 from openfusion.eval.baselines import FrameRecord, RawOpen3DIntegrator, record_frame
 from openfusion.eval.geometry import ObservedSurface
 from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume
@@ -39,7 +40,8 @@ class MappingRun:
     regions_merged: int = 0
     merge_s: float = 0.0
     encoder_calls: int = 0  # frames given to the region encoder
-    encoder_regions: int = 0  # regions it returned over those calls
+    encoder_regions: int = 0  # regions it embedded over those calls
+    regions_not_embedded: int = 0  # regions of chosen frames that added nothing: masks fused, no embedding
     frames_scored: int = 0
     skipped_no_gain: int = 0
     skipped_switch: int = 0  # frames left out by semantic_every (never offered to the selection)
@@ -76,6 +78,7 @@ def map_scene_for_eval(
     schedule = MergeSchedule(merge_p)
     empty = EmptyRegions(passes=1)  # updates are written before the next pass
     selector = FrameSelector(select_params, volume.render)
+    selector.scorer.embedding_support = dictionary.support_of
 
     def merge_pass() -> None:  # timed with the semantic step (it is part of it in the services)
         result = merge_regions(volume, dictionary, merge_p, empty=empty)
@@ -87,9 +90,10 @@ def map_scene_for_eval(
 
     def semantic(frame: object, depth_m: object) -> None:  # one chosen frame: encode, step, record
         t1 = time.perf_counter()
-        obs = region_encoder.encode(frame)
+        obs = encode_where(region_encoder, frame, *selector.embed_where(frame))
         run.encoder_calls += 1
-        run.encoder_regions += len(obs.conf_maps)
+        run.encoder_regions += obs.num_embedded
+        run.regions_not_embedded += obs.num_regions - obs.num_embedded
         t2 = time.perf_counter()
         mapper.step(obs, frame.T_world_cam, frame.intrinsics, depth_m=depth_m)
         if mapper.last_plan is not None:
@@ -101,9 +105,10 @@ def map_scene_for_eval(
         if schedule.due():
             merge_pass()
         if record_for_baselines:
+            kept = obs.embedded_mask  # the baselines fuse what the encoder embedded
             rec = record_frame(
-                obs.conf_maps,
-                obs.embeddings,
+                obs.conf_maps[kept],
+                obs.embeddings[kept],
                 depth_m=depth_m,
                 intrinsics=frame.intrinsics,
                 T_world_cam=frame.T_world_cam,

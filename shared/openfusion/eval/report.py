@@ -200,22 +200,26 @@ def render_markdown(results: dict) -> str:
     if sel is not None:
         lines += ["## Frame selection (encoder calls)", ""]
         rows = [[s["scene"], str(s["speed"]["frames"]), str(s["speed"].get("encoder_calls", "")),
-                 str(s["speed"].get("encoder_regions", "")), _f(s["regions"].get("calls_per_region"), "{:.1f}"),
+                 str(s["speed"].get("encoder_regions", "")), str(s["speed"].get("regions_not_embedded", "")),
+                 _f(s["regions"].get("calls_per_region"), "{:.1f}"),
                  _f(s["regions"].get("calls_per_object"), "{:.1f}"), str(s["speed"].get("skipped_no_gain", "")),
                  str(s["speed"].get("skipped_switch", "")), _f(s["speed"].get("select_ms"), "{:.1f}")]
                 for s in scenes]
         rows.append(["**all**", str(sel["frames"]), str(sel["encoder_calls"]), str(sel["encoder_regions"]),
+                     str(sel.get("regions_not_embedded", "")),
                      _f(reg.get("calls_per_region") if reg else None, "{:.1f}"),
                      _f(reg.get("calls_per_object") if reg else None, "{:.1f}"), str(sel["skipped_no_gain"]),
                      str(sel.get("skipped_switch", "")), _f(sel["select_ms"], "{:.1f}")])
-        lines += _table(["scene", "frames", "encoder calls (frames)", "regions encoded", "calls per region",
+        lines += _table(["scene", "frames", "encoder calls (frames)", "regions embedded", "regions not embedded",
+                         "calls per region",
                          "calls per object", "skipped (no gain)", "skipped (--semantic-every)", "scoring ms/frame"],
                         rows)
         lines.append("")
         lines.append(
             f"`--select {sel['select']}` (openfusion.mapping.selection). Calls per region = regions the encoder "
-            "returned / regions of the final map; calls per object = regions the encoder returned / ground-truth "
-            "objects seen (OVI-MAP's VLM calls per instance); scoring = render at the scored size + scoring, per "
+            "embedded / regions of the final map; calls per object = regions the encoder embedded / ground-truth "
+            "objects seen (OVI-MAP's VLM calls per instance); regions not embedded: regions of encoded frames that "
+            "added nothing (`select_embed_share`), fused without an embedding; scoring = render at the scored size + scoring, per "
             f"frame scored (a semantic step: {_f(sel.get('semantic_step_ms'), '{:.1f}')} ms). Each frame ends in one "
             "of: encoded, skipped (no gain), skipped (--semantic-every); through the services run.json's "
             "`semantic_outcomes` names more (superseded, dropped, evicted, no render...).")

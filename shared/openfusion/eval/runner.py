@@ -232,6 +232,7 @@ def evaluate_scene(
         "select": config.select.select,
         "encoder_calls": run.encoder_calls,
         "encoder_regions": run.encoder_regions,
+        "regions_not_embedded": run.regions_not_embedded,
         "frames_scored": run.frames_scored,
         "skipped_no_gain": run.skipped_no_gain,
         "skipped_switch": run.skipped_switch,

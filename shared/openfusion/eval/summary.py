@@ -13,7 +13,7 @@ from openfusion.eval.metrics import ConfusionMatrix, compute_metrics, sum_confus
 
 
 def encoder_calls_per_region(encoder_regions: int, dictionary_regions: int, gt_objects: int | None) -> dict:
-    """Region encodes (regions the encoder returned, summed over its calls) per region of the final
+    """Region encodes (regions the encoder embedded, summed over its calls) per region of the final
     map and per ground-truth object (OVI-MAP's VLM calls per instance)."""
     return {
         "encoder_regions": int(encoder_regions),
@@ -90,6 +90,7 @@ def summarize(scenes: Sequence[dict], config: EvalConfig) -> dict:
         "frames": frames,
         "encoder_calls": sum(s["speed"].get("encoder_calls", 0) for s in scenes),
         "encoder_regions": encoder_regions,
+        "regions_not_embedded": sum(s["speed"].get("regions_not_embedded", 0) for s in scenes),
         "skipped_no_gain": sum(s["speed"].get("skipped_no_gain", 0) for s in scenes),
         "skipped_switch": sum(s["speed"].get("skipped_switch", 0) for s in scenes),
         "select_ms": 1e3 * select_s / scored if scored else None,

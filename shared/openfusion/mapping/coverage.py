@@ -131,6 +131,13 @@ class ViewEvidence:
     keys: np.ndarray  # (n,) int64, the map's region at each surface pixel (-1: none)
     confident: np.ndarray  # (n,) bool, key >= 0 with confidence >= select_low_conf
     unsure_px: np.ndarray | None = None  # (h, w) bool: surface pixels without a confident region
+    surface_idx: np.ndarray | None = field(default=None, repr=False)  # (n,) flat index of each surface pixel
+    #: (h, w) bool, set when the view is chosen (:meth:`CoverageScorer.decide`): the pixels that add
+    #: something, against the record before the view was marked (:meth:`CoverageScorer.wanted_px`)
+    wanted_px: np.ndarray | None = field(default=None, repr=False)
+    #: per distinct confident key in view (sorted, as ``np.unique``): its embedding is settled (enough
+    #: views that agree, :attr:`CoverageScorer.embedding_support`, read when prepared); None: not asked
+    settled: np.ndarray | None = field(default=None, repr=False)
     # For marking a chosen view (:meth:`CoverageScorer.mark_selected`): the frame's depth sampled
     # MARK_DENSITY times denser than the score, and that grid's camera (None: the scored pixels are marked)
     mark_depth_m: np.ndarray | None = field(default=None, repr=False)
@@ -174,6 +181,10 @@ class CoverageScorer:
         self._cell_tries: list[dict[int, int]] = [{} for _ in range(p.select_tries)]
         self._rays: dict[CameraIntrinsics, np.ndarray] = {}
         self._selected_s: list[float] = []  # frame times of the views chosen (sorted; the newest SELECTED_KEPT)
+        #: keys (int64 (k,)) -> (how many embeddings each region's dictionary entry averages, the
+        #: length of that mean of unit vectors): :meth:`RegionDictionary.support_of`, set by the owner
+        #: of the dictionary, for ``select_embed_min_views`` / ``select_embed_min_agreement`` (:meth:`wanted_px`)
+        self.embedding_support: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
 
     # ------------------------------------------------------------------ record
     @property
@@ -290,7 +301,11 @@ class CoverageScorer:
         ev = ViewEvidence(
             frame_id=int(frame_id), stamp_s=stamp_ns / 1e9, view_px=h * w, bins=self._bins_of(rays, T),
             cells=self._cells_of(points), keys=keys, confident=confident, unsure_px=unsure_px.reshape(h, w),
-            T_world_cam=T)
+            surface_idx=np.flatnonzero(surface), T_world_cam=T)
+        if self.embedding_support is not None:  # asked here, outside the record's lock (its owner may lock)
+            count, agreement = self.embedding_support(np.unique(keys[confident]))
+            ev.settled = ((np.asarray(count) >= self.params.select_embed_min_views)
+                          & (np.asarray(agreement) >= self.params.select_embed_min_agreement))
         if full_depth_m is not None and full_intrinsics is not None:
             mh, mw = scoring_size(full_intrinsics, MARK_DENSITY * w)
             ev.mark_depth_m = np.asarray(resize_nearest(np.asarray(full_depth_m), (mh, mw)), np.float32)
@@ -364,6 +379,38 @@ class CoverageScorer:
                          new_direction=new_direction / n, stale=stale / n, surface=ev.surface_px / n,
                          regions=regions)
 
+    def wanted_px(self, ev: ViewEvidence) -> np.ndarray | None:
+        """(h, w) bool over the scored view: the pixels whose regions are worth an embedding
+        against the record as it is now (:mod:`openfusion.encoders.region_gate`): surface without a
+        confident region, and pixels of a region seen from a direction bin it was not encoded
+        from, written by fewer than ``select_min_views`` encoded frames, whose embedding averages
+        fewer than ``select_embed_min_views`` views or views that disagree (the mean's length under
+        ``select_embed_min_agreement``; :attr:`embedding_support`), or gone stale. Unlike the
+        score, every region counts whatever its size (a small region's first view from a
+        direction is still its first). None for a view prepared without its pixel layout."""
+        if ev.unsure_px is None or ev.surface_idx is None:
+            return None
+        p = self.params
+        want = ~ev.confident
+        with self._lock:
+            if ev.confident.any():
+                keys, bins = ev.keys[ev.confident], ev.bins[ev.confident]
+                uniq, inv = np.unique(keys, return_inverse=True)
+                masks = np.fromiter((self._region_bins.get(int(k), 0) for k in uniq), np.int64, len(uniq))
+                again = np.fromiter((self._region_views.get(int(k), 0) < p.select_min_views for k in uniq), bool,
+                                    len(uniq))
+                if p.select_stale_s is not None:
+                    last = np.fromiter((self._region_last_s.get(int(k), math.inf) for k in uniq), np.float64,
+                                       len(uniq))
+                    again |= ev.stamp_s - last >= p.select_stale_s
+                if ev.settled is not None and len(ev.settled) == len(uniq):
+                    again |= ~ev.settled
+                want = want.copy()
+                want[ev.confident] = (((masks[inv] >> bins) & 1) == 0) | again[inv]
+        out = np.zeros(ev.unsure_px.size, bool)
+        out[ev.surface_idx[want]] = True
+        return out.reshape(ev.unsure_px.shape)
+
     def min_gain_at(self, stamp_s: float) -> float:
         """The gain a view of frame time ``stamp_s`` needs: ``select_min_gain``, falling as
         ``1 / (1 + t / select_patience_s)`` with the frame time ``t`` to the nearest view chosen
@@ -390,6 +437,7 @@ class CoverageScorer:
             score = self.score(ev)
             chosen = self.worth_encoding(score)
             if chosen:
+                ev.wanted_px = self.wanted_px(ev)
                 self.mark_selected(ev)
             return score, chosen
 
@@ -404,6 +452,7 @@ class CoverageScorer:
             best = max(range(len(scores)), key=lambda i: (scores[i].gain, scores[i].stamp_s, i))
             if not self.worth_encoding(scores[best]):
                 return scores, None
+            evs[best].wanted_px = self.wanted_px(evs[best])
             self.mark_selected(evs[best])
             return scores, best
 

@@ -91,6 +91,19 @@ class RegionDictionary:
     def count(self, key: int) -> int:
         return int(self._counts[self._row(key)])
 
+    def support_of(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(counts int64 (k,), agreement float32 (k,))`` of each key: how many embeddings its entry
+        averages, and the length of that mean of unit vectors (1: every view agreed; a mean of views
+        of two objects is shorter). A key not in the dictionary: 0 and 0."""
+        keys = np.asarray(keys).reshape(-1)
+        counts, agreement = np.zeros(len(keys), np.int64), np.zeros(len(keys), np.float32)
+        for i, k in enumerate(keys.tolist()):
+            row = self._row_of.get(int(k))
+            if row is not None:
+                counts[i] = self._counts[row]
+                agreement[i] = np.linalg.norm(self._means[row])
+        return counts, agreement
+
     def label(self, key: int) -> str | None:
         return self._labels[self._row(key)]
 

@@ -373,12 +373,14 @@ def _joins(
     key_of: np.ndarray,
     pixels_won: np.ndarray,
     embeddings: np.ndarray,
+    embedded: np.ndarray,
     dictionary: RegionDictionary,
     p: MatchParams,
 ) -> list[tuple[int, int]]:
     """(frame region, key) for frame regions the assignment left unmatched that lie mostly inside
     one rendered region (``join_min_coverage`` of their pixels) whose embedding agrees with theirs
-    (``join_min_cos``): a part of an object the map already holds as one region (an encoder that
+    (``join_min_cos``; a region without an embedding, :mod:`openfusion.encoders.region_gate`, lies
+    on surface the map already describes from this direction and joins on coverage alone): a part of an object the map already holds as one region (an encoder that
     split the object, or a map region that merged two segments the encoder keeps apart). The
     assignment is one-to-one, so without this each such part would start a new region every frame.
     """
@@ -394,6 +396,9 @@ def _joins(
         best = int(counts.argmax())
         key = int(keys[best])
         if counts[best] < p.join_min_coverage * pixels_won[i] or key not in dictionary:
+            continue
+        if not embedded[i]:
+            out.append((int(i), key))
             continue
         v = embeddings[i] / max(float(np.linalg.norm(embeddings[i])), 1e-12)
         if float(v @ dictionary.embedding(key)) >= p.join_min_cos:
@@ -464,7 +469,9 @@ def plan_update(
 
     Each pixel takes the frame region with the highest confidence there (pixels below
     ``min_pixel_conf`` take none). Regions that win no pixel are skipped. A matched region
-    updates its key's running-mean embedding and count; an unmatched one gets a new key.
+    updates its key's running-mean embedding and count; an unmatched one gets a new key. A region
+    without an embedding (``obs.embedded`` False, :mod:`openfusion.encoders.region_gate`) still
+    takes pixels and fuses its matched key there, but updates no embedding and starts no region.
     With ``min_embedding_cos``, a pair may only match when the cosine similarity of the frame
     region's embedding and the key's embedding reaches it (off by default: geometry alone, as in
     the paper). Matching compares the frame's soft maps with the rendered confidences (or with the
@@ -487,6 +494,13 @@ def plan_update(
     labels = getattr(obs, "labels", None)
     if labels is not None and len(labels) != n:
         raise ValueError(f"labels has {len(labels)} entries for {n} regions")
+    embedded = getattr(obs, "embedded", None)
+    if embedded is None:
+        embedded = np.ones(n, bool)
+    else:
+        embedded = np.asarray(embedded)
+        if embedded.dtype != bool or embedded.shape != (n,):
+            raise ValueError(f"embedded must be ({n},) bool, got {embedded.dtype} {embedded.shape}")
     p = params if params is not None else MatchParams()
     h, w = rendered.key_map.shape
     # A render made before a merge reached its renderer (services) may still show merged-away
@@ -510,8 +524,8 @@ def plan_update(
         def gate(rkeys: np.ndarray) -> np.ndarray:
             allowed = np.zeros((n, len(rkeys)), bool)
             for j, key in enumerate(rkeys):
-                if int(key) in dictionary:
-                    allowed[:, j] = unit @ dictionary.embedding(int(key)) >= min_embedding_cos
+                if int(key) in dictionary:  # a region without an embedding is judged by geometry alone
+                    allowed[:, j] = (unit @ dictionary.embedding(int(key)) >= min_embedding_cos) | ~embedded
             return allowed
 
     match = _match_checked(conf_maps, rendered, p.min_iou, gate, p.rendered_conf_weighted)
@@ -527,22 +541,26 @@ def plan_update(
                 continue
             obs_idx.append(int(i))
             obs_keys.append(int(key))
-        if obs_idx:
+        seen = [j for j, i in enumerate(obs_idx) if embedded[i]]  # a region without an embedding keeps the key's
+        if seen:
             dictionary.observe_many(
-                np.array(obs_keys, np.int64),
-                embeddings[obs_idx],
-                [labels[i] for i in obs_idx] if labels is not None else None,
+                np.array([obs_keys[j] for j in seen], np.int64),
+                embeddings[[obs_idx[j] for j in seen]],
+                [labels[obs_idx[j]] for j in seen] if labels is not None else None,
             )
+        if obs_idx:
             key_of[obs_idx] = obs_keys
             plan.matched.extend(zip(obs_idx, obs_keys, strict=True))
-        for i, key in _joins(winner, covered, rendered.key_map, key_of, pixels_won, embeddings, dictionary, p):
-            dictionary.observe(key, embeddings[i], label=labels[i] if labels is not None else None)
+        for i, key in _joins(winner, covered, rendered.key_map, key_of, pixels_won, embeddings, embedded,
+                             dictionary, p):
+            if embedded[i]:
+                dictionary.observe(key, embeddings[i], label=labels[i] if labels is not None else None)
             key_of[i] = key
             plan.matched.append((i, key))
         for i in range(n):
             if key_of[i] >= 0:
                 continue
-            if pixels_won[i] == 0:
+            if pixels_won[i] == 0 or not embedded[i]:  # no embedding: it cannot start a region
                 plan.skipped.append(i)
                 continue
             key = dictionary.add(embeddings[i], label=labels[i] if labels is not None else None)

@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from openfusion.encoders.region_gate import encode_where
 from openfusion.frame import Frame
 from openfusion.mapping.dictionary import RegionDictionary
 from openfusion.mapping.errors import CapacityError
@@ -65,7 +66,8 @@ class PipelineStats:
     # frame selection (openfusion.mapping.selection): what went to the encoder and what was left out
     select: str = "coverage"
     encoder_calls: int = 0  # frames given to the region encoder
-    encoder_regions: int = 0  # regions it returned, summed over those calls
+    encoder_regions: int = 0  # regions it embedded, summed over those calls
+    regions_not_embedded: int = 0  # regions of chosen frames that added nothing: masks fused, no embedding
     frames_scored: int = 0  # frames scored by the coverage scorer
     skipped_no_gain: int = 0  # frames not encoded: they added too little (select_min_gain)
     select_s: float = 0.0  # time spent scoring (render at the scored size + numpy)
@@ -126,6 +128,7 @@ def map_scene(
     schedule = MergeSchedule(merge_p)
     empty = EmptyRegions(passes=1)  # updates are written before the next pass
     selector = FrameSelector(select_params, volume.render)
+    selector.scorer.embedding_support = dictionary.support_of
     stats = PipelineStats(select=selector.params.select)
 
     def merge_pass() -> None:
@@ -142,8 +145,9 @@ def map_scene(
         t1 = time.perf_counter()
         try:
             stats.encoder_calls += 1
-            obs = region_encoder.encode(frame)
-            stats.encoder_regions += len(obs.conf_maps)
+            obs = encode_where(region_encoder, frame, *selector.embed_where(frame))
+            stats.encoder_regions += obs.num_embedded
+            stats.regions_not_embedded += obs.num_regions - obs.num_embedded
             t2 = time.perf_counter()
             mapper.step(obs, frame.T_world_cam, frame.intrinsics, depth_m=frame.depth_m())
             if mapper.last_plan is not None:

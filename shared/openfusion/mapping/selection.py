@@ -81,6 +81,7 @@ class FrameSelector:
         self.stats = SelectionStats()
         self.last_score: ViewScore | None = None
         self._run: list[tuple[Frame, ViewEvidence]] = []  # frames waiting for their run's decision
+        self._wanted: dict[int, np.ndarray | None] = {}  # id(frame) -> its wanted pixels, until it is encoded
 
     @property
     def scoring(self) -> bool:
@@ -92,7 +93,10 @@ class FrameSelector:
         if not self.scoring:
             return True
         t0 = time.perf_counter()
-        score, chosen = self.scorer.decide(self.scorer.prepare_frame(frame, self.render))
+        ev = self.scorer.prepare_frame(frame, self.render)
+        score, chosen = self.scorer.decide(ev)
+        if chosen:
+            self._wanted[id(frame)] = ev.wanted_px
         self.last_score = score
         self.stats.frames_scored += 1
         self.stats.skipped_no_gain += int(not chosen)
@@ -125,7 +129,20 @@ class FrameSelector:
         scores, best = self.scorer.decide_best([ev for _, ev in run])
         self.last_score = scores[best] if best is not None else scores[-1]
         self.stats.skipped_no_gain += len(run) - (best is not None)
-        return [run[best][0]] if best is not None else []
+        if best is None:
+            return []
+        self._wanted[id(run[best][0])] = run[best][1].wanted_px
+        return [run[best][0]]
+
+    def embed_where(self, frame: Frame) -> tuple[np.ndarray | None, float | None]:
+        """``(wanted_px, min_share)`` for :meth:`RegionEncoder.encode_where` of a frame this
+        selector chose (:mod:`openfusion.encoders.region_gate`): ``(None, None)``, every region
+        embedded, unless ``select=coverage`` chose it and ``select_embed_share`` is set. Asked once
+        per chosen frame (what it keeps is dropped)."""
+        wanted = self._wanted.pop(id(frame), None)
+        if wanted is None or self.params.select_embed_share is None:
+            return None, None
+        return wanted, self.params.select_embed_share
 
     def encoded(self, frame: Frame, key_map: np.ndarray) -> None:
         """Record the update a chosen frame's encoding planned (``key_map`` at the encoder's size)."""

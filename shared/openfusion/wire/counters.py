@@ -122,7 +122,8 @@ class SemanticCounter(StrEnum):
     MERGE_FAILURES = "merge_failures"  # passes skipped: geometry did not answer geometry/contacts
     # frame selection (openfusion.mapping.selection; semantic.select)
     ENCODER_CALLS = "encoder_calls"  # frames the region encoder encoded (here, or answered by the pool's workers)
-    ENCODER_REGIONS = "encoder_regions"  # regions it returned, summed over those calls
+    ENCODER_REGIONS = "encoder_regions"  # regions it embedded, summed over those calls
+    REGIONS_NOT_EMBEDDED = "regions_not_embedded"  # regions of encoded frames that added nothing: fused, no embedding
     FRAMES_SCORED = "frames_scored"  # candidate frames scored (coverage)
     SKIPPED_NO_GAIN = "skipped_no_gain"  # frames not encoded: they would add less than select_min_gain
     SELECT_EVICTED = "select_evicted"  # candidates a full window let go for better ones (never encoded)
