@@ -205,9 +205,9 @@ def services(work: Path, frames: int, delay_ms: float, repeat: int, sets: list[s
           f"{'; every run with ' + ', '.join(sets) if sets else ''})")
     print()
     print("| run | mode | select | encoder workers | f-mIoU | Δ vs in-process every frame | mAcc | unlabelled | "
-          "encoder calls | skipped (no gain) | regions | calls per region | wall (s) | load 1/5 min before -> after | "
-          "semantic frames received: outcomes |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "encoder calls | regions embedded / not | skipped (no gain) | regions | calls per region | wall (s) | "
+          "load 1/5 min before -> after | semantic frames received: outcomes |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     baseline = None
     variants = [("in-process", "every", 0), ("in-process", "coverage", 0), ("services", "latest", 0),
                 ("services", "coverage", 0),
@@ -230,7 +230,8 @@ def services(work: Path, frames: int, delay_ms: float, repeat: int, sets: list[s
             baseline = q["f_mIoU"] if baseline is None else baseline
             print(f"| {rep + 1} | {mode} | {select} | {workers} | {q['f_mIoU']:.4f} | {q['f_mIoU'] - baseline:+.4f} | "
                   f"{q['mAcc']:.4f} | {q['unlabelled_fraction']:.3f} | {summary['encoder_calls']} of "
-                  f"{summary['frames_integrated']} | {summary['skipped_no_gain']} | {summary['regions']} | "
+                  f"{summary['frames_integrated']} | {summary['encoder_regions']} / {summary.get('regions_not_embedded', 0)} | "
+                  f"{summary['skipped_no_gain']} | {summary['regions']} | "
                   f"{_f(summary.get('calls_per_region'), '{:.1f}')} | {wall:.0f} | {load} | {_outcomes(summary)} |",
                   flush=True)
     print()

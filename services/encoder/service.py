@@ -30,7 +30,7 @@ from pydantic import Field, field_validator
 
 from openfusion.bus import RequestError, ServiceRunner
 from openfusion.config import ServiceConfig
-from openfusion.encoders.region_gate import encode_where
+from openfusion.mapping.region_gate import encode_where
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.encoder.options import EncoderOptions, region_encoder_from_section, warm_up_encoder
 from openfusion.wire.counters import EncoderCounter

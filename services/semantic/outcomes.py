@@ -26,7 +26,7 @@ from openfusion.wire.counters import SEMANTIC_FRAME_OUTCOMES, SemanticCounter
 def count_embedded(stats: ServiceStats, regions: int, embedded: int) -> None:
     """An encoder call's regions: ``embedded`` of them carry an embedding (``encoder_regions``),
     the rest added nothing and were fused without one (``regions_not_embedded``,
-    :mod:`openfusion.encoders.region_gate`)."""
+    :mod:`openfusion.mapping.region_gate`)."""
     stats.incr(SemanticCounter.ENCODER_REGIONS, embedded)
     stats.incr(SemanticCounter.REGIONS_NOT_EMBEDDED, regions - embedded)
 

@@ -56,6 +56,8 @@ EVERY_QUEUE = 64
 #: few): latest-only memory, a few frames in hand, not a queue of every frame.
 LATEST_QUEUE = 4
 LATEST_BUFFER = 16
+#: Instance images kept beyond the frames the rgbd queue holds (one is sent just before its frame).
+INSTANCE_MARGIN = 16
 
 
 class SemanticConfig(ServiceConfig):

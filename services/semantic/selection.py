@@ -83,7 +83,7 @@ class Pending:
     msg: RgbdFrame
     instance: InstanceFrame | None
     #: the pixels worth an embedding (set when the window hands it out: the selection's decision,
-    #: :mod:`openfusion.encoders.region_gate`); None: every region is embedded
+    #: :mod:`openfusion.mapping.region_gate`); None: every region is embedded
     wanted_px: np.ndarray | None = None
 
 

@@ -61,11 +61,11 @@ import zenoh
 from openfusion.bus import Publisher, QueryError, ServiceRunner, Subscriber
 from openfusion.bus.instance_join import InstanceBuffer
 from openfusion.encoders import RegionObservation
-from openfusion.encoders.region_gate import encode_where
 from openfusion.frame import Frame, resize_nearest
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
 from openfusion.mapping.merging import EmptyRegions, MergeSchedule, RegionContacts, apply_merges, plan_merges
 from openfusion.mapping.params import MatchParams, MergeParams, SelectParams
+from openfusion.mapping.region_gate import encode_where
 from openfusion.mapping.selection import CandidateWindow, CoverageScorer
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.encoder.options import (
@@ -80,6 +80,7 @@ from openfusion.services.semantic.pool import EncoderPool
 from openfusion.services.semantic.pool_loop import PoolDispatch
 from openfusion.services.semantic.section import (  # noqa: F401 (re-exported: the service's settings lived here)
     EVERY_QUEUE,
+    INSTANCE_MARGIN,
     LATEST_BUFFER,
     LATEST_QUEUE,
     SemanticConfig,
@@ -146,7 +147,11 @@ class SemanticService:
         self._feeder: CandidateFeeder | None = None
         self._next_seq = 0  # the order frames are taken for the encoder in (pool results apply in it)
         self._frames: Subscriber[RgbdFrame] | None = None
-        self._instances: InstanceBuffer | None = InstanceBuffer() if self.encoder.needs_instances else None
+        # Instance images for every frame the frame queue may hold, and some: a frame at the head of a
+        # full queue still finds its image (a buffer no deeper than the queue evicted it, and the frame
+        # was then skipped; InstanceBuffer.take no longer waits for an image that is gone).
+        self._instances: InstanceBuffer | None = (
+            InstanceBuffer(capacity=self._frame_queue_size() + INSTANCE_MARGIN) if self.encoder.needs_instances else None)
         self._update_pub: Publisher | None = None
         self._delta_pub: Publisher | None = None
         self._published_version = self.dictionary.version
@@ -184,6 +189,11 @@ class SemanticService:
                     self.dictionary.version)
         return True
 
+    def _frame_queue_size(self) -> int:
+        """Frames ``sensor/rgbd``'s subscription holds per robot (coverage: the candidate window's size)."""
+        return {"coverage": self.select_params.select_window, "every": EVERY_QUEUE,
+                "latest": LATEST_QUEUE}[self.select_params.select]
+
     def _embedding_support(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         with self._dictionary_lock:  # called while a candidate is prepared, never under the scorer's lock
             return self.dictionary.support_of(keys)
@@ -206,7 +216,7 @@ class SemanticService:
                 wanted_px: np.ndarray | None = None) -> None:
         """One semantic step for one frame (called from the loop), with its instance image when
         the encoder reads them; ``wanted_px``: the selection's pixels worth an embedding (None:
-        every region, :mod:`openfusion.encoders.region_gate`)."""
+        every region, :mod:`openfusion.mapping.region_gate`)."""
         started = time.monotonic()
         frame = msg.to_frame(instance)
         runner.stats.incr(SemanticCounter.ENCODER_CALLS)
@@ -342,8 +352,7 @@ class SemanticService:
         mode = self.select_params.select
         # Coverage and every: a queue per robot's bridge served in turn (fair), so one robot's backlog
         # never keeps another's frames from being scored; coverage then picks across robots by gain.
-        queue = {"coverage": self.select_params.select_window, "every": EVERY_QUEUE, "latest": LATEST_QUEUE}[mode]
-        self._frames = runner.subscriber(SENSOR_RGBD, queue_size=queue, fair=True)
+        self._frames = runner.subscriber(SENSOR_RGBD, queue_size=self._frame_queue_size(), fair=True)
         if mode == "latest":  # the newest frame geometry has taken (geometry_progress.NewestTaken)
             self._newest = NewestTaken(self._integrated, capacity=LATEST_BUFFER, wait_s=self.section.integrate_wait_s)
         if self._scorer is not None:

@@ -17,7 +17,8 @@ import threading
 from contextlib import ExitStack
 
 from openfusion.bus import Publisher, open_session
-from openfusion.encoders.region_gate import gate_observation
+from openfusion.mapping.params import SelectParams
+from openfusion.mapping.region_gate import gate_observation
 from openfusion.services.encoder.service import EncoderConfig, EncoderWorker
 from openfusion.services.geometry.service import GeometryConfig, GeometryService
 from openfusion.services.semantic.service import SemanticConfig, SemanticService
@@ -132,7 +133,8 @@ def _assert_gated(semantic: ServiceThread, encoder: GateRecorder) -> None:
     the map is empty, so every region is embedded) and the default share; the counters split the
     returned regions into embedded and not."""
     assert len(encoder.calls) == 2
-    assert all(mask is not None and share == 0.4 for mask, share, _, _ in encoder.calls)
+    share_default = SelectParams().select_embed_share
+    assert all(mask is not None and share == share_default for mask, share, _, _ in encoder.calls)
     assert encoder.calls[0][0].mean() > 0.5 and encoder.calls[0][3] == encoder.calls[0][2] > 3
     assert semantic.counter(SemanticCounter.ENCODER_REGIONS) == sum(c[3] for c in encoder.calls)
     assert semantic.counter(SemanticCounter.REGIONS_NOT_EMBEDDED) == sum(c[2] - c[3] for c in encoder.calls)

@@ -1,7 +1,8 @@
 """InstanceBuffer: the semantic service's join of ``sensor/rgbd`` frames with their instance
 images from ``sensor/instance``. Plain library code, no bus. Bad input tried: a frame whose
 instance image never comes (None after the wait, nothing else taken) and a flood of instance
-images nobody asks for (memory stays at the capacity, evictions counted)."""
+images nobody asks for (memory stays at the capacity, evictions counted), a frame whose image was
+evicted or lost while a later one came (None at once, no wait)."""
 
 from __future__ import annotations
 
@@ -70,3 +71,26 @@ def test_memory_stays_bounded_when_nobody_takes() -> None:
     assert buf.take(_rgbd(95, 95)) is None and buf.take(_rgbd(99, 99)) is not None
     with pytest.raises(ValueError, match="capacity must be at least 1"):
         InstanceBuffer(capacity=0)
+
+
+def test_an_instance_image_that_cannot_come_any_more_is_not_waited_for() -> None:
+    """A consumer that fell behind its frames asks for images already gone: evicted, or lost on the
+    way while a later one came. It gets None at once, not after its wait (which would make its own
+    frame queue drop a run of frames meanwhile)."""
+    buf = InstanceBuffer(capacity=4)
+    for i in range(10):  # frames 0-5 evicted
+        buf.add(_instance(i, i * 100))
+    started = time.monotonic()
+    assert buf.take(_rgbd(3, 300), timeout_s=60.0) is None  # evicted
+    buf.take(_rgbd(7, 700))  # frames 6 and 7 taken
+    later = InstanceBuffer()
+    later.add(_instance(5, 500))  # frame 4's image never came, frame 5's did
+    assert later.take(_rgbd(4, 400), timeout_s=60.0) is None
+    assert time.monotonic() - started < 30.0  # neither waited its 60 s
+    assert len(later) == 1 and later.take(_rgbd(5, 500)) is not None  # a miss takes nothing
+    # another robot's later image says nothing about this robot's
+    other = InstanceBuffer()
+    other.add(InstanceFrame(frame_id=9, stamp_ns=900, robot="r2", instance=np.zeros((3, 4), np.int32),
+                            instance_categories={}))
+    threading.Timer(0.1, other.add, args=(_instance(4, 400),)).start()
+    assert other.take(_rgbd(4, 400), timeout_s=30.0) is not None

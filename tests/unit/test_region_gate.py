@@ -1,4 +1,4 @@
-"""Embeddings only for the regions a chosen view adds (openfusion.encoders.region_gate): the rule,
+"""Embeddings only for the regions a chosen view adds (openfusion.mapping.region_gate): the rule,
 the scorer's wanted pixels, a crop encoder that skips the crops, the update that fuses a region
 without an embedding, and the pool's messages that carry the mask and the flags.
 
@@ -16,10 +16,10 @@ from pydantic import ValidationError
 from openfusion.encoders import EncoderError, RegionObservation
 from openfusion.encoders.crops import CropSpec
 from openfusion.encoders.proposal_encoder import ProposalRegionEncoder
-from openfusion.encoders.region_gate import encode_where, gate_observation, regions_wanted
 from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.mapping import RegionDictionary, RenderedView, plan_update
 from openfusion.mapping.params import SelectParams
+from openfusion.mapping.region_gate import encode_where, gate_observation, regions_wanted
 from openfusion.mapping.selection import CoverageScorer
 from openfusion.poses import look_at
 from openfusion.wire.codec import decode, encode

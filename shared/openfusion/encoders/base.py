@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from openfusion.encoders.region_gate import gate_observation
 from openfusion.errors import OpenFusionError, UserError
 from openfusion.frame import CameraIntrinsics, Frame
+from openfusion.mapping.region_gate import gate_observation
 
 logger = logging.getLogger(__name__)
 
@@ -55,7 +55,7 @@ class RegionObservation:
 
     ``embedded`` (bool (n,), None = every region) says which regions carry an embedding: a frame
     encoded with :meth:`RegionEncoder.encode_where` embeds only the regions that show what the view
-    adds (:mod:`openfusion.encoders.region_gate`); the others keep their confidence map (their
+    adds (:mod:`openfusion.mapping.region_gate`); the others keep their confidence map (their
     pixels still update the map's region keys) and a zero row in ``embeddings``.
     """
 
@@ -162,7 +162,7 @@ class RegionEncoder(abc.ABC):
     def encode_where(self, frame: Frame, wanted_px: np.ndarray | None, min_share: float | None) -> RegionObservation:
         """:meth:`encode`, embedding only the regions with at least ``min_share`` of their pixels in
         ``wanted_px`` (bool (h, w), any size: what the view adds, from the frame selection); the
-        others come back with ``embedded`` False (:mod:`openfusion.encoders.region_gate`).
+        others come back with ``embedded`` False (:mod:`openfusion.mapping.region_gate`).
         ``wanted_px`` or ``min_share`` None: every region is embedded, as :meth:`encode`.
 
         This default encodes every region and then drops the embeddings of the others, for

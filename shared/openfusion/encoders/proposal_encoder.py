@@ -25,8 +25,8 @@ from openfusion.encoders.base import (
     check_rgb,
 )
 from openfusion.encoders.crops import CropSpec, preprocess_image, region_boxes, region_crops
-from openfusion.encoders.region_gate import regions_wanted
 from openfusion.frame import Frame
+from openfusion.mapping.region_gate import regions_wanted
 
 logger = logging.getLogger(__name__)
 
@@ -99,7 +99,7 @@ class ProposalRegionEncoder(RegionEncoder, ImageQueryEncoder):
 
     def encode_where(self, frame: Frame, wanted_px: np.ndarray | None, min_share: float | None) -> RegionObservation:
         """Proposals of ``frame``; crops embedded only for the regions
-        :func:`~openfusion.encoders.region_gate.regions_wanted` keeps (the others are not cropped
+        :func:`~openfusion.mapping.region_gate.regions_wanted` keeps (the others are not cropped
         nor embedded: ``embedded`` False, a zero row). ``stats["regions_not_embedded"]`` counts them."""
         check_rgb(frame.color)
         out_hw = self.output_size(*frame.color.shape[:2])

@@ -13,12 +13,12 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-from openfusion.encoders.region_gate import encode_where
 from openfusion.eval.baselines import FrameRecord, RawOpen3DIntegrator, record_frame
 from openfusion.eval.geometry import ObservedSurface
 from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume
 from openfusion.mapping.merging import EmptyRegions, MergeSchedule, merge_regions
 from openfusion.mapping.params import MatchParams, MergeParams, SelectParams, VolumeParams
+from openfusion.mapping.region_gate import encode_where
 from openfusion.mapping.selection import FrameSelector
 
 

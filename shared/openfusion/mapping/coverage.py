@@ -44,10 +44,13 @@ Why these rules and defaults (measured in docs/EVAL.md, "Frame selection")
     OVI-MAP (CVPR 2026) runs its VLM only on views that add viewing-direction coverage of an
     instance (at most 0.9 overlap with the covered bins, at least 1000 visible pixels, the top K by
     visible area) and cut VLM calls per instance from 18.7 to 8.6 at about the same accuracy; OVO
-    keeps the top views per segment by mask area. We score whole frames because our encoders
-    describe a frame at once (one call per frame, all its regions), so what a call buys is the sum
-    over its regions: new surface first (weight 1: an unlabelled pixel is a miss in every metric),
-    new directions of known regions at half weight (a second view of a labelled surface refines
+    keeps the top views per segment by mask area. We score whole frames because an encoder call
+    takes a frame (its proposals or its dense features come from the whole image), so what a call
+    buys is the sum over its regions; within a chosen frame only the regions that add something
+    are embedded (:meth:`wanted_px`, :mod:`openfusion.mapping.region_gate`: OVI-MAP's rule per
+    region, ``select_embed_share``), the others fuse their masks without an embedding. A call
+    buys new surface first (weight 1: an unlabelled pixel is a miss in every metric), new
+    directions of known regions at half weight (a second view of a labelled surface refines
     its embedding and its borders but is worth less than a first one), and staleness as a floor.
     The bins are coarse (24, about 47 degrees across): finer bins made a robot's small turns look
     new. The view is scored at 64 px wide: a ray cast of the map at that size costs ~4 ms on a
@@ -381,7 +384,7 @@ class CoverageScorer:
 
     def wanted_px(self, ev: ViewEvidence) -> np.ndarray | None:
         """(h, w) bool over the scored view: the pixels whose regions are worth an embedding
-        against the record as it is now (:mod:`openfusion.encoders.region_gate`): surface without a
+        against the record as it is now (:mod:`openfusion.mapping.region_gate`): surface without a
         confident region, and pixels of a region seen from a direction bin it was not encoded
         from, written by fewer than ``select_min_views`` encoded frames, whose embedding averages
         fewer than ``select_embed_min_views`` views or views that disagree (the mean's length under

@@ -379,15 +379,16 @@ def _joins(
 ) -> list[tuple[int, int]]:
     """(frame region, key) for frame regions the assignment left unmatched that lie mostly inside
     one rendered region (``join_min_coverage`` of their pixels) whose embedding agrees with theirs
-    (``join_min_cos``; a region without an embedding, :mod:`openfusion.encoders.region_gate`, lies
-    on surface the map already describes from this direction and joins on coverage alone): a part of an object the map already holds as one region (an encoder that
+    (``join_min_cos``; a region without an embedding, :mod:`openfusion.mapping.region_gate`,
+    cannot show that it agrees and joins nothing: coverage alone would glue another object to a
+    region wherever a render lags the map): a part of an object the map already holds as one region (an encoder that
     split the object, or a map region that merged two segments the encoder keeps apart). The
     assignment is one-to-one, so without this each such part would start a new region every frame.
     """
     if p.join_min_coverage is None:
         return []
     out = []
-    for i in np.flatnonzero((key_of < 0) & (pixels_won > 0)):
+    for i in np.flatnonzero((key_of < 0) & (pixels_won > 0) & embedded):
         under = rendered_keys[covered & (winner == i)]
         under = under[under >= 0]
         if len(under) == 0:
@@ -396,9 +397,6 @@ def _joins(
         best = int(counts.argmax())
         key = int(keys[best])
         if counts[best] < p.join_min_coverage * pixels_won[i] or key not in dictionary:
-            continue
-        if not embedded[i]:
-            out.append((int(i), key))
             continue
         v = embeddings[i] / max(float(np.linalg.norm(embeddings[i])), 1e-12)
         if float(v @ dictionary.embedding(key)) >= p.join_min_cos:
@@ -470,8 +468,9 @@ def plan_update(
     Each pixel takes the frame region with the highest confidence there (pixels below
     ``min_pixel_conf`` take none). Regions that win no pixel are skipped. A matched region
     updates its key's running-mean embedding and count; an unmatched one gets a new key. A region
-    without an embedding (``obs.embedded`` False, :mod:`openfusion.encoders.region_gate`) still
-    takes pixels and fuses its matched key there, but updates no embedding and starts no region.
+    without an embedding (``obs.embedded`` False, :mod:`openfusion.mapping.region_gate`) still
+    takes pixels and fuses its matched key there, but updates no embedding, joins no region and
+    starts none.
     With ``min_embedding_cos``, a pair may only match when the cosine similarity of the frame
     region's embedding and the key's embedding reaches it (off by default: geometry alone, as in
     the paper). Matching compares the frame's soft maps with the rendered confidences (or with the

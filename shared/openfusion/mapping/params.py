@@ -355,13 +355,13 @@ class SelectParams(SectionParams):
         60.0, gt=0, description="coverage: a region in view not encoded for this long (frame stamps) counts with "
         "all its pixels, so it cannot go stale while it is seen (none = never stale)")
     select_embed_share: float | None = Field(
-        0.4, ge=0, le=1, description="coverage: of a chosen frame, a region is embedded only when at least this "
+        0.3, ge=0, le=1, description="coverage: of a chosen frame, a region is embedded only when at least this "
         "share of its pixels adds something (surface without a confident region, a region seen from a direction "
         "it was not encoded from, or gone stale); the others still update the map's region keys but carry no "
         "embedding (an encoder of region crops does not compute them; OVI-MAP's per-instance rule); none = "
         "every region of a chosen frame")
     select_embed_min_views: int = Field(
-        2, ge=0, le=100, description="coverage, with select_embed_share: a region whose embedding averages fewer "
+        3, ge=0, le=100, description="coverage, with select_embed_share: a region whose embedding averages fewer "
         "views than this is embedded again whenever a chosen frame shows it, whatever the direction (one noisy "
         "view, or a mask that merged two objects, is not a region's final word); 0 = off")
     select_embed_min_agreement: float = Field(

@@ -17,13 +17,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from openfusion.encoders.region_gate import encode_where
 from openfusion.frame import Frame
 from openfusion.mapping.dictionary import RegionDictionary
 from openfusion.mapping.errors import CapacityError
 from openfusion.mapping.mapper import SemanticMapper
 from openfusion.mapping.merging import EmptyRegions, MergeSchedule, merge_regions
 from openfusion.mapping.params import MatchParams, MergeParams, SelectParams, VolumeParams
+from openfusion.mapping.region_gate import encode_where
 from openfusion.mapping.selection import FrameSelector
 from openfusion.mapping.volume import SemanticVolume
 

@@ -136,7 +136,7 @@ class FrameSelector:
 
     def embed_where(self, frame: Frame) -> tuple[np.ndarray | None, float | None]:
         """``(wanted_px, min_share)`` for :meth:`RegionEncoder.encode_where` of a frame this
-        selector chose (:mod:`openfusion.encoders.region_gate`): ``(None, None)``, every region
+        selector chose (:mod:`openfusion.mapping.region_gate`): ``(None, None)``, every region
         embedded, unless ``select=coverage`` chose it and ``select_embed_share`` is set. Asked once
         per chosen frame (what it keeps is dropped)."""
         wanted = self._wanted.pop(id(frame), None)

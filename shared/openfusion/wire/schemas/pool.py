@@ -39,7 +39,7 @@ class EncodeRequest(RgbdFrame):
     worker holding another space refuses it (``reply_err`` ``wrong_space``). The frame's instance
     image travels with it when the worker's encoder reads them (gt). ``embed_where`` (bool (h, w),
     any size) with ``embed_share``: embed only the regions with at least that share of their
-    pixels in it (:mod:`openfusion.encoders.region_gate`); absent: every region."""
+    pixels in it (:mod:`openfusion.mapping.region_gate`); absent: every region."""
 
     schema_name: ClassVar[str] = "pool.encode_request"
     schema_version: ClassVar[int] = 1
