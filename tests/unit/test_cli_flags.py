@@ -151,5 +151,9 @@ def test_valid_combinations_next_to_the_refused_ones_still_pass(tmp_path) -> Non
     config = eval_config(_parsed(["eval", "--exclude-background", "--background-classes", "wall,floor"]))
     assert config.excluded_classes == ("wall", "floor")
     assert eval_config(_parsed(["eval", "--encoder", "clip-regions", "--noise", "off"])).encoder == "clip-regions"
+    assert eval_config(_parsed(["eval"])).select.select_embed_share == 0.3
+    assert eval_config(_parsed(["eval", "--embed-share", "none"])).select.select_embed_share is None
+    gated = eval_config(_parsed(["eval", "--embed-share", "0.5", "--select", "coverage"])).select
+    assert gated.select_embed_share == 0.5 and gated.select == "coverage"
     assert eval_config(_parsed(["eval"])).background_classes == eval_config(
         _parsed(["eval", "--exclude-background"])).background_classes

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from dataclasses import replace
 from typing import get_args
@@ -71,6 +72,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--select", choices=get_args(SelectMode), default=None,
         help="which frames are encoded: coverage (default: those that add something, "
         "openfusion.mapping.selection), every, or latest (the same as every in one process)")
+    parser.add_argument(
+        "--embed-share", default=None, metavar="SHARE|none",
+        help="with --select coverage: a region of a chosen frame is embedded only when this share of its pixels "
+        "adds something (default 0.3, semantic.select_embed_share); none: every region of a chosen frame")
     parser.add_argument(
         "--gt-spacing",
         type=float,
@@ -150,11 +155,29 @@ def config_from_args(args: argparse.Namespace) -> EvalConfig:
         volume_changes["memory_budget_mb"] = args.memory_budget_mb
     if volume_changes:
         overrides["volume"] = base.volume.with_changes(**volume_changes)
+    select_changes: dict[str, object] = {}
     if getattr(args, "select", None) is not None:
-        overrides["select"] = base.select.model_copy(update={"select": args.select})
+        select_changes["select"] = args.select
+    if getattr(args, "embed_share", None) is not None:
+        select_changes["select_embed_share"] = _embed_share(args.embed_share)
+    if select_changes:
+        overrides["select"] = base.select.model_copy(update=select_changes)
     if overrides["exclude_background"] and not overrides["background_classes"]:
         raise UsageError("--exclude-background needs at least one class in --background-classes")
     return replace(base, **overrides)
+
+
+def _embed_share(text: str) -> float | None:
+    """``--embed-share``: a share in [0, 1] or ``none``; UsageError otherwise."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        share = float(text)
+    except ValueError:
+        share = math.nan
+    if not 0.0 <= share <= 1.0:
+        raise UsageError(f"--embed-share must be a share between 0 and 1 or none, got {text!r}")
+    return share
 
 
 def run(args: argparse.Namespace) -> int:
