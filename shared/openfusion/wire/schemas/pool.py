@@ -42,7 +42,7 @@ class EncodeRequest(RgbdFrame):
     pixels in it (:mod:`openfusion.mapping.region_gate`); absent: every region."""
 
     schema_name: ClassVar[str] = "pool.encode_request"
-    schema_version: ClassVar[int] = 1
+    schema_version: ClassVar[int] = 2  # 2: embed_where, embed_share
 
     map_id: str
     embedding_space: str
@@ -78,7 +78,7 @@ class EncodeReply(Message):
     ``embedded`` (bool (n,)): which regions carry one (the others a zero row; absent: all)."""
 
     schema_name: ClassVar[str] = "pool.encode_reply"
-    schema_version: ClassVar[int] = 1
+    schema_version: ClassVar[int] = 2  # 2: embedded
 
     frame_id: int = Field(ge=0)
     worker_id: str
