@@ -1,6 +1,7 @@
 """Embeddings only for the regions a chosen view adds (openfusion.mapping.region_gate): the rule,
 the scorer's wanted pixels, a crop encoder that skips the crops, the update that fuses a region
-without an embedding, and the pool's messages that carry the mask and the flags.
+without an embedding, the pool's messages that carry the mask and the flags, and the in-process
+pipeline (fewer regions embedded, the same frames encoded, the same surface labelled).
 
 Bad inputs tried: a wanted mask that is not 2-D, a share outside [0, 1], an observation whose
 ``embedded`` flags are of the wrong length or type or whose skipped row is not zero (refused by
@@ -217,3 +218,39 @@ def test_the_pool_request_carries_the_mask_and_the_reply_the_flags() -> None:
     assert decode(encode(reply), expected=EncodeReply).embedded.tolist() == [True, False]
     with pytest.raises(ValidationError, match="embedded flags"):
         EncodeReply(**{**reply.model_dump(), "embedded": np.array([True])})
+
+
+# ------------------------------------------------------------------ the in-process pipeline
+def test_the_pipeline_embeds_fewer_regions_and_labels_the_same_surface() -> None:
+    """Two laps of a small room: the second lap's chosen frames show regions already described from
+    there, so they are fused without embeddings; the same frames are encoded and the same surface
+    labelled as when every region of a chosen frame is embedded, and run.json says how many."""
+    from openfusion.app.summary import RunSummary
+    from openfusion.mapping import VolumeParams
+    from openfusion.mapping.pipeline import map_scene
+    from openfusion.sources import open_source
+    from openfusion.testing.encoders import FlakyEncoder
+
+    frames = list(open_source("synthetic:frames=24,lap=12,width=160,height=120"))
+    volume = VolumeParams(initial_block_count=4096)
+
+    def run(share: float | None):  # noqa: ANN202
+        return map_scene(frames, region_encoder=FlakyEncoder(empty_on=(), fail_on=()), volume_params=volume,
+                         select_params=SelectParams(select_embed_share=share))
+
+    gated, every_region = run(SelectParams().select_embed_share), run(None)
+    assert gated.stats.encoder_calls == every_region.stats.encoder_calls > 2
+    assert gated.stats.encoder_regions < every_region.stats.encoder_regions
+    assert gated.stats.regions_not_embedded > 0 and every_region.stats.regions_not_embedded == 0
+    returned = gated.stats.encoder_regions + gated.stats.regions_not_embedded
+    assert abs(returned - every_region.stats.encoder_regions) <= 0.05 * returned  # the same frames' regions
+
+    def labelled(result) -> float:  # noqa: ANN001
+        keys = np.asarray(result.volume.extract_points().keys)
+        return float((keys >= 0).mean())
+
+    assert labelled(gated) >= labelled(every_region) - 0.01
+    summary = RunSummary.from_pipeline(gated.stats, regions=len(gated.dictionary), source="synthetic", encoder="gt",
+                                       noise="off", semantic_every=1, wall_s=1.0)
+    assert summary.regions_not_embedded == gated.stats.regions_not_embedded
+    assert summary.encoder_regions == gated.stats.encoder_regions
