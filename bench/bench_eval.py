@@ -84,11 +84,8 @@ def main(argv: list[str] | None = None) -> int:
     profiles = [p.strip() for p in args.noise.split(",") if p.strip()]
 
     if args.compare_select:
-        def select_of(pairs: list[str]) -> SelectParams:  # FIELD= (empty) is None, as with --set
-            return SelectParams.model_validate({k: (v or None) for k, v in (kv.split("=", 1) for kv in pairs if kv)})
-
-        after = select_of(args.select_set)
-        also = [select_of(row.split(",")) for row in args.select_also]
+        after = SelectParams.from_pairs(args.select_set)  # FIELD= (empty) is none, as with --set
+        also = [SelectParams.from_pairs([kv for kv in row.split(",") if kv]) for row in args.select_also]
         return compare_select(base, specs, profiles, after, also)
     if args.compare_merging:
         return compare_merging(base, specs, profiles, [e.strip() for e in args.merge_embedding.split(",") if e.strip()])

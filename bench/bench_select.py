@@ -261,8 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     lap = args.lap or (BUILTIN_LAP if args.full else 40)
     width, height = (640, 480) if args.full else (320, 240)
     if args.laps or everything:
-        also = [SelectParams.model_validate(dict(kv.split("=", 1) for kv in row.split(",") if kv))
-                for row in args.select_also]
+        also = [SelectParams.from_pairs([kv for kv in row.split(",") if kv]) for row in args.select_also]
         laps(args.laps_n, lap, width, height, also)
     if args.cost or everything:
         cost(args.laps_n, lap, width, height, [int(w) for w in args.widths.split(",")])

@@ -254,3 +254,17 @@ def test_the_pipeline_embeds_fewer_regions_and_labels_the_same_surface() -> None
                                        noise="off", semantic_every=1, wall_s=1.0)
     assert summary.regions_not_embedded == gated.stats.regions_not_embedded
     assert summary.encoder_regions == gated.stats.encoder_regions
+
+
+def test_select_params_from_a_bench_command_line() -> None:
+    """``FIELD=VALUE`` pairs as the benches take them; an empty value is none (bad: no ``=``, a
+    share out of range, an unknown field)."""
+    p = SelectParams.from_pairs(["select_embed_share=", "select_lookahead=3"])
+    assert p.select_embed_share is None and p.select_lookahead == 3
+    assert SelectParams.from_pairs(["select_embed_share=0.5"]).select_embed_share == 0.5
+    with pytest.raises(ValueError, match="FIELD=VALUE"):
+        SelectParams.from_pairs(["select_embed_share"])
+    with pytest.raises(ValidationError, match="select_embed_share"):
+        SelectParams.from_pairs(["select_embed_share=2"])
+    with pytest.raises(ValidationError, match="no_such_field"):
+        SelectParams.from_pairs(["no_such_field=1"])

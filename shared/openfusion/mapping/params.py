@@ -48,6 +48,19 @@ class SectionParams(ConfigSection):
         """This model's parameters of a config section that extends it."""
         return cls.model_validate({name: getattr(section, name) for name in cls.model_fields})
 
+    @classmethod
+    def from_pairs(cls, pairs: list[str]) -> Self:
+        """This model from ``FIELD=VALUE`` strings (a bench's command line), each value parsed as
+        the field declares it; an empty value is none, as with ``--set``. ValueError for a pair
+        without ``=``; pydantic's ValidationError names a bad field or value."""
+        values: dict[str, str | None] = {}
+        for pair in pairs:
+            if "=" not in pair:
+                raise ValueError(f"expected FIELD=VALUE, got {pair!r}")
+            name, value = pair.split("=", 1)
+            values[name.strip()] = value.strip() or None
+        return cls.model_validate(values)
+
 
 class VolumeParams(SectionParams):
     """Geometry and semantic-fusion parameters of a :class:`~openfusion.mapping.SemanticVolume`."""
