@@ -268,3 +268,25 @@ def test_select_params_from_a_bench_command_line() -> None:
         SelectParams.from_pairs(["select_embed_share=2"])
     with pytest.raises(ValidationError, match="no_such_field"):
         SelectParams.from_pairs(["no_such_field=1"])
+
+
+def test_the_selector_hands_each_chosen_frame_its_mask_once_and_keeps_few() -> None:
+    """A frame chosen gets its wanted pixels once; a frame never chosen, or asked twice, gets none
+    (every region embedded); a caller that never asks leaves at most WANTED_KEPT masks behind."""
+    from openfusion.mapping.selection import WANTED_KEPT, FrameSelector
+    from openfusion.sources import open_source
+
+    def empty_map(T_world_cam, K):  # noqa: ANN001, ANN202  (nothing mapped: every view is new surface)
+        return RenderedView(np.full((K.height_px, K.width_px), -1, np.int32),
+                            np.zeros((K.height_px, K.width_px), np.float32),
+                            np.zeros((K.height_px, K.width_px), np.float32))
+
+    frames = list(open_source("synthetic:frames=120,lap=120,width=64,height=48"))
+    selector = FrameSelector(SelectParams(select_patience_s=None), empty_map)
+    assert selector.wants(frames[0])
+    wanted, share = selector.embed_where(frames[0])
+    assert wanted is not None and wanted.any() and share == SelectParams().select_embed_share
+    assert selector.embed_where(frames[0]) == (None, None)  # asked once
+    assert selector.embed_where(frames[1]) == (None, None)  # never chosen
+    chosen = sum(selector.wants(frame) for frame in frames[3:])  # new surface all round the room
+    assert chosen > WANTED_KEPT and len(selector._wanted) == WANTED_KEPT

@@ -64,6 +64,11 @@ class SelectionStats:
     score_s: float = 0.0  # rendering at the scored size + scoring
 
 
+#: Chosen frames whose wanted pixels wait for :meth:`FrameSelector.embed_where` (a caller asks right
+#: away; more than a look-ahead run's worth is a caller that never asks).
+WANTED_KEPT = 32
+
+
 class FrameSelector:
     """Selection where the encoder is free for every frame (the in-process pipeline, the eval):
     each frame is scored as it comes and encoded when it adds enough (``select=coverage``), or
@@ -81,7 +86,9 @@ class FrameSelector:
         self.stats = SelectionStats()
         self.last_score: ViewScore | None = None
         self._run: list[tuple[Frame, ViewEvidence]] = []  # frames waiting for their run's decision
-        self._wanted: dict[int, np.ndarray | None] = {}  # id(frame) -> its wanted pixels, until it is encoded
+        # id(frame) -> (the frame, its wanted pixels) for chosen frames not yet asked for (embed_where);
+        # holding the frame keeps its id from being reused; the oldest go past WANTED_KEPT
+        self._wanted: dict[int, tuple[Frame, np.ndarray | None]] = {}
 
     @property
     def scoring(self) -> bool:
@@ -96,7 +103,7 @@ class FrameSelector:
         ev = self.scorer.prepare_frame(frame, self.render)
         score, chosen = self.scorer.decide(ev)
         if chosen:
-            self._wanted[id(frame)] = ev.wanted_px
+            self._keep_wanted(frame, ev.wanted_px)
         self.last_score = score
         self.stats.frames_scored += 1
         self.stats.skipped_no_gain += int(not chosen)
@@ -131,15 +138,22 @@ class FrameSelector:
         self.stats.skipped_no_gain += len(run) - (best is not None)
         if best is None:
             return []
-        self._wanted[id(run[best][0])] = run[best][1].wanted_px
-        return [run[best][0]]
+        frame, ev = run[best]
+        self._keep_wanted(frame, ev.wanted_px)
+        return [frame]
+
+    def _keep_wanted(self, frame: Frame, wanted: np.ndarray | None) -> None:
+        self._wanted[id(frame)] = (frame, wanted)
+        while len(self._wanted) > WANTED_KEPT:
+            del self._wanted[next(iter(self._wanted))]
 
     def embed_where(self, frame: Frame) -> tuple[np.ndarray | None, float | None]:
         """``(wanted_px, min_share)`` for :meth:`RegionEncoder.encode_where` of a frame this
         selector chose (:mod:`openfusion.mapping.region_gate`): ``(None, None)``, every region
         embedded, unless ``select=coverage`` chose it and ``select_embed_share`` is set. Asked once
         per chosen frame (what it keeps is dropped)."""
-        wanted = self._wanted.pop(id(frame), None)
+        kept = self._wanted.pop(id(frame), None)
+        wanted = kept[1] if kept is not None and kept[0] is frame else None
         if wanted is None or self.params.select_embed_share is None:
             return None, None
         return wanted, self.params.select_embed_share
