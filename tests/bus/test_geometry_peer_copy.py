@@ -24,13 +24,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from openfusion.bus import open_session
-from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.services.bridge.service import BridgeConfig, BridgeSection, BridgeService
 from openfusion.services.geometry import checkpoints, peer_copy
 from openfusion.services.geometry.service import GeometryConfig, GeometrySection, GeometryService
 from openfusion.sources import open_source
-from openfusion.testing.bus import ServiceThread, free_port, unique_map_id, wait_until
+from openfusion.testing.bus import LoopbackRouter, ServiceThread, wait_until
 from openfusion.wire.counters import GeometryCounter
 from openfusion.wire.keys import ShardId
 from openfusion.wire.schemas import CheckpointChunk, RgbdFrame
@@ -43,32 +41,23 @@ VOLUME = {"voxel_size_m": 0.04, "tile_blocks": 4, "initial_block_count": 2048}
 
 
 @pytest.fixture
-def net() -> Iterator[dict]:
-    map_id = unique_map_id("peercopy")
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-
-    def cfg() -> dict:
-        return {"map_id": map_id, "zenoh": ZenohSettings(mode="client", multicast_scouting=False, connect=[endpoint]),
-                "health_period_s": 0.2}
-
-    router = open_session(ServiceConfig(map_id=map_id, zenoh=ZenohSettings(
-        mode="router", multicast_scouting=False, listen=[endpoint])))
-    yield {"cfg": cfg}
-    router.close()
+def net() -> Iterator[LoopbackRouter]:
+    with LoopbackRouter("peercopy") as router:
+        yield router
 
 
-def _geometry(net: dict, folder: Path, replica: int, **extra: object) -> tuple[GeometryService, ServiceThread]:
-    service = GeometryService(GeometryConfig(**net["cfg"](), geometry=GeometrySection(
+def _geometry(net: LoopbackRouter, folder: Path, replica: int, **extra: object) -> tuple[GeometryService, ServiceThread]:
+    service = GeometryService(net.config(GeometryConfig, geometry=GeometrySection(
         map_dir=folder, checkpoint_period_s=0, replica=replica, **VOLUME, **extra)))
-    return service, ServiceThread(service, GeometryConfig(**net["cfg"]()), service.shard.service)
+    return service, ServiceThread(service, net.config(GeometryConfig), service.shard.service)
 
 
-def _play(net: dict, frames: int, *geometries: GeometryService) -> None:
+def _play(net: LoopbackRouter, frames: int, *geometries: GeometryService) -> None:
     """The synthetic room's first ``frames`` frames (one playback name: a second call continues it
     from its start), until every geometry holds them."""
-    bridge = BridgeService(BridgeConfig(**net["cfg"](), bridge=BridgeSection(
+    bridge = BridgeService(net.config(BridgeConfig, bridge=BridgeSection(
         source=SOURCE, max_frames=frames, rate_hz=0, max_in_flight=2, playback="peer-copy-test")))
-    with ServiceThread(bridge, BridgeConfig(**net["cfg"]()), "bridge"):
+    with ServiceThread(bridge, net.config(BridgeConfig), "bridge"):
         wait_until(lambda: all(g.frames_integrated >= frames for g in geometries), timeout_s=60,
                    describe=lambda: str([g.frames_integrated for g in geometries]))
 
@@ -89,7 +78,7 @@ def _assert_same_map(a: GeometryService, b: GeometryService) -> None:
     np.testing.assert_array_equal(np.sort(pa, axis=0), np.sort(pb, axis=0))
 
 
-def test_a_replica_with_no_checkpoint_copies_its_peers_then_follows(net: dict, tmp_path: Path,
+def test_a_replica_with_no_checkpoint_copies_its_peers_then_follows(net: LoopbackRouter, tmp_path: Path,
                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(peer_copy, "MAX_CHECKPOINT_CHUNK_BYTES", 64 * 1024)  # several chunks of a small map
     primary, p_thread = _geometry(net, tmp_path / "host1", 0)
@@ -120,7 +109,7 @@ def test_a_replica_with_no_checkpoint_copies_its_peers_then_follows(net: dict, t
     primary.close()
 
 
-def test_a_live_source_loses_only_the_frames_between_the_copy_and_the_start(net: dict, tmp_path: Path) -> None:
+def test_a_live_source_loses_only_the_frames_between_the_copy_and_the_start(net: LoopbackRouter, tmp_path: Path) -> None:
     frames = [RgbdFrame.from_frame(f, with_instance=False) for f in open_source(f"{SOURCE},frames=12")]
     primary, p_thread = _geometry(net, tmp_path / "host1", 0, shard="0/2")  # one shard of two: its own keys
     with p_thread:
@@ -146,7 +135,7 @@ def test_a_live_source_loses_only_the_frames_between_the_copy_and_the_start(net:
 
 
 def test_a_corrupt_chunk_or_a_vanishing_peer_is_discarded_and_the_next_tried(
-        net: dict, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+        net: LoopbackRouter, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(peer_copy, "MAX_CHECKPOINT_CHUNK_BYTES", 32 * 1024)
     primary, p_thread = _geometry(net, tmp_path / "r0", 0)
     threads: list[ServiceThread] = []
@@ -204,12 +193,12 @@ def test_a_corrupt_chunk_or_a_vanishing_peer_is_discarded_and_the_next_tried(
         second.close()
 
 
-def test_a_peer_with_nothing_to_copy_is_not_a_failure(net: dict, tmp_path: Path) -> None:
+def test_a_peer_with_nothing_to_copy_is_not_a_failure(net: LoopbackRouter, tmp_path: Path) -> None:
     """A shard's first start (its peer holds no checkpoint yet) and a peer with no checkpoint folder:
     answered ``no_checkpoint`` at once (a timeout would count a failure); the replica starts empty."""
     fresh, f_thread = _geometry(net, tmp_path / "r0", 0)
-    nodisk = GeometryService(GeometryConfig(**net["cfg"](), geometry=GeometrySection(replica=2, **VOLUME)))
-    with f_thread, ServiceThread(nodisk, GeometryConfig(**net["cfg"]()), nodisk.shard.service):
+    nodisk = GeometryService(net.config(GeometryConfig, geometry=GeometrySection(replica=2, **VOLUME)))
+    with f_thread, ServiceThread(nodisk, net.config(GeometryConfig), nodisk.shard.service):
         replica, r_thread = _geometry(net, tmp_path / "r1", 1)
         with r_thread:
             assert r_thread.counter(GeometryCounter.PEER_COPY_FAILURES) == 0
