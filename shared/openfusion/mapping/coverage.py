@@ -305,7 +305,8 @@ class CoverageScorer:
             frame_id=int(frame_id), stamp_s=stamp_ns / 1e9, view_px=h * w, bins=self._bins_of(rays, T),
             cells=self._cells_of(points), keys=keys, confident=confident, unsure_px=unsure_px.reshape(h, w),
             surface_idx=np.flatnonzero(surface), T_world_cam=T)
-        if self.embedding_support is not None:  # asked here, outside the record's lock (its owner may lock)
+        if self.embedding_support is not None and self.params.select_embed_share is not None:
+            # asked here, outside the record's lock (its owner may lock); only when regions are gated
             count, agreement = self.embedding_support(np.unique(keys[confident]))
             ev.settled = ((np.asarray(count) >= self.params.select_embed_min_views)
                           & (np.asarray(agreement) >= self.params.select_embed_min_agreement))
@@ -414,6 +415,10 @@ class CoverageScorer:
         out[ev.surface_idx[want]] = True
         return out.reshape(ev.unsure_px.shape)
 
+    def _wanted_if_gated(self, ev: ViewEvidence) -> np.ndarray | None:
+        """:meth:`wanted_px` when ``select_embed_share`` gates regions (None, not computed, otherwise)."""
+        return self.wanted_px(ev) if self.params.select_embed_share is not None else None
+
     def min_gain_at(self, stamp_s: float) -> float:
         """The gain a view of frame time ``stamp_s`` needs: ``select_min_gain``, falling as
         ``1 / (1 + t / select_patience_s)`` with the frame time ``t`` to the nearest view chosen
@@ -440,7 +445,7 @@ class CoverageScorer:
             score = self.score(ev)
             chosen = self.worth_encoding(score)
             if chosen:
-                ev.wanted_px = self.wanted_px(ev)
+                ev.wanted_px = self._wanted_if_gated(ev)
                 self.mark_selected(ev)
             return score, chosen
 
@@ -455,7 +460,7 @@ class CoverageScorer:
             best = max(range(len(scores)), key=lambda i: (scores[i].gain, scores[i].stamp_s, i))
             if not self.worth_encoding(scores[best]):
                 return scores, None
-            evs[best].wanted_px = self.wanted_px(evs[best])
+            evs[best].wanted_px = self._wanted_if_gated(evs[best])
             self.mark_selected(evs[best])
             return scores, best
 
