@@ -30,6 +30,8 @@ import collections
 import logging
 import threading
 import time
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,11 +41,17 @@ from openfusion.bus import QueryError, ServiceRunner, Subscriber
 from openfusion.bus.instance_join import InstanceBuffer
 from openfusion.frame import CameraIntrinsics
 from openfusion.mapping.selection import CandidateWindow, CoverageScorer, WindowChange
-from openfusion.shard_client import reader_for
 from openfusion.wire.counters import SemanticCounter
 from openfusion.wire.schemas import InstanceFrame, RenderRequest, RgbdFrame
 
 logger = logging.getLogger(__name__)
+
+#: Frames being rendered and scored at once. Through the services a candidate's render (64 px
+#: wide, 1.7 ms of ray casting) took 35-195 ms on a loaded 2-core box, almost all of it waiting:
+#: in geometry's queue behind integrations, on the bus, for the interpreter; one at a time, the
+#: scoring thread fell behind a 30 fps camera and the subscription dropped frames (21-32 of 90 on
+#: the bench scene). Renders in flight overlap those waits; 3 keeps up with 30 fps there.
+RENDERS_IN_FLIGHT = 3
 
 
 class HandledFrames:
@@ -87,8 +95,21 @@ class Pending:
     wanted_px: np.ndarray | None = None
 
 
+@dataclass
+class Scoring:
+    """A frame whose render (and scoring) is under way on the scoring pool."""
+
+    msg: RgbdFrame
+    instance: InstanceFrame | None
+    evidence: Future  # -> ViewEvidence (raises QueryError when geometry gave no render)
+
+
 class CandidateFeeder:
-    """Frames off the subscription -> scored candidates in the window (module docstring)."""
+    """Frames off the subscription -> scored candidates in the window (module docstring).
+
+    ``render(request) -> RenderReply`` asks geometry (the service passes its geometry reader);
+    up to :data:`RENDERS_IN_FLIGHT` frames are being rendered at once, and are offered to the
+    window in the order they came."""
 
     def __init__(
         self,
@@ -97,47 +118,68 @@ class CandidateFeeder:
         window: CandidateWindow[Pending],
         scorer: CoverageScorer,
         accept: Any,
+        render: Callable[[RenderRequest], Any],
         instances: InstanceBuffer | None,
         instance_wait_s: float,
-        render_timeout_s: float,
         on_no_instance: Any,
         on_no_render: Any,
+        renders_in_flight: int = RENDERS_IN_FLIGHT,
     ) -> None:
         self.frames = frames
         self.window = window
         self.scorer = scorer
         self.accept = accept  # (frame id, now) -> bool: the semantic switch
+        self.render = render
         self.instances = instances
         self.instance_wait_s = instance_wait_s
-        self.render_timeout_s = render_timeout_s
         self.on_no_instance = on_no_instance  # (runner, msg): counts and logs a frame without its instance image
         self.on_no_render = on_no_render  # (runner, robot, frame id, QueryError): counts and logs an unscored frame
+        self.renders_in_flight = max(1, renders_in_flight)
         self.handled = HandledFrames()
 
     def run(self, runner: ServiceRunner) -> None:
-        """Feed the window until the service stops (a thread of the service)."""
-        while not runner.stopping:
-            msg = self.frames.recv(timeout_s=0.2)
-            if msg is None:  # frames paused: a run of select_lookahead frames cut short is decided now
-                if self.window.undecided:
+        """Feed the window until the service stops (a thread of the service): frames are taken
+        off the subscription while fewer than ``renders_in_flight`` are being scored, and
+        offered in the order they came."""
+        scoring: collections.deque[Scoring] = collections.deque()
+        pool = ThreadPoolExecutor(max_workers=self.renders_in_flight, thread_name_prefix="semantic-score")
+        try:
+            while not runner.stopping:
+                msg = None
+                while len(scoring) < self.renders_in_flight:
+                    msg = self.frames.recv(timeout_s=0.0 if scoring else 0.2)
+                    if msg is None:
+                        break
+                    started = self._guarded(runner, msg, lambda m=msg: self.start(runner, m, pool))
+                    if started is not None:
+                        scoring.append(started)
+                if scoring:
+                    head = scoring.popleft()
+                    self._guarded(runner, head.msg, lambda h=head: self.offer(runner, h))
+                elif msg is None and self.window.undecided:  # frames paused: a run cut short is decided now
                     self.account(runner, self.window.flush())
-                continue
-            try:
-                self.feed(runner, msg)
-            except Exception:  # one frame's failure never ends the feeding: logged, counted, next frame
-                logger.exception("semantic: scoring frame %d failed; it is skipped", msg.frame_id)
-                runner.stats.incr(SemanticCounter.FRAMES_FAILED)
-                runner.stats.add_error()
-                self.finish(runner, msg)
+        finally:
+            pool.shutdown(wait=False, cancel_futures=True)
 
-    def feed(self, runner: ServiceRunner, msg: RgbdFrame) -> None:
-        """Score one frame and offer it to the window (or count why it is not a candidate)."""
+    def _guarded(self, runner: ServiceRunner, msg: RgbdFrame, step: Callable[[], Scoring | None]) -> Scoring | None:
+        try:
+            return step()
+        except Exception:  # one frame's failure never ends the feeding: logged, counted, next frame
+            logger.exception("semantic: scoring frame %d failed; it is skipped", msg.frame_id)
+            runner.stats.incr(SemanticCounter.FRAMES_FAILED)
+            runner.stats.add_error()
+            self.finish(runner, msg)
+            return None
+
+    def start(self, runner: ServiceRunner, msg: RgbdFrame, pool: ThreadPoolExecutor) -> Scoring | None:
+        """A frame off the subscription: the switch, its instance image, then its render and
+        scoring on ``pool``; None when it is not a candidate (counted, done with)."""
         stats = runner.stats
         self.handled.arrived(msg.frame_id, msg.stamp_ns)
         if not self.accept(msg.frame_id, time.monotonic()):
             stats.incr(SemanticCounter.SKIPPED_SWITCH)
             self.finish(runner, msg)
-            return
+            return None
         instance = None
         if self.instances is not None and msg.instance is None:
             instance = self.instances.take(msg, timeout_s=self.instance_wait_s)
@@ -145,26 +187,34 @@ class CandidateFeeder:
             if instance is None:
                 self.on_no_instance(runner, msg)
                 self.finish(runner, msg)
-                return
-        started = time.monotonic()
+                return None
+        return Scoring(msg, instance, pool.submit(self._prepare, runner, msg))
+
+    def offer(self, runner: ServiceRunner, scoring: Scoring) -> None:
+        """Offer a scored frame to the window (or count why it was not scored)."""
+        msg = scoring.msg
         try:
-            evidence = self._prepare(runner, msg)
+            evidence, busy_s = scoring.evidence.result()
         except QueryError as exc:  # no render (geometry gone, or the robot not joined yet): not scored
             self.on_no_render(runner, msg.robot, msg.frame_id, exc)
             self.finish(runner, msg)
             return
-        change = self.window.offer(evidence, Pending(msg, instance))
-        stats.incr(SemanticCounter.SELECT_BUSY_S, time.monotonic() - started)
-        stats.incr(SemanticCounter.FRAMES_SCORED)
+        started = time.monotonic()
+        change = self.window.offer(evidence, Pending(msg, scoring.instance))
+        runner.stats.incr(SemanticCounter.SELECT_BUSY_S, busy_s + time.monotonic() - started)
+        runner.stats.incr(SemanticCounter.FRAMES_SCORED)
         self.account(runner, change)
 
-    def _prepare(self, runner: ServiceRunner, msg: RgbdFrame) -> Any:
-        def render(T_world_cam: Any, K_small: CameraIntrinsics) -> Any:
-            request = RenderRequest(frame_id=msg.frame_id, T_world_cam=T_world_cam, robot=msg.robot,
-                                    **RenderRequest.intrinsics_fields(K_small))
-            return reader_for(runner).render(request, timeout_s=self.render_timeout_s)
+    def _prepare(self, runner: ServiceRunner, msg: RgbdFrame) -> tuple[Any, float]:
+        """(on the scoring pool) The frame's evidence and the seconds it took."""
+        started = time.monotonic()
 
-        return self.scorer.prepare_frame(msg.to_frame(), render)
+        def render(T_world_cam: Any, K_small: CameraIntrinsics) -> Any:
+            return self.render(RenderRequest(frame_id=msg.frame_id, T_world_cam=T_world_cam, robot=msg.robot,
+                                             **RenderRequest.intrinsics_fields(K_small)))
+
+        evidence = self.scorer.prepare_frame(msg.to_frame(), render)
+        return evidence, time.monotonic() - started
 
     def take(self, runner: ServiceRunner, timeout_s: float) -> Pending | None:
         """The best candidate for the encoder now (waiting up to ``timeout_s``), or None."""
@@ -187,7 +237,14 @@ class CandidateFeeder:
         runner.stats.set(SemanticCounter.SELECT_WINDOW, len(self.window))
 
     def finish(self, runner: ServiceRunner, msg: RgbdFrame) -> None:
-        """``msg`` is done with (encoded, failed or skipped): move ``last_frame_handled``."""
-        mark = self.handled.done(msg.frame_id, msg.stamp_ns)
+        """``msg`` is done with (encoded, failed or skipped): :meth:`done`."""
+        self.done(runner, msg.frame_id, msg.stamp_ns)
+
+    def done(self, runner: ServiceRunner, frame_id: int, stamp_ns: int) -> None:
+        """A frame is done with (encoded and its update sent, failed or skipped): the surface it
+        was chosen for is no longer held for it (:meth:`CoverageScorer.hold`), and
+        ``last_frame_handled`` moves."""
+        self.scorer.release(frame_id, stamp_ns / 1e9)
+        mark = self.handled.done(frame_id, stamp_ns)
         if mark is not None:
             runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, mark)

@@ -358,8 +358,10 @@ class SemanticService:
         if self._scorer is not None:
             self._feeder = CandidateFeeder(
                 frames=self._frames, window=CandidateWindow(self._scorer), scorer=self._scorer,
-                accept=self.switch.accept, instances=self._instances, instance_wait_s=self.section.instance_wait_s,
-                render_timeout_s=self.section.render_timeout_s, on_no_instance=self._skip_without_instance,
+                accept=self.switch.accept,
+                render=lambda request: reader_for(runner).render(request, timeout_s=self.section.render_timeout_s),
+                instances=self._instances, instance_wait_s=self.section.instance_wait_s,
+                on_no_instance=self._skip_without_instance,
                 on_no_render=self._skip_no_render)
             runner.stats.set(SemanticCounter.SKIPPED_NO_GAIN, 0)
         if self.section.encoder_pool:
@@ -485,9 +487,7 @@ class SemanticService:
         """A frame taken off the subscription is done with: ``last_frame_handled`` moves (with
         coverage, once every frame taken before it is done too: selection.HandledFrames)."""
         if self._feeder is not None:
-            mark = self._feeder.handled.done(frame_id, stamp_ns)
-            if mark is not None:
-                runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, mark)
+            self._feeder.done(runner, frame_id, stamp_ns)
         else:
             runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, frame_id)
 

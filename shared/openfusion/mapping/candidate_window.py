@@ -44,7 +44,9 @@ class CandidateWindow(Generic[T]):
     :meth:`offer` decides a frame as it comes, with the same rule as one process
     (:meth:`CoverageScorer.decide`: scored against what the frames chosen before it cover, chosen
     when its gain reaches the bar, and then recorded as chosen at once, so the next frame is
-    judged as if this one were encoded). A frame that adds too little is dropped there
+    judged as if this one were encoded; the surface it will label is held for it until the encoding
+    side releases it (:meth:`release`), as one process would have labelled it before the next frame).
+    A frame that adds too little is dropped there
     (``no_gain``); a chosen one waits here. So the frames the services encode are the frames one
     process would, only later, as long as the window holds the backlog: a window over
     ``select_window`` lets its lowest-gain frame go (``evicted``; what it showed stays recorded as
@@ -76,7 +78,7 @@ class CandidateWindow(Generic[T]):
             self._arrivals += 1
             lookahead = self.scorer.params.select_lookahead
             if lookahead <= 1:
-                score, chosen = self.scorer.decide(evidence)
+                score, chosen = self.scorer.decide(evidence, hold=True)
                 return self._place([Candidate(evidence, score, payload, arrival)], 0 if chosen else None)
             self._run.append((evidence, payload, arrival))
             if len(self._run) < lookahead:
@@ -96,7 +98,7 @@ class CandidateWindow(Generic[T]):
 
     def _decide_run(self) -> WindowChange[T]:
         run, self._run = self._run, []
-        scores, best = self.scorer.decide_best([ev for ev, _, _ in run])
+        scores, best = self.scorer.decide_best([ev for ev, _, _ in run], hold=True)
         return self._place([Candidate(ev, sc, pl, arr) for (ev, pl, arr), sc in zip(run, scores, strict=True)], best)
 
     def _place(self, cands: list[Candidate[T]], chosen: int | None) -> WindowChange[T]:
@@ -109,6 +111,7 @@ class CandidateWindow(Generic[T]):
         if len(self._items) > self.capacity:
             worst = min(self._items, key=lambda c: (c.score.gain, c.arrival))
             self._items.remove(worst)
+            self.release(worst.evidence)
             change.evicted.append(worst)
         self._cond.notify_all()
         return change
@@ -135,7 +138,15 @@ class CandidateWindow(Generic[T]):
             for ev, payload, arrival in self._run:
                 out.append(Candidate(ev, self.scorer.score(ev), payload, arrival))
             self._run = []
+            for cand in out:
+                self.release(cand.evidence)
             return out
+
+    def release(self, evidence: ViewEvidence) -> None:
+        """A chosen frame was encoded (its update sent) or let go: the surface it was to show is
+        no longer held for it (:meth:`CoverageScorer.hold`). The encoding side calls it for a frame
+        :meth:`take` gave; the window for the frames it lets go."""
+        self.scorer.release(evidence.frame_id, evidence.stamp_s)
 
     def close(self) -> None:
         with self._cond:
