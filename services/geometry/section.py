@@ -36,6 +36,10 @@ class GeometrySection(VolumeParams, JoinParams):
     max_points_reply: int = Field(MAX_SURFACE_POINTS, gt=0, le=MAX_SURFACE_POINTS,
                                   description="most surface points or mesh vertices in one reply")
     max_render_pixels: int = Field(640 * 480, gt=0, description="largest render request (width x height)")
+    render_update_wait_s: float = Field(
+        0.5, ge=0, le=5, description="a render asked for after a semantic update (the next frame's) waits at most "
+        "this long for that update to be applied here (then renders without it, counted)"
+    )
     merge_on_save: bool = Field(
         True, description="before a save on control/save, ask the semantic service for a merge pass"
     )

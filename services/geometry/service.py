@@ -6,7 +6,7 @@
 | ``…/semantic/update`` | subscribes | :class:`~openfusion.wire.schemas.SemanticUpdate` |
 | ``…/semantic/dictionary/delta`` | subscribes (replica for checkpoints) | :class:`~openfusion.wire.schemas.DictionaryDelta` |
 | ``…/geometry/progress`` | publishes, one per frame taken from the queue, and resume announcements | :class:`~openfusion.wire.schemas.GeometryProgress` (the bridge's flow control; where a playback resumes) |
-| ``…/geometry/render`` | queryable | RenderRequest → RenderReply |
+| ``…/geometry/render`` | queryable (one that names a semantic update first waits for it: :mod:`.applied_updates`) | RenderRequest → RenderReply |
 | ``…/geometry/points`` | queryable | PointsRequest → PointsReply (capped) |
 | ``…/geometry/mesh`` | queryable | MeshRequest → MeshReply |
 | ``…/geometry/regions`` | queryable | RegionSummaryRequest → RegionSummaryReply (per-region bbox + surface point count) |
@@ -16,7 +16,7 @@
 | ``…/geometry/checkpoint/{list,chunk,release}/{itself}`` | queryables at its own name; queries a peer's at start | a snapshot of its checkpoint for a peer replica that starts without one (:mod:`.peer_copy`) |
 | ``…/semantic/merge`` | queries before ``control/save`` and the final save | MergeRequest → MergeReply |
 | ``…/semantic/dictionary`` | queries on a gap in the deltas (resync) | DictionaryRequest → DictionarySnapshot |
-| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC), ``voxels_relabelled``, ``save_merges``, ``save_merge_failures``, ``dictionary_resyncs``; the map's size and memory: ``num_blocks`` (all), ``resident_blocks``, ``resident_mb``, ``tiles_paged_out``, ``tiles_paged_in``, ``checkpoint_last_s``, ``checkpoint_last_tiles``, ``saving``, ``rss_mb``, ``rss_peak_mb``, ``rss_anon_peak_mb`` (:mod:`.memory`); a copy of a peer's checkpoint: ``peer_copies``, ``peer_copy_failures``, ``peer_copy_tiles``, ``peer_copy_bytes``, ``peer_copy_s``, ``peer_copy_frame_id``, ``peer_snapshots_served``, ``peer_bytes_served`` (:mod:`.peer_copy`) |
+| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``render_update_wait_timeouts``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC), ``voxels_relabelled``, ``save_merges``, ``save_merge_failures``, ``dictionary_resyncs``; the map's size and memory: ``num_blocks`` (all), ``resident_blocks``, ``resident_mb``, ``tiles_paged_out``, ``tiles_paged_in``, ``checkpoint_last_s``, ``checkpoint_last_tiles``, ``saving``, ``rss_mb``, ``rss_peak_mb``, ``rss_anon_peak_mb`` (:mod:`.memory`); a copy of a peer's checkpoint: ``peer_copies``, ``peer_copy_failures``, ``peer_copy_tiles``, ``peer_copy_bytes``, ``peer_copy_s``, ``peer_copy_frame_id``, ``peer_snapshots_served``, ``peer_bytes_served`` (:mod:`.peer_copy`) |
 
 Checkpoints go to the tile store ``{map_dir}/{map_id}/map.ofz`` every ``checkpoint_period_s``
 (when something changed; without region summaries, which would cost a surface read-out under the
@@ -103,6 +103,7 @@ from openfusion.mapping.robot_streams import RobotStream, RobotStreams, parse_ro
 from openfusion.services.common import ServiceDefinition
 from openfusion.services.dictionary_replica import DictionaryReplica
 from openfusion.services.geometry import checkpoints, sharding
+from openfusion.services.geometry.applied_updates import AppliedUpdates
 from openfusion.services.geometry.dictionary_follower import DictionaryFollower
 from openfusion.services.geometry.frame_intake import FrameIntake
 from openfusion.services.geometry.memory import MemoryPeaks, publish_map_size
@@ -152,6 +153,7 @@ from openfusion.wire.schemas import (
 )
 
 logger = logging.getLogger(__name__)
+
 
 def check_update(msg: SemanticUpdate) -> None:
     """Refuse an update that would corrupt the map (keys below -1, confidences outside [0, 1])."""
@@ -209,6 +211,7 @@ class GeometryService(FrameIntake, MapPersistence, DictionaryFollower, PeerCopy)
         self._key_horizon = 0
         self._summary: SummaryCache | None = None
         self._summary_lock = threading.Lock()
+        self._updates = AppliedUpdates()  # which semantic updates were taken (a render may wait for one)
         #: Held by a save, a load and a reset: a load or reset waits for a save to end (a save
         #: holds the volume lock only for its copies, so they would otherwise overlap).
         self._swap_lock = threading.Lock()
@@ -282,6 +285,12 @@ class GeometryService(FrameIntake, MapPersistence, DictionaryFollower, PeerCopy)
         return robot.T_map_odom @ np.asarray(T_odom_cam, np.float64)
 
     def on_update(self, msg: SemanticUpdate) -> None:
+        try:
+            self._apply_update(msg)
+        finally:  # written, refused or failed: a render waiting for it goes on (applied_updates)
+            self._updates.applied(msg.source, msg.seq)
+
+    def _apply_update(self, msg: SemanticUpdate) -> None:
         check_update(msg)
         with self._lock:  # resolved and applied under the lock on_delta relabels under: no orphan keys
             robot = self._robot(msg.robot)
@@ -313,6 +322,10 @@ class GeometryService(FrameIntake, MapPersistence, DictionaryFollower, PeerCopy)
                 "too_large",
                 f"render of {req.width_px}x{req.height_px} exceeds max_render_pixels={self.section.max_render_pixels}",
             )
+        if not self._updates.wait(req.after_update_source, req.after_update_seq, self.section.render_update_wait_s):
+            logger.debug("geometry: render of frame %d: update %d of %s not here after %.2f s; rendering without it",
+                         req.frame_id, req.after_update_seq, req.after_update_source, self.section.render_update_wait_s)
+            self._count(GeometryCounter.RENDER_UPDATE_WAIT_TIMEOUTS)
         with self._lock:
             T_map_cam = self._map_pose(req.robot, req.T_world_cam)
             view = self.volume.render(T_map_cam, req.intrinsics)

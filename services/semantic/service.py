@@ -53,6 +53,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+import uuid
 from typing import Any
 
 import numpy as np
@@ -155,6 +156,10 @@ class SemanticService:
         self._update_pub: Publisher | None = None
         self._delta_pub: Publisher | None = None
         self._published_version = self.dictionary.version
+        # Updates are numbered per process; a frame's render asks geometry to apply the last one first
+        # (services.geometry.applied_updates)
+        self._update_source = uuid.uuid4().hex[:16]
+        self._updates_sent = 0
         self._frames_without_instance = 0
         self._pool: EncoderPool | None = None
         # Held while the dictionary changes and its delta is published: the frame loop and a
@@ -235,9 +240,11 @@ class SemanticService:
         if (self.section.integrate_wait_s > 0
                 and not self._integrated.wait(robot, frame.stamp_ns, self.section.integrate_wait_s)):
             runner.stats.incr(SemanticCounter.INTEGRATE_WAIT_TIMEOUTS)
-        reply = reader_for(runner).render(RenderRequest(frame_id=frame.frame_id, T_world_cam=frame.T_world_cam,
-                                                        robot=robot, **RenderRequest.intrinsics_fields(K_small)),
-                                          timeout_s=self.section.render_timeout_s)
+        # ... and has applied the update sent before it (that frame's labels: matched, not made again)
+        request = RenderRequest(frame_id=frame.frame_id, T_world_cam=frame.T_world_cam, robot=robot,
+                                after_update_source=self._update_source, after_update_seq=self._updates_sent,
+                                **RenderRequest.intrinsics_fields(K_small))
+        reply = reader_for(runner).render(request, timeout_s=self.section.render_timeout_s)
         rendered = RenderedView(key_map=reply.key_map, conf_map=reply.conf_map, depth_m=reply.depth_m)
         depth_m = resize_nearest(frame.depth_m(), (h, w)).astype(np.float32)
         assert self._update_pub is not None and self._delta_pub is not None
@@ -249,10 +256,13 @@ class SemanticService:
                 self._scorer.observe_plan(planned.key_map, T_map_cam, K_small, frame.stamp_ns)
             # The delta goes first, so a key never reaches geometry before its dictionary row.
             self._publish_delta()
+            seq = self._updates_sent + 1
             self._update_pub.put(SemanticUpdate(
                 frame_id=frame.frame_id, T_world_cam=frame.T_world_cam, **SemanticUpdate.intrinsics_fields(K_small),
                 key_map=planned.key_map, conf_map=planned.conf_map,
-                new_keys=np.array([key for _, key in planned.new_keys], np.int32), depth_m=depth_m, robot=robot))
+                new_keys=np.array([key for _, key in planned.new_keys], np.int32), depth_m=depth_m, robot=robot,
+                source=self._update_source, seq=seq))
+            self._updates_sent = seq  # sent: the next render waits for it
         stats = runner.stats
         stats.record(time.monotonic() - started)
         stats.incr(SemanticCounter.SEMANTIC_FRAMES)

@@ -62,7 +62,8 @@ EXAMPLES: dict[str, m.Message] = {
         frame_id=1, stamp_ns=5, instance=_i32(6, 8), instance_categories={3: "office chair"}, source="synthetic"
     ),
     "geometry.progress": m.GeometryProgress(frame_id=1, stamp_ns=5, integrated=True, frames_integrated=9, queued=2),
-    "geometry.render_request": m.RenderRequest(frame_id=2, T_world_cam=_pose(), **K_FIELDS),
+    "geometry.render_request": m.RenderRequest(frame_id=2, T_world_cam=_pose(), after_update_source="a1b2",
+                                               after_update_seq=4, **K_FIELDS),
     "geometry.render_reply": m.RenderReply(
         frame_id=2, key_map=_i32(6, 8), conf_map=_f32(6, 8), depth_m=_f32(6, 8)
     ),
@@ -104,6 +105,8 @@ EXAMPLES: dict[str, m.Message] = {
         key_map=_i32(6, 8),
         conf_map=_f32(6, 8),
         new_keys=np.array([7, 8], np.int32),
+        source="a1b2",
+        seq=4,
     ),
     "semantic.dictionary_request": m.DictionaryRequest(),
     "semantic.dictionary": m.DictionarySnapshot(
@@ -269,6 +272,8 @@ def _replace(msg: m.Message, **changes: Any) -> dict[str, Any]:
         ("geometry.progress", {"queued": -1}, "greater than or equal to 0"),
         ("geometry.progress", {"integrated": "perhaps"}, "valid boolean"),
         ("geometry.render_request", {"T_world_cam": np.full((4, 4), np.inf)}, "finite"),
+        ("geometry.render_request", {"after_update_seq": 3, "after_update_source": ""}, "must name after_update_source"),
+        ("geometry.render_request", {"after_update_seq": -1}, "greater than or equal to 0"),
         ("geometry.render_reply", {"depth_m": _f32(6, 7)}, "same shape"),
         ("geometry.points_reply", {"keys": _i32(3)}, "differ in length"),
         ("geometry.mesh_reply", {"triangles": np.array([[0, 1, 3]], np.int32)}, "outside 0..2"),
@@ -282,6 +287,7 @@ def _replace(msg: m.Message, **changes: Any) -> dict[str, Any]:
         ("geometry.contacts_reply", {"surface_voxels": np.array([1, -2, 3], np.int64)}, "surface_voxels must be >= 0"),
         ("geometry.contacts_reply", {"keys": np.array([1, 1, 6], np.int32)}, "unique"),
         ("semantic.update", {"conf_map": _f32(3, 4)}, "conf_map is 4x3"),
+        ("semantic.update", {"seq": 2, "source": ""}, "must name its source"),
         ("semantic.dictionary", {"embeddings": _f32(2, 5)}, "must be \\(2, 4\\)"),
         ("semantic.dictionary", {"keys": np.array([1, 1], np.int32)}, "unique"),
         ("semantic.dictionary", {"merged_into": np.array([2, 1], np.int32)}, "one entry per merged key"),

@@ -64,18 +64,27 @@ class RenderRequest(PinholeMessage):
     """Render the map's region keys from ``T_world_cam`` into a small ``width_px`` x ``height_px`` view.
 
     v2: ``T_world_cam`` is in ``robot``'s odometry frame, as its frames are; geometry renders from
-    the map pose its join gives (a robot not joined yet is refused: ``robot_not_joined``)."""
+    the map pose its join gives (a robot not joined yet is refused: ``robot_not_joined``).
+
+    v3: ``after_update_source`` / ``after_update_seq``: render once the update numbered
+    ``after_update_seq`` from that semantic service (:attr:`SemanticUpdate.seq`) is applied, so a
+    frame is matched against the labels of the frame encoded before it (geometry waits at most
+    ``render_update_wait_s``); 0: at once."""
 
     schema_name: ClassVar[str] = "geometry.render_request"
-    schema_version: ClassVar[int] = 2
+    schema_version: ClassVar[int] = 3
 
     frame_id: int = Field(ge=0)
     T_world_cam: Pose4x4
     robot: RobotName = DEFAULT_ROBOT
+    after_update_source: str = Field("", max_length=64)
+    after_update_seq: int = Field(0, ge=0)
 
     @model_validator(mode="after")
     def _check(self) -> RenderRequest:
         check_pose(self.T_world_cam)
+        if self.after_update_seq and not self.after_update_source:
+            raise ValueError("after_update_seq > 0 must name after_update_source")
         return self
 
 

@@ -23,10 +23,14 @@ from openfusion.wire.schemas.base import (
 
 class SemanticUpdate(PinholeMessage):
     """Per-pixel region keys and confidences to fuse into the volume, seen from ``T_world_cam``
-    (v2: in ``robot``'s odometry frame, as its frame was; geometry applies the robot's join)."""
+    (v2: in ``robot``'s odometry frame, as its frame was; geometry applies the robot's join).
+
+    v3: ``source`` (the semantic service process that sent it, a name new for each process) and
+    ``seq`` (1, 2, ... in the order it sent them; 0: not numbered): its next render asks geometry
+    to apply this update first (:attr:`RenderRequest.after_update_seq`)."""
 
     schema_name: ClassVar[str] = "semantic.update"
-    schema_version: ClassVar[int] = 2
+    schema_version: ClassVar[int] = 3
 
     frame_id: int = Field(ge=0)
     T_world_cam: Pose4x4
@@ -37,10 +41,14 @@ class SemanticUpdate(PinholeMessage):
     # gate, so labels of an object's outline do not land on the background behind it.
     depth_m: FloatMap | None = None
     robot: RobotName = DEFAULT_ROBOT
+    source: str = Field("", max_length=64)
+    seq: int = Field(0, ge=0)
 
     @model_validator(mode="after")
     def _check(self) -> SemanticUpdate:
         check_pose(self.T_world_cam)
+        if self.seq and not self.source:
+            raise ValueError("a numbered update (seq > 0) must name its source")
         self._check_image("key_map", self.key_map)
         self._check_image("conf_map", self.conf_map)
         if self.depth_m is not None:
