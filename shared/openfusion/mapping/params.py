@@ -332,8 +332,10 @@ class SelectParams(SectionParams):
         "frame, select_min_gain / (1 + t / this): new surface that has waited a while is encoded even when it is "
         "little (a glimpse behind an object), a frame with nothing new never is; none = a fixed threshold")
     select_window: int = Field(
-        32, ge=1, le=256, description="coverage, services: candidate frames held while the encoder is busy; a full "
-        "window lets its lowest-scoring frame go (~3 MB per 640x480 frame with its instance image)")
+        64, ge=1, le=256, description="coverage, services: candidate frames held while the encoder is busy (and the "
+        "frames the subscription queues for scoring); a full window lets its lowest-scoring frame go (~3 MB per "
+        "640x480 frame with its instance image). 64 holds a first sweep's backlog behind a 150 ms encoder (2 s at "
+        "30 fps); 32 let 1-11 chosen frames go on the 90-frame bench scene")
     select_width_px: int = Field(
         64, ge=8, le=640, description="coverage: width of the view a candidate is scored at (height from the "
         "frame's aspect ratio); the render of the map at that size is the scoring's main cost")
