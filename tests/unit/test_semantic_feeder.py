@@ -150,3 +150,24 @@ def test_a_frame_the_full_window_lets_go_no_longer_holds_its_surface() -> None:
     assert [c.payload for c in change.evicted] == [0] and scorer.held == 1
     # frame 0's surface is free again for a later view (its first try was recorded, its second is not held)
     assert scorer.score(wall(2, 2.0, 0.5)).new_surface > 0
+
+
+def test_a_surface_two_waiting_frames_hold_stays_held_until_both_are_done() -> None:
+    scorer = CoverageScorer(SelectParams(select_width_px=W, select_patience_s=None, select_min_views=0))
+
+    def blank(frame_id: int):  # noqa: ANN202
+        return scorer.prepare(frame_id=frame_id, stamp_ns=frame_id * 33_000_000, T_world_cam=T_FRONT, intrinsics=K,
+                              depth_m=np.full((H, W), 2.0), key_map=np.full((H, W), -1),
+                              conf_map=np.zeros((H, W), np.float32))
+
+    first, second = blank(0), blank(1)
+    assert scorer.score(blank(2)).new_surface == 1.0
+    scorer.hold(first)
+    scorer.hold(second)
+    scorer.hold(second)  # held twice: still one hold
+    assert scorer.score(blank(2)).new_surface == 0.0 and scorer.held == 2
+    scorer.release(first.frame_id, first.stamp_s)
+    assert scorer.score(blank(2)).new_surface == 0.0  # the other one still holds it
+    scorer.release(second.frame_id, second.stamp_s)
+    scorer.release(second.frame_id, second.stamp_s)  # released twice: nothing more to release
+    assert scorer.score(blank(2)).new_surface == 1.0 and scorer.held == 0

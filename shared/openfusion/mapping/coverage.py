@@ -183,9 +183,11 @@ class CoverageScorer:
         # _cell_tries[i][cube]: the direction bins the cube was shown from by at least i + 1 encoded frames
         self._cell_tries: list[dict[int, int]] = [{} for _ in range(p.select_tries)]
         # Views chosen but not encoded yet (the services' window; :meth:`hold`): (frame id, stamp) ->
-        # (cubes, bits) they will show, and the OR of every held view's bits per cube (None: to rebuild)
-        self._held: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = {}
-        self._held_bits: dict[int, int] | None = {}
+        # the distinct (cube, bin) pairs they will show; how many held views show each pair, and per
+        # cube the bins some held view shows (kept up to date as views come and go)
+        self._held: dict[tuple[int, float], list[tuple[int, int]]] = {}
+        self._held_pairs: dict[tuple[int, int], int] = {}
+        self._held_bits: dict[int, int] = {}
         self._rays: dict[CameraIntrinsics, np.ndarray] = {}
         self._selected_s: list[float] = []  # frame times of the views chosen (sorted; the newest SELECTED_KEPT)
         #: keys (int64 (k,)) -> (how many embeddings each region's dictionary entry averages, the
@@ -216,7 +218,8 @@ class CoverageScorer:
             self._region_views.clear()
             self._selected_s.clear()
             self._held.clear()
-            self._held_bits = {}
+            self._held_pairs.clear()
+            self._held_bits.clear()
             for table in self._cell_tries:
                 table.clear()
 
@@ -363,7 +366,7 @@ class CoverageScorer:
             if unsure.any():
                 cells, bins = ev.cells[unsure], ev.bins[unsure]
                 uniq, inv = np.unique(cells, return_inverse=True)
-                tried, held = self._cell_tries[-1], self._held_table()
+                tried, held = self._cell_tries[-1], self._held_bits
                 masks = np.fromiter((tried.get(c, 0) | held.get(c, 0) for c in uniq.tolist()), np.int64, len(uniq))
                 new_surface = int((((masks[inv] >> bins) & 1) == 0).sum())
             # regions: new directions and staleness, for regions big enough to count
@@ -486,30 +489,45 @@ class CoverageScorer:
         frames go that one process would have encoded. Released, the surface counts as it then is:
         labelled where the encoder labelled it, a second try where it did not."""
         cells, bins = self._marks(ev)
+        order = np.lexsort((bins, cells))
+        cells, bins = cells[order], bins[order]
+        first = np.r_[True, (cells[1:] != cells[:-1]) | (bins[1:] != bins[:-1])] if len(cells) else np.zeros(0, bool)
+        pairs = list(zip(cells[first].tolist(), bins[first].tolist(), strict=True))
         with self._lock:
-            self._held[(ev.frame_id, ev.stamp_s)] = _group_bits_arrays(cells, bins)
-            self._held_bits = None
+            key = (ev.frame_id, ev.stamp_s)
+            if key in self._held:
+                return
+            self._held[key] = pairs
+            counts, held = self._held_pairs, self._held_bits
+            for pair in pairs:
+                n = counts.get(pair, 0)
+                counts[pair] = n + 1
+                if not n:
+                    held[pair[0]] = held.get(pair[0], 0) | (1 << pair[1])
 
     def release(self, frame_id: int, stamp_s: float) -> None:
         """A held view was encoded and its update sent, or let go (no-op for a view not held)."""
         with self._lock:
-            if self._held.pop((int(frame_id), float(stamp_s)), None) is not None:
-                self._held_bits = None
+            pairs = self._held.pop((int(frame_id), float(stamp_s)), None)
+            if pairs is None:
+                return
+            counts, held = self._held_pairs, self._held_bits
+            for pair in pairs:
+                n = counts.pop(pair) - 1
+                if n:
+                    counts[pair] = n
+                    continue
+                cell, rest = pair[0], held.get(pair[0], 0) & ~(1 << pair[1])
+                if rest:
+                    held[cell] = rest
+                else:
+                    held.pop(cell, None)
 
     @property
     def held(self) -> int:
         with self._lock:
             return len(self._held)
 
-    def _held_table(self) -> dict[int, int]:
-        """(lock held) The OR of the held views' bits per cube."""
-        if self._held_bits is None:
-            table: dict[int, int] = {}
-            for uniq, bits in self._held.values():
-                for c, b in zip(uniq.tolist(), bits.tolist(), strict=True):
-                    table[c] = table.get(c, 0) | b
-            self._held_bits = table
-        return self._held_bits
 
     # ------------------------------------------------------------------ record what was encoded
     def mark_selected(self, ev: ViewEvidence) -> None:
