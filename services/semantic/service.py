@@ -353,7 +353,9 @@ class SemanticService:
         runner.queryable(SEMANTIC_DICTIONARY, self.handle_snapshot)
         runner.queryable(SEMANTIC_MERGE, lambda req: self.handle_merge(runner, req))
         if self._instances is not None:
-            runner.subscriber(SENSOR_INSTANCE, self._instances.add, queue_size=8)
+            # As deep as the frame queue: its callback thread competes for the interpreter with the
+            # scoring threads, and a queue of 8 let instance images go under load (their frames skipped)
+            runner.subscriber(SENSOR_INSTANCE, self._instances.add, queue_size=self._frame_queue_size())
         if self.section.integrate_wait_s > 0 or self.select_params.select == "latest":
             runner.subscriber(GEOMETRY_PROGRESS, self._integrated.on_progress, queue_size=256, measure=False)
         # latest: a queue, of which the newest frame geometry has taken is encoded (the older ones are

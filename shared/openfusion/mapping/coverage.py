@@ -85,6 +85,7 @@ from typing import Any
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics, Frame, resize_nearest
+from openfusion.mapping.held_views import HeldViews
 from openfusion.mapping.params import SelectParams
 
 #: A chosen view marks the surface it shows sampled this many times denser (per side) than it is
@@ -182,12 +183,7 @@ class CoverageScorer:
         self._region_views: dict[int, int] = {}  # encoded frames whose update wrote the region
         # _cell_tries[i][cube]: the direction bins the cube was shown from by at least i + 1 encoded frames
         self._cell_tries: list[dict[int, int]] = [{} for _ in range(p.select_tries)]
-        # Views chosen but not encoded yet (the services' window; :meth:`hold`): (frame id, stamp) ->
-        # the distinct (cube, bin) pairs they will show; how many held views show each pair, and per
-        # cube the bins some held view shows (kept up to date as views come and go)
-        self._held: dict[tuple[int, float], list[tuple[int, int]]] = {}
-        self._held_pairs: dict[tuple[int, int], int] = {}
-        self._held_bits: dict[int, int] = {}
+        self._held = HeldViews()  # views chosen but not encoded yet (the services' window; :meth:`hold`)
         self._rays: dict[CameraIntrinsics, np.ndarray] = {}
         self._selected_s: list[float] = []  # frame times of the views chosen (sorted; the newest SELECTED_KEPT)
         #: keys (int64 (k,)) -> (how many embeddings each region's dictionary entry averages, the
@@ -218,8 +214,6 @@ class CoverageScorer:
             self._region_views.clear()
             self._selected_s.clear()
             self._held.clear()
-            self._held_pairs.clear()
-            self._held_bits.clear()
             for table in self._cell_tries:
                 table.clear()
 
@@ -366,7 +360,7 @@ class CoverageScorer:
             if unsure.any():
                 cells, bins = ev.cells[unsure], ev.bins[unsure]
                 uniq, inv = np.unique(cells, return_inverse=True)
-                tried, held = self._cell_tries[-1], self._held_bits
+                tried, held = self._cell_tries[-1], self._held.bits
                 masks = np.fromiter((tried.get(c, 0) | held.get(c, 0) for c in uniq.tolist()), np.int64, len(uniq))
                 new_surface = int((((masks[inv] >> bins) & 1) == 0).sum())
             # regions: new directions and staleness, for regions big enough to count
@@ -489,39 +483,13 @@ class CoverageScorer:
         frames go that one process would have encoded. Released, the surface counts as it then is:
         labelled where the encoder labelled it, a second try where it did not."""
         cells, bins = self._marks(ev)
-        order = np.lexsort((bins, cells))
-        cells, bins = cells[order], bins[order]
-        first = np.r_[True, (cells[1:] != cells[:-1]) | (bins[1:] != bins[:-1])] if len(cells) else np.zeros(0, bool)
-        pairs = list(zip(cells[first].tolist(), bins[first].tolist(), strict=True))
         with self._lock:
-            key = (ev.frame_id, ev.stamp_s)
-            if key in self._held:
-                return
-            self._held[key] = pairs
-            counts, held = self._held_pairs, self._held_bits
-            for pair in pairs:
-                n = counts.get(pair, 0)
-                counts[pair] = n + 1
-                if not n:
-                    held[pair[0]] = held.get(pair[0], 0) | (1 << pair[1])
+            self._held.add((ev.frame_id, ev.stamp_s), cells, bins)
 
     def release(self, frame_id: int, stamp_s: float) -> None:
         """A held view was encoded and its update sent, or let go (no-op for a view not held)."""
         with self._lock:
-            pairs = self._held.pop((int(frame_id), float(stamp_s)), None)
-            if pairs is None:
-                return
-            counts, held = self._held_pairs, self._held_bits
-            for pair in pairs:
-                n = counts.pop(pair) - 1
-                if n:
-                    counts[pair] = n
-                    continue
-                cell, rest = pair[0], held.get(pair[0], 0) & ~(1 << pair[1])
-                if rest:
-                    held[cell] = rest
-                else:
-                    held.pop(cell, None)
+            self._held.remove((int(frame_id), float(stamp_s)))
 
     @property
     def held(self) -> int:
