@@ -19,7 +19,8 @@ that holds the snapshot):
   without a request, and at shutdown; a start removes those a crash left). At most
   :data:`MAX_SNAPSHOTS` at once (``busy`` beyond: the asker tries another peer).
 
-Copying (:meth:`PeerCopy.copy_from_peer_at_start`, in ``setup`` before frames are subscribed): a
+Copying (:meth:`PeerCopy.copy_from_peer_at_start`, in ``setup``; frames and semantic updates that
+come meanwhile are held and taken after it, :mod:`.start_buffer`): a
 geometry with a checkpoint folder holding no checkpoint, and ``copy_from_peer`` (default: on for a
 replica, ``replica >= 1``; ``--copy-from-peer`` for replica 0 whose disk was lost), finds the live
 peers of its shard by liveliness (same shard, other replica numbers; replica 0 first), asks one for
@@ -60,6 +61,7 @@ from openfusion.mapping.checkpoint_copy import (
     verify_store,
 )
 from openfusion.services.geometry import checkpoints
+from openfusion.services.geometry.start_buffer import UPDATE, StartBuffer
 from openfusion.wire.counters import GeometryCounter
 from openfusion.wire.endpoints import (
     GEOMETRY_CHECKPOINT_CHUNK,
@@ -292,10 +294,51 @@ class PeerCopy:
     _swap_lock: threading.Lock
     _dirty: bool
     checkpoint_server: CheckpointServer | None = None
-    # and the service's save(), _load() and _count()
+    # and the service's save(), _load(), _count(), _robot(), on_frame() and on_update()
     save: Any
     _load: Any
     _count: Any
+    _robot: Any
+    on_frame: Any
+    on_update: Any
+
+    def wants_copy_at_start(self) -> bool:
+        """Whether :meth:`copy_from_peer_at_start` will ask its peers: a checkpoint folder without a
+        checkpoint, loading on start, and ``copy_from_peer`` (by default a replica)."""
+        folder = self.checkpoint_dir
+        return (folder is not None and self.section.load_on_start
+                and wants_peer_copy(self.section.copy_from_peer, self.shard) and not checkpoints.has_checkpoint(folder))
+
+    def start_buffer(self) -> StartBuffer | None:
+        """A buffer for what comes during the copy (:mod:`.start_buffer`), or None when no copy
+        will run or ``peer_copy_buffer_frames`` is 0."""
+        if self.section.peer_copy_buffer_frames <= 0 or not self.wants_copy_at_start():
+            return None
+        return StartBuffer(self.section.peer_copy_buffer_frames)
+
+    def release_held(self, runner: ServiceRunner, held: StartBuffer) -> None:
+        """After the copy: what came during it, in order, through the service's handlers; a live
+        frame the copy holds already is a duplicate (counted, dropped)."""
+        def handle(kind: str, msg: Any) -> None:
+            if kind == UPDATE:
+                self.on_update(msg)
+                return
+            robot = self._robot(msg.robot)
+            if msg.prev_frame_id is None and robot.last_taken is not None and msg.frame_id <= robot.last_taken:
+                self._count(GeometryCounter.FRAMES_DUPLICATE)
+                return
+            self.on_frame(msg)
+
+        held.release(handle)
+        runner.stats.set(GeometryCounter.PEER_COPY_FRAMES_HELD, held.frames)
+        runner.stats.set(GeometryCounter.PEER_COPY_FRAMES_LOST, held.frames_lost)
+        if held.frames_lost or held.updates_lost:
+            logger.warning("geometry: %d frames and %d semantic updates came during the peer copy beyond what is held "
+                           "(peer_copy_buffer_frames=%d): they are not in this map", held.frames_lost,
+                           held.updates_lost, held.max_frames)
+        elif held.frames or held.updates:
+            logger.info("geometry: took %d frames and %d semantic updates that came during the peer copy",
+                        held.frames, held.updates)
 
     def serve_checkpoints(self, runner: ServiceRunner) -> None:
         """Answer the peers' checkpoint requests (without a checkpoint folder: ``no_checkpoint``, at once)."""
@@ -313,8 +356,7 @@ class PeerCopy:
             stats.set(name, 0)
         stats.set(GeometryCounter.PEER_COPY_FRAME_ID, -1)
         folder = self.checkpoint_dir
-        if (folder is None or not self.section.load_on_start or not wants_peer_copy(self.section.copy_from_peer, self.shard)
-                or checkpoints.has_checkpoint(folder)):
+        if folder is None or not self.wants_copy_at_start():
             return False
         session = runner.session
         assert session is not None

@@ -56,6 +56,10 @@ class GeometrySection(VolumeParams, JoinParams):
     peer_copy_checkpoint_first: bool = Field(
         True, description="ask the peer to checkpoint what it holds before it serves its checkpoint (a live source's "
         "frames between the peer's checkpoint and this start are not in the copy)")
+    peer_copy_buffer_frames: int = Field(
+        128, ge=0, le=4096, description="frames held while a peer's checkpoint is copied, taken after it (a live "
+        "source's frames of that time; about 1.5 MB per 640x480 frame); more are counted as peer_copy_frames_lost; "
+        "0 = subscribe after the copy")
     peer_copy_timeout_s: float = Field(
         60.0, gt=0, description="how long a peer may take to list its checkpoint (it checkpoints and copies its store "
         "first; each chunk: a quarter of this, at least 5 s); then the next peer is tried")

@@ -16,7 +16,7 @@
 | ``…/geometry/checkpoint/{list,chunk,release}/{itself}`` | queryables at its own name; queries a peer's at start | a snapshot of its checkpoint for a peer replica that starts without one (:mod:`.peer_copy`) |
 | ``…/semantic/merge`` | queries before ``control/save`` and the final save | MergeRequest → MergeReply |
 | ``…/semantic/dictionary`` | queries on a gap in the deltas (resync) | DictionaryRequest → DictionarySnapshot |
-| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``render_update_wait_timeouts``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC), ``voxels_relabelled``, ``save_merges``, ``save_merge_failures``, ``dictionary_resyncs``; the map's size and memory: ``num_blocks`` (all), ``resident_blocks``, ``resident_mb``, ``tiles_paged_out``, ``tiles_paged_in``, ``checkpoint_last_s``, ``checkpoint_last_tiles``, ``saving``, ``rss_mb``, ``rss_peak_mb``, ``rss_anon_peak_mb`` (:mod:`.memory`); a copy of a peer's checkpoint: ``peer_copies``, ``peer_copy_failures``, ``peer_copy_tiles``, ``peer_copy_bytes``, ``peer_copy_s``, ``peer_copy_frame_id``, ``peer_snapshots_served``, ``peer_bytes_served`` (:mod:`.peer_copy`) |
+| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``render_update_wait_timeouts``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC), ``voxels_relabelled``, ``save_merges``, ``save_merge_failures``, ``dictionary_resyncs``; the map's size and memory: ``num_blocks`` (all), ``resident_blocks``, ``resident_mb``, ``tiles_paged_out``, ``tiles_paged_in``, ``checkpoint_last_s``, ``checkpoint_last_tiles``, ``saving``, ``rss_mb``, ``rss_peak_mb``, ``rss_anon_peak_mb`` (:mod:`.memory`); a copy of a peer's checkpoint: ``peer_copies``, ``peer_copy_failures``, ``peer_copy_tiles``, ``peer_copy_bytes``, ``peer_copy_s``, ``peer_copy_frame_id``, ``peer_copy_frames_held``, ``peer_copy_frames_lost`` (:mod:`.start_buffer`), ``peer_snapshots_served``, ``peer_bytes_served`` (:mod:`.peer_copy`) |
 
 Checkpoints go to the tile store ``{map_dir}/{map_id}/map.ofz`` every ``checkpoint_period_s``
 (when something changed; without region summaries, which would cost a surface read-out under the
@@ -119,6 +119,7 @@ from openfusion.services.geometry.section import GeometryConfig, SummaryCache
 from openfusion.services.geometry.section import (
     GeometrySection as GeometrySection,  # re-exported: the config's section
 )
+from openfusion.services.geometry.start_buffer import FRAME, UPDATE, StartBuffer
 from openfusion.wire.counters import GeometryCounter
 from openfusion.wire.endpoints import (
     CONTROL,
@@ -443,13 +444,18 @@ class GeometryService(FrameIntake, MapPersistence, DictionaryFollower, PeerCopy)
     # ------------------------------------------------------------------------ wiring
     def setup(self, runner: ServiceRunner) -> None:
         self._runner = runner
-        self.copy_from_peer_at_start(runner)  # a replica with no checkpoint: its peer's (peer_copy.py), before frames
         self._progress_pub = runner.publisher(GEOMETRY_PROGRESS)
-        # One queue per robot's bridge, served in turn: one robot's backlog never starves another.
-        self._frames_sub = runner.subscriber(SENSOR_RGBD, self.on_frame, queue_size=self.section.frame_queue_size,
-                                             fair=True)
+        # A replica with no checkpoint copies its peer's (peer_copy.py); what comes meanwhile is held
+        # and taken after the copy (start_buffer.py), so the frames are subscribed first.
+        held = self.held_at_start = self.start_buffer()
+        if held is not None:
+            self._subscribe_inputs(runner, held)
+        self.copy_from_peer_at_start(runner)
+        if held is None:
+            self._subscribe_inputs(runner, None)
+        else:
+            self.release_held(runner, held)
         runner.stats.robots_provider = self.robot_status
-        runner.subscriber(SEMANTIC_UPDATE, self.on_update, queue_size=64)
         runner.subscriber(DICTIONARY_DELTA, self.on_delta, queue_size=256)
         # One shard (the default): today's keys; shard I of N: the same endpoints under its own
         # segment (…/geometry/render/geometry-0of2), merged by readers (openfusion.shard_client).
@@ -476,6 +482,22 @@ class GeometryService(FrameIntake, MapPersistence, DictionaryFollower, PeerCopy)
         self._memory.start(runner.stats)
         self.announce()  # every robot the checkpoint holds: where its playback continues
         self.joiner.start()
+
+    def _subscribe_inputs(self, runner: ServiceRunner, held: StartBuffer | None) -> None:
+        """Frames and semantic updates; with ``held``, what comes is held until it is released."""
+        on_frame, on_update = self.on_frame, self.on_update
+        if held is not None:
+            def on_frame(msg: RgbdFrame) -> None:
+                if not held.offer(FRAME, msg):
+                    self.on_frame(msg)
+
+            def on_update(msg: SemanticUpdate) -> None:
+                if not held.offer(UPDATE, msg):
+                    self.on_update(msg)
+        # One queue per robot's bridge, served in turn: one robot's backlog never starves another.
+        self._frames_sub = runner.subscriber(SENSOR_RGBD, on_frame, queue_size=self.section.frame_queue_size,
+                                             fair=True)
+        runner.subscriber(SEMANTIC_UPDATE, on_update, queue_size=64)
 
     def loop(self, runner: ServiceRunner) -> None:
         period = self.section.checkpoint_period_s

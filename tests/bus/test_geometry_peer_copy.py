@@ -7,9 +7,12 @@
   the peer's, block for block and point for point; the playback continued (the same playback name,
   from its start) is followed: the replica drops the frames its copy holds as duplicates,
   integrates the rest once, and the two maps are equal again.
-- A live source (frames with no playback, never replayed; shard 0 of 2 and its replica): the frames the peer took after its
-  checkpoint and before the replica subscribed are not in the replica's map; the replica counts
-  them as ``frames_gap`` at the first live frame it takes, and takes the frames after it once.
+- Frames that come while the replica copies (a source nobody replays for it): the replica
+  subscribed before the copy, holds them, and takes them once the copy is loaded: its map is the
+  peer's, every frame once, no gap (services/geometry/start_buffer.py).
+- A live source (frames with no playback, never replayed; shard 0 of 2 and its replica): frames
+  the replica never received are counted as ``frames_gap`` at the first live frame it takes, and
+  it takes the frames after it once.
 - Bad input: a chunk corrupted in transit (bytes flipped after the peer computed their digest),
   and a peer that goes away mid-copy (its session closed after its first chunk): each copy is
   logged, counted (``peer_copy_failures``) and discarded; the next peer is tried; with none left
@@ -24,12 +27,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from openfusion.bus import Publisher
 from openfusion.services.bridge.service import BridgeConfig, BridgeSection, BridgeService
 from openfusion.services.geometry import checkpoints, peer_copy
 from openfusion.services.geometry.service import GeometryConfig, GeometrySection, GeometryService
 from openfusion.sources import open_source
-from openfusion.testing.bus import LoopbackRouter, ServiceThread, wait_until
+from openfusion.testing.bus import LoopbackRouter, ServiceThread, send_until_handled, wait_until
 from openfusion.wire.counters import GeometryCounter
+from openfusion.wire.endpoints import SENSOR_RGBD
 from openfusion.wire.keys import ShardId
 from openfusion.wire.schemas import CheckpointChunk, RgbdFrame
 
@@ -109,7 +114,58 @@ def test_a_replica_with_no_checkpoint_copies_its_peers_then_follows(net: Loopbac
     primary.close()
 
 
-def test_a_live_source_loses_only_the_frames_between_the_copy_and_the_start(net: LoopbackRouter, tmp_path: Path) -> None:
+def test_frames_that_come_during_the_copy_are_held_and_taken_once_after_it(
+        net: LoopbackRouter, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A source that no one replays for the replica (its own publisher, not a bridge): frames 0-5
+    before the replica starts (in the checkpoint it copies), 6-7 while it copies (sent when the
+    first chunk comes back, so after the peer's checkpoint), 8-11 after. Subscribed only after the
+    copy, the replica missed 6-7 and, its chain broken, took none of the later frames either."""
+    monkeypatch.setattr(peer_copy, "MAX_CHECKPOINT_CHUNK_BYTES", 32 * 1024)  # several chunks
+    frames = [RgbdFrame.from_frame(f, with_instance=False, playback="no-replay", prev_frame_id=f.frame_id - 1)
+              for f in open_source(f"{SOURCE},frames=12")]
+    session = net.open_client()
+    pub = Publisher(session, SENSOR_RGBD.key(net.keys), message=RgbdFrame)
+    primary, p_thread = _geometry(net, tmp_path / "host1", 0)
+    replica, r_thread = _geometry(net, tmp_path / "host2", 1)
+    real_get = peer_copy.get
+
+    def get_during_copy(session_, key, request, reply_model, **kw):  # noqa: ANN001, ANN003, ANN202
+        reply = real_get(session_, key, request, reply_model, **kw)
+        held = replica.held_at_start
+        if isinstance(reply, CheckpointChunk) and held is not None and held.frames == 0:
+            for i in (6, 7):  # resent until held (a subscription declared a moment ago may miss a put)
+                send_until_handled(lambda i=i: pub.put(frames[i]), lambda i=i: held.frames >= i - 5, timeout_s=2.0)
+            wait_until(lambda: primary.frames_integrated == 8, timeout_s=30)
+        return reply
+
+    try:
+        with p_thread:
+            wait_until(lambda: pub.has_subscribers, timeout_s=30)
+            send_until_handled(lambda: pub.put(frames[0]), lambda: primary.frames_integrated >= 1, timeout_s=2.0)
+            for msg in frames[1:6]:
+                pub.put(msg)
+            wait_until(lambda: primary.frames_integrated == 6, timeout_s=30)
+            monkeypatch.setattr(peer_copy, "get", get_during_copy)
+            with r_thread:  # its start copies the checkpoint (frames 0-5); 6 and 7 come meanwhile
+                assert r_thread.counter(GeometryCounter.PEER_COPY_FRAME_ID) == frames[5].frame_id
+                assert r_thread.counter(GeometryCounter.PEER_COPY_FRAMES_HELD) >= 2
+                assert r_thread.counter(GeometryCounter.PEER_COPY_FRAMES_LOST) == 0
+                assert replica.frames_integrated == 8
+                for msg in frames[8:]:
+                    pub.put(msg)
+                wait_until(lambda: primary.frames_integrated == replica.frames_integrated == 12, timeout_s=30,
+                           describe=lambda: f"{primary.frames_integrated} / {replica.frames_integrated}")
+                assert r_thread.counter(GeometryCounter.FRAMES_GAP) == 0
+                assert replica.last_frame_id == primary.last_frame_id == frames[-1].frame_id
+                _assert_same_map(primary, replica)
+    finally:
+        replica.close()
+        primary.close()
+        pub.close()
+        session.close()
+
+
+def test_a_live_source_counts_the_frames_the_replica_never_got(net: LoopbackRouter, tmp_path: Path) -> None:
     frames = [RgbdFrame.from_frame(f, with_instance=False) for f in open_source(f"{SOURCE},frames=12")]
     primary, p_thread = _geometry(net, tmp_path / "host1", 0, shard="0/2")  # one shard of two: its own keys
     with p_thread:

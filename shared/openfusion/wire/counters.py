@@ -95,6 +95,8 @@ class GeometryCounter(StrEnum):
     PEER_COPY_TILES = "peer_copy_tiles"  # tiles in the checkpoint copied from the peer
     PEER_COPY_BYTES = "peer_copy_bytes"  # bytes of checkpoint files copied from the peer
     PEER_COPY_S = "peer_copy_s"  # seconds the copy took (listing to verified files)
+    PEER_COPY_FRAMES_HELD = "peer_copy_frames_held"  # frames that came during the copy, held and taken after it
+    PEER_COPY_FRAMES_LOST = "peer_copy_frames_lost"  # frames that came during the copy over peer_copy_buffer_frames
     PEER_COPY_FRAME_ID = "peer_copy_frame_id"  # last frame the copied checkpoint holds (-1: none or no copy)
     PEER_SNAPSHOTS_SERVED = "peer_snapshots_served"  # snapshots of this geometry's checkpoint served to a peer
     PEER_BYTES_SERVED = "peer_bytes_served"  # bytes of checkpoint files served to peers

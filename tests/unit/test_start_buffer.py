@@ -1,0 +1,61 @@
+"""What a replica holds while it copies its peer's checkpoint (services/geometry/start_buffer.py)
+and how it takes it after the copy, with geometry's service code called directly (no bus).
+
+Bad input tried: more frames than the buffer holds (the oldest are kept, the rest counted lost);
+a live frame the copy already holds (a duplicate: counted, not integrated twice); a held update
+geometry refuses (confidences outside [0, 1]: logged, the items after it still taken).
+"""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from openfusion.bus.stats import ServiceStats
+from openfusion.services.geometry.service import GeometryConfig, GeometrySection, GeometryService
+from openfusion.services.geometry.start_buffer import FRAME, UPDATE, StartBuffer
+from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld
+from openfusion.wire.counters import GeometryCounter
+from openfusion.wire.schemas import RgbdFrame, SemanticUpdate
+
+FRAMES = [RgbdFrame.from_frame(f, with_instance=False)  # live: no playback, no predecessor
+          for f in SyntheticSource(SyntheticWorld(0), num_frames=5, width_px=64, height_px=48)]
+
+
+def test_the_buffer_keeps_the_oldest_in_order_and_counts_the_rest() -> None:
+    held = StartBuffer(max_frames=2)
+    assert held.offer(FRAME, "f0") and held.offer(UPDATE, "u0") and held.offer(FRAME, "f1")
+    assert held.offer(FRAME, "f2")  # over the limit: counted, not kept
+    assert held.frames == 2 and held.frames_lost == 1 and held.updates == 1
+    seen: list[tuple[str, str]] = []
+
+    def handle(kind: str, msg: str) -> None:
+        if msg == "u0":
+            raise ValueError("a bad update")  # logged; the next item is still handled
+        seen.append((kind, msg))
+
+    held.release(handle)
+    assert seen == [(FRAME, "f0"), (FRAME, "f1")]
+    assert not held.offer(FRAME, "f3")  # released: the caller handles what comes now
+
+
+def test_after_the_copy_a_live_frame_it_holds_is_a_duplicate_and_the_rest_are_taken_once() -> None:
+    geo = GeometryService(GeometryConfig(map_id="unit", geometry=GeometrySection(load_on_start=False)))
+    runner = SimpleNamespace(stats=ServiceStats())
+    geo._runner = runner  # noqa: SLF001 (counters without a bus)
+    for msg in FRAMES[:3]:  # what the copy holds
+        geo.on_frame(msg)
+    held = StartBuffer(max_frames=8)
+    bad = SemanticUpdate(frame_id=2, T_world_cam=FRAMES[2].T_world_cam, **SemanticUpdate.intrinsics_fields(
+        FRAMES[2].to_frame().intrinsics), key_map=np.zeros((48, 64), np.int32),
+        conf_map=np.full((48, 64), 1.5, np.float32), new_keys=np.zeros(0, np.int32))
+    for kind, msg in ((FRAME, FRAMES[2]), (UPDATE, bad), (FRAME, FRAMES[3]), (FRAME, FRAMES[4])):
+        held.offer(kind, msg)
+    geo.release_held(runner, held)
+    assert geo.frames_integrated == 5  # frames 3 and 4 once; frame 2 not again
+    assert runner.stats.counters[GeometryCounter.FRAMES_DUPLICATE] == 1
+    assert runner.stats.counters[GeometryCounter.PEER_COPY_FRAMES_HELD] == 3
+    assert runner.stats.counters[GeometryCounter.PEER_COPY_FRAMES_LOST] == 0
+    assert geo.updates_applied == 0  # the refused update wrote nothing
+    geo.close()
