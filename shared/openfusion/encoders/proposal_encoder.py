@@ -24,7 +24,7 @@ from openfusion.encoders.base import (
     blank_frame,
     check_rgb,
 )
-from openfusion.encoders.crops import CropSpec, preprocess_image, region_boxes, region_crops
+from openfusion.encoders.crops import CropSpec, preprocess_image, region_crops
 from openfusion.frame import Frame
 from openfusion.mapping.region_gate import regions_wanted
 
@@ -106,9 +106,7 @@ class ProposalRegionEncoder(RegionEncoder, ImageQueryEncoder):
         masks = np.asarray(self.proposer.propose(frame, out_hw), dtype=np.float32)
         if masks.ndim != 3 or masks.shape[1:] != out_hw:
             raise EncoderError(f"proposer {self.proposer.name!r} returned masks {masks.shape}, expected (n, {out_hw[0]}, {out_hw[1]})")
-        present = np.array([box is not None for box in region_boxes(masks, frame.color.shape[:2],
-                                                                        self.embedder.crop_spec.padding)], bool)
-        masks = masks[present] if len(masks) else masks
+        masks = masks[np.any(masks > 0, axis=(1, 2))]  # an empty mask has no crop (region_boxes: None)
         wanted = regions_wanted(masks, wanted_px, min_share)
         crops, kept = region_crops(frame.color, masks[wanted], self.embedder.crop_spec)
         emb_wanted = self._embed(crops)
