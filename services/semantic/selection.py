@@ -84,7 +84,7 @@ class HandledFrames:
             return len(self._order)
 
 
-@dataclass
+@dataclass(eq=False)  # compared by identity (arrays inside)
 class Pending:
     """A candidate's payload: the frame as it came and its instance image (when the encoder reads them)."""
 
@@ -95,7 +95,7 @@ class Pending:
     wanted_px: np.ndarray | None = None
 
 
-@dataclass
+@dataclass(eq=False)
 class Scoring:
     """A frame whose render (and scoring) is under way on the scoring pool."""
 

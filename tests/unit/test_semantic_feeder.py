@@ -171,3 +171,22 @@ def test_a_surface_two_waiting_frames_hold_stays_held_until_both_are_done() -> N
     scorer.release(second.frame_id, second.stamp_s)
     scorer.release(second.frame_id, second.stamp_s)  # released twice: nothing more to release
     assert scorer.score(blank(2)).new_surface == 1.0 and scorer.held == 0
+
+
+def test_two_robots_frames_with_the_same_id_and_stamp_both_leave_the_window() -> None:
+    """Two robots replaying one source send frames with equal ids and stamps. The window removed
+    the frame it gave out by comparing candidates field by field, and two views of other sizes
+    raised (the semantic service exited mid-run; seen in tests/process/test_several_robots.py)."""
+    scorer = CoverageScorer(SelectParams(select_width_px=W, select_patience_s=None, select_min_views=0))
+    window: CandidateWindow = CandidateWindow(scorer, capacity=8)
+
+    def wall(depth_m: float, share: float):  # noqa: ANN202
+        depth = np.zeros((H, W), np.float32)
+        depth[:, : round(W * share)] = depth_m  # another surface for each: both chosen
+        return scorer.prepare(frame_id=3, stamp_ns=99_000_000, T_world_cam=T_FRONT, intrinsics=K, depth_m=depth,
+                              key_map=np.full((H, W), -1), conf_map=np.zeros((H, W), np.float32))
+
+    assert not window.offer(wall(2.0, 0.5), "robot0").no_gain
+    assert not window.offer(wall(3.0, 1.0), "robot1").no_gain
+    assert sorted(window.take().taken.payload for _ in range(2)) == ["robot0", "robot1"]
+    assert len(window) == 0

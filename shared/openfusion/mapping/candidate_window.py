@@ -16,10 +16,12 @@ from openfusion.mapping.coverage import CoverageScorer, ViewEvidence, ViewScore
 T = TypeVar("T")
 
 
-@dataclass
+@dataclass(eq=False)
 class Candidate(Generic[T]):
     """A frame waiting for the encoder: its prepared view, its last score and what the caller
-    needs to encode it (``payload``: the frame, or the message and its instance image)."""
+    needs to encode it (``payload``: the frame, or the message and its instance image). Compared
+    by identity: two robots' frames may share an id and a stamp, and comparing their arrays
+    field by field raised (the window removes the one it gives out)."""
 
     evidence: ViewEvidence
     score: ViewScore

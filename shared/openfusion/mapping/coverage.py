@@ -122,7 +122,7 @@ def scoring_size(intrinsics: CameraIntrinsics, width_px: int) -> tuple[int, int]
     return h, w
 
 
-@dataclass
+@dataclass(eq=False)  # one view's arrays: compared by identity
 class ViewEvidence:
     """A candidate view, prepared once (:meth:`CoverageScorer.prepare`): per surface pixel of the
     scored view its direction bin, its surface cube and the region the map holds there."""
