@@ -213,7 +213,7 @@ class CandidateFeeder:
             return self.render(RenderRequest(frame_id=msg.frame_id, T_world_cam=T_world_cam, robot=msg.robot,
                                              **RenderRequest.intrinsics_fields(K_small)))
 
-        evidence = self.scorer.prepare_frame(msg.to_frame(), render)
+        evidence = self.scorer.prepare_frame(msg.to_frame(), render, robot=msg.robot)
         return evidence, time.monotonic() - started
 
     def take(self, runner: ServiceRunner, timeout_s: float) -> Pending | None:
@@ -238,13 +238,13 @@ class CandidateFeeder:
 
     def finish(self, runner: ServiceRunner, msg: RgbdFrame) -> None:
         """``msg`` is done with (encoded, failed or skipped): :meth:`done`."""
-        self.done(runner, msg.frame_id, msg.stamp_ns)
+        self.done(runner, msg.robot, msg.frame_id, msg.stamp_ns)
 
-    def done(self, runner: ServiceRunner, frame_id: int, stamp_ns: int) -> None:
+    def done(self, runner: ServiceRunner, robot: str, frame_id: int, stamp_ns: int) -> None:
         """A frame is done with (encoded and its update sent, failed or skipped): the surface it
         was chosen for is no longer held for it (:meth:`CoverageScorer.hold`), and
         ``last_frame_handled`` moves."""
-        self.scorer.release(frame_id, stamp_ns / 1e9)
+        self.scorer.release(frame_id, stamp_ns / 1e9, robot)
         mark = self.handled.done(frame_id, stamp_ns)
         if mark is not None:
             runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, mark)

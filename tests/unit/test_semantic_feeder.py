@@ -120,7 +120,7 @@ def test_a_chosen_frame_holds_its_surface_until_it_is_done_with() -> None:
         feeder.handled.arrived(msg.frame_id, msg.stamp_ns)
         return msg, scorer.prepare(frame_id=frame_id, stamp_ns=msg.stamp_ns, T_world_cam=T_FRONT, intrinsics=K,
                                    depth_m=np.full((H, W), 2.0), key_map=np.full((H, W), -1),
-                                   conf_map=np.zeros((H, W), np.float32))
+                                   conf_map=np.zeros((H, W), np.float32), robot=msg.robot)
 
     msg0, ev0 = blank(0)
     assert not window.offer(ev0, msg0).no_gain and scorer.held == 1
@@ -190,3 +190,22 @@ def test_two_robots_frames_with_the_same_id_and_stamp_both_leave_the_window() ->
     assert not window.offer(wall(3.0, 1.0), "robot1").no_gain
     assert sorted(window.take().taken.payload for _ in range(2)) == ["robot0", "robot1"]
     assert len(window) == 0
+
+
+def test_two_robots_frames_with_the_same_id_and_stamp_hold_their_surface_apart() -> None:
+    """A hold is the robot's: robot0's frame 3 done with does not release what robot1's frame 3
+    (same id and stamp, another robot's clock) still waits to show."""
+    scorer = CoverageScorer(SelectParams(select_width_px=W, select_patience_s=None, select_min_views=0))
+
+    def blank(robot: str):  # noqa: ANN202
+        return scorer.prepare(frame_id=3, stamp_ns=99_000_000, T_world_cam=T_FRONT, intrinsics=K,
+                              depth_m=np.full((H, W), 2.0), key_map=np.full((H, W), -1),
+                              conf_map=np.zeros((H, W), np.float32), robot=robot)
+
+    scorer.hold(blank("robot0"))
+    scorer.hold(blank("robot1"))
+    assert scorer.held == 2
+    scorer.release(3, 0.099, "robot0")
+    assert scorer.held == 1 and scorer.score(blank("robot0")).new_surface == 0.0  # robot1's frame holds it
+    scorer.release(3, 0.099, "robot1")
+    assert scorer.held == 0 and scorer.score(blank("robot0")).new_surface == 1.0

@@ -148,7 +148,7 @@ class CandidateWindow(Generic[T]):
         """A chosen frame was encoded (its update sent) or let go: the surface it was to show is
         no longer held for it (:meth:`CoverageScorer.hold`). The encoding side calls it for a frame
         :meth:`take` gave; the window for the frames it lets go."""
-        self.scorer.release(evidence.frame_id, evidence.stamp_s)
+        self.scorer.release(evidence.frame_id, evidence.stamp_s, evidence.robot)
 
     def close(self) -> None:
         with self._cond:

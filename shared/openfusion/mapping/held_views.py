@@ -15,10 +15,10 @@ import numpy as np
 
 
 class HeldViews:
-    """Views held by a key (frame id, stamp), and per cube the OR of the bins they show."""
+    """Views held by a key (robot, frame id, stamp), and per cube the OR of the bins they show."""
 
     def __init__(self) -> None:
-        self._views: dict[tuple[int, float], list[tuple[int, int]]] = {}
+        self._views: dict[tuple[str, int, float], list[tuple[int, int]]] = {}
         self._counts: dict[tuple[int, int], int] = {}  # (cube, bin) -> held views that show it
         #: per cube, the bit mask of the bins some held view shows (what the score reads)
         self.bits: dict[int, int] = {}
@@ -26,7 +26,7 @@ class HeldViews:
     def __len__(self) -> int:
         return len(self._views)
 
-    def add(self, key: tuple[int, float], cells: np.ndarray, bins: np.ndarray) -> None:
+    def add(self, key: tuple[str, int, float], cells: np.ndarray, bins: np.ndarray) -> None:
         """Hold a view's (cube, bin) pairs (any order, repeats allowed); a key held already is kept as it is."""
         if key in self._views:
             return
@@ -41,7 +41,7 @@ class HeldViews:
             if not n:
                 self.bits[pair[0]] = self.bits.get(pair[0], 0) | (1 << pair[1])
 
-    def remove(self, key: tuple[int, float]) -> None:
+    def remove(self, key: tuple[str, int, float]) -> None:
         """Release a view (no-op for a key not held)."""
         pairs = self._views.pop(key, None)
         for pair in pairs or ():
