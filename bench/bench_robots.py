@@ -51,8 +51,10 @@ from openfusion.testing.robots import (
 )
 
 ROOT = Path(__file__).resolve().parents[1]
-#: Each robot's camera rate in the runs: slow enough that the semantic service (latest frame only)
-#: fuses every frame on 2 cores, so runs differ by what the robots saw, not by which frames it took.
+#: Each robot's camera rate in the runs: slow enough that the semantic service fuses every frame on 2
+#: cores (``semantic.select`` every, the default of ``--select`` here), so runs differ by what the
+#: robots saw, not by which frames it took. ``--select coverage`` (the product's default) measures
+#: frame selection across robots as well; which frames the services choose then depends on timing.
 RATE_HZ = 3.0
 
 
@@ -130,10 +132,12 @@ def join_table(quick: bool) -> None:
 
 
 # ------------------------------------------------------------------------------------------- runs
-def run(out: Path, sources: list[str], *, robot_frames: str, voxel_m: float, frames: int | None) -> dict:
+def run(out: Path, sources: list[str], *, robot_frames: str, voxel_m: float, frames: int | None,
+        select: str = "every") -> dict:
     """``openfusion run`` of the sources; ``frames``: --frames (None: each building source walks its route)."""
     cmd = [sys.executable, "-m", "openfusion.app.cli", "run", "--out", str(out), "--quiet", "--query", "chair",
-           "--rate-hz", str(RATE_HZ), "--timeout-s", "3600", "--set", f"geometry.voxel_size_m={voxel_m}"]
+           "--rate-hz", str(RATE_HZ), "--timeout-s", "3600", "--set", f"geometry.voxel_size_m={voxel_m}",
+           "--set", f"semantic.select={select}"]
     if frames is not None:
         cmd += ["--frames", str(frames)]
     for spec in sources:
@@ -149,7 +153,7 @@ def run(out: Path, sources: list[str], *, robot_frames: str, voxel_m: float, fra
     return summary
 
 
-def runs_table(quick: bool) -> None:
+def runs_table(quick: bool, select: str = "every") -> None:
     rooms, size = (2, "width=160,height=120") if quick else (4, "width=320,height=240")
     route_a, route_b = ("0", "1") if quick else ("0-1", "2-3")
     voxel_m = 0.04 if quick else 0.02
@@ -174,7 +178,7 @@ def runs_table(quick: bool) -> None:
          T_MAP_ODOM),
     ]
     print(f"### One robot or two on the building ({rooms} rooms, routes {route_a} and {route_b}, {size}, "
-          f"{voxel_m * 100:.0f} cm voxels, gt encoder, {os.cpu_count()} cores)\n")
+          f"{voxel_m * 100:.0f} cm voxels, gt encoder, semantic.select {select}, {os.cpu_count()} cores)\n")
     print("| run | frames integrated (per robot) | surface points | x one robot | f-mIoU | mAcc | regions / object "
           "| robot 1 join error (cm / deg) | robot 1 surface > 2 voxels off the truth: as joined / true transform "
           "| wall (s) |")
@@ -182,7 +186,7 @@ def runs_table(quick: bool) -> None:
     base_points = None
     for i, (name, sources, frames, truth) in enumerate(cases):
         summary = run(work / f"run{i}", sources, robot_frames=frames, voxel_m=voxel_m,
-                      frames=len(walk_a) + len(walk_b) if i == 0 else None)
+                      frames=len(walk_a) + len(walk_b) if i == 0 else None, select=select)
         robots = summary["robots"]
         T_used = None
         if "robot1" in robots:
@@ -212,11 +216,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--full", action="store_true", help="the default size (bench/run_all.py passes it)")
     parser.add_argument("--join-only", action="store_true", help="only the joining table")
     parser.add_argument("--runs-only", action="store_true", help="only the runs table")
+    parser.add_argument("--select", choices=["every", "coverage"], default="every",
+                        help="the semantic service's frame selection in the runs (every: the maps differ only by "
+                             "what was seen)")
     args = parser.parse_args(argv)
     if not args.runs_only:
         join_table(args.quick)
     if not args.join_only:
-        runs_table(args.quick)
+        runs_table(args.quick, args.select)
     return 0
 
 
