@@ -37,7 +37,11 @@ def test_a_worker_killed_mid_run_loses_nothing_but_its_frames_in_flight(tmp_path
     proc = subprocess.Popen(
         [sys.executable, "-m", "openfusion.app.cli", "run", "--out", str(out), "--map", map_id, "--source",
          "synthetic:seed=1,width=160,height=120", "--frames", "90", "--rate-hz", "10", "--encoder-workers", "3",
-         "--encoder-delay-ms", "300", "--quiet", "--query", "chair"],
+         "--encoder-delay-ms", "300", "--quiet", "--query", "chair",
+         # every frame goes to the pool, so at 10 Hz the three 300 ms workers are always busy and the
+         # victim holds frames when it dies; under frame selection (the default) it was often idle
+         # at the kill (nothing to resend: 0 + 0 frames), which is not what this test is about
+         "--set", "semantic.select=every"],
         stdout=subprocess.DEVNULL, stderr=err, cwd=ROOT, env=subprocess_env(HF_HUB_OFFLINE="1"))
     session = None
     try:
