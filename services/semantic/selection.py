@@ -57,25 +57,29 @@ RENDERS_IN_FLIGHT = 3
 class HandledFrames:
     """The ``last_frame_handled`` watermark: frames are announced as they are taken off the
     subscription and marked done in any order; :meth:`done` returns the newest frame id whose
-    frame and every frame announced before it are done (None when that did not move)."""
+    frame and every frame announced before it are done (None when that did not move). A frame is
+    (robot, frame id, stamp), and done marks are counted: two robots replaying one source send
+    frames with equal ids and stamps, and with one mark for both the watermark stopped for good."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._order: collections.deque[tuple[int, int]] = collections.deque()  # (frame id, stamp) in arrival order
-        self._done: set[tuple[int, int]] = set()
+        self._order: collections.deque[tuple[str, int, int]] = collections.deque()  # in arrival order
+        self._done: collections.Counter[tuple[str, int, int]] = collections.Counter()
 
-    def arrived(self, frame_id: int, stamp_ns: int) -> None:
+    def arrived(self, robot: str, frame_id: int, stamp_ns: int) -> None:
         with self._lock:
-            self._order.append((frame_id, stamp_ns))
+            self._order.append((robot, frame_id, stamp_ns))
 
-    def done(self, frame_id: int, stamp_ns: int) -> int | None:
+    def done(self, robot: str, frame_id: int, stamp_ns: int) -> int | None:
         with self._lock:
-            self._done.add((frame_id, stamp_ns))
+            self._done[(robot, frame_id, stamp_ns)] += 1
             mark = None
-            while self._order and self._order[0] in self._done:
+            while self._order and self._done[self._order[0]] > 0:
                 head = self._order.popleft()
-                self._done.discard(head)
-                mark = head[0]
+                self._done[head] -= 1
+                if not self._done[head]:
+                    del self._done[head]
+                mark = head[1]
             return mark
 
     @property
@@ -175,7 +179,7 @@ class CandidateFeeder:
         """A frame off the subscription: the switch, its instance image, then its render and
         scoring on ``pool``; None when it is not a candidate (counted, done with)."""
         stats = runner.stats
-        self.handled.arrived(msg.frame_id, msg.stamp_ns)
+        self.handled.arrived(msg.robot, msg.frame_id, msg.stamp_ns)
         if not self.accept(msg.frame_id, time.monotonic()):
             stats.incr(SemanticCounter.SKIPPED_SWITCH)
             self.finish(runner, msg)
@@ -245,6 +249,6 @@ class CandidateFeeder:
         was chosen for is no longer held for it (:meth:`CoverageScorer.hold`), and
         ``last_frame_handled`` moves."""
         self.scorer.release(frame_id, stamp_ns / 1e9, robot)
-        mark = self.handled.done(frame_id, stamp_ns)
+        mark = self.handled.done(robot, frame_id, stamp_ns)
         if mark is not None:
             runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, mark)

@@ -24,7 +24,7 @@ from openfusion.frame import CameraIntrinsics, Frame
 from openfusion.mapping.params import SelectParams
 from openfusion.mapping.selection import CandidateWindow, CoverageScorer
 from openfusion.poses import look_at
-from openfusion.services.semantic.selection import CandidateFeeder
+from openfusion.services.semantic.selection import CandidateFeeder, HandledFrames
 from openfusion.wire.counters import SemanticCounter
 from openfusion.wire.schemas import RgbdFrame
 
@@ -117,7 +117,7 @@ def test_a_chosen_frame_holds_its_surface_until_it_is_done_with() -> None:
 
     def blank(frame_id: int):  # noqa: ANN202
         msg = wall_frame(frame_id, 2.0)
-        feeder.handled.arrived(msg.frame_id, msg.stamp_ns)
+        feeder.handled.arrived(msg.robot, msg.frame_id, msg.stamp_ns)
         return msg, scorer.prepare(frame_id=frame_id, stamp_ns=msg.stamp_ns, T_world_cam=T_FRONT, intrinsics=K,
                                    depth_m=np.full((H, W), 2.0), key_map=np.full((H, W), -1),
                                    conf_map=np.zeros((H, W), np.float32), robot=msg.robot)
@@ -209,3 +209,20 @@ def test_two_robots_frames_with_the_same_id_and_stamp_hold_their_surface_apart()
     assert scorer.held == 1 and scorer.score(blank("robot0")).new_surface == 0.0  # robot1's frame holds it
     scorer.release(3, 0.099, "robot1")
     assert scorer.held == 0 and scorer.score(blank("robot0")).new_surface == 1.0
+
+
+def test_the_watermark_passes_two_robots_frames_with_the_same_id_and_stamp() -> None:
+    """Both robots' frame 3 (same id and stamp) done before robot 0's frame 2: once frame 2 is done
+    the watermark passes both; the same for one robot's frame taken twice. With one done mark for
+    two equal frames it stopped for good (checked: a set in place of the count fails here)."""
+    handled = HandledFrames()
+    for robot, frame_id in (("robot0", 2), ("robot0", 3), ("robot1", 3)):
+        handled.arrived(robot, frame_id, frame_id * 33_000_000)
+    assert handled.done("robot0", 3, 99_000_000) is None
+    assert handled.done("robot1", 3, 99_000_000) is None
+    assert handled.done("robot0", 2, 66_000_000) == 3 and handled.pending == 0
+    # one robot's frame taken twice (a replayed frame), both done before the frame ahead of them
+    for frame_id in (6, 7, 7):
+        handled.arrived("robot0", frame_id, frame_id * 33_000_000)
+    assert handled.done("robot0", 7, 231_000_000) is None and handled.done("robot0", 7, 231_000_000) is None
+    assert handled.done("robot0", 6, 198_000_000) == 7 and handled.pending == 0
