@@ -83,7 +83,7 @@ class PoolDispatch:
         now = time.monotonic()
         for lost in self.pool.take_lost():  # frames the pool gave up on are done with too
             if self.service._feeder is not None:
-                self.service._frame_done(runner, lost.robot, lost.frame_id, lost.stamp_ns)
+                self.service._frame_done(runner, lost)
         for result in self.pool.take_results():
             runner.stats.incr(SemanticCounter.ENCODER_CALLS)
             reply = result.reply
@@ -127,7 +127,7 @@ class PoolDispatch:
             logger.exception("semantic: frame %d could not go to the encoder pool; skipped", msg.frame_id)
             stats.incr(SemanticCounter.FRAMES_FAILED)
             stats.add_error()
-            self.service._frame_done(runner, msg.robot, msg.frame_id, msg.stamp_ns)
+            self.service._frame_done(runner, msg)
 
     def _dispatch(self, runner: ServiceRunner, msg: RgbdFrame, pending: Pending | None) -> None:
         """Send one frame taken off the window (``pending``) or the subscription to a worker."""
@@ -140,12 +140,12 @@ class PoolDispatch:
         else:
             request = self._pool_request(runner, msg)
         if request is None:
-            self.service._frame_done(runner, msg.robot, msg.frame_id, msg.stamp_ns)
+            self.service._frame_done(runner, msg)
             return
         self.service._next_seq += 1
         if not self.pool.submit(request, self.service._next_seq):  # the worker with room died in between
             runner.stats.incr(SemanticCounter.FRAMES_FAILED)
-            self.service._frame_done(runner, msg.robot, msg.frame_id, msg.stamp_ns)
+            self.service._frame_done(runner, msg)
 
     def _release_results(self, runner: ServiceRunner) -> None:
         """Apply held results in the order their frames were taken; one whose earlier frames are
@@ -183,7 +183,7 @@ class PoolDispatch:
         if result.seq <= self._last_applied:  # a later frame's result is in the map already
             runner.stats.incr(PoolCounter.RESULTS_STALE)
             if self.service._feeder is not None:  # the watermark waits for every frame taken
-                self.service._frame_done(runner, result.request.robot, frame_id, result.request.stamp_ns)
+                self.service._frame_done(runner, result.request)
             return
         try:
             obs = RegionObservation(conf_maps=result.reply.conf_maps, embeddings=result.reply.embeddings,
@@ -200,4 +200,4 @@ class PoolDispatch:
             runner.stats.incr(SemanticCounter.FRAMES_FAILED)
             runner.stats.add_error()
         finally:
-            self.service._frame_done(runner, result.request.robot, frame_id, result.request.stamp_ns)
+            self.service._frame_done(runner, result.request)

@@ -241,14 +241,10 @@ class CandidateFeeder:
         runner.stats.set(SemanticCounter.SELECT_WINDOW, len(self.window))
 
     def finish(self, runner: ServiceRunner, msg: RgbdFrame) -> None:
-        """``msg`` is done with (encoded, failed or skipped): :meth:`done`."""
-        self.done(runner, msg.robot, msg.frame_id, msg.stamp_ns)
-
-    def done(self, runner: ServiceRunner, robot: str, frame_id: int, stamp_ns: int) -> None:
-        """A frame is done with (encoded and its update sent, failed or skipped): the surface it
+        """``msg`` is done with (encoded and its update sent, failed or skipped): the surface it
         was chosen for is no longer held for it (:meth:`CoverageScorer.hold`), and
         ``last_frame_handled`` moves."""
-        self.scorer.release(frame_id, stamp_ns / 1e9, robot)
-        mark = self.handled.done(robot, frame_id, stamp_ns)
+        self.scorer.release(msg.frame_id, msg.stamp_ns / 1e9, msg.robot)
+        mark = self.handled.done(msg.robot, msg.frame_id, msg.stamp_ns)
         if mark is not None:
             runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, mark)

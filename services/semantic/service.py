@@ -495,13 +495,13 @@ class SemanticService:
             runner.stats.incr(SemanticCounter.FRAMES_FAILED)
             runner.stats.add_error()
 
-    def _frame_done(self, runner: ServiceRunner, robot: str, frame_id: int, stamp_ns: int) -> None:
+    def _frame_done(self, runner: ServiceRunner, msg: RgbdFrame) -> None:
         """A frame taken off the subscription is done with: ``last_frame_handled`` moves (with
         coverage, once every frame taken before it is done too: selection.HandledFrames)."""
         if self._feeder is not None:
-            self._feeder.done(runner, robot, frame_id, stamp_ns)
+            self._feeder.finish(runner, msg)
         else:
-            runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, frame_id)
+            runner.stats.set(SemanticCounter.LAST_FRAME_HANDLED, msg.frame_id)
 
 
     def _skip_no_render(self, runner: ServiceRunner, robot: str, frame_id: int, exc: QueryError) -> None:
