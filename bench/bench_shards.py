@@ -30,9 +30,16 @@ ownership schemes (the tile hash that runs, tile columns, stripes along x) at se
 the slowest shard's share of the blocks one geometry integrates (own + ghosts), and ghosts per own
 block. It is why the hash of 8-block tiles stays (docs/SHARDS.md).
 
+A fifth table (``--seam-ghosts``, in this process): Open3D's ``integrate`` CPU per frame of each shard
+of 2 with whole ghost blocks (what runs), with its own blocks only, and with the ghosts cut to the
+seam (the cells of a ghost block that touch the shard's own blocks, in a second Open3D grid of 1- or
+2-voxel blocks), and whether the seam's voxels equal the whole ghost blocks' (docs/SHARDS.md, "What
+would close it").
+
     .venv/bin/python bench/bench_shards.py --quick    # 60 frames at 320x240 and 640x480, 1 and 2 shards
     .venv/bin/python bench/bench_shards.py --full     # 150 frames, 1, 2 and 3 shards (also the default)
     .venv/bin/python bench/bench_shards.py --quick --phases --ownership --no-services --no-in-process
+    .venv/bin/python bench/bench_shards.py --quick --sizes 640x480 --seam-ghosts --no-services --no-in-process
 """
 
 from __future__ import annotations
@@ -282,26 +289,129 @@ def _print_phases(sizes: list[tuple[int, int]], counts: list[int], frames: int) 
             print(f"{label:>36} " + " ".join(cells))
 
 
-def _ownership(width: int, height: int, frames: int) -> None:
-    """The ownership table (module docstring): Open3D's touched blocks of each frame, split."""
+def _frame_inputs(width: int, height: int, frames: int):  # noqa: ANN202
+    """Per frame of the synthetic room, what Open3D's ``integrate`` takes, as one volume prepares it:
+    ``(depth image, color image, depth scale, K, extrinsic, touched block coords int64 (N, 3))``."""
     import numpy as np
     import open3d.core as o3c
 
     from openfusion.mapping import SemanticVolume, VolumeParams, integration
-    from openfusion.mapping.shards import _UPPER, _mix64
-    from openfusion.mapping.tiles import pack_coords
     from openfusion.poses import invert_pose
     from openfusion.sources import open_source
 
     vol = SemanticVolume(VolumeParams())
     p, vbg = vol.params, vol._storage.vbg
-    touched = []
     for f in open_source(f"synthetic:seed=1,width={width},height={height},frames={frames}"):
-        depth, _, scale = integration.frame_images(vol._storage, f)
+        depth, color, scale = integration.frame_images(vol._storage, f)
+        K = o3c.Tensor(f.intrinsics.K, o3c.float64)
         extrinsic = o3c.Tensor(invert_pose(np.asarray(f.T_world_cam, np.float64)))
-        coords = vbg.compute_unique_block_coordinates(depth, o3c.Tensor(f.intrinsics.K, o3c.float64), extrinsic, scale,
-                                                      p.depth_max_m, p.trunc_voxels)
-        touched.append(coords.cpu().numpy().astype(np.int64))
+        coords = vbg.compute_unique_block_coordinates(depth, K, extrinsic, scale, p.depth_max_m, p.trunc_voxels)
+        yield depth, color, scale, K, extrinsic, coords.cpu().numpy().astype(np.int64)
+
+
+def _seam_ghosts(width: int, height: int, frames: int) -> None:
+    """The seam table (module docstring): whole ghost blocks against ghosts cut to the seam."""
+    import numpy as np
+    import open3d as o3d
+    import open3d.core as o3c
+
+    from openfusion.mapping import VolumeParams
+    from openfusion.mapping.shards import _UPPER, owned_blocks, take_blocks
+
+    p = VolumeParams()
+    res = p.block_resolution
+    inputs = list(_frame_inputs(width, height, frames))
+    warm = min(5, len(inputs) - 1)  # the first frames grow the grids: not counted
+
+    def grid(resolution: int, blocks: int) -> o3d.t.geometry.VoxelBlockGrid:
+        return o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight", "color"), (o3c.float32, o3c.float32, o3c.float32),
+                                             ((1), (1), (3)), p.voxel_size_m, resolution, blocks, o3c.Device("CPU:0"))
+
+    def integrate(g: o3d.t.geometry.VoxelBlockGrid, coords: np.ndarray, args: tuple) -> float:
+        depth, color, scale, K, extrinsic = args
+        t = time.process_time()
+        if len(coords):
+            g.integrate(o3c.Tensor(np.ascontiguousarray(coords, np.int32)), depth, color, K, extrinsic, scale,
+                        p.depth_max_m, p.trunc_voxels)
+        return time.process_time() - t
+
+    def cell_patterns(cells: int) -> tuple[np.ndarray, np.ndarray]:
+        """A block's cells (cells^3, 3) and, per step u of _UPPER, those on the lower faces u steps in."""
+        local = np.stack(np.meshgrid(*[np.arange(cells)] * 3, indexing="ij"), -1).reshape(-1, 3)
+        return local, np.stack([((local == 0) | (u == 0)).all(axis=1) for u in _UPPER])
+
+    def values(g: o3d.t.geometry.VoxelBlockGrid, resolution: int, voxels: np.ndarray) -> tuple[np.ndarray, ...]:
+        blocks = np.floor_divide(voxels, resolution)
+        buf, found = g.hashmap().find(o3c.Tensor(blocks.astype(np.int32)))
+        local = voxels - blocks * resolution
+        flat = (buf.cpu().numpy().astype(np.int64) * resolution ** 3 + local[:, 0] + local[:, 1] * resolution
+                + local[:, 2] * resolution ** 2)
+        flat = np.where(found.cpu().numpy(), flat, 0)
+        return (found.cpu().numpy(), g.attribute("tsdf").numpy().reshape(-1)[flat],
+                g.attribute("weight").numpy().reshape(-1)[flat])
+
+    one = grid(res, 40_000)
+    base = 0.0
+    for n, (*args, coords) in enumerate(inputs):
+        spent = integrate(one, coords, tuple(args))
+        base += spent if n >= warm else 0.0
+    counted = len(inputs) - warm
+    print(f"\nseam ghosts: Open3D's integrate of {counted} frames at {width}x{height}, CPU ms per frame "
+          f"(ratio against one geometry's {1000 * base / counted:.2f} ms); shard i of 2")
+    print(f"{'shard':>5} {'what':>32} {'blocks or cells':>15} {'ms/frame':>9} {'ratio':>6} {'seam values equal':>18}")
+    for index in range(2):
+        shard = VolumeParams(shard=f"{index}/2").shard_id
+        whole, own = grid(res, 40_000), grid(res, 40_000)
+        seams = {cells: grid(res // cells, 400_000) for cells in (res, res // 2)}  # 1- and 2-voxel cells
+        spent = {"whole": 0.0, "own": 0.0, **{c: 0.0 for c in seams}}
+        counts = {"whole": 0, "own": 0, **{c: 0 for c in seams}}
+        for n, (*args, coords) in enumerate(inputs):
+            owned, taken = take_blocks(coords, p.tile_blocks, shard)
+            ghosts = coords[taken & ~owned]
+            below = owned_blocks((ghosts[:, None, :] - _UPPER[None]).reshape(-1, 3), p.tile_blocks, shard)
+            below = below.reshape(len(ghosts), len(_UPPER))
+            parts = {"whole": (whole, coords[taken]), "own": (own, coords[owned])}
+            for cells, g in seams.items():
+                local, patterns = cell_patterns(cells)
+                on_seam = (below[:, :, None] & patterns[None]).any(axis=1)
+                b, c = np.nonzero(on_seam)
+                parts[cells] = (g, ghosts[b] * cells + local[c])
+            for name, (g, part) in parts.items():
+                t = integrate(g, part, tuple(args))
+                if n >= warm:
+                    spent[name] += t
+                    counts[name] += len(part)
+        for name in spent:
+            labels = {"whole": "own + whole ghost blocks (runs)", "own": "own blocks only"}
+            what = labels[name] if name in labels else f"ghost seam, {res // name}-voxel cells"
+            equal = ""
+            if name in seams:
+                g = seams[name]
+                cell_res = res // name
+                hm = g.hashmap()
+                keys = hm.key_tensor().cpu().numpy().astype(np.int64)[hm.active_buf_indices().cpu().numpy()]
+                local, _ = cell_patterns(cell_res)
+                voxels = (keys[:, None, :] * cell_res + local[None]).reshape(-1, 3)
+                fw, tw, ww = values(whole, res, voxels)
+                fs, ts, ws = values(g, cell_res, voxels)
+                seen = fw & fs & (ws > 0)
+                equal = f"{np.mean((tw[seen] == ts[seen]) & (ww[seen] == ws[seen])):.6f} of {int(seen.sum())}"
+            ms = 1000 * spent[name] / counted
+            print(f"{index:>5} {what:>32} {counts[name] / counted:15.0f} {ms:9.2f} {spent[name] / base:6.3f} {equal:>18}")
+        ratio = (spent["own"] + min(spent[c] for c in seams)) / base
+        print(f"{index:>5} {'own + cheaper seam':>32} {'':>15} {'':>9} {ratio:6.3f}")
+
+
+def _ownership(width: int, height: int, frames: int) -> None:
+    """The ownership table (module docstring): Open3D's touched blocks of each frame, split."""
+    import numpy as np
+
+    from openfusion.mapping import VolumeParams
+    from openfusion.mapping.shards import _UPPER, _mix64
+    from openfusion.mapping.tiles import pack_coords
+
+    p = VolumeParams()
+    touched = [coords for *_inputs, coords in _frame_inputs(width, height, frames)]
     total = sum(len(t) for t in touched)
 
     def owner(kind: str, tb: int, n: int):  # noqa: ANN202
@@ -349,6 +459,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-services", action="store_true", help="no services table")
     parser.add_argument("--phases", action="store_true", help="CPU per frame by phase (in this process)")
     parser.add_argument("--ownership", action="store_true", help="ownership schemes' shares of the blocks")
+    parser.add_argument("--seam-ghosts", action="store_true", help="whole ghost blocks against ghosts cut to the seam")
     parser.add_argument("--repeat", type=int, default=1, help="services table: runs of every row (the spread)")
     args = parser.parse_args(argv)
     frames = args.frames or (60 if args.quick else 150)
@@ -360,6 +471,8 @@ def main(argv: list[str] | None = None) -> int:
         _print_phases(sizes, counts, frames)
     if args.ownership:
         _ownership(*sizes[-1], frames)
+    if args.seam_ghosts:
+        _seam_ghosts(*sizes[-1], frames)
     if args.no_in_process:
         return 0
     from openfusion.sources import open_source
