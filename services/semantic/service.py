@@ -253,7 +253,7 @@ class SemanticService:
             planned = plan_update(obs, rendered, self.dictionary, self.match_params)
             if self._scorer is not None:  # the regions this frame wrote: seen now, from its direction (map frame)
                 T_map_cam = reply.T_map_cam if reply.T_map_cam is not None else frame.T_world_cam
-                self._scorer.observe_plan(planned.key_map, T_map_cam, K_small, frame.stamp_ns)
+                self._scorer.observe_plan(planned.key_map, T_map_cam, K_small, frame.stamp_ns, robot=robot)
             # The delta goes first, so a key never reaches geometry before its dictionary row.
             self._publish_delta()
             seq = self._updates_sent + 1

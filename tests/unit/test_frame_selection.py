@@ -16,6 +16,7 @@ from pydantic import ValidationError
 
 from openfusion.frame import CameraIntrinsics
 from openfusion.mapping import VolumeParams
+from openfusion.mapping.map_clock import MapClock
 from openfusion.mapping.params import SelectParams
 from openfusion.mapping.pipeline import map_scene
 from openfusion.mapping.selection import (
@@ -57,7 +58,7 @@ def view(scorer: CoverageScorer, *, T=T_FRONT, keys=NO_KEYS, conf=ZERO_CONF, dep
 def encoded(scorer: CoverageScorer, ev, *, T=T_FRONT, keys=ALL_KEY_7, stamp_s=0.0) -> None:  # noqa: ANN001
     """A view chosen, encoded, and its planned update recorded."""
     scorer.mark_selected(ev)
-    scorer.observe_plan(keys, T, K, int(stamp_s * 1e9))
+    scorer.observe_plan(keys, T, K, int(stamp_s * 1e9), robot=ev.robot)
 
 
 def test_new_surface_an_unlabelled_view_is_worth_encoding() -> None:
@@ -181,6 +182,32 @@ def test_stale_region_in_view_is_encoded_again_after_select_stale_s() -> None:
     never = CoverageScorer(params(select_min_views=0, select_stale_s=None))
     encoded(never, view(never))
     assert never.score(view(never, keys=ALL_KEY_7, conf=FULL_CONF, stamp_s=1e6)).gain == 0.0
+
+
+def test_staleness_reads_robots_stamps_on_one_clock_when_their_clocks_disagree() -> None:
+    """A simulated robot stamped from 0 encodes region 7; a live robot stamped in Unix time then
+    sees it. Compared as they come, the live robot's every view of it was 1.7e9 s later: stale for
+    ever, encoded again each time. On the map's clock (its first frame is the map's "now") the
+    region is seen 10 s after it was encoded (not stale), and 40 s after it is stale as the rule
+    says. A third robot whose first stamp is within an hour of the map's time shares its clock."""
+    unix_s = 1.7e9
+    scorer = CoverageScorer(params(select_min_views=0, select_stale_s=30.0))
+    encoded(scorer, view(scorer, stamp_s=5.0, robot="sim"), stamp_s=5.0)
+    live_first = scorer.score(view(scorer, keys=ALL_KEY_7, conf=FULL_CONF, stamp_s=unix_s, robot="live"))
+    assert live_first.stale == 0.0 and not scorer.worth_encoding(live_first)
+    soon = scorer.score(view(scorer, keys=ALL_KEY_7, conf=FULL_CONF, stamp_s=unix_s + 10.0, robot="live"))
+    late = scorer.score(view(scorer, keys=ALL_KEY_7, conf=FULL_CONF, stamp_s=unix_s + 40.0, robot="live"))
+    assert soon.stale == 0.0 and late.stale == pytest.approx(1.0)
+    assert scorer.clock.offset_s("sim") == 0.0 and scorer.clock.offset_s("live") == pytest.approx(5.0 - unix_s)
+    # the sim robot's stamps after the live robot joined: 50 s is map time 50, 10 s after the live
+    # robot's last view (map 45): nothing re-encoded for staleness there either
+    encoded(scorer, view(scorer, stamp_s=44.0, robot="sim"), stamp_s=44.0)
+    assert scorer.score(view(scorer, keys=ALL_KEY_7, conf=FULL_CONF, stamp_s=unix_s + 45.0, robot="live")).stale == 0.0
+    # a robot on the map's clock (within CLOCK_AGREE_S of its time) keeps its stamps
+    assert scorer.score(view(scorer, keys=ALL_KEY_7, conf=FULL_CONF, stamp_s=100.0, robot="synced")).stale == pytest.approx(1.0)
+    assert scorer.clock.offset_s("synced") == 0.0
+    with pytest.raises(ValueError, match="agree_s"):  # a tolerance that is no time at all
+        MapClock(agree_s=float("nan"))
 
 
 def test_merges_carry_a_regions_coverage_to_the_surviving_region() -> None:

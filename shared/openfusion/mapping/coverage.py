@@ -25,6 +25,8 @@ The score (one number, shares of the scored view's pixels)
     - **stale**: pixels of a region in view (same size rule) that no encoded frame showed for
       ``select_stale_s`` seconds of frame time: the floor that keeps a region that stays in view
       from going stale; a stale region that fills ``select_min_gain`` of a view is encoded again.
+      Frame time here is the map's (:mod:`openfusion.mapping.map_clock`): robots whose clocks
+      disagree by more than an hour are put on one time base at their first frame.
 
     A frame is encoded only when it adds something and ``gain >= select_min_gain / (1 + t /
     select_patience_s)``, ``t`` the frame time since the last frame chosen: the bar falls while
@@ -86,6 +88,7 @@ import numpy as np
 
 from openfusion.frame import CameraIntrinsics, Frame, resize_nearest
 from openfusion.mapping.held_views import HeldViews
+from openfusion.mapping.map_clock import MapClock
 from openfusion.mapping.params import SelectParams
 
 #: A chosen view marks the surface it shows sampled this many times denser (per side) than it is
@@ -135,6 +138,9 @@ class ViewEvidence:
     keys: np.ndarray  # (n,) int64, the map's region at each surface pixel (-1: none)
     confident: np.ndarray  # (n,) bool, key >= 0 with confidence >= select_low_conf
     robot: str = ""  # whose frame: the patience rule runs on each robot's own frames, a hold is keyed by it
+    #: the stamp in map time (:mod:`openfusion.mapping.map_clock`), what staleness compares across
+    #: robots; None: ``stamp_s`` (a view not prepared by :meth:`CoverageScorer.prepare`)
+    map_s: float | None = None
     unsure_px: np.ndarray | None = None  # (h, w) bool: surface pixels without a confident region
     surface_idx: np.ndarray | None = field(default=None, repr=False)  # (n,) flat index of each surface pixel
     #: (h, w) bool, set when the view is chosen (:meth:`CoverageScorer.decide`): the pixels that add
@@ -152,6 +158,11 @@ class ViewEvidence:
     @property
     def surface_px(self) -> int:
         return int(len(self.bins))
+
+    @property
+    def time_s(self) -> float:
+        """The view's time for staleness: ``map_s``, else ``stamp_s``."""
+        return self.stamp_s if self.map_s is None else self.map_s
 
 
 @dataclass(frozen=True)
@@ -190,6 +201,8 @@ class CoverageScorer:
         #: per robot, frame times of the views chosen (sorted; the newest SELECTED_KEPT): each robot's
         #: stamps are its own clock, and the patience rule is about the frames of one stream
         self._selected_s: dict[str, list[float]] = {}
+        #: robots' stamps on one time base, for the regions' last-seen stamps (staleness)
+        self.clock = MapClock()
         #: keys (int64 (k,)) -> (how many embeddings each region's dictionary entry averages, the
         #: length of that mean of unit vectors): :meth:`RegionDictionary.support_of`, set by the owner
         #: of the dictionary, for ``select_embed_min_views`` / ``select_embed_min_agreement`` (:meth:`wanted_px`)
@@ -217,6 +230,7 @@ class CoverageScorer:
             self._region_last_s.clear()
             self._region_views.clear()
             self._selected_s.clear()
+            self.clock.reset()
             self._held.clear()
             for table in self._cell_tries:
                 table.clear()
@@ -310,7 +324,8 @@ class CoverageScorer:
         unsure_px = np.zeros(h * w, bool)
         unsure_px[np.flatnonzero(surface)[~confident]] = True
         ev = ViewEvidence(
-            frame_id=int(frame_id), stamp_s=stamp_ns / 1e9, view_px=h * w, robot=str(robot), bins=self._bins_of(rays, T),
+            frame_id=int(frame_id), stamp_s=stamp_ns / 1e9, view_px=h * w, robot=str(robot),
+            map_s=self.clock.map_s(str(robot), stamp_ns / 1e9), bins=self._bins_of(rays, T),
             cells=self._cells_of(points), keys=keys, confident=confident, unsure_px=unsure_px.reshape(h, w),
             surface_idx=np.flatnonzero(surface), T_world_cam=T)
         if self.embedding_support is not None and self.params.select_embed_share is not None:
@@ -384,7 +399,7 @@ class CoverageScorer:
                 if p.select_stale_s is not None:
                     last = np.fromiter((self._region_last_s.get(int(k), math.inf) for k in uniq), np.float64,
                                        len(uniq))
-                    is_stale = big & (ev.stamp_s - last >= p.select_stale_s)
+                    is_stale = big & (ev.time_s - last >= p.select_stale_s)
                     stale = int(counts[is_stale].sum())
         n = max(1, ev.view_px)
         gain = (new_surface + p.select_direction_weight * new_direction + stale) / n
@@ -415,7 +430,7 @@ class CoverageScorer:
                 if p.select_stale_s is not None:
                     last = np.fromiter((self._region_last_s.get(int(k), math.inf) for k in uniq), np.float64,
                                        len(uniq))
-                    again |= ev.stamp_s - last >= p.select_stale_s
+                    again |= ev.time_s - last >= p.select_stale_s
                 if ev.settled is not None and len(ev.settled) == len(uniq):
                     again |= ~ev.settled
                 want = want.copy()
@@ -522,14 +537,15 @@ class CoverageScorer:
             labelled = ev.keys >= 0
             if labelled.any():
                 _or_into(self._region_bins, ev.keys[labelled], ev.bins[labelled])
-                for k in np.unique(ev.keys[labelled]):
-                    self._region_last_s[int(k)] = ev.stamp_s
+                for k in np.unique(ev.keys[labelled]).tolist():
+                    self._region_last_s[k] = max(ev.time_s, self._region_last_s.get(k, -math.inf))
 
     def observe_plan(self, key_map: np.ndarray, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics,
-                     stamp_ns: int) -> None:
+                     stamp_ns: int, robot: str = "") -> None:
         """Record the regions an applied update wrote (the plan's ``key_map`` at the encoder's
-        size, ``intrinsics`` of that size): new regions get their first direction bins, every
-        region written its last-seen stamp. Scored at :attr:`SelectParams.select_width_px`."""
+        size, ``intrinsics`` of that size) of ``robot``'s frame: new regions get their first
+        direction bins, every region written its last-seen stamp (in map time). Scored at
+        :attr:`SelectParams.select_width_px`."""
         key_map = np.asarray(key_map)
         if key_map.ndim != 2 or key_map.size == 0:
             return
@@ -541,10 +557,11 @@ class CoverageScorer:
         rays = self._camera_rays(intrinsics.scaled(w, h))[labelled]
         bins = self._bins_of(rays, T_world_cam)
         keys = small[labelled].astype(np.int64)
+        seen_s = self.clock.map_s(str(robot), stamp_ns / 1e9)
         with self._lock:
             _or_into(self._region_bins, keys, bins)
             for k in np.unique(keys).tolist():
-                self._region_last_s[k] = max(stamp_ns / 1e9, self._region_last_s.get(k, -math.inf))
+                self._region_last_s[k] = max(seen_s, self._region_last_s.get(k, -math.inf))
                 self._region_views[k] = self._region_views.get(k, 0) + 1
 
     def _mark_cells(self, cells: np.ndarray, bins: np.ndarray) -> None:
