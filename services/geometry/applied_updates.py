@@ -10,7 +10,8 @@ this makes the services do the same. Each semantic service process numbers its u
 (``source``, ``seq``); an update counts as applied once it was taken off the subscription, whether
 it was written, refused or failed (none will follow for that number). The wait is bounded
 (``GeometrySection.render_update_wait_s``): an update geometry never gets (one sent before this
-geometry started) delays one render by that much at most.
+geometry started) delays one render by that much at most, and only that one: renders are answered
+by two threads (``RENDER_WORKERS``), so the semantic service's scoring renders go on meanwhile.
 """
 
 from __future__ import annotations

@@ -176,6 +176,8 @@ RECENT_RENDERS = 2
 SETTLE_S = 5.0
 #: Idle read-out per turn of the service loop (about once a second), at least one chunk.
 IDLE_READOUT_S = 0.5
+#: threads answering renders (one may wait for a semantic update; :meth:`GeometryService.handle_render`)
+RENDER_WORKERS = 2
 
 
 class GeometryService(FrameIntake, MapPersistence, DictionaryFollower, PeerCopy):
@@ -459,7 +461,10 @@ class GeometryService(FrameIntake, MapPersistence, DictionaryFollower, PeerCopy)
         runner.subscriber(DICTIONARY_DELTA, self.on_delta, queue_size=256)
         # One shard (the default): today's keys; shard I of N: the same endpoints under its own
         # segment (…/geometry/render/geometry-0of2), merged by readers (openfusion.shard_client).
-        for endpoint, handler in ((GEOMETRY_RENDER, self.handle_render), (GEOMETRY_POINTS, self.handle_points),
+        # Renders: two workers, so a render waiting for a semantic update (up to
+        # render_update_wait_s) does not hold up the semantic service's scoring renders behind it.
+        sharding.serve(runner, GEOMETRY_RENDER, self.handle_render, self.shard, workers=RENDER_WORKERS)
+        for endpoint, handler in ((GEOMETRY_POINTS, self.handle_points),
                                   (GEOMETRY_MESH, self.handle_mesh), (GEOMETRY_REGIONS, self.handle_regions),
                                   (GEOMETRY_DICTIONARY, self.handle_dictionary),
                                   (GEOMETRY_CONTACTS, self.handle_contacts)):

@@ -37,10 +37,12 @@ def checkpoint_dir(map_path: Path, shard: ShardId) -> Path:
     return part_path(map_path, shard)
 
 
-def serve(runner: ServiceRunner, endpoint: Endpoint, handler: Callable[[Any], Any], shard: ShardId) -> None:
+def serve(runner: ServiceRunner, endpoint: Endpoint, handler: Callable[[Any], Any], shard: ShardId,
+          **options: Any) -> None:
     """Answer ``endpoint`` at this shard's key (the plain key for an unsharded map); a replica
-    answers its shard's keys (Zenoh gives a query to one of them)."""
+    answers its shard's keys (Zenoh gives a query to one of them). ``options`` go to the
+    :class:`~openfusion.bus.Queryable` (``workers``)."""
     if not shard.sharded:
-        runner.queryable(endpoint, handler)
+        runner.queryable(endpoint, handler, **options)
         return
-    runner.queryable_at(endpoint.shard_key(runner.keys, shard), endpoint.request, endpoint.reply, handler)
+    runner.queryable_at(endpoint.shard_key(runner.keys, shard), endpoint.request, endpoint.reply, handler, **options)

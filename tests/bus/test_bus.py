@@ -241,6 +241,37 @@ def test_overloaded_queryable_drops_queries_instead_of_hanging_callers(sessions,
     qbl.close()
 
 
+def test_a_second_worker_answers_while_the_first_handler_waits(sessions, keys) -> None:
+    """With ``workers=2`` a handler that waits (geometry's render waiting for a semantic update)
+    holds one worker; another query is answered meanwhile. With one worker it would wait behind it
+    (the caller's 5 s timeout). Bad input: no workers at all is refused at declaration."""
+    a, b, _ = sessions
+    key = keys.key("test", "waits")
+    release, waiting = threading.Event(), threading.Event()
+
+    def handler(request: ControlRequest) -> ControlReply:
+        if request.action == "load":
+            waiting.set()
+            release.wait(30)
+        return ControlReply(ok=True, message=request.action)
+
+    with pytest.raises(ValueError, match="at least one worker"):
+        Queryable(a, keys.key("test", "none"), ControlRequest, handler, workers=0)
+    qbl = Queryable(a, key, ControlRequest, handler, workers=2)
+    wait_for_queryable(b, key)
+    held: list[str] = []
+    slow = threading.Thread(target=lambda: held.append(get(b, key, ControlRequest(action="load", path="/m"),
+                                                           ControlReply, timeout_s=60).message))
+    slow.start()
+    assert waiting.wait(10), "the first query never reached the handler"
+    assert get(b, key, ControlRequest(action="save"), ControlReply, timeout_s=5).message == "save"
+    assert not held, "the waiting handler answered before it was released"
+    release.set()
+    slow.join(30)
+    assert held == ["load"] and qbl.answered == 2
+    qbl.close()
+
+
 # ------------------------------------------------------------------------ health / runner
 
 

@@ -75,6 +75,10 @@ class Queryable(Generic[M]):
     :class:`RequestError` from the handler with its code; any other exception is logged with its
     traceback, counted as an error and answered ``reply_err(code="handler_error")``. More than
     ``queue_size`` waiting queries: the newest is dropped (finalized unanswered) and counted.
+
+    ``workers`` threads take queries off one queue (default 1: answered one at a time, in order);
+    more let a handler that waits (geometry's render waiting for a semantic update) hold one of
+    them while the others answer. The handler must then be thread-safe.
     """
 
     def __init__(
@@ -89,10 +93,13 @@ class Queryable(Generic[M]):
         measure: bool = True,
         complete: bool = True,
         queue_size: int = 256,
+        workers: int = 1,
         max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES,
         max_array_elements: int = DEFAULT_MAX_ARRAY_ELEMENTS,
         undeclare_on_close: bool = True,
     ) -> None:
+        if workers < 1:
+            raise ValueError(f"a queryable needs at least one worker, got {workers}")
         self.key = key
         self._undeclare_on_close = undeclare_on_close
         self.request_model = request_model
@@ -114,8 +121,10 @@ class Queryable(Generic[M]):
             self._qbl = session.declare_queryable(key, zenoh.handlers.Callback(self._on_query), complete=complete)
         except zenoh.ZError as exc:
             raise BusError(f"cannot declare a queryable on {key}: {exc}") from None
-        self._thread = threading.Thread(target=self._run, name=f"qbl:{key}", daemon=True)
-        self._thread.start()
+        self._threads = [threading.Thread(target=self._run, name=f"qbl:{key}:{i}", daemon=True)
+                         for i in range(workers)]
+        for thread in self._threads:
+            thread.start()
 
     def _on_query(self, query: zenoh.Query) -> None:
         # Zenoh thread: queue only. A query we do not keep is finalized when dropped.
@@ -216,8 +225,10 @@ class Queryable(Generic[M]):
             self._cond.notify_all()
         for query, _ in pending:
             query.drop()
-        if self._thread is not threading.current_thread():
-            self._thread.join(timeout_s)
+        deadline = time.monotonic() + timeout_s
+        for thread in self._threads:
+            if thread is not threading.current_thread():
+                thread.join(max(0.0, deadline - time.monotonic()))
 
 
 #: A query that came back with no reply at all is asked again after this pause (:func:`get`
