@@ -318,15 +318,29 @@ class PeerCopy:
 
     def release_held(self, runner: ServiceRunner, held: StartBuffer) -> None:
         """After the copy: what came during it, in order, through the service's handlers; a live
-        frame the copy holds already is a duplicate (counted, dropped)."""
+        frame the copy holds already is a duplicate (counted, dropped). A live frame's id at or
+        below the copy's last is taken for one the copy holds, unless the robot's held ids went
+        back before it: its bridge restarted during the copy and counts from 0 again, so from there
+        on its frames are new (a restart before the first held frame cannot be told this way)."""
+        last_held: dict[str, int] = {}  # per robot, the id of the live frame held before
+        restarted: set[str] = set()
+
         def handle(kind: str, msg: Any) -> None:
             if kind == UPDATE:
                 self.on_update(msg)
                 return
-            robot = self._robot(msg.robot)
-            if msg.prev_frame_id is None and robot.last_taken is not None and msg.frame_id <= robot.last_taken:
-                self._count(GeometryCounter.FRAMES_DUPLICATE)
-                return
+            if msg.prev_frame_id is None:
+                before = last_held.get(msg.robot)
+                last_held[msg.robot] = msg.frame_id
+                if before is not None and msg.frame_id < before and msg.robot not in restarted:
+                    restarted.add(msg.robot)
+                    logger.info("geometry: robot %s's live frames went back from id %d to %d during the peer "
+                                "copy (its bridge restarted): taking them as new", msg.robot, before, msg.frame_id)
+                robot = self._robot(msg.robot)
+                if (msg.robot not in restarted and robot.last_taken is not None
+                        and msg.frame_id <= robot.last_taken):
+                    self._count(GeometryCounter.FRAMES_DUPLICATE)
+                    return
             self.on_frame(msg)
 
         held.release(handle)

@@ -3,7 +3,8 @@ and how it takes it after the copy, with geometry's service code called directly
 
 Bad input tried: more frames than the buffer holds (the oldest are kept, the rest counted lost);
 a live frame the copy already holds (a duplicate: counted, not integrated twice); a held update
-geometry refuses (confidences outside [0, 1]: logged, the items after it still taken).
+geometry refuses (confidences outside [0, 1]: logged, the items after it still taken); a live
+bridge restarted during the copy (its ids from 0 again: new frames, not duplicates).
 """
 
 from __future__ import annotations
@@ -58,4 +59,22 @@ def test_after_the_copy_a_live_frame_it_holds_is_a_duplicate_and_the_rest_are_ta
     assert runner.stats.counters[GeometryCounter.PEER_COPY_FRAMES_HELD] == 3
     assert runner.stats.counters[GeometryCounter.PEER_COPY_FRAMES_LOST] == 0
     assert geo.updates_applied == 0  # the refused update wrote nothing
+    geo.close()
+
+
+def test_a_live_bridge_restarted_during_the_copy_has_its_new_frames_taken() -> None:
+    """The copy holds frames 0-2; frame 2 comes again, then the bridge restarts and counts from 0:
+    frames 0 and 1 of the new run are new (ids below the copy's last, after the ids went back)."""
+    geo = GeometryService(GeometryConfig(map_id="unit", geometry=GeometrySection(load_on_start=False)))
+    runner = SimpleNamespace(stats=ServiceStats())
+    geo._runner = runner  # noqa: SLF001 (counters without a bus)
+    for msg in FRAMES[:3]:  # what the copy holds
+        geo.on_frame(msg)
+    held = StartBuffer(max_frames=8)
+    again = [msg.model_copy(update={"frame_id": i}) for i, msg in enumerate(FRAMES[3:5])]  # ids 0, 1
+    for msg in (FRAMES[2], *again):
+        held.offer(FRAME, msg)
+    geo.release_held(runner, held)
+    assert runner.stats.counters[GeometryCounter.FRAMES_DUPLICATE] == 1  # frame 2 of the old run only
+    assert geo.frames_integrated == 5
     geo.close()
