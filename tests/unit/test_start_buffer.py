@@ -41,12 +41,18 @@ def test_the_buffer_keeps_the_oldest_in_order_and_counts_the_rest() -> None:
     assert not held.offer(FRAME, "f3")  # released: the caller handles what comes now
 
 
-def test_after_the_copy_a_live_frame_it_holds_is_a_duplicate_and_the_rest_are_taken_once() -> None:
+def _geometry_after_copy() -> tuple[GeometryService, SimpleNamespace]:
+    """A geometry (counters without a bus) whose copy held frames 0-2 of ``FRAMES``."""
     geo = GeometryService(GeometryConfig(map_id="unit", geometry=GeometrySection(load_on_start=False)))
     runner = SimpleNamespace(stats=ServiceStats())
-    geo._runner = runner  # noqa: SLF001 (counters without a bus)
-    for msg in FRAMES[:3]:  # what the copy holds
+    geo._runner = runner  # noqa: SLF001
+    for msg in FRAMES[:3]:
         geo.on_frame(msg)
+    return geo, runner
+
+
+def test_after_the_copy_a_live_frame_it_holds_is_a_duplicate_and_the_rest_are_taken_once() -> None:
+    geo, runner = _geometry_after_copy()
     held = StartBuffer(max_frames=8)
     bad = SemanticUpdate(frame_id=2, T_world_cam=FRAMES[2].T_world_cam, **SemanticUpdate.intrinsics_fields(
         FRAMES[2].to_frame().intrinsics), key_map=np.zeros((48, 64), np.int32),
@@ -65,11 +71,7 @@ def test_after_the_copy_a_live_frame_it_holds_is_a_duplicate_and_the_rest_are_ta
 def test_a_live_bridge_restarted_during_the_copy_has_its_new_frames_taken() -> None:
     """The copy holds frames 0-2; frame 2 comes again, then the bridge restarts and counts from 0:
     frames 0 and 1 of the new run are new (ids below the copy's last, after the ids went back)."""
-    geo = GeometryService(GeometryConfig(map_id="unit", geometry=GeometrySection(load_on_start=False)))
-    runner = SimpleNamespace(stats=ServiceStats())
-    geo._runner = runner  # noqa: SLF001 (counters without a bus)
-    for msg in FRAMES[:3]:  # what the copy holds
-        geo.on_frame(msg)
+    geo, runner = _geometry_after_copy()
     held = StartBuffer(max_frames=8)
     again = [msg.model_copy(update={"frame_id": i}) for i, msg in enumerate(FRAMES[3:5])]  # ids 0, 1
     for msg in (FRAMES[2], *again):
