@@ -132,15 +132,14 @@ class ViewEvidence:
 
     frame_id: int
     stamp_s: float
+    #: the stamp in map time (:mod:`openfusion.mapping.map_clock`): what staleness compares across robots
+    map_s: float
     view_px: int  # pixels of the scored view (the shares' denominator)
     bins: np.ndarray  # (n,) int64, direction bin of each surface pixel
     cells: np.ndarray  # (n,) int64, packed surface cube of each surface pixel
     keys: np.ndarray  # (n,) int64, the map's region at each surface pixel (-1: none)
     confident: np.ndarray  # (n,) bool, key >= 0 with confidence >= select_low_conf
     robot: str = ""  # whose frame: the patience rule runs on each robot's own frames, a hold is keyed by it
-    #: the stamp in map time (:mod:`openfusion.mapping.map_clock`), what staleness compares across
-    #: robots; None: ``stamp_s`` (a view not prepared by :meth:`CoverageScorer.prepare`)
-    map_s: float | None = None
     unsure_px: np.ndarray | None = None  # (h, w) bool: surface pixels without a confident region
     surface_idx: np.ndarray | None = field(default=None, repr=False)  # (n,) flat index of each surface pixel
     #: (h, w) bool, set when the view is chosen (:meth:`CoverageScorer.decide`): the pixels that add
@@ -158,11 +157,6 @@ class ViewEvidence:
     @property
     def surface_px(self) -> int:
         return int(len(self.bins))
-
-    @property
-    def time_s(self) -> float:
-        """The view's time for staleness: ``map_s``, else ``stamp_s``."""
-        return self.stamp_s if self.map_s is None else self.map_s
 
 
 @dataclass(frozen=True)
@@ -399,7 +393,7 @@ class CoverageScorer:
                 if p.select_stale_s is not None:
                     last = np.fromiter((self._region_last_s.get(int(k), math.inf) for k in uniq), np.float64,
                                        len(uniq))
-                    is_stale = big & (ev.time_s - last >= p.select_stale_s)
+                    is_stale = big & (ev.map_s - last >= p.select_stale_s)
                     stale = int(counts[is_stale].sum())
         n = max(1, ev.view_px)
         gain = (new_surface + p.select_direction_weight * new_direction + stale) / n
@@ -430,7 +424,7 @@ class CoverageScorer:
                 if p.select_stale_s is not None:
                     last = np.fromiter((self._region_last_s.get(int(k), math.inf) for k in uniq), np.float64,
                                        len(uniq))
-                    again |= ev.time_s - last >= p.select_stale_s
+                    again |= ev.map_s - last >= p.select_stale_s
                 if ev.settled is not None and len(ev.settled) == len(uniq):
                     again |= ~ev.settled
                 want = want.copy()
@@ -538,7 +532,7 @@ class CoverageScorer:
             if labelled.any():
                 _or_into(self._region_bins, ev.keys[labelled], ev.bins[labelled])
                 for k in np.unique(ev.keys[labelled]).tolist():
-                    self._region_last_s[k] = max(ev.time_s, self._region_last_s.get(k, -math.inf))
+                    self._region_last_s[k] = max(ev.map_s, self._region_last_s.get(k, -math.inf))
 
     def observe_plan(self, key_map: np.ndarray, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics,
                      stamp_ns: int, robot: str = "") -> None:
