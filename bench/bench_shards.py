@@ -363,6 +363,7 @@ def _seam_ghosts(width: int, height: int, frames: int) -> None:
         shard = VolumeParams(shard=f"{index}/2").shard_id
         whole, own = grid(res, 40_000), grid(res, 40_000)
         seams = {cells: grid(res // cells, 400_000) for cells in (res, res // 2)}  # 1- and 2-voxel cells
+        patterns = {cells: cell_patterns(cells) for cells in seams}
         spent = {"whole": 0.0, "own": 0.0, **{c: 0.0 for c in seams}}
         counts = {"whole": 0, "own": 0, **{c: 0 for c in seams}}
         for n, (*args, coords) in enumerate(inputs):
@@ -372,8 +373,8 @@ def _seam_ghosts(width: int, height: int, frames: int) -> None:
             below = below.reshape(len(ghosts), len(_UPPER))
             parts = {"whole": (whole, coords[taken]), "own": (own, coords[owned])}
             for cells, g in seams.items():
-                local, patterns = cell_patterns(cells)
-                on_seam = (below[:, :, None] & patterns[None]).any(axis=1)
+                local, on_faces = patterns[cells]
+                on_seam = (below[:, :, None] & on_faces[None]).any(axis=1)
                 b, c = np.nonzero(on_seam)
                 parts[cells] = (g, ghosts[b] * cells + local[c])
             for name, (g, part) in parts.items():
