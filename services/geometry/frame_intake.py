@@ -84,7 +84,7 @@ class FrameIntake(ServiceParts):
             return
         frame = msg.to_frame()
         with self._lock:  # the join (another thread) changes the state under this lock
-            robot.took(playback=msg.playback, frame_id=msg.frame_id)
+            robot.took(playback=msg.playback, frame_id=msg.frame_id, stamp_ns=msg.stamp_ns)
             held = robot.state == "held"
             if held:  # into its submap and hold, never into the map (robot_streams)
                 robot.hold(frame, playback=msg.playback, frame_id=msg.frame_id, prev_frame_id=msg.prev_frame_id)
@@ -117,20 +117,21 @@ class FrameIntake(ServiceParts):
                 self.volume.integrate(robot.to_map(frame))
                 self.frames_integrated += 1
                 robot.frames_integrated += 1
-                robot.in_map(playback=playback, frame_id=frame.frame_id)
+                robot.in_map(playback=playback, frame_id=frame.frame_id, stamp_ns=frame.stamp_ns)
                 self.last_integrated_frame_id = frame.frame_id
                 self._map_changed()
                 self._dirty = True
         except CapacityError as exc:
             logger.warning("geometry: frame %d of robot %s refused: %s", frame.frame_id, robot.name, exc)
-            robot.in_map(playback=playback, frame_id=frame.frame_id)  # taken: the playback goes on after it
+            # taken: the playback goes on after it
+            robot.in_map(playback=playback, frame_id=frame.frame_id, stamp_ns=frame.stamp_ns)
             robot.skipped["capacity"] += 1
             self._count(GeometryCounter.CAPACITY_REFUSED)
             return False
         except Exception:  # anything else on this one frame: logged, counted, taken (a replay never retries it)
             logger.exception("geometry: frame %d of robot %s (%s) failed to integrate and was skipped",
                              frame.frame_id, robot.name, frame.source)
-            robot.in_map(playback=playback, frame_id=frame.frame_id)
+            robot.in_map(playback=playback, frame_id=frame.frame_id, stamp_ns=frame.stamp_ns)
             robot.skipped["failed"] += 1
             self._count(GeometryCounter.FRAMES_FAILED)
             if self._runner is not None:

@@ -318,10 +318,12 @@ class PeerCopy:
 
     def release_held(self, runner: ServiceRunner, held: StartBuffer) -> None:
         """After the copy: what came during it, in order, through the service's handlers; a live
-        frame the copy holds already is a duplicate (counted, dropped). A live frame's id at or
-        below the copy's last is taken for one the copy holds, unless the robot's held ids went
-        back before it: its bridge restarted during the copy and counts from 0 again, so from there
-        on its frames are new (a restart before the first held frame cannot be told this way)."""
+        frame the copy holds already is a duplicate (counted, dropped). A live frame is taken for
+        one the copy holds when its id is at or below the copy's last and its stamp not later than
+        that frame's (:meth:`~openfusion.mapping.robot_streams.RobotStream.copy_holds`; a copy from before stamps were recorded: the
+        id alone). Its bridge restarted during the copy when the id is lower but the stamp later
+        (a bridge that stamps by the clock), or when the robot's held ids went back (one whose
+        stamps start again too): from there on its frames are new."""
         last_held: dict[str, int] = {}  # per robot, the id of the live frame held before
         restarted: set[str] = set()
 
@@ -337,8 +339,7 @@ class PeerCopy:
                     logger.info("geometry: robot %s's live frames went back from id %d to %d during the peer "
                                 "copy (its bridge restarted): taking them as new", msg.robot, before, msg.frame_id)
                 robot = self._robot(msg.robot)
-                if (msg.robot not in restarted and robot.last_taken is not None
-                        and msg.frame_id <= robot.last_taken):
+                if msg.robot not in restarted and robot.copy_holds(frame_id=msg.frame_id, stamp_ns=msg.stamp_ns):
                     self._count(GeometryCounter.FRAMES_DUPLICATE)
                     return
             self.on_frame(msg)

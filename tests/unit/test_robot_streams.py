@@ -45,7 +45,7 @@ def test_two_robots_chains_do_not_disturb_each_other() -> None:
     for i in range(3):
         for robot, playback in ((a, "pa"), (b, "pb")):
             assert robot.admit(playback=playback, frame_id=i, prev_frame_id=i - 1) is Admission.TAKE
-            robot.took(playback=playback, frame_id=i)
+            robot.took(playback=playback, frame_id=i, stamp_ns=0)
     assert a.admit(playback="pa", frame_id=1, prev_frame_id=0) is Admission.DUPLICATE
     assert b.admit(playback="pb", frame_id=5, prev_frame_id=4) is Admission.OUT_OF_ORDER
     assert b.announce_due and b.holds() == ("pb", 2)
@@ -60,7 +60,7 @@ def test_live_gaps_are_counted_per_robot() -> None:
     for robot, ids in ((a, [0, 1, 5]), (b, [0, 9])):
         for i in ids:
             assert robot.admit(playback="", frame_id=i, prev_frame_id=None) is Admission.TAKE
-            robot.took(playback="", frame_id=i)
+            robot.took(playback="", frame_id=i, stamp_ns=0)
     assert (a.frames_gap, b.frames_gap) == (3, 8)
 
 
@@ -93,7 +93,7 @@ def test_a_held_robot_keeps_its_frames_for_the_join_and_a_full_hold_replays_the_
     for frame in FRAMES[:5]:
         assert b.admit(playback="pb", frame_id=frame.frame_id, prev_frame_id=frame.frame_id - 1) is Admission.TAKE
         b.hold(frame, playback="pb", frame_id=frame.frame_id, prev_frame_id=frame.frame_id - 1)
-        b.took(playback="pb", frame_id=frame.frame_id)
+        b.took(playback="pb", frame_id=frame.frame_id, stamp_ns=0)
     assert len(b.held) == 3 and b.hold_overflowed and b.attempt_due(map_blocks=100)
     assert b.skipped["held_dropped"] == 0  # a playback's frames past the hold are replayed, not lost
     T = yaw_transform(0.3, 0, 0, 5)
@@ -154,10 +154,10 @@ def test_a_checkpoint_keeps_what_the_map_holds_of_each_robot() -> None:
     a = streams.get("a", map_empty=True)
     b = streams.get("b", map_empty=True)
     for i in range(3):
-        a.took(playback="pa", frame_id=i)
-        a.in_map(playback="pa", frame_id=i)
+        a.took(playback="pa", frame_id=i, stamp_ns=0)
+        a.in_map(playback="pa", frame_id=i, stamp_ns=0)
         b.hold(FRAMES[i], playback="pb", frame_id=i)  # held: not in the map
-        b.took(playback="pb", frame_id=i)
+        b.took(playback="pb", frame_id=i, stamp_ns=0)
     meta = streams.to_meta()
     restored = RobotStreams()
     restored.restore(meta, default_robot="robot0")

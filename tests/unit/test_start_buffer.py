@@ -80,3 +80,37 @@ def test_a_live_bridge_restarted_during_the_copy_has_its_new_frames_taken() -> N
     assert runner.stats.counters[GeometryCounter.FRAMES_DUPLICATE] == 1  # frame 2 of the old run only
     assert geo.frames_integrated == 5
     geo.close()
+
+
+def test_a_bridge_restarted_before_the_first_held_frame_is_told_by_its_later_stamps() -> None:
+    """The copy holds frames 0-2; the bridge restarted before anything was held: ids 0 and 1
+    again, stamped after the copy's last frame. They are new, not duplicates."""
+    geo, runner = _geometry_after_copy()
+    assert geo.robots.get(FRAMES[0].robot, map_empty=False).last_stamp_ns == FRAMES[2].stamp_ns
+    held = StartBuffer(max_frames=8)
+    again = [msg.model_copy(update={"frame_id": i}) for i, msg in enumerate(FRAMES[3:5])]  # ids 0, 1
+    assert all(msg.stamp_ns > FRAMES[2].stamp_ns for msg in again)
+    for msg in again:
+        held.offer(FRAME, msg)
+    geo.release_held(runner, held)
+    assert runner.stats.counters.get(GeometryCounter.FRAMES_DUPLICATE, 0) == 0
+    assert geo.frames_integrated == 5
+    geo.close()
+
+
+def test_a_copy_without_recorded_stamps_tells_duplicates_by_id() -> None:
+    """A checkpoint from before stamps were recorded: the restarted bridge's frames 0 and 1 look
+    like the copy's (the id rule alone), as before; a checkpoint round trip keeps the stamp."""
+    geo, runner = _geometry_after_copy()
+    meta = geo.robots.to_meta()
+    name, = meta["robots"]
+    assert meta["robots"][name]["last_stamp_ns"] == FRAMES[2].stamp_ns
+    del meta["robots"][name]["last_stamp_ns"]
+    geo.robots.restore(meta, default_robot=name)
+    held = StartBuffer(max_frames=8)
+    for i, msg in enumerate(FRAMES[3:5]):
+        held.offer(FRAME, msg.model_copy(update={"frame_id": i}))
+    geo.release_held(runner, held)
+    assert runner.stats.counters[GeometryCounter.FRAMES_DUPLICATE] == 2
+    assert geo.frames_integrated == 3
+    geo.close()

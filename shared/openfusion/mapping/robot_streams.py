@@ -160,8 +160,10 @@ class RobotStream:
         # the map with every frame before it (what a checkpoint records).
         self.playback = ""
         self.last_taken: int | None = None
+        self.last_stamp_ns: int | None = None  # the last taken frame's stamp (None: not known)
         self.map_playback = ""
         self.map_last_frame_id: int | None = None
+        self.map_last_stamp_ns: int | None = None
         self.waiting = True  # an announcement is due until the next frame comes in order
         self.announce_due = False  # one is due now (out of order, or a join that asks for a replay)
         self.replay_after: tuple[str, int] | None = None  # a join's replay for the semantic service
@@ -225,17 +227,27 @@ class RobotStream:
         self.waiting = False
         return Admission.TAKE
 
-    def took(self, *, playback: str, frame_id: int) -> None:
+    def took(self, *, playback: str, frame_id: int, stamp_ns: int) -> None:
         """A taken frame is done with (integrated, held or failed): the chain moves on."""
         self.frames_taken += 1
         self.last_taken = frame_id
+        self.last_stamp_ns = stamp_ns
         if playback:
             self.playback = playback
 
-    def in_map(self, *, playback: str, frame_id: int) -> None:
+    def in_map(self, *, playback: str, frame_id: int, stamp_ns: int) -> None:
         """The frame is in the map (or was taken and failed for good), with every frame before it."""
         self.map_playback = playback
         self.map_last_frame_id = frame_id
+        self.map_last_stamp_ns = stamp_ns
+
+    def copy_holds(self, *, frame_id: int, stamp_ns: int) -> bool:
+        """Whether a live frame is one this robot's chain holds already (a peer copy's): its id is
+        at or below the last taken and, where that frame's stamp is known, so is its stamp. A later
+        stamp under a lower id is a restarted bridge's new frame."""
+        if self.last_taken is None or frame_id > self.last_taken:
+            return False
+        return self.last_stamp_ns is None or stamp_ns <= self.last_stamp_ns
 
     def holds(self) -> tuple[str, int]:
         """(playback, frame id) of the last frame held, for acknowledgements."""
@@ -326,6 +338,7 @@ class RobotStream:
             # The chain goes back to the last frame kept: its bridge replays the ones after it.
             last = frames[-1] if frames else None
             self.last_taken = last.frame_id if last is not None else self.map_last_frame_id
+            self.last_stamp_ns = last.frame.stamp_ns if last is not None else self.map_last_stamp_ns
             self.playback = last.playback if last is not None else self.map_playback
             if self.playback:
                 self.waiting = True
@@ -440,6 +453,7 @@ class RobotStreams:
             r.name: {
                 "playback": r.map_playback,
                 "last_frame_id": r.map_last_frame_id,
+                "last_stamp_ns": r.map_last_stamp_ns,
                 "joined": r.state == "joined",
                 "anchor": r.anchor,
                 "join_method": r.join_method,
@@ -468,6 +482,8 @@ class RobotStreams:
             last = entry.get("last_frame_id")
             stream.playback = stream.map_playback = str(entry.get("playback") or "")
             stream.last_taken = stream.map_last_frame_id = None if last is None else int(last)
+            stamp = entry.get("last_stamp_ns")  # absent in checkpoints from before it was recorded
+            stream.last_stamp_ns = stream.map_last_stamp_ns = None if stamp is None else int(stamp)
             stream.frames_integrated = int(entry.get("frames_integrated") or 0)
             stream.anchor = bool(entry.get("anchor"))
             if entry.get("joined"):
