@@ -68,6 +68,7 @@ from openfusion.bus import Publisher, ServiceRunner
 from openfusion.bus.flow_control import InFlightWindow, ShardWindows
 from openfusion.config import ConfigSection, ServiceConfig
 from openfusion.frame import Frame
+from openfusion.progress import progress_bar
 from openfusion.services.common import ServiceDefinition
 from openfusion.sources import FrameSource, open_source
 from openfusion.sources.base import IndexedFrameSource
@@ -498,13 +499,11 @@ class BridgeService:
 def _progress(source: FrameSource, *, enabled: bool) -> Any:
     if not enabled:
         return None
-    from tqdm import tqdm
-
     try:
         total: int | None = len(source)
     except TypeError:
         total = None
-    return tqdm(total=total, desc=f"bridge {source.name}", unit="frame")
+    return progress_bar(total, f"bridge {source.name}")
 
 
 def bridge_name(robot: str) -> str:

@@ -26,6 +26,7 @@ from openfusion.mapping import save_map
 from openfusion.mapping.params import MatchParams, MergeParams, SelectParams
 from openfusion.mapping.pipeline import PipelineStats, map_scene
 from openfusion.mapping.queries import RegionTable, answer_texts, subsample_points
+from openfusion.progress import progress_bar
 from openfusion.services.encoder.options import region_encoder_from_section
 from openfusion.services.query.service import text_encoder_from_section
 from openfusion.sources import open_source
@@ -68,8 +69,6 @@ def run_in_process(args: argparse.Namespace, config: RunConfig) -> RunSummary:
 
 
 def _run_in_process(args: argparse.Namespace, config: RunConfig, signals: StopSignals) -> RunSummary:
-    from tqdm import tqdm
-
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
@@ -78,7 +77,7 @@ def _run_in_process(args: argparse.Namespace, config: RunConfig, signals: StopSi
     encoder = region_encoder_from_section(config.semantic)
     rerun = open_rerun(getattr(args, "rerun", None))
     log_frame = rerun.frame_hook() if rerun is not None else None
-    bar = tqdm(total=config.bridge.max_frames, desc="frames integrated", unit="frame", disable=args.quiet)
+    bar = progress_bar(config.bridge.max_frames, "frames integrated", disable=args.quiet)
 
     def on_frame(frame: Frame, stats: PipelineStats) -> None:
         bar.update(1)

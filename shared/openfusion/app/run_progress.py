@@ -15,6 +15,7 @@ from typing import Any
 from openfusion.app.launcher import Cluster, RunError, StopSignals
 from openfusion.app.shard_run import combined_geometry
 from openfusion.bus import collect_health
+from openfusion.progress import progress_bar
 from openfusion.wire.counters import BridgeCounter, CommonCounter, GeometryCounter, SemanticCounter
 
 logger = logging.getLogger(__name__)
@@ -106,9 +107,7 @@ def follow_progress(args: argparse.Namespace, client: Any, cluster: Cluster,
     After a stop signal (``signals.requested``) the bridge is stopped (no more frames) and the same
     wait lets geometry and semantic finish the frames they already have; the bridge's last stats
     are kept."""
-    from tqdm import tqdm
-
-    bar = tqdm(total=args.frames, desc="frames integrated", unit="frame", disable=args.quiet)
+    bar = progress_bar(args.frames, "frames integrated", disable=args.quiet)
     try:
         stable_since: float | None = None
         last_key: tuple[float, ...] = ()

@@ -1,0 +1,67 @@
+"""Progress off a terminal (shared/openfusion/progress.py): lines a log can hold, not tqdm's
+carriage-return redraws.
+
+Bad input tried: a closed stream (taken as no terminal, no error); a total that is unknown (a live
+source: the count alone).
+"""
+
+from __future__ import annotations
+
+import io
+
+from openfusion.progress import LineProgress, progress_bar
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+class _Clock:
+    def __init__(self) -> None:
+        self.now_s = 0.0
+
+    def __call__(self) -> float:
+        return self.now_s
+
+
+def test_off_a_terminal_progress_is_a_line_now_and_then_and_one_at_the_end() -> None:
+    log = io.StringIO()
+    clock = _Clock()
+    bar = LineProgress(120, "frames integrated", "frame", stream=log, interval_s=10.0, clock=clock)
+    for _ in range(30):
+        bar.update(1)
+    assert log.getvalue() == ""  # not yet ten seconds
+    clock.now_s = 10.5
+    bar.set_postfix(semantic=12)
+    bar.update(1)
+    bar.n = 100
+    bar.refresh()  # within ten seconds of the last line
+    bar.close()
+    bar.close()
+    assert log.getvalue().splitlines() == ["frames integrated: 31/120 frames (semantic=12)",
+                                           "frames integrated: 100/120 frames (semantic=12)"]
+    assert "\r" not in log.getvalue()
+
+
+def test_progress_bar_is_tqdm_on_a_terminal_and_lines_elsewhere() -> None:
+    terminal = _Terminal()
+    bar = progress_bar(3, "bridge synthetic")
+    assert isinstance(bar, LineProgress)  # pytest's captured stderr is no terminal
+    bar = progress_bar(3, "bridge synthetic", stream=terminal)
+    bar.update(3)
+    bar.close()
+    assert not isinstance(bar, LineProgress) and "\r" in terminal.getvalue()
+    closed = io.StringIO()
+    closed.close()
+    assert isinstance(progress_bar(None, "bridge live", stream=closed), LineProgress)
+    live = io.StringIO()
+    bar = progress_bar(None, "bridge live", stream=live)
+    bar.update(7)
+    bar.close()
+    assert live.getvalue() == "bridge live: 7 frames\n"
+    quiet_log = io.StringIO()
+    bar = progress_bar(3, "quiet", disable=True, stream=quiet_log)  # --quiet: nothing, line or bar
+    bar.update(3)
+    bar.close()
+    assert quiet_log.getvalue() == ""
