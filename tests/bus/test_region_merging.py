@@ -23,17 +23,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from openfusion.bus import Publisher, call, open_session
-from openfusion.config import ServiceConfig
+from openfusion.bus import Publisher, call
 from openfusion.mapping import RegionDictionary, load_map
 from openfusion.services.geometry.service import GeometryConfig, GeometryService
 from openfusion.services.query.service import QueryConfig, QueryService
 from openfusion.services.semantic.service import SemanticConfig, SemanticService
 from openfusion.sources import open_source
 from openfusion.testing.bus import (
+    LoopbackRouter,
     ServiceThread,
-    endpoint,
-    free_port,
+    loopback_config,
     unique_map_id,
     wait_for_services,
     wait_until,
@@ -46,14 +45,6 @@ from openfusion.wire.schemas import ControlRequest, InstanceFrame, RgbdFrame
 pytestmark = pytest.mark.timeout(300)
 
 FRAMES = list(open_source("synthetic:frames=8,width=160,height=120"))
-
-
-def _config(model, map_id: str, section: str, values: dict, *, port: int, mode: str = "client"):  # noqa: ANN001, ANN202
-    """A config on loopback: the router listens on ``port``, every other party is its client (the
-    router relays between them, so no two services depend on finding each other as peers)."""
-    where = {"listen": [endpoint(port)]} if mode == "router" else {"connect": [endpoint(port)]}
-    zenoh = {"mode": mode, "multicast_scouting": False, **where}
-    return model.model_validate({"map_id": map_id, "zenoh": zenoh, **({section: values} if section else {})})
 
 
 def _feed(rgbd: Publisher, instances: Publisher, semantic: ServiceThread, frames) -> None:  # noqa: ANN001
@@ -116,18 +107,19 @@ def _merged_away(d: RegionDictionary) -> set[int]:
 
 
 def test_merges_reach_every_replica_and_survive_a_semantic_restart() -> None:
-    map_id = unique_map_id("merge")
-    port = free_port()
-    router = open_session(_config(ServiceConfig, map_id, "", {}, port=port, mode="router"))
-    geo_cfg = _config(GeometryConfig, map_id, "geometry", {"initial_block_count": 2048}, port=port)
-    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"select": "latest", "merge_every": 2, "merge_min_interval_s": 0, "recover_timeout_s": 30,
-                                                           "instance_wait_s": 10}, port=port)
-    query_cfg = _config(QueryConfig, map_id, "query", {"text_encoder": "hash"}, port=port)
+    # Every service a client of the router (it relays between them, so no two services depend on
+    # finding each other as peers), with the services' default health period.
+    router = LoopbackRouter("merge", health_period_s=1.0)
+    map_id = router.map_id
+    geo_cfg = router.config(GeometryConfig, geometry={"initial_block_count": 2048})
+    sem_cfg = router.config(SemanticConfig, semantic={"select": "latest", "merge_every": 2, "merge_min_interval_s": 0,
+                                                      "recover_timeout_s": 30, "instance_wait_s": 10})
+    query_cfg = router.config(QueryConfig, query={"text_encoder": "hash"})
     with (
         ServiceThread(GeometryService(geo_cfg), geo_cfg, "geometry") as geometry,
         ServiceThread(QueryService(query_cfg), query_cfg, "query") as query,
     ):
-        session = open_session(_config(ServiceConfig, map_id, "", {}, port=port))
+        session = router.open_client()
         try:
             keys = geo_cfg.keys
             # Declared before waiting for the services (their tokens come after their subscribers).
@@ -178,10 +170,9 @@ def test_merges_reach_every_replica_and_survive_a_semantic_restart() -> None:
 def test_a_merge_pass_without_geometry_is_counted_and_mapping_goes_on() -> None:
     """No geometry on the bus: the pass's contacts request times out; merge_failures counts it and
     the dictionary is unchanged."""
-    map_id = unique_map_id("merge-nogeo")
-    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"select": "latest", "recover_timeout_s": 0, "render_timeout_s": 0.5,
-                                                                       "contacts_timeout_s": 0.5},
-                      port=free_port(), mode="peer")
+    sem_cfg = loopback_config(unique_map_id("merge-nogeo"), model=SemanticConfig,
+                              semantic={"select": "latest", "recover_timeout_s": 0, "render_timeout_s": 0.5,
+                                        "contacts_timeout_s": 0.5})
     service = SemanticService(sem_cfg, encoder=SplittingEncoder(split_on=[]))
     with ServiceThread(service, sem_cfg, "semantic") as semantic:
         version = service.dictionary.version
@@ -205,16 +196,15 @@ def _stored_keys(geometry: ServiceThread) -> set[int]:
 
 
 def test_a_lost_merge_delta_is_repaired_by_the_resync_and_a_save_merges_first(tmp_path) -> None:  # noqa: ANN001
-    map_id = unique_map_id("merge-save")
-    port = free_port()
-    router = open_session(_config(ServiceConfig, map_id, "", {}, port=port, mode="router"))
-    geo_cfg = _config(GeometryConfig, map_id, "geometry", {"initial_block_count": 2048, "checkpoint_period_s": 0,
-                                                           "merge_on_save_timeout_s": 10}, port=port)
+    router = LoopbackRouter("merge-save", health_period_s=1.0)
+    map_id = router.map_id
+    geo_cfg = router.config(GeometryConfig, geometry={"initial_block_count": 2048, "checkpoint_period_s": 0,
+                                                      "merge_on_save_timeout_s": 10})
     # No periodic pass (merge_every far away): only the passes this test asks for happen.
-    sem_cfg = _config(SemanticConfig, map_id, "semantic", {"select": "latest", "merge_every": 1000, "recover_timeout_s": 0,
-                                                           "instance_wait_s": 10}, port=port)
+    sem_cfg = router.config(SemanticConfig, semantic={"select": "latest", "merge_every": 1000, "recover_timeout_s": 0,
+                                                      "instance_wait_s": 10})
     with ServiceThread(GeometryService(geo_cfg), geo_cfg, "geometry") as geometry:
-        session = open_session(_config(ServiceConfig, map_id, "", {}, port=port))
+        session = router.open_client()
         try:
             keys = geo_cfg.keys
             rgbd = Publisher(session, SENSOR_RGBD.key(keys), message=RgbdFrame)

@@ -11,15 +11,14 @@ import pytest
 from rosbags.typesys import Stores, get_typestore
 
 from openfusion.app.cli import main
-from openfusion.bus import Queryable, ServiceRunner, open_session
-from openfusion.config import ServiceConfig, ZenohSettings
+from openfusion.bus import Queryable, ServiceRunner
 from openfusion.encoders import make_text_encoder
 from openfusion.mapping import RegionDictionary
 from openfusion.services.geometry.service import GeometryConfig, GeometrySection, GeometryService
 from openfusion.services.query.service import QueryConfig, QuerySection, QueryService
 from openfusion.sources.ros_layout import parse_attachment, topic_key
 from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld
-from openfusion.testing.bus import free_port, unique_map_id, wait_until
+from openfusion.testing.bus import LoopbackRouter, endpoint, wait_until
 from openfusion.wire.endpoints import SEMANTIC_DICTIONARY
 from openfusion.wire.schemas import DictionaryRequest, RgbdFrame, SemanticUpdate
 
@@ -50,34 +49,26 @@ def _geometry() -> tuple[GeometryService, RegionDictionary]:
 
 def test_ros_publish_once_sends_the_answer_and_the_map_in_the_rmw_zenoh_layout() -> None:
     geo, dictionary = _geometry()
-    map_id = unique_map_id("rospub")
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-
-    def cfg(mode: str) -> dict:
-        z = ZenohSettings(mode=mode, multicast_scouting=False,
-                          **({"listen": [endpoint]} if mode == "router" else {"connect": [endpoint]}))
-        return {"map_id": map_id, "zenoh": z, "health_period_s": 0.2}
-
     closers: list = []
     got: list[tuple[str, bytes, bytes | None]] = []
     try:
-        router = open_session(ServiceConfig(**cfg("router")))
+        router = LoopbackRouter("rospub", health_period_s=0.2)
         closers.append(router.close)
-        sem = open_session(ServiceConfig(**cfg("client")))
+        sem = router.open_client()
         closers.append(sem.close)
-        closers.append(Queryable(sem, SEMANTIC_DICTIONARY.key(ServiceConfig(**cfg("client")).keys), DictionaryRequest,
+        closers.append(Queryable(sem, SEMANTIC_DICTIONARY.key(router.keys), DictionaryRequest,
                                  lambda _r: dictionary.snapshot()).close)
-        geo.config = GeometryConfig(**cfg("client"), geometry=geo.section)
+        geo.config = router.config(GeometryConfig, geometry=geo.section)
         grunner = ServiceRunner(geo.config, "geometry").start()
         closers.append(grunner.close)
         geo.setup(grunner)
         grunner.ready()
-        qs = QueryService(QueryConfig(**cfg("client"), query=QuerySection(text_encoder="hash")), text_encoder=TEXT)
+        qs = QueryService(router.config(QueryConfig, query=QuerySection(text_encoder="hash")), text_encoder=TEXT)
         qrunner = ServiceRunner(qs.config, "query").start()
         closers.append(qrunner.close)
         qs.setup(qrunner)
         qrunner.ready()
-        robot = open_session(ServiceConfig(**cfg("client")))  # a ROS 2 node's session, rmw_zenoh layout
+        robot = router.open_client()  # a ROS 2 node's session, rmw_zenoh layout
         closers.append(robot.close)
         sub = robot.declare_subscriber("0/openfusion/**", lambda s: got.append(
             (str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes() if s.attachment else None)))
@@ -87,10 +78,11 @@ def test_ros_publish_once_sends_the_answer_and_the_map_in_the_rmw_zenoh_layout()
         wait_until(lambda: sem.put(PROBE_KEY, b"probe") or any(k == PROBE_KEY for k, _p, _a in got), timeout_s=30)
         from openfusion.client import OpenFusionClient
 
-        with OpenFusionClient.from_config(ServiceConfig(**cfg("client")), timeout_s=20.0) as probe:
+        with OpenFusionClient.from_config(router.config(), timeout_s=20.0) as probe:
             wait_until(lambda: {"query", "geometry"} <= set(probe.live_services(timeout_s=1.0)), timeout_s=30)
         code = main(["ros-publish", "table", "--once", "--layout", "rmw_zenoh", "--map-cloud", "--top-k", "1",
-                     "--map", map_id, "--mode", "client", "--connect", endpoint, "--no-multicast"])
+                     "--map", router.map_id, "--mode", "client", "--connect", endpoint(router.port),
+                     "--no-multicast"])
         assert code == 0
         wait_until(lambda: len([g for g in got if g[0] != PROBE_KEY]) >= 3, timeout_s=30,
                    describe=lambda: f"got {sorted({k for k, _p, _a in got})}")

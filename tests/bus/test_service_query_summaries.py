@@ -10,9 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from openfusion.bus import Queryable, ServiceRunner, collect_health, open_session
+from openfusion.bus import Queryable, ServiceRunner, collect_health
 from openfusion.client import OpenFusionClient
-from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.encoders import make_text_encoder
 from openfusion.frame import Frame
 from openfusion.mapping import RegionDictionary
@@ -21,7 +20,7 @@ from openfusion.services.geometry.service import GeometryConfig, GeometrySection
 from openfusion.services.query.region_hits import RegionSummaries, region_hits
 from openfusion.services.query.service import QueryConfig, QuerySection, QueryService
 from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld
-from openfusion.testing.bus import free_port, unique_map_id, wait_until
+from openfusion.testing.bus import LoopbackRouter, wait_until
 from openfusion.wire.endpoints import SEMANTIC_DICTIONARY
 from openfusion.wire.schemas import (
     ControlRequest,
@@ -200,43 +199,32 @@ def make_cluster() -> Iterator:
     closers: list = []
 
     def make(*, geometry: GeometryService | None, dictionary: RegionDictionary, **query: object) -> Cluster:
-        map_id = unique_map_id("summaries")
-        endpoint = f"tcp/127.0.0.1:{free_port()}"
-
-        def cfg(mode: str, **kw: object) -> dict:
-            z = ZenohSettings(
-                mode=mode,
-                multicast_scouting=False,
-                **({"listen": [endpoint]} if mode == "router" else {"connect": [endpoint]}),
-            )
-            return {"map_id": map_id, "zenoh": z, "health_period_s": 0.2, **kw}
-
-        router = open_session(ServiceConfig(**cfg("router")))
+        router = LoopbackRouter("summaries", health_period_s=0.2)
         closers.append(router.close)
-        sem = open_session(ServiceConfig(**cfg("client")))
+        sem = router.open_client()
         closers.append(sem.close)
         holder = {"dictionary": dictionary}
         qbl = Queryable(
             sem,
-            SEMANTIC_DICTIONARY.key(ServiceConfig(**cfg("client")).keys),
+            SEMANTIC_DICTIONARY.key(router.keys),
             DictionaryRequest,
             lambda _r: holder["dictionary"].snapshot(),
         )
         closers.append(qbl.close)
         if geometry is not None:
-            geometry.config = GeometryConfig(**cfg("client"), geometry=geometry.section)
+            geometry.config = router.config(GeometryConfig, geometry=geometry.section)
             runner = ServiceRunner(geometry.config, "geometry").start()
             closers.append(runner.close)
             geometry.setup(runner)
             runner.ready()
         qs = QueryService(
-            QueryConfig(**cfg("client"), query=QuerySection(text_encoder="hash", **query)), text_encoder=TEXT
+            router.config(QueryConfig, query=QuerySection(text_encoder="hash", **query)), text_encoder=TEXT
         )
         qrunner = ServiceRunner(qs.config, "query").start()
         closers.append(qrunner.close)
         qs.setup(qrunner)
         qrunner.ready()
-        client = OpenFusionClient.from_config(ServiceConfig(**cfg("client")), timeout_s=20.0)
+        client = OpenFusionClient.from_config(router.config(), timeout_s=20.0)
         closers.append(client.close)
         wait_until(lambda: "query" in client.live_services(timeout_s=1.0), timeout_s=20)
         return Cluster(geometry, qs, client, dictionary)

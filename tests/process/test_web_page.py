@@ -30,16 +30,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from openfusion.bus import Queryable, QueryError, ServiceRunner, open_session
+from openfusion.bus import Queryable, QueryError, ServiceRunner
 from openfusion.client import OpenFusionClient
-from openfusion.config import ServiceConfig, ZenohSettings
 from openfusion.encoders import make_text_encoder
 from openfusion.frame import Frame
 from openfusion.mapping import RegionDictionary
 from openfusion.services.geometry.service import GeometryConfig, GeometrySection, GeometryService
 from openfusion.services.query.service import QueryConfig, QuerySection, QueryService
 from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld
-from openfusion.testing.bus import free_port, subprocess_env, unique_map_id, wait_until
+from openfusion.testing.bus import LoopbackRouter, endpoint, subprocess_env, wait_until
 from openfusion.wire.endpoints import SEMANTIC_DICTIONARY
 from openfusion.wire.limits import MAX_TEXT_CHARS
 from openfusion.wire.schemas import DictionaryRequest, RgbdFrame, SemanticUpdate
@@ -104,19 +103,11 @@ def running_map() -> Iterator[Map]:
     world = SyntheticWorld(0)
     size = (160, 120) if frames <= 8 else (320, 240)
     source = SyntheticSource(world, num_frames=frames, width_px=size[0], height_px=size[1], frames_per_lap=frames)
-    map_id = unique_map_id("web")
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-
-    def cfg(mode: str) -> dict:
-        z = ZenohSettings(mode=mode, multicast_scouting=False,
-                          **({"listen": [endpoint]} if mode == "router" else {"connect": [endpoint]}))
-        return {"map_id": map_id, "zenoh": z, "health_period_s": 0.5}
-
     closers: list = []
     try:
-        router = open_session(ServiceConfig(**cfg("router")))
+        router = LoopbackRouter("web", health_period_s=0.5)
         closers.append(router.close)
-        geometry = GeometryService(GeometryConfig(**cfg("client"), geometry=GeometrySection(load_on_start=False)))
+        geometry = GeometryService(router.config(GeometryConfig, geometry=GeometrySection(load_on_start=False)))
         keys_seen: set[int] = set()
         for frame in source:
             geometry.on_frame(RgbdFrame.from_frame(frame))
@@ -127,24 +118,24 @@ def running_map() -> Iterator[Map]:
         for key in range(max(keys_seen) + 1):
             name = world.categories[key + 1]
             dictionary.add(TEXT.encode([name])[0], label=name)
-        semantic = open_session(ServiceConfig(**cfg("client")))
+        semantic = router.open_client()
         closers.append(semantic.close)
         # a service that is alive and has published no stats yet (as one that just started): its badge
-        token = semantic.liveliness().declare_token(ServiceConfig(**cfg("client")).keys.liveliness("semantic"))
+        token = semantic.liveliness().declare_token(router.keys.liveliness("semantic"))
         closers.append(token.undeclare)
-        qbl = Queryable(semantic, SEMANTIC_DICTIONARY.key(ServiceConfig(**cfg("client")).keys), DictionaryRequest,
+        qbl = Queryable(semantic, SEMANTIC_DICTIONARY.key(router.keys), DictionaryRequest,
                         lambda _r: dictionary.snapshot())
         closers.append(qbl.close)
         runner = ServiceRunner(geometry.config, "geometry").start()
         closers.append(runner.close)
         geometry.setup(runner)
         runner.ready()
-        query = QueryService(QueryConfig(**cfg("client"), query=QuerySection(text_encoder="hash")), text_encoder=TEXT)
+        query = QueryService(router.config(QueryConfig, query=QuerySection(text_encoder="hash")), text_encoder=TEXT)
         qrunner = ServiceRunner(query.config, "query").start()
         closers.append(qrunner.close)
         query.setup(qrunner)
         qrunner.ready()
-        client = OpenFusionClient.from_config(ServiceConfig(**cfg("client")), timeout_s=30.0)
+        client = OpenFusionClient.from_config(router.config(), timeout_s=30.0)
         closers.append(client.close)
         def answered() -> bool:  # the services may take longer than one query's timeout to come up under load
             try:
@@ -153,7 +144,7 @@ def running_map() -> Iterator[Map]:
                 return False
 
         wait_until(answered, timeout_s=120)
-        yield Map(map_id, endpoint, client, geometry)
+        yield Map(router.map_id, endpoint(router.port), client, geometry)
     finally:
         for close in reversed(closers):
             close()
