@@ -33,7 +33,7 @@ class LineProgress:
         self._clock = clock
         self._postfix = ""
         self._last_line_s = clock()
-        self._last_line_n: int | None = None
+        self._last_line = ""
         self._closed = False
 
     def update(self, n: int = 1) -> None:
@@ -53,7 +53,7 @@ class LineProgress:
     def close(self) -> None:
         if not self._closed:
             self._closed = True
-            if self._last_line_n != self.n:
+            if self.line() != self._last_line:  # the count or the counts after it moved since
                 self._line()
 
     def line(self) -> str:
@@ -63,8 +63,8 @@ class LineProgress:
 
     def _line(self) -> None:
         self._last_line_s = self._clock()
-        self._last_line_n = self.n
-        print(self.line(), file=self.stream, flush=True)
+        self._last_line = self.line()
+        print(self._last_line, file=self.stream, flush=True)
 
 
 def progress_bar(total: int | None, desc: str, *, unit: str = "frame", disable: bool = False,

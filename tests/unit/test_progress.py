@@ -41,6 +41,18 @@ def test_off_a_terminal_progress_is_a_line_now_and_then_and_one_at_the_end() -> 
     bar.close()
     assert log.getvalue().splitlines() == ["frames integrated: 31/120 frames (semantic=12)",
                                            "frames integrated: 100/120 frames (semantic=12)"]
+    # The count stands still while the counts after it move (the semantic service finishing):
+    # the last line still shows where they ended.
+    settled = io.StringIO()
+    bar = LineProgress(2, "frames integrated", "frame", stream=settled, interval_s=10.0, clock=clock)
+    bar.n = 2
+    bar.set_postfix(semantic=1)
+    clock.now_s += 11
+    bar.refresh()
+    bar.set_postfix(semantic=2)
+    bar.close()
+    assert settled.getvalue().splitlines() == ["frames integrated: 2/2 frames (semantic=1)",
+                                               "frames integrated: 2/2 frames (semantic=2)"]
     assert "\r" not in log.getvalue()
 
 
