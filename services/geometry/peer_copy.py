@@ -320,10 +320,10 @@ class PeerCopy:
         """After the copy: what came during it, in order, through the service's handlers; a live
         frame the copy holds already is a duplicate (counted, dropped). A live frame is taken for
         one the copy holds when its id is at or below the copy's last and its stamp not later than
-        that frame's (:meth:`~openfusion.mapping.robot_streams.RobotStream.copy_holds`; a copy from before stamps were recorded: the
-        id alone). Its bridge restarted during the copy when the id is lower but the stamp later
-        (a bridge that stamps by the clock), or when the robot's held ids went back (one whose
-        stamps start again too): from there on its frames are new."""
+        that frame's (``RobotStream.copy_holds``; a copy from before stamps were recorded: the id
+        alone). Its bridge restarted during the copy when the id is lower but the stamp later (a
+        bridge that stamps by the clock), or when the robot's held ids went back (one whose stamps
+        start again too): from there on its frames are new."""
         last_held: dict[str, int] = {}  # per robot, the id of the live frame held before
         restarted: set[str] = set()
 
