@@ -5,6 +5,7 @@ frame) and after (``--select coverage``), each pair measured in the same run.
     python bench/bench_select.py --full --laps   # three 120-frame laps of the built-in room, in process
     python bench/bench_select.py --full --laps --select-also select_lookahead=3   # ... and a row with these
     python bench/bench_select.py --full --cost   # scoring cost per frame against a semantic step, per map size
+    python bench/bench_select.py --full --render-growth   # a map render's cost as the map grows (building walk)
     python bench/bench_select.py --services [--repeat 2]
         # a 90-frame ScanNet-layout scene through `openfusion run` at its own rate (30 fps) with the gt
         # encoder and a fixed --encoder-delay-ms 150: latest (before) and coverage (after), with the
@@ -155,6 +156,62 @@ def cost(laps_n: int, lap: int, width: int, height: int, widths: list[int]) -> N
     print()
 
 
+# ----------------------------------------------------------------------------------- render growth
+
+
+def render_growth(frames_n: int, width: int, height: int, sizes: list[int]) -> None:
+    """What a render of the map costs as the map grows: the synthetic building's walk integrated
+    into one volume, and after each of ``sizes`` frames the render at the scored size (64 px wide)
+    and at the semantic step's 160x120, from the poses of the last frames, CPU time per render; and
+    Open3D's ``ray_cast`` given only 50 blocks (the floor of a call). Ratios against the first row."""
+    from openfusion.mapping import SemanticVolume, raycast
+    from openfusion.mapping.coverage import scoring_size
+
+    frames = list(open_source(f"synthetic:building,frames={frames_n},width={width},height={height}"))
+    volume = SemanticVolume(VolumeParams())
+    storage = volume._storage  # noqa: SLF001 (the floor column drives Open3D's ray cast directly)
+    print(f"### Map render cost as the map grows (synthetic building walk, {width}x{height} frames, in process, "
+          "CPU ms per render, median of the last 8 frames' poses)")
+    print()
+    print("| frames integrated | resident blocks | 64 px render ms | × first | 160x120 render ms | × first | "
+          "ray cast of 50 blocks ms | × first |")
+    print("|---|---|---|---|---|---|---|---|")
+    first: list[float] = []
+    done = 0
+    for target in sorted(n for n in sizes if n <= len(frames)):
+        for frame in frames[done:target]:
+            volume.integrate(frame)
+        done = target
+        recent = frames[max(0, target - 8):target]
+        row = []
+        for w in (64, 160):
+            ms = []
+            for frame in recent:
+                K = frame.intrinsics.scaled(*scoring_size(frame.intrinsics, w)[::-1])
+                volume.render(frame.T_world_cam, K)  # its fragment buffer grown, outside the timing
+                t0 = time.process_time()
+                volume.render(frame.T_world_cam, K)
+                ms.append((time.process_time() - t0) * 1e3)
+            row.append(float(np.median(ms)))
+        ms = []
+        for frame in recent:
+            K = frame.intrinsics.scaled(*scoring_size(frame.intrinsics, 64)[::-1])
+            coords, _ = raycast.frustum_blocks(storage.active_blocks()[0], storage.params, frame.T_world_cam, K)
+            raycast._cast(storage, coords[:50], frame.T_world_cam, K, volume._intrinsic_tensor(K))  # noqa: SLF001
+            t0 = time.process_time()
+            raycast._cast(storage, coords[:50], frame.T_world_cam, K, volume._intrinsic_tensor(K))  # noqa: SLF001
+            ms.append((time.process_time() - t0) * 1e3)
+        row.append(float(np.median(ms)))
+        first = first or row
+        print(f"| {target} | {volume.num_blocks} | {row[0]:.1f} | {row[0] / first[0]:.2f} | {row[1]:.1f} | "
+              f"{row[1] / first[1]:.2f} | {row[2]:.1f} | {row[2] / first[2]:.2f} |", flush=True)
+    print()
+    print("Open3D's CPU ray cast costs in proportion to the blocks the grid holds, whatever blocks it is given "
+          "(the last column), so every render does: a scoring render of a large map costs what a semantic step "
+          "of a small one does. A geometry shard holds only its tiles' blocks; the memory budget bounds them.")
+    print()
+
+
 # ----------------------------------------------------------------------------------- services
 
 
@@ -245,6 +302,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--laps", action="store_true", help="three laps of the built-in room, in process")
     parser.add_argument("--cost", action="store_true", help="scoring cost per frame against a semantic step")
     parser.add_argument("--services", action="store_true", help="a ScanNet-layout scene through openfusion run")
+    parser.add_argument("--render-growth", action="store_true", help="map render cost as the map grows (building)")
     parser.add_argument("--lap", type=int, default=None, help=f"frames per lap (default 40, --full {BUILTIN_LAP})")
     parser.add_argument("--laps-n", type=int, default=3, help="laps (default 3)")
     parser.add_argument("--widths", default="32,64,128", help="--cost: scored widths (default 32,64,128)")
@@ -257,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="--services: a --set option of every openfusion run (repeatable)")
     parser.add_argument("--work", type=Path, default=None, help="--services: working folder (default a temporary one)")
     args = parser.parse_args(argv)
-    everything = not (args.laps or args.cost or args.services)
+    everything = not (args.laps or args.cost or args.services or args.render_growth)
     lap = args.lap or (BUILTIN_LAP if args.full else 40)
     width, height = (640, 480) if args.full else (320, 240)
     if args.laps or everything:
@@ -265,6 +323,9 @@ def main(argv: list[str] | None = None) -> int:
         laps(args.laps_n, lap, width, height, also)
     if args.cost or everything:
         cost(args.laps_n, lap, width, height, [int(w) for w in args.widths.split(",")])
+    if args.render_growth:
+        sizes = [1, 30, 120, 240] if args.full else [1, 30, 90]
+        render_growth(max(sizes), 320, 240, sizes)
     if args.services or (everything and args.full):
         if args.work is not None:
             args.work.mkdir(parents=True, exist_ok=True)

@@ -11,7 +11,10 @@ difference over the frames is the process CPU time per frame of that shard (deco
 the touched blocks, integration of its own blocks and ghosts, acknowledgements: all of it). Also
 its ``integrate_busy_s`` (time inside integration) per frame and its blocks. The ratio column is
 the slowest shard's CPU per frame against one geometry's, measured in the same run; the issue's
-target is <= 0.6 at 2 shards. A row per image size and shard count.
+target is <= 0.6 at 2 shards. A row per image size and shard count. ``--with-semantic`` starts the
+default semantic service too (gt encoder, coverage selection): its render of every candidate frame
+it scores, and of every frame it encodes, asks every shard, so the geometry processes' CPU then
+includes the renders they answer (the last column: renders per frame, scoring / encoded).
 
 A second table (in this process, no bus): the same frames into one volume and into the shards'
 volumes (``VolumeParams.shard``), CPU time of ``integrate`` per frame, blocks (own + ghosts), and how
@@ -40,6 +43,7 @@ would close it").
     .venv/bin/python bench/bench_shards.py --full     # 150 frames, 1, 2 and 3 shards (also the default)
     .venv/bin/python bench/bench_shards.py --quick --phases --ownership --no-services --no-in-process
     .venv/bin/python bench/bench_shards.py --quick --sizes 640x480 --seam-ghosts --no-services --no-in-process
+    .venv/bin/python bench/bench_shards.py --quick --sizes 640x480 --with-semantic --no-in-process
 """
 
 from __future__ import annotations
@@ -54,7 +58,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _run_one(shards: int, width: int, height: int, frames: int, log_dir: Path) -> dict[str, object]:
+def _run_one(shards: int, width: int, height: int, frames: int, log_dir: Path, *,
+             semantic: bool = False) -> dict[str, object]:
     import psutil
 
     from openfusion.bus import collect_health, open_session
@@ -66,7 +71,7 @@ def _run_one(shards: int, width: int, height: int, frames: int, log_dir: Path) -
         unique_map_id,
         wait_for_services,
     )
-    from openfusion.wire.counters import BridgeCounter, GeometryCounter
+    from openfusion.wire.counters import BridgeCounter, GeometryCounter, SemanticCounter
     from openfusion.wire.keys import ShardId
 
     map_id = unique_map_id("shards")
@@ -83,8 +88,13 @@ def _run_one(shards: int, width: int, height: int, frames: int, log_dir: Path) -
                 cmd += ["--shard", str(shard)]
             log = (log_dir / f"{shard.service}-{shards}-{width}.log").open("wb")
             procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, env=env))
+        if semantic:  # the default semantic service (gt encoder, coverage): its scoring renders ask every shard
+            log = (log_dir / f"semantic-{shards}-{width}.log").open("wb")
+            procs.append(subprocess.Popen(
+                [sys.executable, "-m", "openfusion.app.cli", "service", "semantic", *loopback_args(map_id, connect=[port])],
+                stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, env=env))
         keys = ServiceConfig(map_id=map_id).keys
-        wait_for_services(router, map_id, names, timeout_s=120)
+        wait_for_services(router, map_id, [*names, *(["semantic"] if semantic else [])], timeout_s=120)
         cpu0 = [sum(psutil.Process(p.pid).cpu_times()[:2]) for p in procs]
         bridge_log = (log_dir / f"bridge-{shards}-{width}.log").open("wb")
         bridge = subprocess.Popen(
@@ -107,8 +117,12 @@ def _run_one(shards: int, width: int, height: int, frames: int, log_dir: Path) -
         cpu = [sum(psutil.Process(p.pid).cpu_times()[:2]) - c0 for p, c0 in zip(procs, cpu0, strict=False)]
         busy = [stats[n].counter(GeometryCounter.INTEGRATE_BUSY_S) for n in names]
         blocks = [stats[n].counter(GeometryCounter.NUM_BLOCKS) for n in names]
+        sem = stats.get("semantic")
+        scored = sem.counter(SemanticCounter.FRAMES_SCORED) if sem is not None else 0.0
+        encoded = sem.counter(SemanticCounter.SEMANTIC_FRAMES) if sem is not None else 0.0
         return {"shards": shards, "size": f"{width}x{height}", "cpu_ms": [1000 * c / frames for c in cpu],
-                "busy_ms": [1000 * b / frames for b in busy], "blocks": blocks, "fps": frames / wall}
+                "busy_ms": [1000 * b / frames for b in busy], "blocks": blocks, "fps": frames / wall,
+                "scored": scored / frames, "encoded": encoded / frames}
     finally:
         for p in procs:
             p.terminate()
@@ -177,17 +191,19 @@ def _agreement(single: object, parts: list, frames: list, voxel_m: float) -> tup
     return depth_ok / pixels, keys_ok / pixels, floor_ok / floor_px
 
 
-def _services_table(sizes: list[tuple[int, int]], counts: list[int], frames: int, repeat: int) -> None:
+def _services_table(sizes: list[tuple[int, int]], counts: list[int], frames: int, repeat: int, *,
+                    semantic: bool = False) -> None:
     """The services table (module docstring): every row ``repeat`` times, each run's ratio against
-    one geometry's CPU in the same run."""
+    one geometry's CPU in the same run; ``semantic``: with a semantic service mapping too."""
     rows = []
     with tempfile.TemporaryDirectory(prefix="bench-shards-") as tmp:
         for run in range(repeat):
             for width, height in sizes:
                 for n in counts:
-                    rows.append({**_run_one(n, width, height, frames, Path(tmp)), "run": run})
+                    rows.append({**_run_one(n, width, height, frames, Path(tmp), semantic=semantic), "run": run})
                     print(f"  done: {n} shard(s) at {width}x{height} (run {run + 1})", file=sys.stderr)
-    print(f"\ngeometry shards, {frames} frames of the synthetic room, playback as fast as the shards take it")
+    print(f"\ngeometry shards, {frames} frames of the synthetic room, playback as fast as the shards take it"
+          + (", a semantic service mapping too (its renders per frame: scoring / encoded)" if semantic else ""))
     print(f"{'size':>8} {'run':>3} {'shards':>6} {'CPU ms/frame per shard':>28} {'max':>7} {'ratio':>6} "
           f"{'integrate ms/frame':>22} {'blocks per shard':>22} {'fps':>6}")
     base: dict[tuple[str, int], float] = {}
@@ -200,7 +216,8 @@ def _services_table(sizes: list[tuple[int, int]], counts: list[int], frames: int
         ratio = worst / base[key] if key in base else float("nan")  # type: ignore[index]
         print(f"{r['size']:>8} {r['run'] + 1:>3} {r['shards']:>6} {' '.join(f'{c:6.1f}' for c in cpu):>28} "
               f"{worst:7.1f} {ratio:6.2f} {' '.join(f'{b:5.1f}' for b in r['busy_ms']):>22} "  # type: ignore[union-attr]
-              f"{' '.join(f'{int(b):6d}' for b in r['blocks']):>22} {r['fps']:6.1f}")  # type: ignore[union-attr]
+              f"{' '.join(f'{int(b):6d}' for b in r['blocks']):>22} {r['fps']:6.1f}"  # type: ignore[union-attr]
+              + (f" {r['scored']:5.2f} / {r['encoded']:4.2f}" if semantic else ""))
     print("\nratio: the slowest shard's CPU per frame / one geometry's in the same run (target <= 0.6 at 2 shards)")
 
 
@@ -462,12 +479,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ownership", action="store_true", help="ownership schemes' shares of the blocks")
     parser.add_argument("--seam-ghosts", action="store_true", help="whole ghost blocks against ghosts cut to the seam")
     parser.add_argument("--repeat", type=int, default=1, help="services table: runs of every row (the spread)")
+    parser.add_argument("--with-semantic", action="store_true",
+                        help="services table: a semantic service maps too (its renders ask every shard)")
     args = parser.parse_args(argv)
     frames = args.frames or (60 if args.quick else 150)
     counts = [int(x) for x in (args.shards or ("1,2" if args.quick else "1,2,3")).split(",")]
     sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",")]
     if not args.no_services:
-        _services_table(sizes, counts, frames, args.repeat)
+        _services_table(sizes, counts, frames, args.repeat, semantic=args.with_semantic)
     if args.phases:
         _print_phases(sizes, counts, frames)
     if args.ownership:
