@@ -5,18 +5,23 @@ under the launcher, ``docker compose logs``, CI) that is one line of thousands o
 reader cannot follow and ``grep`` cannot split. tqdm has no line mode, so off a terminal
 :func:`progress_bar` returns :class:`LineProgress` instead: the same few calls the commands make
 (``update``, ``n``, ``set_postfix``, ``refresh``, ``write``, ``close``), written to the same
-stream as one line every :data:`LINE_INTERVAL_S` seconds and once at the end. Written, not logged:
+stream as one line every :data:`LINE_INTERVAL_S` seconds, every tenth of a known total (a short run
+still shows where it is: a user or a script waiting for a frame count sees it come) and once at
+the end. Written, not logged:
 progress is what a bar shows, whatever the log level (``openfusion run`` logs warnings only).
 """
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from typing import Any, TextIO
 
 #: Seconds between two progress lines off a terminal.
 LINE_INTERVAL_S = 10.0
+#: With a known total, a line also at every this share of it.
+LINE_SHARE = 0.1
 
 
 class LineProgress:
@@ -34,6 +39,8 @@ class LineProgress:
         self._postfix = ""
         self._last_line_s = clock()
         self._last_line = ""
+        self._step = max(1, math.ceil(total * LINE_SHARE)) if total else None
+        self._next_n = self._step
         self._closed = False
 
     def update(self, n: int = 1) -> None:
@@ -44,7 +51,8 @@ class LineProgress:
         self._postfix = ", ".join(f"{name}={value}" for name, value in counts.items())
 
     def refresh(self) -> None:
-        if self._clock() - self._last_line_s >= self.interval_s:
+        share_reached = self._next_n is not None and self.n >= self._next_n
+        if share_reached or self._clock() - self._last_line_s >= self.interval_s:
             self._line()
 
     def write(self, text: str, file: TextIO | None = None) -> None:
@@ -62,6 +70,8 @@ class LineProgress:
         return f"{self.desc}: {done} {self.unit}s" + (f" ({self._postfix})" if self._postfix else "")
 
     def _line(self) -> None:
+        if self._step is not None:
+            self._next_n = (self.n // self._step + 1) * self._step
         self._last_line_s = self._clock()
         self._last_line = self.line()
         print(self._last_line, file=self.stream, flush=True)

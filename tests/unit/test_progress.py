@@ -28,27 +28,31 @@ class _Clock:
 def test_off_a_terminal_progress_is_a_line_now_and_then_and_one_at_the_end() -> None:
     log = io.StringIO()
     clock = _Clock()
-    bar = LineProgress(120, "frames integrated", "frame", stream=log, interval_s=10.0, clock=clock)
+    bar = LineProgress(1000, "frames integrated", "frame", stream=log, interval_s=10.0, clock=clock)
     for _ in range(30):
         bar.update(1)
-    assert log.getvalue() == ""  # not yet ten seconds
+    assert log.getvalue() == ""  # not yet ten seconds, nor a tenth of the frames
     clock.now_s = 10.5
     bar.set_postfix(semantic=12)
     bar.update(1)
-    bar.n = 100
-    bar.refresh()  # within ten seconds of the last line
+    bar.n = 90
+    bar.refresh()  # within ten seconds of the last line, under a tenth
+    bar.n = 250
+    bar.refresh()  # past a tenth: a line, and the next at 300
+    bar.n = 299
+    bar.refresh()
     bar.close()
     bar.close()
-    assert log.getvalue().splitlines() == ["frames integrated: 31/120 frames (semantic=12)",
-                                           "frames integrated: 100/120 frames (semantic=12)"]
+    assert log.getvalue().splitlines() == ["frames integrated: 31/1000 frames (semantic=12)",
+                                           "frames integrated: 250/1000 frames (semantic=12)",
+                                           "frames integrated: 299/1000 frames (semantic=12)"]
     # The count stands still while the counts after it move (the semantic service finishing):
     # the last line still shows where they ended.
     settled = io.StringIO()
     bar = LineProgress(2, "frames integrated", "frame", stream=settled, interval_s=10.0, clock=clock)
     bar.n = 2
     bar.set_postfix(semantic=1)
-    clock.now_s += 11
-    bar.refresh()
+    bar.refresh()  # a tenth (and all) of the frames
     bar.set_postfix(semantic=2)
     bar.close()
     assert settled.getvalue().splitlines() == ["frames integrated: 2/2 frames (semantic=1)",
@@ -69,9 +73,15 @@ def test_progress_bar_is_tqdm_on_a_terminal_and_lines_elsewhere() -> None:
     assert isinstance(progress_bar(None, "bridge live", stream=closed), LineProgress)
     live = io.StringIO()
     bar = progress_bar(None, "bridge live", stream=live)
-    bar.update(7)
+    bar.update(7)  # no total: the clock alone, then the end
     bar.close()
     assert live.getvalue() == "bridge live: 7 frames\n"
+    short = io.StringIO()
+    bar = progress_bar(400, "frames integrated", stream=short)  # a run shorter than ten seconds
+    for _ in range(400):
+        bar.update(1)
+    bar.close()
+    assert [line.split()[2] for line in short.getvalue().splitlines()] == [f"{n}/400" for n in range(40, 401, 40)]
     quiet_log = io.StringIO()
     bar = progress_bar(3, "quiet", disable=True, stream=quiet_log)  # --quiet: nothing, line or bar
     bar.update(3)
