@@ -81,12 +81,12 @@ def progress_bar(total: int | None, desc: str, *, unit: str = "frame", disable: 
                  stream: TextIO | None = None) -> Any:
     """A tqdm bar when ``stream`` (stderr by default) is a terminal, else a :class:`LineProgress`;
     ``disable`` (``--quiet``): a bar that shows nothing."""
-    from tqdm import tqdm
-
     stream = stream or sys.stderr
-    if disable or _is_terminal(stream):
-        return tqdm(total=total, desc=desc, unit=unit, disable=disable, file=stream)
-    return LineProgress(total, desc, unit, stream=stream)
+    if not (disable or _is_terminal(stream)):
+        return LineProgress(total, desc, unit, stream=stream)
+    from tqdm import tqdm  # only where a bar is drawn (or stands in for --quiet)
+
+    return tqdm(total=total, desc=desc, unit=unit, disable=disable, file=stream)
 
 
 def _is_terminal(stream: TextIO) -> bool:
