@@ -334,6 +334,7 @@ def _seam_ghosts(width: int, height: int, frames: int) -> None:
 
     from openfusion.mapping import VolumeParams
     from openfusion.mapping.shards import _UPPER, owned_blocks, take_blocks
+    from openfusion.mapping.storage import flat_voxel_index
 
     p = VolumeParams()
     res = p.block_resolution
@@ -360,9 +361,7 @@ def _seam_ghosts(width: int, height: int, frames: int) -> None:
     def values(g: o3d.t.geometry.VoxelBlockGrid, resolution: int, voxels: np.ndarray) -> tuple[np.ndarray, ...]:
         blocks = np.floor_divide(voxels, resolution)
         buf, found = g.hashmap().find(o3c.Tensor(blocks.astype(np.int32)))
-        local = voxels - blocks * resolution
-        flat = (buf.cpu().numpy().astype(np.int64) * resolution ** 3 + local[:, 0] + local[:, 1] * resolution
-                + local[:, 2] * resolution ** 2)
+        flat = flat_voxel_index(buf.cpu().numpy(), voxels - blocks * resolution, resolution)
         flat = np.where(found.cpu().numpy(), flat, 0)
         return (found.cpu().numpy(), g.attribute("tsdf").numpy().reshape(-1)[flat],
                 g.attribute("weight").numpy().reshape(-1)[flat])
