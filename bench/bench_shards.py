@@ -29,9 +29,11 @@ into own blocks + ghosts and its record of the others', Open3D's ``integrate``, 
 that does not shrink with the share of blocks is what keeps a shard above half of one geometry.
 
 A fourth table (``--ownership``, no integration): Open3D's touched blocks of every frame split by
-ownership schemes (the tile hash that runs, tile columns, stripes along x) at several tile sizes:
-the slowest shard's share of the blocks one geometry integrates (own + ghosts), and ghosts per own
-block. It is why the hash of 8-block tiles stays (docs/SHARDS.md).
+ownership schemes (the tile hash that runs, tile columns, stripes along x at several tile sizes;
+slabs along x and districts, which keep space together) on the room or (``--ownership-scene
+building``) the building's walk: the slowest shard's share of the blocks one geometry integrates
+(own + ghosts), ghosts per own block, and the share of frames that touch each shard at all. It is
+why the hash of 8-block tiles stays (docs/SHARDS.md).
 
 A fifth table (``--seam-ghosts``, in this process): Open3D's ``integrate`` CPU per frame of each shard
 of 2 with whole ghost blocks (what runs), with its own blocks only, and with the ghosts cut to the
@@ -42,6 +44,7 @@ would close it").
     .venv/bin/python bench/bench_shards.py --quick    # 60 frames at 320x240 and 640x480, 1 and 2 shards
     .venv/bin/python bench/bench_shards.py --full     # 150 frames, 1, 2 and 3 shards (also the default)
     .venv/bin/python bench/bench_shards.py --quick --phases --ownership --no-services --no-in-process
+    .venv/bin/python bench/bench_shards.py --sizes 320x240 --ownership --ownership-scene building --no-services --no-in-process
     .venv/bin/python bench/bench_shards.py --quick --sizes 640x480 --seam-ghosts --no-services --no-in-process
     .venv/bin/python bench/bench_shards.py --quick --sizes 640x480 --with-semantic --no-in-process
 """
@@ -306,9 +309,10 @@ def _print_phases(sizes: list[tuple[int, int]], counts: list[int], frames: int) 
             print(f"{label:>36} " + " ".join(cells))
 
 
-def _frame_inputs(width: int, height: int, frames: int):  # noqa: ANN202
-    """Per frame of the synthetic room, what Open3D's ``integrate`` takes, as one volume prepares it:
-    ``(depth image, color image, depth scale, K, extrinsic, touched block coords int64 (N, 3))``."""
+def _frame_inputs(width: int, height: int, frames: int, scene: str = "room"):  # noqa: ANN202
+    """Per frame of the synthetic room (or ``scene`` "building": the building's walk), what Open3D's
+    ``integrate`` takes, as one volume prepares it: ``(depth image, color image, depth scale, K,
+    extrinsic, touched block coords int64 (N, 3))``."""
     import numpy as np
     import open3d.core as o3c
 
@@ -318,7 +322,8 @@ def _frame_inputs(width: int, height: int, frames: int):  # noqa: ANN202
 
     vol = SemanticVolume(VolumeParams())
     p, vbg = vol.params, vol._storage.vbg
-    for f in open_source(f"synthetic:seed=1,width={width},height={height},frames={frames}"):
+    world = "building," if scene == "building" else "seed=1,"
+    for f in open_source(f"synthetic:{world}width={width},height={height},frames={frames}"):
         depth, color, scale = integration.frame_images(vol._storage, f)
         K = o3c.Tensor(f.intrinsics.K, o3c.float64)
         extrinsic = o3c.Tensor(invert_pose(np.asarray(f.T_world_cam, np.float64)))
@@ -419,8 +424,11 @@ def _seam_ghosts(width: int, height: int, frames: int) -> None:
         print(f"{index:>5} {'own + cheaper seam':>32} {'':>15} {'':>9} {ratio:6.3f}")
 
 
-def _ownership(width: int, height: int, frames: int) -> None:
-    """The ownership table (module docstring): Open3D's touched blocks of each frame, split."""
+def _ownership(width: int, height: int, frames: int, scene: str = "room") -> None:
+    """The ownership table (module docstring): Open3D's touched blocks of each frame, split. Besides
+    the scattered schemes, two that keep space together (x slabs of 4 tiles, districts: the hash of
+    columns of 4x4 tiles), so that a frame may leave a shard out altogether (``frames touching``:
+    the share of frames with any block of the shard's, own or ghost; a shard could skip the rest)."""
     import numpy as np
 
     from openfusion.mapping import VolumeParams
@@ -428,7 +436,7 @@ def _ownership(width: int, height: int, frames: int) -> None:
     from openfusion.mapping.tiles import pack_coords
 
     p = VolumeParams()
-    touched = [coords for *_inputs, coords in _frame_inputs(width, height, frames)]
+    touched = [coords for *_inputs, coords in _frame_inputs(width, height, frames, scene)]
     total = sum(len(t) for t in touched)
 
     def owner(kind: str, tb: int, n: int):  # noqa: ANN202
@@ -436,20 +444,24 @@ def _ownership(width: int, height: int, frames: int) -> None:
             units = np.floor_divide(blocks, tb)
             if kind == "x stripes":
                 return np.mod(units[:, 0], n)
-            if kind == "tile columns":
-                units = units.copy()
+            if kind == "x slabs of 4":
+                return np.mod(np.floor_divide(units[:, 0], 4), n)
+            if kind in ("tile columns", "districts 4x4"):
+                units = np.floor_divide(units, 4) if kind == "districts 4x4" else units.copy()
                 units[:, 2] = 0
             return (_mix64(pack_coords(units).astype(np.uint64)) % np.uint64(n)).astype(np.int64)
         return of
 
-    print(f"\nownership schemes: Open3D's touched blocks of {len(touched)} frames at {width}x{height} "
-          f"({total / len(touched):.0f} a frame), split; share = (own + ghosts) / one geometry's blocks")
-    print(f"{'scheme':>14} {'tile blocks':>11} {'shards':>6} {'share per shard':>24} {'slowest':>8} {'ghosts/own':>18}")
+    print(f"\nownership schemes: Open3D's touched blocks of {len(touched)} frames of the synthetic {scene} at "
+          f"{width}x{height} ({total / len(touched):.0f} a frame), split; share = (own + ghosts) / one geometry's "
+          "blocks; frames touching = share of frames with any block of the shard's")
+    print(f"{'scheme':>14} {'tile blocks':>11} {'shards':>6} {'share per shard':>24} {'slowest':>8} {'ghosts/own':>18} "
+          f"{'frames touching':>20}")
     for n in (2, 3):
-        for kind in ("tile hash", "tile columns", "x stripes"):
-            for tb in (4, 8, 16):
+        for kind in ("tile hash", "tile columns", "x stripes", "x slabs of 4", "districts 4x4"):
+            for tb in (4, 8, 16) if kind in ("tile hash", "tile columns", "x stripes") else (p.tile_blocks,):
                 of = owner(kind, tb, n)
-                taken, own = np.zeros(n), np.zeros(n)
+                taken, own, frames_touching = np.zeros(n), np.zeros(n), np.zeros(n)
                 for b in touched:
                     s = of(b)
                     below = [of(b - u) for u in _UPPER]
@@ -458,10 +470,12 @@ def _ownership(width: int, height: int, frames: int) -> None:
                         ghost = ~mine & np.logical_or.reduce([x == i for x in below])
                         own[i] += mine.sum()
                         taken[i] += mine.sum() + ghost.sum()
+                        frames_touching[i] += bool(mine.any() or ghost.any())
                 share = taken / total
                 marker = "  <- runs" if kind == "tile hash" and tb == p.tile_blocks else ""
                 print(f"{kind:>14} {tb:>11} {n:>6} {' '.join(f'{x:.3f}' for x in share):>24} {share.max():8.3f} "
-                      f"{' '.join(f'{x:.2f}' for x in (taken - own) / np.maximum(own, 1)):>18}{marker}")
+                      f"{' '.join(f'{x:.2f}' for x in (taken - own) / np.maximum(own, 1)):>18} "
+                      f"{' '.join(f'{x:.2f}' for x in frames_touching / len(touched)):>20}{marker}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -476,6 +490,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-services", action="store_true", help="no services table")
     parser.add_argument("--phases", action="store_true", help="CPU per frame by phase (in this process)")
     parser.add_argument("--ownership", action="store_true", help="ownership schemes' shares of the blocks")
+    parser.add_argument("--ownership-scene", choices=("room", "building"), default="room",
+                        help="--ownership: the synthetic room or the building's walk")
     parser.add_argument("--seam-ghosts", action="store_true", help="whole ghost blocks against ghosts cut to the seam")
     parser.add_argument("--repeat", type=int, default=1, help="services table: runs of every row (the spread)")
     parser.add_argument("--with-semantic", action="store_true",
@@ -489,7 +505,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.phases:
         _print_phases(sizes, counts, frames)
     if args.ownership:
-        _ownership(*sizes[-1], frames)
+        _ownership(*sizes[-1], frames, args.ownership_scene)
     if args.seam_ghosts:
         _seam_ghosts(*sizes[-1], frames)
     if args.no_in_process:
