@@ -375,6 +375,30 @@ def test_the_grid_grows_in_the_background_and_loses_nothing(reference: SemanticV
     volume.close()
 
 
+def test_a_grid_grown_large_without_a_budget_says_once_what_renders_will_cost(monkeypatch, caplog) -> None:  # noqa: ANN001
+    """An operator reading geometry's log learns, once, why renders slow down as the map grows
+    with no memory budget (Open3D's CPU ray cast copies the block hash map on every call), and
+    which setting bounds it; a grid that stays under the threshold says nothing of it."""
+    import logging
+
+    from openfusion.mapping import growth
+
+    def grown_log(threshold: int) -> list[str]:
+        monkeypatch.setattr(growth, "RENDER_COST_HINT_BLOCKS", threshold)
+        caplog.clear()
+        volume = SemanticVolume(VolumeParams(**BASE, initial_block_count=64))
+        with caplog.at_level(logging.INFO, logger=growth.__name__):
+            for f in FRAMES:
+                volume.integrate(f)
+        assert volume._grower is not None and volume._grower.stats.grows >= 2
+        volume.close()
+        return [r.getMessage() for r in caplog.records if "memory_budget_mb" in r.getMessage()]
+
+    hints = grown_log(128)
+    assert len(hints) == 1 and "ray cast" in hints[0] and "no memory budget" in hints[0]
+    assert grown_log(1 << 30) == []
+
+
 def test_a_checkpoint_copies_one_slice_at_a_time(tmp_path, monkeypatch) -> None:  # noqa: ANN001
     """A checkpoint of many changed tiles never holds more than a slice of them (plus the last
     step's few) as raw copies, and the store then loads as the same map."""

@@ -36,6 +36,11 @@ from openfusion.mapping.tiles import TileGrid, TileVersions, pack_coords
 logger = logging.getLogger(__name__)
 
 START_AT = 0.5  # start growing when this share of the capacity is in use
+#: Past this capacity (blocks) the first growth also says, once, what a grid this large costs every
+#: render: Open3D 0.20's CPU ray cast copies the grid's whole block hash map on every call, so a
+#: render of a 90,000-block map costs about 10x one of a room's (docs/EVAL.md, "Scoring cost
+#: against the gt encoder"); a memory budget keeps the grid small.
+RENDER_COST_HINT_BLOCKS = 65536
 _CHUNK = 4096  # blocks copied per step
 
 
@@ -58,6 +63,7 @@ class GridGrower:
         self.grid = grid
         self.stats = GrowthStats()
         self._thread: threading.Thread | None = None
+        self._render_hint_given = False
         self._done = threading.Event()
         self._new = None
         self._snap_coords = np.zeros((0, 3), np.int32)
@@ -162,6 +168,12 @@ class GridGrower:
         self.stats.last_swap_s = time.perf_counter() - t0
         logger.info("grid grown to %d blocks in the background (copy %.2f s, %d blocks copied again under the "
                     "lock in %.3f s)", s.capacity_blocks, copy_s, len(idx), self.stats.last_swap_s)
+        if s.capacity_blocks >= RENDER_COST_HINT_BLOCKS and not self._render_hint_given:
+            self._render_hint_given = True
+            logger.info("the grid holds %d blocks with no memory budget: every render of the map (the semantic "
+                        "service's scoring and update renders) now costs in proportion to them (Open3D's CPU ray "
+                        "cast copies the grid's block hash map on every call); a memory budget "
+                        "(geometry.memory_budget_mb) bounds it", s.num_blocks)
 
     def close(self) -> None:
         if self._thread is not None:
