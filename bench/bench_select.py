@@ -169,7 +169,7 @@ def render_growth(frames_n: int, width: int, height: int, sizes: list[int]) -> N
 
     Why the floor grows (Open3D 0.20's source, ``t/geometry/kernel/VoxelBlockGridImpl.h``): the
     CPU ray cast takes ``auto hashmap_impl = *cpu_hashmap->GetImpl();``, a copy by value of the
-    grid's whole TBB block hash map, on every call. The CUDA path takes the pointer."""
+    grid's whole TBB block hash map, on every call. The CUDA path takes a lightweight view of it."""
     from openfusion.mapping import SemanticVolume, raycast
     from openfusion.mapping.coverage import scoring_size
 
