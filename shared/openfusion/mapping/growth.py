@@ -63,6 +63,8 @@ class GridGrower:
         self.grid = grid
         self.stats = GrowthStats()
         self._thread: threading.Thread | None = None
+        # A flag, not "the growth that crosses the threshold": Open3D may have grown the grid past it
+        # itself (a frame that overflowed it, ``sync_grows``), and then no background growth crosses it.
         self._render_hint_given = False
         self._done = threading.Event()
         self._new = None
