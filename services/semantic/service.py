@@ -12,7 +12,7 @@
 | ``…/semantic/dictionary/delta`` | publishes | :class:`~openfusion.wire.schemas.DictionaryDelta` |
 | ``…/semantic/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot (with its merge table) |
 | ``…/semantic/merge`` | queryable (geometry asks before it saves) | MergeRequest → MergeReply |
-| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions``, ``merge_passes``, ``regions_merged``, ``regions_pruned``, ``merge_failures``, ``encoder_calls``, ``encoder_regions``, ``frames_scored``, ``skipped_no_gain``, ``select_evicted``, ``select_busy_s``, ``select_window``; what became of each frame: ``frames_received``, ``frames_dropped``, ``frames_superseded``, ``frames_malformed``, ``frames_pending`` (:mod:`~openfusion.services.semantic.outcomes`), ``integrate_wait_timeouts`` |
+| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions``, ``merge_passes``, ``regions_merged``, ``regions_pruned``, ``merge_failures``, ``encoder_calls``, ``encoder_regions``, ``frames_scored``, ``skipped_no_gain``, ``select_evicted``, ``select_busy_s``, ``select_window``; what became of each frame: ``frames_received``, ``frames_dropped``, ``frames_superseded``, ``frames_malformed``, ``frames_pending`` (:mod:`~openfusion.services.semantic.outcomes`), ``integrate_wait_timeouts``, ``step_render_retries`` (an encoded frame's render asked again after a timeout) |
 
 Which frames are encoded (``select``, :class:`~openfusion.mapping.params.SelectParams`): with
 ``coverage`` (the default) a thread of its own scores every frame against the map
@@ -108,6 +108,7 @@ from openfusion.wire.schemas import (
     MergeReply,
     MergeRequest,
     RegionContactsRequest,
+    RenderReply,
     RenderRequest,
     RgbdFrame,
     SemanticUpdate,
@@ -244,7 +245,7 @@ class SemanticService:
         request = RenderRequest(frame_id=frame.frame_id, T_world_cam=frame.T_world_cam, robot=robot,
                                 after_update_source=self._update_source, after_update_seq=self._updates_sent,
                                 **RenderRequest.intrinsics_fields(K_small))
-        reply = reader_for(runner).render(request, timeout_s=self.section.render_timeout_s)
+        reply = self._step_render(runner, request)
         rendered = RenderedView(key_map=reply.key_map, conf_map=reply.conf_map, depth_m=reply.depth_m)
         depth_m = resize_nearest(frame.depth_m(), (h, w)).astype(np.float32)
         assert self._update_pub is not None and self._delta_pub is not None
@@ -281,6 +282,23 @@ class SemanticService:
                      prev_version, self.dictionary.version)
         if self._merge_schedule.due():  # on the merge worker's thread: the loop goes on (merge_worker)
             self._merges.request(lambda: self._merge(runner))
+
+    def _step_render(self, runner: ServiceRunner, request: RenderRequest) -> RenderReply:
+        """Geometry's render for a frame's update, asked once more when the first request timed out
+        (``step_render_retries``): the frame is encoded by now, the costliest step, and a geometry
+        that is only slow (its checkpoint or a grid growth on a loaded box) usually answers the
+        second time. A refusal, or a second timeout, raises (the frame is ``skipped_no_render``)."""
+        reader = reader_for(runner)
+        try:
+            return reader.render(request, timeout_s=self.section.render_timeout_s)
+        except QueryError as exc:
+            if not exc.timed_out:
+                raise
+            runner.stats.incr(SemanticCounter.STEP_RENDER_RETRIES)
+            logger.info("semantic: geometry did not render frame %d of robot %s within %.1f s; asking once more "
+                        "(the frame is encoded already)", request.frame_id, request.robot,
+                        self.section.render_timeout_s)
+            return reader.render(request, timeout_s=self.section.render_timeout_s)
 
     def _publish_delta(self) -> None:
         """Publish what changed in the dictionary since the last delta (nothing when nothing did)."""

@@ -6,7 +6,9 @@ Shown: a frame that adds nothing is not encoded even when the encoder is idle (`
 a frame with new surface is, with the pixels it adds for the encoder's per-region embeddings (here
 and through the pool: the mask goes with the request, the embedded flags come back, counted); while the encoder is busy the candidates wait in the window and the
 encoder gets the one that adds something, not the newest; the encoder pool dispatches from the
-same window. Bad input tried: no geometry to render candidates (each frame is counted in
+same window; an encoded frame whose render times out once is asked again and fused. Bad input
+tried: a geometry that does not answer an encoded frame's render twice (the frame is
+``skipped_no_render``, the next one is fused); no geometry to render candidates (each frame is counted in
 ``skipped_no_render``, ``last_frame_handled`` still moves, nothing is encoded, the service keeps
 running)."""
 
@@ -16,12 +18,13 @@ import dataclasses
 import threading
 from contextlib import ExitStack
 
-from openfusion.bus import Publisher, open_session
+from openfusion.bus import Publisher, QueryError, open_session
 from openfusion.mapping.params import SelectParams
 from openfusion.mapping.region_gate import gate_observation
 from openfusion.services.encoder.service import EncoderConfig, EncoderWorker
 from openfusion.services.geometry.service import GeometryConfig, GeometryService
 from openfusion.services.semantic.service import SemanticConfig, SemanticService
+from openfusion.shard_client import reader_for
 from openfusion.sources import open_source
 from openfusion.testing.bus import (
     ServiceThread,
@@ -192,3 +195,47 @@ def test_without_geometry_frames_are_counted_as_not_rendered_and_the_service_goe
         assert semantic.counter(SemanticCounter.SKIPPED_NO_RENDER) == 2
         assert semantic.counter(SemanticCounter.ENCODER_CALLS) == 0
         assert semantic._thread is not None and semantic._thread.is_alive()
+
+
+class StepRendersTimeOut:
+    """The semantic service's geometry reader, except that the renders asked for encoded frames
+    (those that wait on an update: ``after_update_source``) time out as ``script`` says, in turn
+    (True: no answer); candidates' renders and everything else go through."""
+
+    def __init__(self, inner, script: list[bool]) -> None:  # noqa: ANN001
+        self.inner = inner
+        self.script = list(script)
+        self.step_renders = 0
+
+    def __getattr__(self, name: str):  # noqa: ANN204
+        return getattr(self.inner, name)
+
+    def render(self, request, *, timeout_s: float = 5.0):  # noqa: ANN001, ANN201
+        if request.after_update_source:
+            self.step_renders += 1
+            if self.script and self.script.pop(0):
+                raise QueryError("geometry/render", "timeout", f"no answer within {timeout_s} s (the test)")
+        return self.inner.render(request, timeout_s=timeout_s)
+
+
+def test_an_encoded_frame_whose_render_timed_out_is_asked_once_more_not_thrown_away() -> None:
+    encoder = GateRecorder()
+    with ExitStack() as stack:
+        semantic, geometry, rgbd, _, _ = _rig(stack, encoder=encoder, semantic_values={})
+        reader = StepRendersTimeOut(reader_for(semantic.runner), [True, False, True, True, False])
+        semantic.runner._geometry_reader = reader  # noqa: SLF001 (what reader_for hands the service)
+        send_until_handled(lambda: _send(rgbd, _as(HERE, 0)), lambda: _handled(semantic) == 0)
+        # frame 0: no answer, then the render: fused, its encoder call not lost
+        assert semantic.counter(SemanticCounter.STEP_RENDER_RETRIES) == 1
+        assert semantic.counter(SemanticCounter.SEMANTIC_FRAMES) == 1
+        assert semantic.counter(SemanticCounter.SKIPPED_NO_RENDER) == 0
+        _send(rgbd, _as(THERE, 1))  # no answer twice: skipped, counted, the service goes on
+        wait_until(lambda: _handled(semantic) == 1, timeout_s=60)
+        assert semantic.counter(SemanticCounter.STEP_RENDER_RETRIES) == 2
+        assert semantic.counter(SemanticCounter.SKIPPED_NO_RENDER) == 1
+        assert semantic.counter(SemanticCounter.SEMANTIC_FRAMES) == 1
+        _send(rgbd, _as(LAP[45], 2))  # the next frame with something new is fused again
+        wait_until(lambda: _handled(semantic) == 2, timeout_s=60)
+        assert semantic.counter(SemanticCounter.SEMANTIC_FRAMES) == 2
+        assert reader.step_renders == 5 and semantic.counter(SemanticCounter.ENCODER_CALLS) == 3
+        wait_until(lambda: geometry.counter(GeometryCounter.UPDATES_APPLIED) == 2, timeout_s=60)

@@ -116,6 +116,7 @@ class SemanticCounter(StrEnum):
     SKIPPED_SWITCH = "skipped_switch"  # frames the semantic switch left out (every_k, max_hz)
     SKIPPED_NO_INSTANCE = "skipped_no_instance"  # gt encoder: the instance image did not come
     SKIPPED_NO_RENDER = "skipped_no_render"  # geometry did not answer the render request
+    STEP_RENDER_RETRIES = "step_render_retries"  # an encoded frame's render asked again after a timeout
     SKIPPED_ROBOT_HELD = "skipped_robot_held"  # the frame's robot is not joined to the map's frame yet
     FRAMES_FAILED = "frames_failed"  # the encoder or a step raised on the frame (logged, skipped)
     INSTANCES_EVICTED = "instances_evicted"
