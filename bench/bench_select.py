@@ -6,6 +6,7 @@ frame) and after (``--select coverage``), each pair measured in the same run.
     python bench/bench_select.py --full --laps --select-also select_lookahead=3   # ... and a row with these
     python bench/bench_select.py --full --cost   # scoring cost per frame against a semantic step, per map size
     python bench/bench_select.py --full --render-growth   # a map render's cost as the map grows (building walk)
+    python bench/bench_select.py --stops 0,30,90   # a camera standing still: its render reused or not
     python bench/bench_select.py --services [--repeat 2]
         # a 90-frame ScanNet-layout scene through `openfusion run` at its own rate (30 fps) with the gt
         # encoder and a fixed --encoder-delay-ms 150: latest (before) and coverage (after), with the
@@ -97,6 +98,41 @@ def laps(laps_n: int, lap: int, width: int, height: int, also: list[SelectParams
         print(f"| {name} | {' | '.join(str(n) for n in per_lap)} | {_f(ratio, '{:.3f}')} | {s.encoder_calls} | "
               f"{s.encoder_regions} | {q['f_mIoU']:.4f} | {q['mAcc']:.4f} | {s.skipped_no_gain} | "
               f"{_f(score_ms, '{:.1f}')} | {wall:.0f} |", flush=True)
+    print()
+
+
+# ----------------------------------------------------------------------------------- still camera
+
+
+def stops(lap: int, width: int, height: int, stop_lengths: list[int]) -> None:
+    """One lap of the built-in room in one process where the camera stands still ``stop`` frames at
+    the start and at each quarter of the lap (``synthetic:...,stop=N``, depth noise on): every
+    candidate rendered (``select_still_s`` none: the baseline) against a still camera's candidates
+    reusing its last render (the default), one row pair per stop length, measured in the same run."""
+    text = make_text_encoder("minilm")
+    encoder = make_region_encoder("gt", text_encoder=text)
+    from openfusion.sources.synthetic import SyntheticWorld
+
+    gt = synthetic_ground_truth(SyntheticWorld(0), spacing_m=0.03)
+    print(f"### A camera that stands still (built-in room, {lap}-frame lap at {width}x{height} with stops of N "
+          "frames at its start and quarters, in process, gt encoder + minilm)")
+    print()
+    print("| stop (frames) | frames | still camera's render | renders | reused | encoder calls | f-mIoU | "
+          "scoring ms/frame | scoring s | scoring × every-render |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for stop in stop_lengths:
+        frames = lap + 4 * stop
+        spec = f"synthetic:lap={lap},frames={frames},width={width},height={height},stop={stop}"
+        base_s = None
+        for name, params in (("rendered every frame", SelectParams(select_still_s=None)), ("reused", SelectParams())):
+            r = map_scene(open_source(spec), region_encoder=encoder, volume_params=VolumeParams(), select_params=params)
+            q = map_quality(r.volume, r.dictionary, gt, text_encoder=text)
+            st = r.stats
+            base_s = st.select_s if base_s is None else base_s
+            score_ms = 1e3 * st.select_s / st.frames_scored if st.frames_scored else None
+            print(f"| {stop} | {frames} | {name} | {st.frames_scored - st.renders_reused} | {st.renders_reused} | "
+                  f"{st.encoder_calls} | {q['f_mIoU']:.4f} | {_f(score_ms, '{:.1f}')} | {st.select_s:.2f} | "
+                  f"{_f(st.select_s / base_s if base_s else None, '{:.2f}')} |", flush=True)
     print()
 
 
@@ -334,6 +370,9 @@ def main(argv: list[str] | None = None) -> int:
     size.add_argument("--full", action="store_true", help="120-frame laps at 640x480, and the services section")
     parser.add_argument("--laps", action="store_true", help="three laps of the built-in room, in process")
     parser.add_argument("--cost", action="store_true", help="scoring cost per frame against a semantic step")
+    parser.add_argument("--stops", default=None, metavar="N[,N...]",
+                        help="a lap with the camera standing still N frames at 4 points: renders reused or not "
+                             "(e.g. 0,30,90)")
     parser.add_argument("--services", action="store_true", help="a ScanNet-layout scene through openfusion run")
     parser.add_argument("--render-growth", action="store_true", help="map render cost as the map grows (building)")
     parser.add_argument("--lap", type=int, default=None, help=f"frames per lap (default 40, --full {BUILTIN_LAP})")
@@ -348,7 +387,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="--services: a --set option of every openfusion run (repeatable)")
     parser.add_argument("--work", type=Path, default=None, help="--services: working folder (default a temporary one)")
     args = parser.parse_args(argv)
-    everything = not (args.laps or args.cost or args.services or args.render_growth)
+    everything = not (args.laps or args.cost or args.services or args.render_growth or args.stops)
     lap = args.lap or (BUILTIN_LAP if args.full else 40)
     width, height = (640, 480) if args.full else (320, 240)
     if args.laps or everything:
@@ -356,6 +395,8 @@ def main(argv: list[str] | None = None) -> int:
         laps(args.laps_n, lap, width, height, also)
     if args.cost or everything:
         cost(args.laps_n, lap, width, height, [int(w) for w in args.widths.split(",")])
+    if args.stops:
+        stops(lap, width, height, [int(n) for n in args.stops.split(",")])
     if args.render_growth:
         sizes = [1, 30, 120, 240] if args.full else [1, 30, 90]
         render_growth(max(sizes), 320, 240, sizes)

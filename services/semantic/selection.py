@@ -13,7 +13,9 @@ dispatch) takes the chosen frame of highest gain whenever it is free; a frame th
 is dropped without being encoded (``skipped_no_gain``), a chosen one a full window lets go for
 frames of higher gain is counted in ``select_evicted``. Scoring on its own thread keeps the encoder busy: scoring the frames that
 came during one encoder call costs a render request each, and with the local encoder those
-requests would otherwise wait for, and delay, the next call.
+requests would otherwise wait for, and delay, the next call. A candidate whose camera stands still
+reuses the render of its robot's last one (:mod:`openfusion.mapping.still_views`; the service's
+labels version: the updates it sent and its dictionary's version), counted in ``renders_reused``.
 
 ``last_frame_handled`` (the counter tests and tools wait on) keeps its meaning under selection,
 where frames leave the window out of order: it is the newest frame taken off the subscription
@@ -30,7 +32,7 @@ import collections
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
@@ -128,6 +130,7 @@ class CandidateFeeder:
         on_no_instance: Any,
         on_no_render: Any,
         renders_in_flight: int = RENDERS_IN_FLIGHT,
+        labels_version: Callable[[], Hashable] | None = None,
     ) -> None:
         self.frames = frames
         self.window = window
@@ -139,6 +142,9 @@ class CandidateFeeder:
         self.on_no_instance = on_no_instance  # (runner, msg): counts and logs a frame without its instance image
         self.on_no_render = on_no_render  # (runner, robot, frame id, QueryError): counts and logs an unscored frame
         self.renders_in_flight = max(1, renders_in_flight)
+        #: () -> a value that changes with the map's labels: given, a still camera's candidates reuse
+        #: its last render (openfusion.mapping.still_views); None: every candidate is rendered
+        self.labels_version = labels_version
         self.handled = HandledFrames()
 
     def run(self, runner: ServiceRunner) -> None:
@@ -217,7 +223,9 @@ class CandidateFeeder:
             return self.render(RenderRequest(frame_id=msg.frame_id, T_world_cam=T_world_cam, robot=msg.robot,
                                              **RenderRequest.intrinsics_fields(K_small)))
 
-        evidence = self.scorer.prepare_frame(msg.to_frame(), render, robot=msg.robot)
+        version = self.labels_version() if self.labels_version is not None else None
+        evidence = self.scorer.prepare_frame(msg.to_frame(), render, robot=msg.robot, labels_version=version)
+        runner.stats.set(SemanticCounter.RENDERS_REUSED, self.scorer.still.reused)
         return evidence, time.monotonic() - started
 
     def take(self, runner: ServiceRunner, timeout_s: float) -> Pending | None:

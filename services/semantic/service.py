@@ -12,7 +12,7 @@
 | ``…/semantic/dictionary/delta`` | publishes | :class:`~openfusion.wire.schemas.DictionaryDelta` |
 | ``…/semantic/dictionary`` | queryable | DictionaryRequest → DictionarySnapshot (with its merge table) |
 | ``…/semantic/merge`` | queryable (geometry asks before it saves) | MergeRequest → MergeReply |
-| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions``, ``merge_passes``, ``regions_merged``, ``regions_pruned``, ``merge_failures``, ``encoder_calls``, ``encoder_regions``, ``frames_scored``, ``skipped_no_gain``, ``select_evicted``, ``select_busy_s``, ``select_window``; what became of each frame: ``frames_received``, ``frames_dropped``, ``frames_superseded``, ``frames_malformed``, ``frames_pending`` (:mod:`~openfusion.services.semantic.outcomes`), ``integrate_wait_timeouts``, ``step_render_retries`` (an encoded frame's render asked again after a timeout) |
+| ``…/health/semantic`` | liveliness + stats | counters ``semantic_frames``, ``skipped_switch``, ``skipped_no_instance``, ``regions``, ``matched``, ``new_regions``, ``merge_passes``, ``regions_merged``, ``regions_pruned``, ``merge_failures``, ``encoder_calls``, ``encoder_regions``, ``frames_scored``, ``skipped_no_gain``, ``select_evicted``, ``select_busy_s``, ``select_window``, ``renders_reused`` (candidates of a still camera scored on its last render); what became of each frame: ``frames_received``, ``frames_dropped``, ``frames_superseded``, ``frames_malformed``, ``frames_pending`` (:mod:`~openfusion.services.semantic.outcomes`), ``integrate_wait_timeouts``, ``step_render_retries`` (an encoded frame's render asked again after a timeout) |
 
 Which frames are encoded (``select``, :class:`~openfusion.mapping.params.SelectParams`): with
 ``coverage`` (the default) a thread of its own scores every frame against the map
@@ -283,6 +283,12 @@ class SemanticService:
         if self._merge_schedule.due():  # on the merge worker's thread: the loop goes on (merge_worker)
             self._merges.request(lambda: self._merge(runner))
 
+    def _labels_version(self) -> tuple[int, int]:
+        """What changes whenever this service changes the map's labels: the updates it sent and its
+        dictionary's version (merges): a still camera's kept render is reused only under the same
+        (:mod:`openfusion.mapping.still_views`)."""
+        return self._updates_sent, self.dictionary.version
+
     def _step_render(self, runner: ServiceRunner, request: RenderRequest) -> RenderReply:
         """Geometry's render for a frame's update, asked once more when the first request timed out
         (``step_render_retries``): the frame is encoded by now, the costliest step, and a geometry
@@ -392,7 +398,8 @@ class SemanticService:
                 render=lambda request: reader_for(runner).render(request, timeout_s=self.section.render_timeout_s),
                 instances=self._instances, instance_wait_s=self.section.instance_wait_s,
                 on_no_instance=self._skip_without_instance,
-                on_no_render=self._skip_no_render)
+                on_no_render=self._skip_no_render,
+                labels_version=self._labels_version)
             runner.stats.set(SemanticCounter.SKIPPED_NO_GAIN, 0)
         if self.section.encoder_pool:
             assert runner.session is not None

@@ -3,6 +3,7 @@ real geometry and semantic service objects (and an encoder worker of the pool), 
 by the test as the bridge would.
 
 Shown: a frame that adds nothing is not encoded even when the encoder is idle (``skipped_no_gain``),
+and a camera that stands still is scored on its last render (``renders_reused``);
 a frame with new surface is, with the pixels it adds for the encoder's per-region embeddings (here
 and through the pool: the mask goes with the request, the embedded flags come back, counted); while the encoder is busy the candidates wait in the window and the
 encoder gets the one that adds something, not the newest; the encoder pool dispatches from the
@@ -121,6 +122,9 @@ def test_a_frame_that_adds_nothing_is_not_encoded_even_when_the_encoder_is_idle(
             wait_until(lambda i=i: _handled(semantic) == i, timeout_s=60)
         assert semantic.counter(SemanticCounter.ENCODER_CALLS) == 1
         assert semantic.counter(SemanticCounter.SKIPPED_NO_GAIN) == 4
+        # the camera stood still and nothing changed the labels after frame 0's update: frame 1 asked
+        # geometry for a render (the first after that update), frames 2-4 were scored on it
+        assert semantic.counter(SemanticCounter.RENDERS_REUSED) == 3
         _send(rgbd, _as(THERE, 5))  # new surface
         wait_until(lambda: _handled(semantic) == 5, timeout_s=60)
         assert semantic.counter(SemanticCounter.ENCODER_CALLS) == 2

@@ -225,3 +225,16 @@ def test_a_source_longer_than_a_lap_walks_the_lap_again(world: SyntheticWorld) -
     long = world.camera_path(LAP_FRAMES + 3)
     np.testing.assert_array_equal(long[LAP_FRAMES:], long[:3])
     np.testing.assert_array_equal(world.camera_path(LAP_FRAMES)[:50], world.camera_path(50))
+
+
+def test_stop_holds_the_camera_still_at_the_start_and_each_quarter_of_the_lap() -> None:
+    frames = list(open_source("synthetic:frames=12,width=80,height=60,lap=8,stop=2"))
+    xs = [round(float(f.T_world_cam[0, 3]), 6) for f in frames]
+    # poses 0, 2, 4 (the start and the first two quarters) held for 2 more frames each
+    assert xs[0] == xs[1] == xs[2] != xs[3] != xs[4] == xs[5] == xs[6] != xs[7]
+    assert [f.frame_id for f in frames] == list(range(12))
+    assert not np.array_equal(frames[0].depth, frames[1].depth)  # a fresh draw of depth noise each frame
+    plain = list(open_source("synthetic:frames=4,width=80,height=60,lap=8"))
+    assert np.array_equal(frames[3].T_world_cam, plain[1].T_world_cam)
+    with pytest.raises(ValueError, match="stop"):
+        open_source("synthetic:stop=-1")

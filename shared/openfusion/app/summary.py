@@ -154,13 +154,17 @@ class RunSummary(BaseModel):
     #: regions it embedded over them (``encoder_regions``) and those it fused without an embedding
     #: because they added nothing (``regions_not_embedded``, ``semantic.select_embed_share``), the
     #: embedded ones per region of the final map (``calls_per_region``), and frames not encoded because
-    #: they added too little (``skipped_no_gain``)
+    #: they added too little (``skipped_no_gain``); of the frames scored (``frames_scored``), those
+    #: scored on their still camera's last render of the map instead of a new one (``renders_reused``,
+    #: ``semantic.select_still_s``)
     select: str = "coverage"
     encoder_calls: int = 0
     encoder_regions: int = 0
     regions_not_embedded: int = 0
     calls_per_region: float | None = None
     skipped_no_gain: int = 0
+    frames_scored: int = 0
+    renders_reused: int = 0
     #: what became of every frame the semantic service received (``semantic_frames_received``): each
     #: ends in one outcome (``semantic_outcomes``, by counter name: ``semantic_frames`` fused,
     #: ``skipped_no_gain``, ``frames_superseded``, ``frames_dropped`` ...; wire.counters.SEMANTIC_FRAME_OUTCOMES);
@@ -256,7 +260,8 @@ class RunSummary(BaseModel):
             **_selection(select, c("semantic", SemanticCounter.ENCODER_CALLS),
                          c("semantic", SemanticCounter.ENCODER_REGIONS), c("semantic", SemanticCounter.REGIONS),
                          c("semantic", SemanticCounter.SKIPPED_NO_GAIN),
-                         c("semantic", SemanticCounter.REGIONS_NOT_EMBEDDED)),
+                         c("semantic", SemanticCounter.REGIONS_NOT_EMBEDDED), c("semantic", SemanticCounter.FRAMES_SCORED),
+                         c("semantic", SemanticCounter.RENDERS_REUSED)),
             **_outcomes(stats.get("semantic")),
             restarts=dict(restarts or {}),
             frames_replayed=int(c("bridge", BridgeCounter.FRAMES_REPLAYED)),
@@ -281,7 +286,7 @@ class RunSummary(BaseModel):
             frames_requested=frames_requested,
             frames_played=stats.frames_integrated if frames_played is None else frames_played, interrupted=interrupted,
             **_selection(stats.select, stats.encoder_calls, stats.encoder_regions, regions, stats.skipped_no_gain,
-                         stats.regions_not_embedded),
+                         stats.regions_not_embedded, stats.frames_scored, stats.renders_reused),
         )
 
 
@@ -296,9 +301,9 @@ def _outcomes(semantic: HealthStats | None) -> dict:
 
 
 def _selection(select: str, calls: float, regions_encoded: float, regions: float, skipped: float,
-               not_embedded: float) -> dict:
+               not_embedded: float, scored: float, reused: float) -> dict:
     """run.json's frame-selection fields (the same from health counters and from pipeline stats)."""
     return {"select": select, "encoder_calls": int(calls), "encoder_regions": int(regions_encoded),
             "regions_not_embedded": int(not_embedded),
             "calls_per_region": _round(regions_encoded / regions) if regions else None,
-            "skipped_no_gain": int(skipped)}
+            "skipped_no_gain": int(skipped), "frames_scored": int(scored), "renders_reused": int(reused)}

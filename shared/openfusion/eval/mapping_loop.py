@@ -46,6 +46,7 @@ class MappingRun:
     skipped_no_gain: int = 0
     skipped_switch: int = 0  # frames left out by semantic_every (never offered to the selection)
     select_s: float = 0.0
+    renders_reused: int = 0  # frames scored on a still camera's last render (select_still_s)
 
 
 def map_scene_for_eval(
@@ -156,6 +157,7 @@ def map_scene_for_eval(
     run.frames_scored = selector.stats.frames_scored
     run.skipped_no_gain = selector.stats.skipped_no_gain
     run.select_s = selector.stats.score_s
+    run.renders_reused = selector.stats.renders_reused
     if raw is not None:
         run.raw_integrate_s = raw.seconds
         del raw  # free its grid before the evaluation allocates

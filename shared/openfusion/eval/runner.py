@@ -237,6 +237,7 @@ def evaluate_scene(
         "skipped_no_gain": run.skipped_no_gain,
         "skipped_switch": run.skipped_switch,
         "select_s": run.select_s,
+        "renders_reused": run.renders_reused,
         "select_ms": 1e3 * run.select_s / run.frames_scored if run.frames_scored else None,
     }
     regions = region_counts(keys, gt, observed.mask)

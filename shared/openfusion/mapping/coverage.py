@@ -80,7 +80,7 @@ from __future__ import annotations
 import bisect
 import math
 import threading
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Hashable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -90,6 +90,7 @@ from openfusion.frame import CameraIntrinsics, Frame, resize_nearest
 from openfusion.mapping.held_views import HeldViews
 from openfusion.mapping.map_clock import MapClock
 from openfusion.mapping.params import SelectParams
+from openfusion.mapping.still_views import StillViews
 
 #: A chosen view marks the surface it shows sampled this many times denser (per side) than it is
 #: scored: at 64 px wide a scored pixel of a wall 4.7 m away is 9 cm across, about a cube, and
@@ -201,6 +202,8 @@ class CoverageScorer:
         #: length of that mean of unit vectors): :meth:`RegionDictionary.support_of`, set by the owner
         #: of the dictionary, for ``select_embed_min_views`` / ``select_embed_min_agreement`` (:meth:`wanted_px`)
         self.embedding_support: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
+        #: the last render of each robot's view, reused while its camera stands still (select_still_s)
+        self.still = StillViews(still_s=p.select_still_s, still_m=p.select_still_m, still_deg=p.select_still_deg)
 
     # ------------------------------------------------------------------ record
     @property
@@ -228,6 +231,7 @@ class CoverageScorer:
             self._held.clear()
             for table in self._cell_tries:
                 table.clear()
+        self.still.forget()
 
     def merge(self, merged_into: Mapping[int, int], removed: Iterable[int] = ()) -> None:
         """Follow the dictionary: region ``b`` merged into ``a`` gives ``a`` its direction bins and the
@@ -347,20 +351,31 @@ class CoverageScorer:
         return self._cells_of((rays * fine[pick, None]) @ T[:3, :3].T + T[:3, 3]), self._bins_of(rays, T)
 
     def prepare_frame(self, frame: Frame, render: Callable[[np.ndarray, CameraIntrinsics], Any],
-                      robot: str = "") -> ViewEvidence:
+                      robot: str = "", *, labels_version: Hashable | None = None) -> ViewEvidence:
         """:meth:`prepare` for a frame of ``robot``, with ``render(T_world_cam, intrinsics)`` giving
-        the map's ``key_map`` and ``conf_map`` at the scored size (a ``RenderedView`` or a render
-        reply). A render reply's ``T_map_cam`` (the frame's pose joined to the map's frame: another
-        robot's frame) is the pose the view is filed under, so every robot's views share one record."""
+        the map's ``key_map``, ``conf_map`` and ``depth_m`` at the scored size (a ``RenderedView``
+        or a render reply). A render reply's ``T_map_cam`` (the frame's pose joined to the map's
+        frame: another robot's frame) is the pose the view is filed under, so every robot's views
+        share one record. ``labels_version``: a value that changes whenever the map's labels do (an
+        update or a merge); given, a camera that stands still reuses its last render
+        (:mod:`openfusion.mapping.still_views`); None: every frame is rendered."""
         h, w = scoring_size(frame.intrinsics, self.params.select_width_px)
         K = frame.intrinsics.scaled(w, h)
-        rendered = render(frame.T_world_cam, K)
+        depth_m = frame.depth_m()
+        depth_small = resize_nearest(depth_m, (h, w))
+        stamp_s = frame.stamp_ns / 1e9
+        rendered = None
+        if labels_version is not None:
+            rendered = self.still.reuse(robot, frame.T_world_cam, K, depth_small, stamp_s, labels_version)
+        if rendered is None:
+            rendered = render(frame.T_world_cam, K)
+            if labels_version is not None:
+                self.still.keep(robot, frame.T_world_cam, K, depth_small, stamp_s, labels_version, rendered)
         T_map_cam = getattr(rendered, "T_map_cam", None)
         if T_map_cam is None:
             T_map_cam = frame.T_world_cam
-        depth_m = frame.depth_m()
         return self.prepare(frame_id=frame.frame_id, stamp_ns=frame.stamp_ns, T_world_cam=T_map_cam,
-                            intrinsics=K, depth_m=resize_nearest(depth_m, (h, w)),
+                            intrinsics=K, depth_m=depth_small,
                             key_map=rendered.key_map, conf_map=rendered.conf_map, full_depth_m=depth_m,
                             full_intrinsics=frame.intrinsics, robot=robot)
 

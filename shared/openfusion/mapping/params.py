@@ -379,6 +379,18 @@ class SelectParams(SectionParams):
         3, ge=0, le=100, description="coverage, with select_embed_share: a region whose embedding averages fewer "
         "views than this is embedded again whenever a chosen frame shows it, whatever the direction (one noisy "
         "view, or a mask that merged two objects, is not a region's final word); 0 = off")
+    select_still_s: float | None = Field(
+        2.0, gt=0, le=60, description="coverage: a candidate whose camera stands still (within select_still_m and "
+        "select_still_deg of the view last rendered for its robot) reuses that render for up to this long (frame "
+        "time), while no update or merge changed the labels and its own depth agrees with the rendered surface "
+        "(openfusion.mapping.still_views): a robot waiting at a door costs one ray cast of the map per this long, "
+        "not one per frame; none = every candidate is rendered")
+    select_still_m: float = Field(
+        0.01, ge=0, le=1, description="coverage, with select_still_s: how far a camera may move and still reuse its "
+        "last render")
+    select_still_deg: float = Field(
+        1.0, ge=0, le=45, description="coverage, with select_still_s: how far a camera may turn and still reuse its "
+        "last render")
     select_embed_min_agreement: float = Field(
         0.85, ge=0, le=1, description="coverage, with select_embed_share: a region whose embeddings disagree (the "
         "length of their mean, of unit vectors, below this: views of two objects) is embedded again whenever a "

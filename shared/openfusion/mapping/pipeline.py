@@ -71,6 +71,7 @@ class PipelineStats:
     frames_scored: int = 0  # frames scored by the coverage scorer
     skipped_no_gain: int = 0  # frames not encoded: they added too little (select_min_gain)
     select_s: float = 0.0  # time spent scoring (render at the scored size + numpy)
+    renders_reused: int = 0  # frames scored on a still camera's last render, not rendered (select_still_s)
 
     def _rates(self) -> tuple[float | None, float | None]:
         return reconstruction_rates(frames_integrated=self.frames_integrated, integrate_s=self.integrate_s,
@@ -204,4 +205,5 @@ def _offered(selector: FrameSelector, frame: Frame | None, stats: PipelineStats)
     stats.frames_scored = selector.stats.frames_scored
     stats.skipped_no_gain = selector.stats.skipped_no_gain
     stats.select_s = selector.stats.score_s
+    stats.renders_reused = selector.stats.renders_reused
     return chosen

@@ -62,6 +62,7 @@ class SelectionStats:
     frames_scored: int = 0
     skipped_no_gain: int = 0
     score_s: float = 0.0  # rendering at the scored size + scoring
+    renders_reused: int = 0  # frames scored on their still camera's last render (select_still_s)
 
 
 #: Chosen frames whose wanted pixels wait for :meth:`FrameSelector.embed_where` (a caller asks right
@@ -89,6 +90,10 @@ class FrameSelector:
         # id(frame) -> (the frame, its wanted pixels) for chosen frames not yet asked for (embed_where);
         # holding the frame keeps its id from being reused; the oldest go past WANTED_KEPT
         self._wanted: dict[int, tuple[Frame, np.ndarray | None]] = {}
+        #: the labels' version for reusing a still camera's render: one more with every update and
+        #: merge this selector is told of (:meth:`encoded`, :meth:`merged`), which in one process are
+        #: every change of the map's labels
+        self._labels_version = 0
 
     @property
     def scoring(self) -> bool:
@@ -100,7 +105,7 @@ class FrameSelector:
         if not self.scoring:
             return True
         t0 = time.perf_counter()
-        ev = self.scorer.prepare_frame(frame, self.render)
+        ev = self._prepare(frame)
         score, chosen = self.scorer.decide(ev)
         if chosen:
             self._keep_wanted(frame, ev.wanted_px)
@@ -118,11 +123,16 @@ class FrameSelector:
         if self.params.select_lookahead <= 1:
             return [frame] if self.wants(frame) else []
         t0 = time.perf_counter()
-        self._run.append((frame, self.scorer.prepare_frame(frame, self.render)))
+        self._run.append((frame, self._prepare(frame)))
         self.stats.frames_scored += 1
         out = self._decide_run() if len(self._run) >= self.params.select_lookahead else []
         self.stats.score_s += time.perf_counter() - t0
         return out
+
+    def _prepare(self, frame: Frame) -> ViewEvidence:
+        ev = self.scorer.prepare_frame(frame, self.render, labels_version=self._labels_version)
+        self.stats.renders_reused = self.scorer.still.reused
+        return ev
 
     def flush(self) -> list[Frame]:
         """The end of the source: decide the frames still waiting."""
@@ -152,6 +162,7 @@ class FrameSelector:
         selector chose (:mod:`openfusion.mapping.region_gate`): ``(None, None)``, every region
         embedded, unless ``select=coverage`` chose it and ``select_embed_share`` is set. Asked once
         per chosen frame (what it keeps is dropped)."""
+        self._labels_version += 1  # its update is next: no render kept from before it is reused after it
         kept = self._wanted.pop(id(frame), None)
         wanted = kept[1] if kept is not None and kept[0] is frame else None
         if wanted is None or self.params.select_embed_share is None:
@@ -160,9 +171,11 @@ class FrameSelector:
 
     def encoded(self, frame: Frame, key_map: np.ndarray) -> None:
         """Record the update a chosen frame's encoding planned (``key_map`` at the encoder's size)."""
+        self._labels_version += 1
         if self.scoring and key_map is not None:
             h, w = np.shape(key_map)
             self.scorer.observe_plan(key_map, frame.T_world_cam, frame.intrinsics.scaled(w, h), frame.stamp_ns)
 
     def merged(self, merged_into: Mapping[int, int], removed: Iterable[int] = ()) -> None:
+        self._labels_version += 1
         self.scorer.merge(merged_into, removed)

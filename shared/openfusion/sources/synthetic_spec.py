@@ -77,6 +77,7 @@ SPEC_KEYS: dict[str, tuple[str, Callable[[str], Any] | None]] = {
     "fps": ("fps", float),
     "lap": ("frames_per_lap", int),
     "noise": ("depth_noise", None),
+    "stop": ("stop_frames", _non_negative_int),
 }
 
 #: spec key -> (keyword of ``BuildingSource`` or ``SyntheticBuilding``, converter) for ``synthetic:building``.

@@ -4,7 +4,9 @@ Frame i is rendered at pose i of the world's camera path, with Kinect-like depth
 from a stream seeded by (world seed, 1000 + i), so frames are a pure function of the seed, the
 index and the options. The path is a closed lap (``lap=N`` frames, default
 :data:`~openfusion.sources.synthetic.camera.LAP_FRAMES`); a source with more frames than a lap walks
-the lap again with the same poses, while frame ids and stamps keep increasing. ``open_synthetic``
+the lap again with the same poses, while frame ids and stamps keep increasing. With ``stop=N`` the
+camera stands still for N frames at the start and at each quarter of the lap (a robot waiting at a
+door): the same pose, a fresh draw of depth noise each frame. ``open_synthetic``
 parses the ``synthetic:key=value,...`` spec options
 (:mod:`openfusion.sources.synthetic_spec`). ``BuildingSource`` renders the frames of a walk through
 a :class:`~openfusion.sources.synthetic.building.SyntheticBuilding` the same way
@@ -57,6 +59,7 @@ class SyntheticSource(IndexedFrameSource):
         intrinsics: CameraIntrinsics | None = None,
         stride: int = 1,
         max_frames: int | None = None,
+        stop_frames: int = 0,
     ) -> None:
         if num_frames < 0:
             raise ValueError(f"num_frames must be >= 0, got {num_frames}")
@@ -75,13 +78,30 @@ class SyntheticSource(IndexedFrameSource):
         self.lap = int(frames_per_lap) if frames_per_lap is not None else LAP_FRAMES
         # One lap's poses (or fewer): later laps take the same poses.
         self.poses = world.camera_path(min(self.num_frames, self.lap), frames_per_lap=self.lap)
+        if stop_frames < 0:
+            raise ValueError(f"stop_frames must be >= 0, got {stop_frames}")
+        self.stop_frames = int(stop_frames)
+        #: the pose index of each frame of one lap, stops included
+        self.walk = lap_with_stops(self.lap, self.stop_frames)
 
     def _num_items(self) -> int:
         return self.num_frames
 
     def _load(self, index: int) -> Frame:
-        return render_frame(self.world, self.poses[index % self.lap], self.intrinsics, index=index, fps=self.fps,
-                            depth_noise=self.depth_noise, source=self.name)
+        return render_frame(self.world, self.poses[self.walk[index % len(self.walk)]], self.intrinsics, index=index,
+                            fps=self.fps, depth_noise=self.depth_noise, source=self.name)
+
+
+def lap_with_stops(lap: int, stop_frames: int) -> list[int]:
+    """The pose index of each frame of a lap of ``lap`` poses where the camera stands still for
+    ``stop_frames`` more frames at pose 0 and at each quarter of the lap."""
+    quarter = max(1, lap // 4)
+    walk: list[int] = []
+    for pose in range(lap):
+        if stop_frames and pose % quarter == 0 and pose // quarter < 4:
+            walk.extend([pose] * stop_frames)
+        walk.append(pose)
+    return walk
 
 
 def render_frame(
@@ -200,7 +220,7 @@ def _route_text(route: Sequence[int]) -> str:
 
 
 def open_synthetic(spec_options: dict[str, str] | None = None, *, world: str = "room", **kwargs) -> IndexedFrameSource:
-    """A ``SyntheticSource`` from ``synthetic:seed=N,frames=N,width=W,height=H,fps=F,noise=0|1,lap=N``
+    """A ``SyntheticSource`` from ``synthetic:seed=N,frames=N,width=W,height=H,fps=F,noise=0|1,lap=N,stop=N``
     options (strings, :data:`~openfusion.sources.synthetic_spec.SPEC_KEYS`), or with
     ``world="building"`` a ``BuildingSource`` from ``synthetic:building,seed=N,rooms=N,route=A-B,
     revisit=N,frames=N,...`` options (:data:`~openfusion.sources.synthetic_spec.BUILDING_SPEC_KEYS`),
