@@ -167,6 +167,7 @@ def test_several_texts_of_a_saved_map_are_embedded_in_one_encoder_call(maps, min
     assert [o["query"] for o in json.loads(capsys.readouterr().out)] == ["chair", "lamp", "table"]
 
 
+@pytest.mark.slow  # ~30 s on 2 cores (the legacy text-model path); the default path's quiet test stays fast
 def test_the_sentence_transformers_path_is_quiet_too_and_verbose_shows_the_libraries(maps, minilm_onnx_cache) -> None:
     """OPENFUSION_QUERY_LEGACY=1 loads the text model through sentence-transformers/transformers
     (which print a "Loading weights" progress bar): still nothing on stderr and the same answer;

@@ -36,6 +36,7 @@ def _run(*args: str, timeout_s: float = 240) -> subprocess.CompletedProcess[str]
                           env=subprocess_env(HF_HUB_OFFLINE="1"))
 
 
+@pytest.mark.slow  # ~40 s on 2 cores; the lap walked again: tests/unit/test_synthetic.py
 def test_frames_beyond_a_lap_are_all_played(tmp_path: Path) -> None:
     """A lap of 6 frames and --frames 15: the room is walked 2.5 times and every frame is mapped
     (it used to play one lap's worth, the source's own length, whatever --frames said)."""
@@ -50,7 +51,7 @@ def test_frames_beyond_a_lap_are_all_played(tmp_path: Path) -> None:
     assert "played" not in proc.stderr
 
 
-@pytest.mark.parametrize("in_process", [False, True], ids=["services", "in-process"])
+@pytest.mark.parametrize("in_process", [pytest.param(False, marks=pytest.mark.slow), True], ids=["services", "in-process"])
 def test_a_source_shorter_than_frames_plays_what_it_has_and_says_so(tmp_path: Path, in_process: bool) -> None:
     out = tmp_path / "out"
     mode = ["--in-process"] if in_process else ["--rate-hz", "0"]
@@ -149,6 +150,7 @@ def test_ctrl_c_saves_the_map_of_what_was_integrated(run, tmp_path: Path) -> Non
     assert answer.stdout.strip()
 
 
+@pytest.mark.slow  # ~30 s on 2 cores; the first Ctrl-C's save stays in the fast suite
 def test_a_second_ctrl_c_aborts_at_once(run) -> None:
     """The second SIGINT, while the run finishes its frames: every service is killed, exit 130 within
     seconds, no map promised, no process left."""

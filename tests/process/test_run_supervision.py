@@ -66,6 +66,7 @@ def test_geometry_killed_mid_run_is_restarted_and_every_frame_integrated_once(tm
     assert saved.meta["frames_integrated"] == FRAMES and saved.meta["last_frame_id"] == FRAMES - 1
 
 
+@pytest.mark.slow  # ~40 s on 2 cores; a restart mid-run stays in the fast suite
 def test_a_run_that_fails_after_integrating_saves_the_map_and_says_where(tmp_path: Path) -> None:
     """No restart allowed and the semantic service killed mid-run: the run fails (exit 1, the
     reason in run.json's ``error``), and still saves the map geometry holds, and run.json says
