@@ -6,7 +6,8 @@ frame) and after (``--select coverage``), each pair measured in the same run.
     python bench/bench_select.py --full --laps --select-also select_lookahead=3   # ... and a row with these
     python bench/bench_select.py --full --cost   # scoring cost per frame against a semantic step, per map size
     python bench/bench_select.py --full --render-growth   # a map render's cost as the map grows (building walk)
-    python bench/bench_select.py --stops 0,30,90   # a camera standing still: its render reused or not
+    python bench/bench_select.py --stops 0,30,90 --lap 120 [--stops-services]
+        # a camera standing still 4 times a lap: its render reused or not (and through the services)
     python bench/bench_select.py --services [--repeat 2]
         # a 90-frame ScanNet-layout scene through `openfusion run` at its own rate (30 fps) with the gt
         # encoder and a fixed --encoder-delay-ms 150: latest (before) and coverage (after), with the
@@ -134,6 +135,62 @@ def stops(lap: int, width: int, height: int, stop_lengths: list[int]) -> None:
                   f"{st.encoder_calls} | {q['f_mIoU']:.4f} | {_f(score_ms, '{:.1f}')} | {st.select_s:.2f} | "
                   f"{_f(st.select_s / base_s if base_s else None, '{:.2f}')} |", flush=True)
     print()
+
+
+def stops_services(work: Path, lap: int, width: int, height: int, stop: int) -> None:
+    """The same lap with stops through ``openfusion run`` (the services, at the source's 30 fps):
+    every candidate rendered by geometry against a still camera's candidates reusing its last
+    render, with each service's process CPU time, measured in the same run."""
+    frames = lap + 4 * stop
+    spec = f"synthetic:lap={lap},frames={frames},width={width},height={height},stop={stop}"
+    print(f"### A camera that stands still, through the services (`openfusion run --source {spec}`, gt encoder)")
+    print()
+    print("| still camera's render | frames scored | reused | encoder calls | f-mIoU | geometry CPU s | semantic CPU s | "
+          "geometry CPU × every-render | load before -> after |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    from openfusion.sources.synthetic import SyntheticWorld
+
+    text = make_text_encoder("minilm")
+    gt = synthetic_ground_truth(SyntheticWorld(0), spacing_m=0.03)
+    base = None
+    for name, extra in (("rendered every frame", ["--set", "semantic.select_still_s="]), ("reused", [])):
+        out = work / f"stops-{name.split()[0]}"
+        summary, cpu, load = _run_sampling_cpu(out, ["--source", spec, "--frames", str(frames), *extra])
+        base = cpu.get("geometry") if base is None else base
+        geo = cpu.get("geometry")
+        loaded = load_map(out / "map")
+        q = map_quality(loaded.volume, loaded.dictionary, gt, text_encoder=text)
+        print(f"| {name} | {summary['frames_scored']} | {summary['renders_reused']} | {summary['encoder_calls']} | "
+              f"{q['f_mIoU']:.4f} | {_f(geo, '{:.1f}')} | {_f(cpu.get('semantic'), '{:.1f}')} | "
+              f"{_f(geo / base if geo and base else None, '{:.2f}')} | {load} |", flush=True)
+    print()
+
+
+def _run_sampling_cpu(out: Path, args: list[str]) -> tuple[dict, dict[str, float], str]:
+    """``openfusion run`` with ``args``; (run.json, each service's CPU seconds, load before -> after).
+    A service's CPU time is read from its process every 0.2 s while the run lasts (the last reading
+    before it exits: the run ends its services itself)."""
+    import psutil
+
+    load_before = _load()
+    with open(out.with_suffix(".stderr"), "w") as err:
+        proc = subprocess.Popen([sys.executable, "-m", "openfusion.app.cli", "run", "--out", str(out), "--quiet",
+                                 *args], stdout=subprocess.DEVNULL, stderr=err, env={**os.environ, "HF_HUB_OFFLINE": "1"})
+        cpu: dict[str, float] = {}
+        parent = psutil.Process(proc.pid)
+        while proc.poll() is None:
+            for child in parent.children(recursive=True):
+                try:
+                    cmd = child.cmdline()
+                    if "service" in cmd[:-1]:
+                        name = cmd[cmd.index("service") + 1]
+                        cpu[name] = max(cpu.get(name, 0.0), sum(child.cpu_times()[:2]))
+                except (psutil.Error, IndexError):  # exited between the listing and the reading
+                    continue
+            time.sleep(0.2)  # sampling, not waiting for an event: the figure is the last reading
+    if proc.returncode != 0:
+        raise RuntimeError(f"openfusion run {' '.join(args)} failed ({proc.returncode}): see {out.with_suffix('.stderr')}")
+    return json.loads((out / "run.json").read_text()), cpu, f"{load_before} -> {_load()}"
 
 
 # ----------------------------------------------------------------------------------- cost
@@ -373,6 +430,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stops", default=None, metavar="N[,N...]",
                         help="a lap with the camera standing still N frames at 4 points: renders reused or not "
                              "(e.g. 0,30,90)")
+    parser.add_argument("--stops-services", action="store_true",
+                        help="--stops: also the longest stop through openfusion run, with each service's CPU time")
     parser.add_argument("--services", action="store_true", help="a ScanNet-layout scene through openfusion run")
     parser.add_argument("--render-growth", action="store_true", help="map render cost as the map grows (building)")
     parser.add_argument("--lap", type=int, default=None, help=f"frames per lap (default 40, --full {BUILTIN_LAP})")
@@ -396,7 +455,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.cost or everything:
         cost(args.laps_n, lap, width, height, [int(w) for w in args.widths.split(",")])
     if args.stops:
-        stops(lap, width, height, [int(n) for n in args.stops.split(",")])
+        stop_lengths = [int(n) for n in args.stops.split(",")]
+        stops(lap, width, height, stop_lengths)
+        if args.stops_services:
+            with tempfile.TemporaryDirectory(prefix="bench-stops-") as tmp:
+                stops_services(Path(tmp), lap, width, height, max(stop_lengths))
     if args.render_growth:
         sizes = [1, 30, 120, 240] if args.full else [1, 30, 90]
         render_growth(max(sizes), 320, 240, sizes)
