@@ -8,15 +8,16 @@ encoder"), 50-75 ms at 90,000 resident blocks on a 2-core box. A robot that stan
 at a door, while its arm works, while it charges) sends 30 frames a second from one pose, and each
 of them asked for the same render.
 
-What a candidate's render shows changes only when
-    - the pose changes: the kept render is reused only within ``select_still_m`` and
+What a candidate's render shows changes only with the pose, the labels or the surface in view; the
+kept render is reused while none of them changed, and only for a while:
+    - the pose: the kept render is reused only within ``select_still_m`` and
       ``select_still_deg`` of the pose it was rendered at (compared with that pose, not the last
       frame's, so a slow drift cannot creep away from it);
-    - the labels change: a semantic update or a merge. The caller passes a ``labels_version``
+    - the labels: a semantic update or a merge. The caller passes a ``labels_version``
       that changes with them (:class:`~openfusion.mapping.selection.FrameSelector` counts the
       updates and merges it is told of; the semantic service the updates it sent and its
       dictionary's version), and a render kept under another version is not reused;
-    - the surface in view changes: a person walks into view, a door opens. The frames' own depth
+    - the surface in view: a person walks into view, a door opens. The frames' own depth
       shows that, compared with the depth of the frame the kept render was made for (the same pose,
       so the same pixels): of the pixels both see surface at, at most :data:`CHANGED_SHARE` may
       differ by more than :data:`DEPTH_TOL_M` + :data:`DEPTH_TOL_PER_M` x depth, and at most
@@ -27,18 +28,19 @@ What a candidate's render shows changes only when
       had a hole; something that steps in front of the camera changes far more. (Comparing with the
       rendered depth instead was measured too: the map's holes and depth edges, where a 64 px
       sample of the frame and the render's ray fall on either side, made 3-6 % disagree.)
+    - for a while: at most ``select_still_s`` of frame time; whatever the rules above miss (a robot's join
+      transform corrected by a re-check, an update geometry had not applied yet when the kept
+      render was made, the map reset or loaded by a control request) lasts no longer than that.
+      2 s at 30 fps replaces 60 ray casts with one.
+
 A render made before its frame's surface was integrated (the services score a frame as it comes)
 needs no rule of its own: the scorer reads only the render's keys and confidences, and a pixel
 where the render has a hole scores as one where it shows surface without a label; labels come
 only with updates, which change the version.
-And at most ``select_still_s`` of frame time: whatever the rules above miss (a robot's join
-transform corrected by a re-check, an update geometry had not applied yet when the kept render was
-made) lasts no longer than that. 2 s at 30 fps replaces 60 ray casts with one.
 
 A reused render gives the same score the scorer would give the same maps: only the render is
 reused; the frame's own depth, its stamp (staleness) and the record of what was encoded are the
-frame's and the scorer's own. Kept per robot (and per scored size), one view each: a few tens of
-kilobytes.
+frame's and the scorer's own. One view kept per robot: a few tens of kilobytes.
 
 Written here: no library keeps renders of a semantic map.
 """
