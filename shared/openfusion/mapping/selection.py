@@ -91,8 +91,9 @@ class FrameSelector:
         # holding the frame keeps its id from being reused; the oldest go past WANTED_KEPT
         self._wanted: dict[int, tuple[Frame, np.ndarray | None]] = {}
         #: the labels' version for reusing a still camera's render: one more with every update and
-        #: merge this selector is told of (:meth:`encoded`, :meth:`merged`), which in one process are
-        #: every change of the map's labels
+        #: merge this selector is told of (:meth:`embed_where`, asked before each chosen frame's update
+        #: is written, :meth:`encoded` after it, :meth:`merged`), which in one process are every change
+        #: of the map's labels
         self._labels_version = 0
 
     @property
