@@ -4,7 +4,8 @@ up the renders behind it.
 What a user would notice: the semantic service renders every candidate frame to score it while
 the frame it encodes waits (up to ``render_update_wait_s``) for the update before it. With one
 thread answering renders, an update that was lost stalled the scoring of every candidate behind
-that wait, and the window of candidates aged while the encoder sat idle. Bad input tried: a render
+that wait, and the window of candidates aged while the encoder sat idle. Renders are counted in
+health (``renders``, ``render_busy_s``). Bad input tried: a render
 asking for an update that never comes (it renders without it after the wait, counted).
 """
 
@@ -64,3 +65,6 @@ def test_a_render_waiting_for_a_lost_update_does_not_hold_up_the_next_render() -
         stuck.join(30)
         assert waited and waited[0] > 0.2  # rendered without the update after the wait
         assert geo.counter(GeometryCounter.RENDER_UPDATE_WAIT_TIMEOUTS) == 1
+        # both answered, counted with the time their ray casts took (health's render load)
+        assert geo.counter(GeometryCounter.RENDERS) == 2
+        assert geo.counter(GeometryCounter.RENDER_BUSY_S) > 0
