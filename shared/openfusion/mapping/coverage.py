@@ -356,21 +356,14 @@ class CoverageScorer:
         the map's ``key_map``, ``conf_map`` and ``depth_m`` at the scored size (a ``RenderedView``
         or a render reply). A render reply's ``T_map_cam`` (the frame's pose joined to the map's
         frame: another robot's frame) is the pose the view is filed under, so every robot's views
-        share one record. ``labels_version``: a value that changes whenever the map's labels do (an
-        update or a merge); given, a camera that stands still reuses its last render
-        (:mod:`openfusion.mapping.still_views`); None: every frame is rendered."""
+        share one record. ``labels_version`` (changes with every update and merge): a still camera
+        reuses its last render (:mod:`openfusion.mapping.still_views`); None: always rendered."""
         h, w = scoring_size(frame.intrinsics, self.params.select_width_px)
         K = frame.intrinsics.scaled(w, h)
         depth_m = frame.depth_m()
         depth_small = resize_nearest(depth_m, (h, w))
-        stamp_s = frame.stamp_ns / 1e9
-        rendered = None
-        if labels_version is not None:
-            rendered = self.still.reuse(robot, frame.T_world_cam, K, depth_small, stamp_s, labels_version)
-        if rendered is None:
-            rendered = render(frame.T_world_cam, K)
-            if labels_version is not None:
-                self.still.keep(robot, frame.T_world_cam, K, depth_small, stamp_s, labels_version, rendered)
+        rendered = self.still.render(render, robot, frame.T_world_cam, K, depth_small, frame.stamp_ns / 1e9,
+                                     labels_version)
         T_map_cam = getattr(rendered, "T_map_cam", None)
         if T_map_cam is None:
             T_map_cam = frame.T_world_cam

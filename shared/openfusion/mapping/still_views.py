@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import math
 import threading
-from collections.abc import Hashable
+from collections.abc import Callable, Hashable
 from dataclasses import dataclass
 from typing import Any
 
@@ -124,6 +124,19 @@ class StillViews:
     @staticmethod
     def _size(K: CameraIntrinsics) -> tuple[int, int, float, float, float, float]:
         return (K.width_px, K.height_px, K.fx, K.fy, K.cx, K.cy)
+
+    def render(self, render: Callable[[np.ndarray, CameraIntrinsics], Any], robot: str, T_world_cam: np.ndarray,
+               K: CameraIntrinsics, depth_m: np.ndarray, stamp_s: float, labels_version: Hashable | None) -> Any:
+        """The map's render of this candidate's view: the robot's kept one when :meth:`reuse` allows,
+        else ``render(T_world_cam, K)``, kept for the next candidates. ``labels_version`` None (a
+        caller that does not know it): always rendered, nothing kept."""
+        if labels_version is None:
+            return render(T_world_cam, K)
+        rendered = self.reuse(robot, T_world_cam, K, depth_m, stamp_s, labels_version)
+        if rendered is None:
+            rendered = render(T_world_cam, K)
+            self.keep(robot, T_world_cam, K, depth_m, stamp_s, labels_version, rendered)
+        return rendered
 
     def reuse(self, robot: str, T_world_cam: np.ndarray, K: CameraIntrinsics, depth_m: np.ndarray, stamp_s: float,
               labels_version: Hashable) -> Any | None:
