@@ -40,6 +40,7 @@ import numpy as np
 from openfusion.encoders import make_region_encoder, make_text_encoder
 from openfusion.eval.ground_truth import load_scannet_ground_truth, synthetic_ground_truth
 from openfusion.eval.saved_map import map_quality
+from openfusion.frame import resize_nearest
 from openfusion.mapping import load_map
 from openfusion.mapping.params import SelectParams, VolumeParams
 from openfusion.mapping.pipeline import map_scene
@@ -198,7 +199,9 @@ def _run_sampling_cpu(out: Path, args: list[str]) -> tuple[dict, dict[str, float
 
 def cost(laps_n: int, lap: int, width: int, height: int, widths: list[int]) -> None:
     """What scoring costs per frame against a semantic step (encode + render + match + update at the
-    encoder's size), measured on the same frames, one row per map size (laps walked) and scored width."""
+    encoder's size), measured on the same frames, one row per map size (laps walked), scored width
+    and way of reading the map's view (``select_view``: a probe at the frame's depth, the default, or
+    a ray cast, the baseline)."""
     from openfusion.mapping import RegionDictionary, SemanticMapper, SemanticVolume
     from openfusion.mapping.selection import CoverageScorer
 
@@ -208,44 +211,51 @@ def cost(laps_n: int, lap: int, width: int, height: int, widths: list[int]) -> N
     volume = SemanticVolume(VolumeParams())
     dictionary = RegionDictionary(encoder.embedding_space, encoder.dim)
     mapper = SemanticMapper(volume, dictionary)
-    scorers = {w: CoverageScorer(SelectParams(select_width_px=w)) for w in widths}
+    scorers = {(view, w): CoverageScorer(SelectParams(select_width_px=w, select_view=view))
+               for w in widths for view in ("render", "probe")}
     print(f"### Scoring cost per frame against a semantic step ({width}x{height} frames, every frame encoded, "
-          "in process; the same frames for both)")
+          "in process; the same frames for every row)")
     print()
-    print("| map (frames) | blocks | scored width | render ms | score ms | scoring ms/frame | semantic step ms | "
-          "scoring / step | cubes recorded | regions recorded | record (MiB) |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
-    rows: dict[tuple[int, int], list] = {}
+    print("| map (frames) | blocks | scored width | view | view ms | score ms | scoring ms/frame | × render | "
+          "semantic step ms | scoring / step | cubes recorded | regions recorded | record (MiB) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    rows: dict[tuple[int, str, int], list] = {}
     for i, frame in enumerate(frames):
         volume.integrate(frame)
-        for w, scorer in scorers.items():
+        for (view, w), scorer in scorers.items():
             t0 = time.perf_counter()
-            h_s, w_s = (round(frame.intrinsics.height_px * w / frame.intrinsics.width_px), w)
-            rendered = volume.render(frame.T_world_cam, frame.intrinsics.scaled(w_s, h_s))
+            K_s = frame.intrinsics.scaled(w, round(frame.intrinsics.height_px * w / frame.intrinsics.width_px))
+            if view == "probe":
+                depth_s = resize_nearest(frame.depth_m(), (K_s.height_px, K_s.width_px))
+                rendered = volume.probe(frame.T_world_cam, K_s, depth_s)
+            else:
+                rendered = volume.render(frame.T_world_cam, K_s)
             t1 = time.perf_counter()
             ev = scorer.prepare_frame(frame, lambda *_a, rendered=rendered: rendered)
             score = scorer.score(ev)
             if scorer.worth_encoding(score):
                 scorer.mark_selected(ev)
             t2 = time.perf_counter()
-            rows.setdefault((i // lap, w), []).append([t1 - t0, t2 - t1, 0.0])
+            rows.setdefault((i // lap, view, w), []).append([t1 - t0, t2 - t1, 0.0])
         t0 = time.perf_counter()
         obs = encoder.encode(frame)
         mapper.step(obs, frame.T_world_cam, frame.intrinsics, depth_m=frame.depth_m())
         step = time.perf_counter() - t0
-        for w, scorer in scorers.items():
-            rows[(i // lap, w)][-1][2] = step
+        for (view, w), scorer in scorers.items():
+            rows[(i // lap, view, w)][-1][2] = step
             scorer.observe_plan(mapper.last_plan.key_map, frame.T_world_cam,
                                 frame.intrinsics.scaled(*mapper.last_plan.key_map.shape[::-1]), frame.stamp_ns)
         if (i + 1) % lap == 0:
-            for w, scorer in scorers.items():
-                t = np.median(np.asarray(rows[(i // lap, w)]), axis=0) * 1e3
-                print(f"| {i + 1} | {volume.num_blocks} | {w} | {t[0]:.1f} | {t[1]:.1f} | {t[0] + t[1]:.1f} | "
-                      f"{t[2]:.1f} | {(t[0] + t[1]) / t[2]:.2f} | {scorer.cells_recorded} | "
+            for (view, w), scorer in scorers.items():
+                t = np.median(np.asarray(rows[(i // lap, view, w)]), axis=0) * 1e3
+                base = np.median(np.asarray(rows[(i // lap, "render", w)]), axis=0)[:2].sum() * 1e3
+                print(f"| {i + 1} | {volume.num_blocks} | {w} | {view} | {t[0]:.1f} | {t[1]:.1f} | {t[0] + t[1]:.1f} | "
+                      f"{(t[0] + t[1]) / base:.2f} | {t[2]:.1f} | {(t[0] + t[1]) / t[2]:.2f} | {scorer.cells_recorded} | "
                       f"{scorer.regions_recorded} | {scorer.record_bytes() / 2**20:.1f} |", flush=True)
     print()
-    print("Medians per frame over each lap; render = the map rendered at the candidate's pose at the scored "
-          "size (in the services a geometry/render request), score = preparing and scoring the view.")
+    print("Medians per frame over each lap; view = the map's view at the candidate's pose at the scored size "
+          "(probe: at the frame's own depth, openfusion.mapping.surface_probe; render: a ray cast; in the services "
+          "a geometry/render request), score = preparing and scoring the view.")
     print()
 
 
@@ -273,8 +283,9 @@ def render_growth(frames_n: int, width: int, height: int, sizes: list[int]) -> N
           "CPU ms per render, median of the last 8 frames' poses)")
     print()
     print("| frames integrated | resident blocks | 64 px render ms | × first | 160x120 render ms | × first | "
-          "ray cast of 50 blocks ms | × first | the 50 blocks alone in a grid ms | × first |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "ray cast of 50 blocks ms | × first | the 50 blocks alone in a grid ms | × first | 64 px probe ms | × first | "
+          "probe / 64 px render |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     first: list[float] = []
     done = 0
     for target in sorted(n for n in sizes if n <= len(frames)):
@@ -302,11 +313,19 @@ def render_growth(frames_n: int, width: int, height: int, sizes: list[int]) -> N
                 t0 = time.process_time()
                 raycast._cast(target_storage, coords[:50], frame.T_world_cam, K, volume._intrinsic_tensor(K))  # noqa: SLF001
                 out.append((time.process_time() - t0) * 1e3)
-        row += [float(np.median(ms)), float(np.median(alone_ms))]
+        probe_ms = []
+        for frame in recent:  # timed as the renders are: a call before, outside the timing
+            K = frame.intrinsics.scaled(*scoring_size(frame.intrinsics, 64)[::-1])
+            depth_small = resize_nearest(frame.depth_m(), (K.height_px, K.width_px))
+            volume.probe(frame.T_world_cam, K, depth_small)
+            t0 = time.process_time()
+            volume.probe(frame.T_world_cam, K, depth_small)
+            probe_ms.append((time.process_time() - t0) * 1e3)
+        row += [float(np.median(ms)), float(np.median(alone_ms)), float(np.median(probe_ms))]
         first = first or row
         print(f"| {target} | {volume.num_blocks} | {row[0]:.1f} | {row[0] / first[0]:.2f} | {row[1]:.1f} | "
               f"{row[1] / first[1]:.2f} | {row[2]:.1f} | {row[2] / first[2]:.2f} | {row[3]:.1f} | "
-              f"{row[3] / first[3]:.2f} |", flush=True)
+              f"{row[3] / first[3]:.2f} | {row[4]:.1f} | {row[4] / first[4]:.2f} | {row[4] / row[0]:.2f} |", flush=True)
     print()
     print("Open3D's CPU ray cast costs in proportion to the blocks the grid holds, whatever blocks it is given "
           "(the 50-block column; the same 50 blocks alone in a grid of the same capacity grow only with that "

@@ -16,7 +16,7 @@
 | ``…/geometry/checkpoint/{list,chunk,release}/{itself}`` | queryables at its own name; queries a peer's at start | a snapshot of its checkpoint for a peer replica that starts without one (:mod:`.peer_copy`) |
 | ``…/semantic/merge`` | queries before ``control/save`` and the final save | MergeRequest → MergeReply |
 | ``…/semantic/dictionary`` | queries on a gap in the deltas (resync) | DictionaryRequest → DictionarySnapshot |
-| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``renders``, ``render_busy_s``, ``render_update_wait_timeouts``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC), ``voxels_relabelled``, ``save_merges``, ``save_merge_failures``, ``dictionary_resyncs``; the map's size and memory: ``num_blocks`` (all), ``resident_blocks``, ``resident_mb``, ``tiles_paged_out``, ``tiles_paged_in``, ``checkpoint_last_s``, ``checkpoint_last_tiles``, ``saving``, ``rss_mb``, ``rss_peak_mb``, ``rss_anon_peak_mb`` (:mod:`.memory`); a copy of a peer's checkpoint: ``peer_copies``, ``peer_copy_failures``, ``peer_copy_tiles``, ``peer_copy_bytes``, ``peer_copy_s``, ``peer_copy_frame_id``, ``peer_copy_frames_held``, ``peer_copy_frames_lost`` (:mod:`.start_buffer`), ``peer_snapshots_served``, ``peer_bytes_served`` (:mod:`.peer_copy`) |
+| ``…/health/geometry`` | liveliness + stats | counters ``frames_integrated``, ``updates_applied``, ``renders``, ``render_busy_s``, ``probes``, ``probe_busy_s``, ``render_update_wait_timeouts``, ``checkpoints``, ``checkpoint_failures``, ``checkpoint_last_frame_id``, ``capacity_refused``, ``frames_duplicate``, ``frames_out_of_order``, ``frames_failed``, ``frames_gap``, ``num_blocks``, ``integrate_busy_s``, ``last_integrated_at_s`` (CLOCK_MONOTONIC), ``voxels_relabelled``, ``save_merges``, ``save_merge_failures``, ``dictionary_resyncs``; the map's size and memory: ``num_blocks`` (all), ``resident_blocks``, ``resident_mb``, ``tiles_paged_out``, ``tiles_paged_in``, ``checkpoint_last_s``, ``checkpoint_last_tiles``, ``saving``, ``rss_mb``, ``rss_peak_mb``, ``rss_anon_peak_mb`` (:mod:`.memory`); a copy of a peer's checkpoint: ``peer_copies``, ``peer_copy_failures``, ``peer_copy_tiles``, ``peer_copy_bytes``, ``peer_copy_s``, ``peer_copy_frame_id``, ``peer_copy_frames_held``, ``peer_copy_frames_lost`` (:mod:`.start_buffer`), ``peer_snapshots_served``, ``peer_bytes_served`` (:mod:`.peer_copy`) |
 
 Checkpoints go to the tile store ``{map_dir}/{map_id}/map.ofz`` every ``checkpoint_period_s``
 (when something changed; without region summaries, which would cost a surface read-out under the
@@ -332,15 +332,19 @@ class GeometryService(FrameIntake, MapPersistence, DictionaryFollower, PeerCopy)
         started = time.monotonic()
         with self._lock:
             T_map_cam = self._map_pose(req.robot, req.T_world_cam)
-            view = self.volume.render(T_map_cam, req.intrinsics)
-            # The semantic service's update for this frame comes next, at the same pose and size:
-            # it writes through these ray hits instead of casting again (the volume checks the
-            # pose, the size and that the grid's buffers have not moved since).
-            self._recent_renders[(req.robot, req.frame_id)] = view
-            while len(self._recent_renders) > RECENT_RENDERS:
-                self._recent_renders.popitem(last=False)
-        self._count(GeometryCounter.RENDERS)
-        self._count(GeometryCounter.RENDER_BUSY_S, time.monotonic() - started)
+            if req.probe_depth_m is not None:  # a candidate's view: the map near its own depth
+                view = self.volume.probe(T_map_cam, req.intrinsics, req.probe_depth_m)
+            else:
+                view = self.volume.render(T_map_cam, req.intrinsics)
+                # The semantic service's update for this frame comes next, at the same pose and size:
+                # it writes through these ray hits instead of casting again (the volume checks the
+                # pose, the size and that the grid's buffers have not moved since).
+                self._recent_renders[(req.robot, req.frame_id)] = view
+                while len(self._recent_renders) > RECENT_RENDERS:
+                    self._recent_renders.popitem(last=False)
+        probed = req.probe_depth_m is not None
+        self._count(GeometryCounter.PROBES if probed else GeometryCounter.RENDERS)
+        self._count(GeometryCounter.PROBE_BUSY_S if probed else GeometryCounter.RENDER_BUSY_S, time.monotonic() - started)
         return RenderReply(frame_id=req.frame_id, key_map=view.key_map, conf_map=view.conf_map, depth_m=view.depth_m,
                            T_map_cam=T_map_cam)
 

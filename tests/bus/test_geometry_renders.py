@@ -5,7 +5,8 @@ What a user would notice: the semantic service renders every candidate frame to 
 the frame it encodes waits (up to ``render_update_wait_s``) for the update before it. With one
 thread answering renders, an update that was lost stalled the scoring of every candidate behind
 that wait, and the window of candidates aged while the encoder sat idle. Renders are counted in
-health (``renders``, ``render_busy_s``). Bad input tried: a render
+health (``renders``, ``render_busy_s``); a candidate's view asked with its depth is a probe, counted
+apart (``probes``, ``probe_busy_s``). Bad input tried: a render
 asking for an update that never comes (it renders without it after the wait, counted).
 """
 
@@ -14,7 +15,10 @@ from __future__ import annotations
 import threading
 from contextlib import ExitStack
 
+import numpy as np
+
 from openfusion.bus import Publisher, call, open_session
+from openfusion.frame import resize_nearest
 from openfusion.services.geometry.service import GeometryConfig, GeometryService
 from openfusion.sources.synthetic import SyntheticSource, SyntheticWorld
 from openfusion.testing.bus import (
@@ -68,3 +72,14 @@ def test_a_render_waiting_for_a_lost_update_does_not_hold_up_the_next_render() -
         # both answered, counted with the time their ray casts took (health's render load)
         assert geo.counter(GeometryCounter.RENDERS) == 2
         assert geo.counter(GeometryCounter.RENDER_BUSY_S) > 0
+
+        # a candidate's view with its own depth: answered by a probe (no ray cast), counted apart,
+        # the same surface as the render
+        depth = resize_nearest(FRAME.depth_m(), (FRAME.intrinsics.height_px, FRAME.intrinsics.width_px))
+        probed = call(session, cfg.keys, GEOMETRY_RENDER,
+                      _render(0).model_copy(update={"probe_depth_m": depth.astype(np.float32)}), timeout_s=30)
+        both = (probed.depth_m > 0) & (reply.depth_m > 0)
+        assert both.mean() > 0.2
+        assert (np.abs(probed.depth_m - reply.depth_m)[both] <= 0.02).mean() > 0.85
+        assert geo.counter(GeometryCounter.PROBES) == 1 and geo.counter(GeometryCounter.RENDERS) == 2
+        assert geo.counter(GeometryCounter.PROBE_BUSY_S) > 0

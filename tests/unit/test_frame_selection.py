@@ -400,7 +400,7 @@ def test_another_robots_view_is_filed_under_its_map_pose() -> None:
                     depth_scale=1.0, intrinsics=K, T_world_cam=T_odom_cam_b)
 
     def render(with_map_pose: bool):  # noqa: ANN202
-        def call(T_world_cam: np.ndarray, intrinsics: CameraIntrinsics) -> SimpleNamespace:
+        def call(T_world_cam: np.ndarray, intrinsics: CameraIntrinsics, depth_m: np.ndarray) -> SimpleNamespace:
             assert np.allclose(T_world_cam, T_odom_cam_b)  # asked at the robot's own pose
             return SimpleNamespace(key_map=NO_KEYS, conf_map=ZERO_CONF,
                                    T_map_cam=T_map_odom_b @ T_world_cam if with_map_pose else None)

@@ -125,6 +125,23 @@ def test_composited_render_equals_the_single_volume_render(maps) -> None:  # noq
     assert keys_ok / pixels >= 0.99, keys_ok / pixels
 
 
+def test_composited_probes_equal_the_single_volume_probe(maps) -> None:  # noqa: ANN001
+    """Frame selection's probe (:mod:`openfusion.mapping.surface_probe`) composites across shards
+    as renders do: each shard finds the surface near the frame's depth in its own blocks."""
+    whole, parts = maps
+    keys_ok = pixels = 0
+    for f in FRAMES[1::3]:
+        depth = resize_nearest(f.depth_m(), (60, 80)).astype(np.float32)
+        ref = whole.probe(f.T_world_cam, K, depth)
+        views = [p.probe(f.T_world_cam, K, depth) for p in parts]
+        keys, _conf, depth_c = shards.composite_renders([(v.key_map, v.conf_map, v.depth_m) for v in views])
+        seen = (ref.depth_m > 0) | (depth_c > 0)
+        pixels += int(seen.sum())
+        keys_ok += int((keys == ref.key_map)[seen].sum())
+    assert pixels > 10_000
+    assert keys_ok / pixels >= 0.99, keys_ok / pixels
+
+
 def test_composite_rules_and_bad_input() -> None:
     d1 = np.array([[1.0, 0.0, 2.0]], np.float32)
     d2 = np.array([[1.5, 0.0, 1.0]], np.float32)

@@ -42,9 +42,11 @@ class CountingRender:
         self.volume = volume
         self.calls = 0
 
-    def __call__(self, T_world_cam, K):  # noqa: ANN001, ANN204
+    def __call__(self, T_world_cam, K, depth_m=None):  # noqa: ANN001, ANN204
+        """The map's view as the scorer asks it: a probe at the frame's depth (the default
+        ``select_view``), a render without one."""
         self.calls += 1
-        return self.volume.render(T_world_cam, K)
+        return self.volume.render(T_world_cam, K) if depth_m is None else self.volume.probe(T_world_cam, K, depth_m)
 
 
 def _scores(scorer: CoverageScorer, frames, render, **kw) -> list:  # noqa: ANN001

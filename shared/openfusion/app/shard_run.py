@@ -56,10 +56,12 @@ def combined_geometry(stats: dict[str, HealthStats]) -> dict[str, HealthStats]:
     return {"geometry": view}
 
 
-#: Each shard's (and replica's) own counts in run.json: progress, size, and its copy of a peer's
-#: checkpoint (docs/SHARDS.md, "Replicas").
+#: Each shard's (and replica's) own counts in run.json: progress, size, its view load (ray casts
+#: and frame selection's probes, with their time) and its copy of a peer's checkpoint
+#: (docs/SHARDS.md, "Replicas").
 SHARD_COUNTERS = (
     GeometryCounter.FRAMES_INTEGRATED, GeometryCounter.NUM_BLOCKS, GeometryCounter.INTEGRATE_BUSY_S,
+    GeometryCounter.RENDERS, GeometryCounter.RENDER_BUSY_S, GeometryCounter.PROBES, GeometryCounter.PROBE_BUSY_S,
     GeometryCounter.UPDATES_APPLIED, GeometryCounter.CHECKPOINT_LAST_FRAME_ID, GeometryCounter.RSS_PEAK_MB,
     GeometryCounter.PEER_COPIES, GeometryCounter.PEER_COPY_FAILURES, GeometryCounter.PEER_COPY_TILES,
     GeometryCounter.PEER_COPY_BYTES, GeometryCounter.PEER_SNAPSHOTS_SERVED,

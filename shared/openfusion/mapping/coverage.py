@@ -55,9 +55,8 @@ Why these rules and defaults (measured in docs/EVAL.md, "Frame selection")
     directions of known regions at half weight (a second view of a labelled surface refines
     its embedding and its borders but is worth less than a first one), and staleness as a floor.
     The bins are coarse (24, about 47 degrees across): finer bins made a robot's small turns look
-    new. The view is scored at 64 px wide: a ray cast of the map at that size costs ~4 ms on a
-    laptop core, well under 10 % of a semantic step (render, match and update at the encoder's
-    160x120 alone take ~35 ms), and a region of 0.5 % of the view is still 15 pixels.
+    new. The view is scored at 64 px wide (a region of 0.5 % of the view is still 15 pixels), read
+    from the map by a probe at the frame's own depth (``select_view``, :mod:`.surface_probe`).
 
 What is remembered (the scorer's state; it grows with the mapped surface, not with time)
     per region: a bit mask of the direction bins it was encoded from and the stamp of its last
@@ -67,9 +66,8 @@ What is remembered (the scorer's state; it grows with the mapped surface, not wi
     once, so the first views after a restart are encoded again (the map itself is recovered).
 
 Cost: :meth:`CoverageScorer.prepare` is numpy over the scored view's pixels (~0.3 ms at 64x48); a
-rescore of a prepared view (:meth:`CoverageScorer.score`, after the record changed) ~0.1 ms; the
-render at the candidate's pose is the caller's (``SemanticVolume.render`` in one process, a
-``geometry/render`` request in the services) and dominates.
+rescore (:meth:`CoverageScorer.score`) ~0.1 ms; the map's view at the candidate's pose is the
+caller's (``SemanticVolume.probe`` or ``render``, a ``geometry/render`` request) and dominates.
 
 Written here rather than taken from a library: no library scores views against a semantic map;
 the pieces are numpy.
@@ -352,9 +350,10 @@ class CoverageScorer:
 
     def prepare_frame(self, frame: Frame, render: Callable[[np.ndarray, CameraIntrinsics], Any],
                       robot: str = "", *, labels_version: Hashable | None = None) -> ViewEvidence:
-        """:meth:`prepare` for a frame of ``robot``, with ``render(T_world_cam, intrinsics)`` giving
-        the map's ``key_map``, ``conf_map`` and ``depth_m`` at the scored size (a ``RenderedView``
-        or a render reply). A render reply's ``T_map_cam`` (the frame's pose joined to the map's
+        """:meth:`prepare` for a frame of ``robot``, with ``render(T_world_cam, intrinsics[, depth_m])``
+        giving the map's ``key_map``, ``conf_map`` and ``depth_m`` at the scored size (a ``RenderedView``
+        or a render reply); with ``select_view = "probe"`` it is given the frame's depth at that size too,
+        to probe the map there (:mod:`openfusion.mapping.surface_probe`) rather than ray-cast it. A render reply's ``T_map_cam`` (the frame's pose joined to the map's
         frame: another robot's frame) is the pose the view is filed under, so every robot's views
         share one record. ``labels_version`` (changes with every update and merge): a still camera
         reuses its last render (:mod:`openfusion.mapping.still_views`); None: always rendered."""
@@ -362,7 +361,8 @@ class CoverageScorer:
         K = frame.intrinsics.scaled(w, h)
         depth_m = frame.depth_m()
         depth_small = resize_nearest(depth_m, (h, w))
-        rendered = self.still.render(render, robot, frame.T_world_cam, K, depth_small, frame.stamp_ns / 1e9,
+        look = render if self.params.select_view == "render" else lambda T, K: render(T, K, depth_small)
+        rendered = self.still.render(look, robot, frame.T_world_cam, K, depth_small, frame.stamp_ns / 1e9,
                                      labels_version)
         T_map_cam = getattr(rendered, "T_map_cam", None)
         if T_map_cam is None:

@@ -339,6 +339,11 @@ class SelectParams(SectionParams):
     select_width_px: int = Field(
         64, ge=8, le=640, description="coverage: width of the view a candidate is scored at (height from the "
         "frame's aspect ratio); the render of the map at that size is the scoring's main cost")
+    select_view: Literal["probe", "render"] = Field(
+        "probe", description="coverage: how a candidate's view of the map is read. probe: the map's region keys at the "
+        "surface the frame's own depth sees, a few lookups per scored pixel whatever the map's size "
+        "(openfusion.mapping.surface_probe); render: a ray cast of the map at the candidate's pose, whose cost grows "
+        "with the blocks the map holds (Open3D's CPU ray cast copies its block hash map per call)")
     select_low_conf: float = Field(
         0.2, ge=0, le=1, description="coverage: a surface pixel whose rendered region confidence is below this "
         "counts as unlabelled")

@@ -61,7 +61,7 @@ class SelectionStats:
 
     frames_scored: int = 0
     skipped_no_gain: int = 0
-    score_s: float = 0.0  # rendering at the scored size + scoring
+    score_s: float = 0.0  # the map's view at the scored size (probe or render) + scoring
     renders_reused: int = 0  # frames scored on their still camera's last render (select_still_s)
 
 
@@ -80,10 +80,15 @@ class FrameSelector:
     services use the same :class:`CoverageScorer` through a :class:`CandidateWindow`, since their
     encoder is busy while frames come."""
 
-    def __init__(self, params: SelectParams | None, render: Callable[[np.ndarray, CameraIntrinsics], Any]) -> None:
+    def __init__(self, params: SelectParams | None, render: Callable[[np.ndarray, CameraIntrinsics], Any],
+                 probe: Callable[[np.ndarray, CameraIntrinsics, np.ndarray], Any] | None = None) -> None:
+        """``render(T_world_cam, intrinsics)`` and ``probe(T_world_cam, intrinsics, depth_m)``: the
+        map's view of a candidate (``SemanticVolume.render`` / ``.probe``); without ``probe`` every
+        candidate is rendered, whatever ``select_view`` says."""
         self.params = params if params is not None else SelectParams()
         self.scorer = CoverageScorer(self.params)
         self.render = render
+        self.probe = probe
         self.stats = SelectionStats()
         self.last_score: ViewScore | None = None
         self._run: list[tuple[Frame, ViewEvidence]] = []  # frames waiting for their run's decision
@@ -131,9 +136,14 @@ class FrameSelector:
         return out
 
     def _prepare(self, frame: Frame) -> ViewEvidence:
-        ev = self.scorer.prepare_frame(frame, self.render, labels_version=self._labels_version)
+        ev = self.scorer.prepare_frame(frame, self._view, labels_version=self._labels_version)
         self.stats.renders_reused = self.scorer.still.reused
         return ev
+
+    def _view(self, T_world_cam: np.ndarray, K: CameraIntrinsics, depth_m: np.ndarray | None = None) -> Any:
+        if depth_m is None or self.probe is None:
+            return self.render(T_world_cam, K)
+        return self.probe(T_world_cam, K, depth_m)
 
     def flush(self) -> list[Frame]:
         """The end of the source: decide the frames still waiting."""

@@ -56,6 +56,7 @@ from openfusion.mapping import (
     raycast,
     readout_worker,
     shards,
+    surface_probe,
     view_update,
 )
 from openfusion.mapping.errors import CapacityError
@@ -148,6 +149,7 @@ class VolumeStats:
     blocks_refused: int = 0
     grow_events: int = 0
     renders: int = 0
+    probes: int = 0  # frame selection's views read without a ray cast (surface_probe)
     render_budget_short: int = 0  # renders whose view did not fit the memory budget (rendered what was resident)
     updates: int = 0
     voxels_updated: int = 0
@@ -466,6 +468,19 @@ class SemanticVolume(VolumeReadOuts, VolumeCheckpoints):
         key_map, conf_map = raycast.semantics_at_hits(self._storage, hits)
         self.stats.renders += 1
         return RenderedView(key_map, conf_map, hits.depth_m, hits)
+
+    @_locked
+    def probe(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics, depth_m: np.ndarray) -> RenderedView:
+        """Key, confidence and depth images of the map's surface near a frame's own depth
+        (``depth_m`` at ``intrinsics``' size) from ``T_world_cam``: frame selection's view of a
+        candidate without a ray cast, at a cost that does not grow with the map
+        (:mod:`openfusion.mapping.surface_probe`). No ``hits``: an update ray-casts its own."""
+        T = check_pose(T_world_cam)
+        self._settle_growth()
+        self._page_in_view(T, intrinsics)
+        key_map, conf_map, surface_m = surface_probe.probe_view(self._storage, T, intrinsics, depth_m)
+        self.stats.probes += 1
+        return RenderedView(key_map, conf_map, surface_m)
 
     @_locked
     def apply_update(

@@ -69,22 +69,34 @@ class RenderRequest(PinholeMessage):
     v3: ``after_update_source`` / ``after_update_seq``: render once the update numbered
     ``after_update_seq`` from that semantic service (:attr:`SemanticUpdate.seq`) is applied, so a
     frame is matched against the labels of the frame encoded before it (geometry waits at most
-    ``render_update_wait_s``); 0: at once."""
+    ``render_update_wait_s``); 0: at once.
+
+    v4: ``probe_depth_m``, a frame's own depth in metres at the request's size (0 = none): geometry
+    answers with the map's surface near that depth instead of a ray cast
+    (:mod:`openfusion.mapping.surface_probe`; frame selection's ``select_view = "probe"``): the
+    same reply, at a cost that does not grow with the map."""
 
     schema_name: ClassVar[str] = "geometry.render_request"
-    schema_version: ClassVar[int] = 3
+    schema_version: ClassVar[int] = 4
 
     frame_id: int = Field(ge=0)
     T_world_cam: Pose4x4
     robot: RobotName = DEFAULT_ROBOT
     after_update_source: str = Field("", max_length=64)
     after_update_seq: int = Field(0, ge=0)
+    probe_depth_m: FloatMap | None = None
 
     @model_validator(mode="after")
     def _check(self) -> RenderRequest:
         check_pose(self.T_world_cam)
         if self.after_update_seq and not self.after_update_source:
             raise ValueError("after_update_seq > 0 must name after_update_source")
+        if self.probe_depth_m is not None:
+            if self.probe_depth_m.shape != (self.height_px, self.width_px):
+                raise ValueError(f"probe_depth_m is {self.probe_depth_m.shape}, the view is "
+                                 f"{(self.height_px, self.width_px)}")
+            if not (np.isfinite(self.probe_depth_m).all() and (self.probe_depth_m >= 0).all()):
+                raise ValueError("probe_depth_m must be finite and >= 0 (0 = no depth)")
         return self
 
 
