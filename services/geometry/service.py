@@ -6,7 +6,7 @@
 | ``…/semantic/update`` | subscribes | :class:`~openfusion.wire.schemas.SemanticUpdate` |
 | ``…/semantic/dictionary/delta`` | subscribes (replica for checkpoints) | :class:`~openfusion.wire.schemas.DictionaryDelta` |
 | ``…/geometry/progress`` | publishes, one per frame taken from the queue, and resume announcements | :class:`~openfusion.wire.schemas.GeometryProgress` (the bridge's flow control; where a playback resumes) |
-| ``…/geometry/render`` | queryable (one that names a semantic update first waits for it: :mod:`.applied_updates`) | RenderRequest → RenderReply |
+| ``…/geometry/render`` | queryable (one that names a semantic update first waits for it: :mod:`.applied_updates`; one with a frame's depth, ``probe_depth_m``, is answered by a probe, not a ray cast, on a map of more than ``probe_above_blocks`` blocks) | RenderRequest → RenderReply |
 | ``…/geometry/points`` | queryable | PointsRequest → PointsReply (capped) |
 | ``…/geometry/mesh`` | queryable | MeshRequest → MeshReply |
 | ``…/geometry/regions`` | queryable | RegionSummaryRequest → RegionSummaryReply (per-region bbox + surface point count) |
@@ -332,8 +332,8 @@ class GeometryService(FrameIntake, MapPersistence, DictionaryFollower, PeerCopy)
         started = time.monotonic()
         with self._lock:
             T_map_cam = self._map_pose(req.robot, req.T_world_cam)
-            if req.probe_depth_m is not None:  # a candidate's view: the map near its own depth
-                view = self.volume.probe(T_map_cam, req.intrinsics, req.probe_depth_m)
+            if req.probe_depth_m is not None:  # a candidate's view: probed near its own depth on a large map
+                view = self.volume.candidate_view(T_map_cam, req.intrinsics, req.probe_depth_m, req.probe_above_blocks)
             else:
                 view = self.volume.render(T_map_cam, req.intrinsics)
                 # The semantic service's update for this frame comes next, at the same pose and size:
@@ -342,7 +342,7 @@ class GeometryService(FrameIntake, MapPersistence, DictionaryFollower, PeerCopy)
                 self._recent_renders[(req.robot, req.frame_id)] = view
                 while len(self._recent_renders) > RECENT_RENDERS:
                     self._recent_renders.popitem(last=False)
-        probed = req.probe_depth_m is not None
+        probed = view.hits is None
         self._count(GeometryCounter.PROBES if probed else GeometryCounter.RENDERS)
         self._count(GeometryCounter.PROBE_BUSY_S if probed else GeometryCounter.RENDER_BUSY_S, time.monotonic() - started)
         return RenderReply(frame_id=req.frame_id, key_map=view.key_map, conf_map=view.conf_map, depth_m=view.depth_m,

@@ -5,7 +5,7 @@
 | ``…/sensor/rgbd`` | subscribes (``select``: a window of candidates, the latest frame only, or a queue) | :class:`~openfusion.wire.schemas.RgbdFrame` |
 | ``…/sensor/instance`` | subscribes when the encoder reads instance images (gt) | :class:`~openfusion.wire.schemas.InstanceFrame` |
 | ``…/geometry/progress`` | subscribes (which frames geometry has integrated: a frame is rendered for its update after) | :class:`~openfusion.wire.schemas.GeometryProgress` |
-| ``…/geometry/render`` | queries (each frame it encodes; with ``select=coverage`` also each candidate, at the scored size) | RenderRequest → RenderReply |
+| ``…/geometry/render`` | queries (each frame it encodes; with ``select=coverage`` also each candidate, at the scored size, with its depth: a probe, ``select_view``) | RenderRequest → RenderReply |
 | ``…/geometry/dictionary`` | queries once on start (recovery) | DictionaryRequest → DictionarySnapshot |
 | ``…/geometry/contacts`` | queries every ``merge_every`` semantic frames | RegionContactsRequest → RegionContactsReply |
 | ``…/semantic/update`` | publishes | :class:`~openfusion.wire.schemas.SemanticUpdate` |

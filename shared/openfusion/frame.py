@@ -81,12 +81,15 @@ class Frame:
     instance_categories: dict[int, str] = field(default_factory=dict)
     source: str = ""
 
-    def depth_m(self) -> np.ndarray:
-        """Depth as float32 metres (0 where there is no measurement)."""
-        if self.depth.dtype == np.float32 and self.depth_scale == 1.0:
-            d = self.depth
+    def depth_m(self, size_hw: tuple[int, int] | None = None) -> np.ndarray:
+        """Depth as float32 metres (0 where there is no measurement); at ``size_hw`` (height,
+        width): :func:`resize_nearest` of it, converting only the pixels kept (frame selection reads
+        a 64x48 sample of a 640x480 frame)."""
+        depth = self.depth if size_hw is None else resize_nearest(self.depth, size_hw)
+        if depth.dtype == np.float32 and self.depth_scale == 1.0:
+            d = depth
         else:
-            d = self.depth.astype(np.float32) / np.float32(self.depth_scale)
+            d = depth.astype(np.float32) / np.float32(self.depth_scale)
         return np.nan_to_num(d, nan=0.0, posinf=0.0, neginf=0.0)
 
     def validate(self) -> None:

@@ -13,6 +13,7 @@ import pytest
 
 from openfusion.frame import resize_nearest
 from openfusion.mapping import SemanticVolume, VolumeParams, raycast
+from openfusion.mapping.params import SelectParams
 from openfusion.mapping.coverage import scoring_size
 from openfusion.mapping.surface_probe import probe_view
 from openfusion.sources import open_source
@@ -98,3 +99,16 @@ def test_bad_depth_is_refused_or_read_as_no_depth(volume: SemanticVolume) -> Non
     empty = SemanticVolume(VolumeParams())
     keys, conf, surface = probe_view(empty._storage, f.T_world_cam, K, depth)  # noqa: SLF001
     assert (keys < 0).all() and (conf == 0).all() and (surface == 0).all()
+
+
+def test_a_candidate_is_probed_only_on_a_map_larger_than_select_probe_blocks(volume: SemanticVolume) -> None:
+    """``select_view``: auto renders a candidate while the map is small (the render reads it a hair
+    better, docs/EVAL.md) and probes it above ``select_probe_blocks``; render and probe always do
+    what they say."""
+    f, n = FRAMES[7], volume.num_blocks
+    assert SelectParams().probe_above_blocks == SelectParams().select_probe_blocks
+    assert SelectParams(select_view="probe").probe_above_blocks == 0
+    assert SelectParams(select_view="render").probe_above_blocks is None
+    for above, probed in ((n, False), (n - 1, True), (0, True), (None, False)):
+        view = volume.candidate_view(f.T_world_cam, K, _depth(f), above)
+        assert (view.hits is None) == probed, above

@@ -78,7 +78,7 @@ def map_scene_for_eval(
     merge_p = merge_params if merge_params is not None else MergeParams()
     schedule = MergeSchedule(merge_p)
     empty = EmptyRegions(passes=1)  # updates are written before the next pass
-    selector = FrameSelector(select_params, volume.render, volume.probe)
+    selector = FrameSelector(select_params, volume.render, volume.candidate_view)
     selector.scorer.embedding_support = dictionary.support_of
 
     def merge_pass() -> None:  # timed with the semantic step (it is part of it in the services)

@@ -352,15 +352,15 @@ class CoverageScorer:
                       robot: str = "", *, labels_version: Hashable | None = None) -> ViewEvidence:
         """:meth:`prepare` for a frame of ``robot``, with ``render(T_world_cam, intrinsics[, depth_m])``
         giving the map's ``key_map``, ``conf_map`` and ``depth_m`` at the scored size (a ``RenderedView``
-        or a render reply); with ``select_view = "probe"`` it is given the frame's depth at that size too,
-        to probe the map there (:mod:`openfusion.mapping.surface_probe`) rather than ray-cast it. A render reply's ``T_map_cam`` (the frame's pose joined to the map's
+        or a render reply); unless ``select_view`` is ``render`` it is given the frame's depth at that size
+        too, to probe the map there on a large map (:mod:`openfusion.mapping.surface_probe`). A render reply's ``T_map_cam`` (the frame's pose joined to the map's
         frame: another robot's frame) is the pose the view is filed under, so every robot's views
         share one record. ``labels_version`` (changes with every update and merge): a still camera
         reuses its last render (:mod:`openfusion.mapping.still_views`); None: always rendered."""
         h, w = scoring_size(frame.intrinsics, self.params.select_width_px)
         K = frame.intrinsics.scaled(w, h)
-        depth_m = frame.depth_m()
-        depth_small = resize_nearest(depth_m, (h, w))
+        mh, mw = scoring_size(frame.intrinsics, MARK_DENSITY * w)
+        depth_small, depth_mark = frame.depth_m((h, w)), frame.depth_m((mh, mw))
         look = render if self.params.select_view == "render" else lambda T, K: render(T, K, depth_small)
         rendered = self.still.render(look, robot, frame.T_world_cam, K, depth_small, frame.stamp_ns / 1e9,
                                      labels_version)
@@ -369,8 +369,8 @@ class CoverageScorer:
             T_map_cam = frame.T_world_cam
         return self.prepare(frame_id=frame.frame_id, stamp_ns=frame.stamp_ns, T_world_cam=T_map_cam,
                             intrinsics=K, depth_m=depth_small,
-                            key_map=rendered.key_map, conf_map=rendered.conf_map, full_depth_m=depth_m,
-                            full_intrinsics=frame.intrinsics, robot=robot)
+                            key_map=rendered.key_map, conf_map=rendered.conf_map, full_depth_m=depth_mark,
+                            full_intrinsics=frame.intrinsics.scaled(mw, mh), robot=robot)
 
     # ------------------------------------------------------------------ score
     def score(self, ev: ViewEvidence) -> ViewScore:

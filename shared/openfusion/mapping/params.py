@@ -339,11 +339,17 @@ class SelectParams(SectionParams):
     select_width_px: int = Field(
         64, ge=8, le=640, description="coverage: width of the view a candidate is scored at (height from the "
         "frame's aspect ratio); the render of the map at that size is the scoring's main cost")
-    select_view: Literal["probe", "render"] = Field(
-        "probe", description="coverage: how a candidate's view of the map is read. probe: the map's region keys at the "
-        "surface the frame's own depth sees, a few lookups per scored pixel whatever the map's size "
-        "(openfusion.mapping.surface_probe); render: a ray cast of the map at the candidate's pose, whose cost grows "
-        "with the blocks the map holds (Open3D's CPU ray cast copies its block hash map per call)")
+    select_view: Literal["auto", "probe", "render"] = Field(
+        "auto", description="coverage: how a candidate's view of the map is read. render: a ray cast of the map at "
+        "the candidate's pose, whose cost grows with the blocks the map holds (Open3D's CPU ray cast copies its "
+        "block hash map per call: 11 ms at 2,000 blocks, 45-76 ms at 67,000-90,000 on a 2-core box); probe: the "
+        "map's region keys at the surface the frame's own depth sees, a few lookups per scored pixel whatever the "
+        "map's size (openfusion.mapping.surface_probe; on the bench rooms 0.001-0.003 f-mIoU under the render at the "
+        "same calls); auto: render while the map holds at most select_probe_blocks blocks, probe above")
+    select_probe_blocks: int = Field(
+        20000, ge=0, description="coverage, select_view=auto: the map's blocks (a geometry shard's own) above which "
+        "a candidate is probed instead of rendered (20,000 blocks of 8^3 voxels at 2 cm: two furnished rooms; a "
+        "render there costs about 3x a probe)")
     select_low_conf: float = Field(
         0.2, ge=0, le=1, description="coverage: a surface pixel whose rendered region confidence is below this "
         "counts as unlabelled")
@@ -401,6 +407,12 @@ class SelectParams(SectionParams):
         "length of their mean, of unit vectors, below this: views of two objects) is embedded again whenever a "
         "chosen frame shows it; views of one object agree to about the encoder's own noise (0.9 at the standard "
         "noise's cosine 0.9); 0 = off")
+
+    @property
+    def probe_above_blocks(self) -> int | None:
+        """A candidate's view is probed when the map holds more blocks than this, else rendered;
+        None: always rendered (``select_view``)."""
+        return {"render": None, "probe": 0}.get(self.select_view, self.select_probe_blocks)
 
 
 class JoinParams(SectionParams):

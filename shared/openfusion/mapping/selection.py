@@ -81,14 +81,15 @@ class FrameSelector:
     encoder is busy while frames come."""
 
     def __init__(self, params: SelectParams | None, render: Callable[[np.ndarray, CameraIntrinsics], Any],
-                 probe: Callable[[np.ndarray, CameraIntrinsics, np.ndarray], Any] | None = None) -> None:
-        """``render(T_world_cam, intrinsics)`` and ``probe(T_world_cam, intrinsics, depth_m)``: the
-        map's view of a candidate (``SemanticVolume.render`` / ``.probe``); without ``probe`` every
-        candidate is rendered, whatever ``select_view`` says."""
+                 view: Callable[[np.ndarray, CameraIntrinsics, np.ndarray, int | None], Any] | None = None) -> None:
+        """``render(T_world_cam, intrinsics)``: the map's render; ``view(T_world_cam, intrinsics,
+        depth_m, probe_above_blocks)``: the map's view of a candidate, probed or rendered by the
+        map's size (``SemanticVolume.candidate_view``, ``select_view``); without it every candidate
+        is rendered."""
         self.params = params if params is not None else SelectParams()
         self.scorer = CoverageScorer(self.params)
         self.render = render
-        self.probe = probe
+        self.view = view
         self.stats = SelectionStats()
         self.last_score: ViewScore | None = None
         self._run: list[tuple[Frame, ViewEvidence]] = []  # frames waiting for their run's decision
@@ -141,9 +142,9 @@ class FrameSelector:
         return ev
 
     def _view(self, T_world_cam: np.ndarray, K: CameraIntrinsics, depth_m: np.ndarray | None = None) -> Any:
-        if depth_m is None or self.probe is None:
+        if depth_m is None or self.view is None:
             return self.render(T_world_cam, K)
-        return self.probe(T_world_cam, K, depth_m)
+        return self.view(T_world_cam, K, depth_m, self.params.probe_above_blocks)
 
     def flush(self) -> list[Frame]:
         """The end of the source: decide the frames still waiting."""

@@ -482,6 +482,15 @@ class SemanticVolume(VolumeReadOuts, VolumeCheckpoints):
         self.stats.probes += 1
         return RenderedView(key_map, conf_map, surface_m)
 
+    def candidate_view(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics, depth_m: np.ndarray,
+                       probe_above_blocks: int | None = 0) -> RenderedView:
+        """Frame selection's view of a candidate: :meth:`probe` at its depth when the map holds more
+        than ``probe_above_blocks`` blocks, else :meth:`render` (None: always rendered;
+        ``SelectParams.probe_above_blocks``)."""
+        if probe_above_blocks is not None and self.num_blocks > probe_above_blocks:
+            return self.probe(T_world_cam, intrinsics, depth_m)
+        return self.render(T_world_cam, intrinsics)
+
     @_locked
     def apply_update(
         self,

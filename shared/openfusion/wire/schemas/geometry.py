@@ -71,10 +71,10 @@ class RenderRequest(PinholeMessage):
     frame is matched against the labels of the frame encoded before it (geometry waits at most
     ``render_update_wait_s``); 0: at once.
 
-    v4: ``probe_depth_m``, a frame's own depth in metres at the request's size (0 = none): geometry
-    answers with the map's surface near that depth instead of a ray cast
-    (:mod:`openfusion.mapping.surface_probe`; frame selection's ``select_view = "probe"``): the
-    same reply, at a cost that does not grow with the map."""
+    v4: ``probe_depth_m``, a candidate frame's own depth in metres at the request's size (0 = none):
+    geometry answers with the map's surface near that depth instead of a ray cast
+    (:mod:`openfusion.mapping.surface_probe`) when it holds more than ``probe_above_blocks`` blocks:
+    the same reply, at a cost that does not grow with the map (frame selection's ``select_view``)."""
 
     schema_name: ClassVar[str] = "geometry.render_request"
     schema_version: ClassVar[int] = 4
@@ -85,6 +85,7 @@ class RenderRequest(PinholeMessage):
     after_update_source: str = Field("", max_length=64)
     after_update_seq: int = Field(0, ge=0)
     probe_depth_m: FloatMap | None = None
+    probe_above_blocks: int = Field(0, ge=0)
 
     @model_validator(mode="after")
     def _check(self) -> RenderRequest:
