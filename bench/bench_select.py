@@ -6,6 +6,8 @@ frame) and after (``--select coverage``), each pair measured in the same run.
     python bench/bench_select.py --full --laps --select-also select_lookahead=3   # ... and a row with these
     python bench/bench_select.py --full --cost   # scoring cost per frame against a semantic step, per map size
     python bench/bench_select.py --full --render-growth   # a map render's cost as the map grows (building walk)
+    python bench/bench_select.py --views-services 150   # the building's walk through the services: a
+        # candidate rendered against probed on the large map (select_view render / auto), geometry's load
     python bench/bench_select.py --stops 0,30,90 --lap 120 [--stops-services]
         # a camera standing still 4 times a lap: its render reused or not (and through the services)
     python bench/bench_select.py --services [--repeat 2]
@@ -164,6 +166,47 @@ def stops_services(work: Path, lap: int, width: int, height: int, stop: int) -> 
         print(f"| {name} | {summary['frames_scored']} | {summary['renders_reused']} | {summary['encoder_calls']} | "
               f"{q['f_mIoU']:.4f} | {_f(geo, '{:.1f}')} | {_f(cpu.get('semantic'), '{:.1f}')} | "
               f"{_f(geo / base if geo and base else None, '{:.2f}')} | {load} |", flush=True)
+    print()
+
+
+def views_services(work: Path, frames: int, width: int, height: int) -> None:
+    """The synthetic building's walk through ``openfusion run`` (the services, at the source's 30
+    fps, gt encoder): every candidate rendered by geometry (``select_view=render``) against the
+    default (``auto``: probed once the map holds more than ``select_probe_blocks``), with geometry's
+    view load from its health (ray casts and probes, their time) and each service's process CPU
+    time, in the same run."""
+    from openfusion.sources.synthetic.building import SyntheticBuilding
+
+    spec = f"synthetic:building,frames={frames},width={width},height={height}"
+    print(f"### A candidate's view on a growing map, through the services (`openfusion run --source {spec}`, "
+          "gt encoder)")
+    print()
+    print("| select_view | frames scored | encoder calls | f-mIoU | blocks | geometry ray casts | their time s | "
+          "probes | their time s | ms per view | geometry CPU s | semantic CPU s | geometry CPU × render | "
+          "load before -> after |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    text = make_text_encoder("minilm")
+    gt = synthetic_ground_truth(SyntheticBuilding(0), spacing_m=0.05)
+    base = None
+    for view in ("render", "auto"):
+        out = work / f"views-{view}"
+        summary, cpu, load = _run_sampling_cpu(out, ["--source", spec, "--frames", str(frames),
+                                                     "--set", f"semantic.select_view={view}"])
+        geo = cpu.get("geometry")
+        base = geo if base is None else base
+        health = summary["shards"]["geometry"]
+        renders, probes = health.get("renders", 0), health.get("probes", 0)
+        busy = health.get("render_busy_s", 0.0) + health.get("probe_busy_s", 0.0)
+        loaded = load_map(out / "map")
+        q = map_quality(loaded.volume, loaded.dictionary, gt, text_encoder=text)
+        print(f"| {view} | {summary['frames_scored']} | {summary['encoder_calls']} | {q['f_mIoU']:.4f} | "
+              f"{int(health['num_blocks'])} | {int(renders)} | {health.get('render_busy_s', 0.0):.1f} | {int(probes)} | "
+              f"{health.get('probe_busy_s', 0.0):.1f} | {1e3 * busy / max(1, renders + probes):.1f} | "
+              f"{_f(geo, '{:.1f}')} | {_f(cpu.get('semantic'), '{:.1f}')} | "
+              f"{_f(geo / base if geo and base else None, '{:.2f}')} | {load} |", flush=True)
+    print()
+    print("Ray casts include the semantic steps' renders (one per encoded frame, at the encoder's size); the "
+          "candidates' views are the rest. ms per view = their time over their count.")
     print()
 
 
@@ -453,6 +496,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="--stops: also the longest stop through openfusion run, with each service's CPU time")
     parser.add_argument("--services", action="store_true", help="a ScanNet-layout scene through openfusion run")
     parser.add_argument("--render-growth", action="store_true", help="map render cost as the map grows (building)")
+    parser.add_argument("--views-services", type=int, metavar="FRAMES", default=None,
+                        help="the building's walk of FRAMES frames through openfusion run: candidates rendered "
+                        "against the default (probed on a large map)")
     parser.add_argument("--lap", type=int, default=None, help=f"frames per lap (default 40, --full {BUILTIN_LAP})")
     parser.add_argument("--laps-n", type=int, default=3, help="laps (default 3)")
     parser.add_argument("--widths", default="32,64,128", help="--cost: scored widths (default 32,64,128)")
@@ -465,7 +511,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="--services: a --set option of every openfusion run (repeatable)")
     parser.add_argument("--work", type=Path, default=None, help="--services: working folder (default a temporary one)")
     args = parser.parse_args(argv)
-    everything = not (args.laps or args.cost or args.services or args.render_growth or args.stops)
+    everything = not (args.laps or args.cost or args.services or args.render_growth or args.stops
+                      or args.views_services)
     lap = args.lap or (BUILTIN_LAP if args.full else 40)
     width, height = (640, 480) if args.full else (320, 240)
     if args.laps or everything:
@@ -479,6 +526,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.stops_services:
             with tempfile.TemporaryDirectory(prefix="bench-stops-") as tmp:
                 stops_services(Path(tmp), lap, width, height, max(stop_lengths))
+    if args.views_services:
+        with tempfile.TemporaryDirectory(prefix="bench-views-") as tmp:
+            views_services(Path(tmp), args.views_services, 320, 240)
     if args.render_growth:
         sizes = [1, 30, 120, 240] if args.full else [1, 30, 90]
         render_growth(max(sizes), 320, 240, sizes)

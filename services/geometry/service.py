@@ -329,8 +329,8 @@ class GeometryService(FrameIntake, MapPersistence, DictionaryFollower, PeerCopy)
             logger.debug("geometry: render of frame %d: update %d of %s not here after %.2f s; rendering without it",
                          req.frame_id, req.after_update_seq, req.after_update_source, self.section.render_update_wait_s)
             self._count(GeometryCounter.RENDER_UPDATE_WAIT_TIMEOUTS)
-        started = time.monotonic()
         with self._lock:
+            started = time.monotonic()  # the view's own time, not the wait for an integration to end
             T_map_cam = self._map_pose(req.robot, req.T_world_cam)
             if req.probe_depth_m is not None:  # a candidate's view: probed near its own depth on a large map
                 view = self.volume.candidate_view(T_map_cam, req.intrinsics, req.probe_depth_m, req.probe_above_blocks)
@@ -342,9 +342,10 @@ class GeometryService(FrameIntake, MapPersistence, DictionaryFollower, PeerCopy)
                 self._recent_renders[(req.robot, req.frame_id)] = view
                 while len(self._recent_renders) > RECENT_RENDERS:
                     self._recent_renders.popitem(last=False)
+            busy_s = time.monotonic() - started
         probed = view.hits is None
         self._count(GeometryCounter.PROBES if probed else GeometryCounter.RENDERS)
-        self._count(GeometryCounter.PROBE_BUSY_S if probed else GeometryCounter.RENDER_BUSY_S, time.monotonic() - started)
+        self._count(GeometryCounter.PROBE_BUSY_S if probed else GeometryCounter.RENDER_BUSY_S, busy_s)
         return RenderReply(frame_id=req.frame_id, key_map=view.key_map, conf_map=view.conf_map, depth_m=view.depth_m,
                            T_map_cam=T_map_cam)
 

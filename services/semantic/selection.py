@@ -220,11 +220,12 @@ class CandidateFeeder:
         started = time.monotonic()
 
         def render(T_world_cam: Any, K_small: CameraIntrinsics, depth_m: np.ndarray | None = None) -> Any:
-            probe = None if depth_m is None else np.clip(np.nan_to_num(np.asarray(depth_m, np.float32), nan=0.0, posinf=0.0,
-                                                                       neginf=0.0), 0.0, None)
-            return self.render(RenderRequest(frame_id=msg.frame_id, T_world_cam=T_world_cam, robot=msg.robot,
-                                             probe_depth_m=probe, probe_above_blocks=self.scorer.params.probe_above_blocks or 0,
-                                             **RenderRequest.intrinsics_fields(K_small)))
+            # with the candidate's depth (select_view auto / probe) geometry may probe rather than ray-cast
+            probe = None if depth_m is None else np.clip(
+                np.nan_to_num(np.asarray(depth_m, np.float32), nan=0.0, posinf=0.0, neginf=0.0), 0.0, None)
+            return self.render(RenderRequest(
+                frame_id=msg.frame_id, T_world_cam=T_world_cam, robot=msg.robot, probe_depth_m=probe,
+                probe_above_blocks=self.scorer.params.probe_above_blocks or 0, **RenderRequest.intrinsics_fields(K_small)))
 
         version = self.labels_version() if self.labels_version is not None else None
         evidence = self.scorer.prepare_frame(msg.to_frame(), render, robot=msg.robot, labels_version=version)

@@ -13,8 +13,8 @@ import pytest
 
 from openfusion.frame import resize_nearest
 from openfusion.mapping import SemanticVolume, VolumeParams, raycast
-from openfusion.mapping.params import SelectParams
 from openfusion.mapping.coverage import scoring_size
+from openfusion.mapping.params import SelectParams
 from openfusion.mapping.surface_probe import probe_view
 from openfusion.sources import open_source
 

@@ -55,8 +55,8 @@ Why these rules and defaults (measured in docs/EVAL.md, "Frame selection")
     directions of known regions at half weight (a second view of a labelled surface refines
     its embedding and its borders but is worth less than a first one), and staleness as a floor.
     The bins are coarse (24, about 47 degrees across): finer bins made a robot's small turns look
-    new. The view is scored at 64 px wide (a region of 0.5 % of the view is still 15 pixels), read
-    from the map by a probe at the frame's own depth (``select_view``, :mod:`.surface_probe`).
+    new. The view is scored at 64 px wide (a region of 0.5 % of the view is still 15 pixels): a
+    render, or on a large map a probe at the frame's depth (``select_view``, :mod:`.surface_probe`).
 
 What is remembered (the scorer's state; it grows with the mapped surface, not with time)
     per region: a bit mask of the direction bins it was encoded from and the stamp of its last
@@ -351,10 +351,11 @@ class CoverageScorer:
     def prepare_frame(self, frame: Frame, render: Callable[[np.ndarray, CameraIntrinsics], Any],
                       robot: str = "", *, labels_version: Hashable | None = None) -> ViewEvidence:
         """:meth:`prepare` for a frame of ``robot``, with ``render(T_world_cam, intrinsics[, depth_m])``
-        giving the map's ``key_map``, ``conf_map`` and ``depth_m`` at the scored size (a ``RenderedView``
-        or a render reply); unless ``select_view`` is ``render`` it is given the frame's depth at that size
-        too, to probe the map there on a large map (:mod:`openfusion.mapping.surface_probe`). A render reply's ``T_map_cam`` (the frame's pose joined to the map's
-        frame: another robot's frame) is the pose the view is filed under, so every robot's views
+        giving the map's ``key_map``, ``conf_map`` and ``depth_m`` at the scored size (a
+        ``RenderedView`` or a render reply); unless ``select_view`` is ``render`` it is given the
+        frame's depth at that size, to probe the map there when the map is large
+        (:mod:`openfusion.mapping.surface_probe`). A render reply's ``T_map_cam`` (the frame's pose
+        joined to the map's frame: another robot's frame) is the pose the view is filed under, so every robot's views
         share one record. ``labels_version`` (changes with every update and merge): a still camera
         reuses its last render (:mod:`openfusion.mapping.still_views`); None: always rendered."""
         h, w = scoring_size(frame.intrinsics, self.params.select_width_px)
@@ -365,8 +366,7 @@ class CoverageScorer:
         rendered = self.still.render(look, robot, frame.T_world_cam, K, depth_small, frame.stamp_ns / 1e9,
                                      labels_version)
         T_map_cam = getattr(rendered, "T_map_cam", None)
-        if T_map_cam is None:
-            T_map_cam = frame.T_world_cam
+        T_map_cam = frame.T_world_cam if T_map_cam is None else T_map_cam
         return self.prepare(frame_id=frame.frame_id, stamp_ns=frame.stamp_ns, T_world_cam=T_map_cam,
                             intrinsics=K, depth_m=depth_small,
                             key_map=rendered.key_map, conf_map=rendered.conf_map, full_depth_m=depth_mark,

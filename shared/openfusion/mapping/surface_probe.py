@@ -5,15 +5,16 @@ Frame selection scores a candidate frame by what the map holds at the surface th
 render answers that with a ray cast of the map from the frame's pose. But Open3D's CPU
 ``ray_cast`` copies the grid's whole block hash map on every call (docs/EVAL.md, "The render grows
 with the map"), so a scoring render costs in proportion to the blocks held, not to the pixels
-asked: 5 ms at 2,000 blocks, 55-76 ms at 90,000 on a 2-core box, more than a semantic step of a
-room, once per camera frame per robot.
+asked: 11-14 ms at 2,000 blocks, 45-76 ms at 67,000-90,000 on a 2-core box, more than a semantic
+step of a room, once per camera frame per robot.
 
 A probe asks for less, because the frame's depth already says where along each ray the surface
 is. Per pixel of the scored view with a valid depth ``z``:
 
 1. the TSDF is sampled at the voxels holding the points of the pixel's ray from ``z - window`` to
-   ``z + window``, one voxel apart; ``window`` is the truncation distance, and twice that for the
-   pixels that found no surface within it (a scored pixel at a depth edge takes its depth from one
+   ``z + window``, one voxel apart (Open3D's convention: voxel ``i`` spans ``[i, i + 1)`` voxel
+   sizes); ``window`` is the truncation distance, and twice that for the pixels that found no
+   surface within it (a scored pixel at a depth edge takes its depth from one
    side of the edge; :data:`WIDE_SEARCH`). A depth further than that from the map's surface is
    surface the map does not hold there;
 2. the first sign change from free space (TSDF > 0) to behind the surface (TSDF <= 0) between two
@@ -28,8 +29,9 @@ so it composites across geometry shards as renders do (nearest depth). It costs 
 lookups per scored pixel's samples (Open3D's ``HashMap.find``, which reads the map in place),
 whatever the map's size. What it does not see that a render would: a surface of the map in front
 of the frame's (something the map holds that has since moved away) — the frame scores what it
-sees, which is what its encoder would label. Measured against renders on the built-in room in
-docs/EVAL.md ("Scoring without a ray cast").
+sees, which is what its encoder would label. Measured against renders in docs/EVAL.md ("A
+candidate on a large map"): it reads the map a hair worse for the scorer than a render, so frame
+selection probes only a map larger than ``select_probe_blocks`` (``select_view``).
 
 Written here rather than taken from a library: Open3D has no call that samples a voxel block
 grid at arbitrary points (its ``ray_cast`` is the copy above), and the sampling is a few numpy
@@ -43,13 +45,14 @@ import numpy as np
 from openfusion.frame import CameraIntrinsics
 from openfusion.mapping.storage import VoxelStorage, flat_voxel_index
 
-#: The 8 corners of a voxel cell, as offsets from its lowest corner.
 #: The second search, for pixels without a map surface within one truncation distance of their
 #: depth, reaches this many truncation distances (measured on a bench room: 2.5 % of the surface
 #: pixels a render labels confidently were missed with one, mostly at depth edges, where a scored
 #: pixel's depth comes from the background and the ray of the render grazes the object; 0.7 % with
 #: two, as many as the probe labels and the render does not; 0.7 % with four).
 WIDE_SEARCH = 2
+
+#: The 8 corners of a voxel cell, as offsets from its lowest corner.
 _CORNERS = np.array([[dx, dy, dz] for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)], np.int64)
 
 

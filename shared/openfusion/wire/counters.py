@@ -65,9 +65,9 @@ class GeometryCounter(StrEnum):
     FRAMES_GAP = "frames_gap"  # live frames that never reached the map (ids skipped between two frames taken)
     VOXELS_RELABELLED = "voxels_relabelled"  # voxels whose key a merge (delta or resync) changed to the surviving key
     RENDERS = "renders"  # geometry/render requests answered with a ray cast (updates, candidates with select_view=render; a split map: summed over its shards, each renders its own blocks)
-    RENDER_BUSY_S = "render_busy_s"  # time spent on them (ray casts of the map; grows with the blocks held)
+    RENDER_BUSY_S = "render_busy_s"  # time spent on them, not counting the wait for the map's lock (ray casts of the map; grows with the blocks held)
     PROBES = "probes"  # geometry/render requests with a frame's depth answered by a probe (candidates with select_view=probe)
-    PROBE_BUSY_S = "probe_busy_s"  # time spent on them (does not grow with the blocks held)
+    PROBE_BUSY_S = "probe_busy_s"  # time spent on them, not counting the wait for the map's lock (does not grow with the blocks held)
     RENDER_UPDATE_WAIT_TIMEOUTS = "render_update_wait_timeouts"  # renders that waited render_update_wait_s for an update in vain
     UPDATES_REUSED_RENDER = "updates_reused_render"  # updates written through their frame's render (no second ray cast)
     SAVE_MERGES = "save_merges"  # merge passes the semantic service ran because this service was saving
