@@ -83,3 +83,9 @@ def test_a_render_waiting_for_a_lost_update_does_not_hold_up_the_next_render() -
         assert (np.abs(probed.depth_m - reply.depth_m)[both] <= 0.02).mean() > 0.85
         assert geo.counter(GeometryCounter.PROBES) == 1 and geo.counter(GeometryCounter.RENDERS) == 2
         assert geo.counter(GeometryCounter.PROBE_BUSY_S) > 0
+        # a map no larger than the request's probe_above_blocks (select_view auto, a room) is ray-cast
+        small = _render(0).model_copy(update={"probe_depth_m": depth.astype(np.float32),
+                                              "probe_above_blocks": 10**6})
+        cast = call(session, cfg.keys, GEOMETRY_RENDER, small, timeout_s=30)
+        np.testing.assert_array_equal(cast.depth_m, reply.depth_m)
+        assert geo.counter(GeometryCounter.PROBES) == 1 and geo.counter(GeometryCounter.RENDERS) == 3
