@@ -10,7 +10,9 @@ said ``semantic=50`` where run.json said 153). A run that fails past the restart
 integrating frames saves the map and says where in run.json's ``map_saved``.
 
 Small frames (160x120), a 1 s checkpoint period and a short backoff keep it within the default
-suite's budget; the chaos test (slow) kills every service on a 200-frame run."""
+suite's budget; the chaos test (slow) kills every service on a 200-frame run. The 30 frames play
+at 5 frames/s: at 10 a loaded box (a clean-clone CI run) ended playback before geometry had
+acknowledged 3 frames past its first checkpoint, and the test had nothing to kill mid-run."""
 
 from __future__ import annotations
 
@@ -30,7 +32,7 @@ FRAMES = 30
 
 def test_geometry_killed_mid_run_is_restarted_and_every_frame_integrated_once(tmp_path: Path) -> None:
     run = BackgroundRun(tmp_path, "--source", "synthetic:seed=1,width=160,height=120", "--frames", str(FRAMES),
-                        "--rate-hz", "10", "--query", "chair", "--set", "supervision.checkpoint_period_s=1",
+                        "--rate-hz", "5", "--query", "chair", "--set", "supervision.checkpoint_period_s=1",
                         "--restart-backoff-s", "0.2", name="supervised", quiet=False)
     try:
         # semantic killed once it has fused a few frames: its counts start again from 0 in the new process
