@@ -349,7 +349,7 @@ class SelectParams(SectionParams):
     select_probe_blocks: int = Field(
         20000, ge=0, description="coverage, select_view=auto: the map's blocks (a geometry shard's own) above which "
         "a candidate is probed instead of rendered (20,000 blocks of 8^3 voxels at 2 cm: two furnished rooms; a "
-        "render there costs about 3x a probe)")
+        "render there costs about twice a probe)")
     select_low_conf: float = Field(
         0.2, ge=0, le=1, description="coverage: a surface pixel whose rendered region confidence is below this "
         "counts as unlabelled")
