@@ -43,6 +43,7 @@ from __future__ import annotations
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics
+from openfusion.mapping.raycast import RayHits, semantics_at_hits
 from openfusion.mapping.storage import VoxelStorage, flat_voxel_index
 
 #: The second search, for pixels without a map surface within one truncation distance of their
@@ -150,24 +151,17 @@ def _sample(storage: VoxelStorage, grid: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def _labels_at(storage: VoxelStorage, points_vox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Key and confidence of the labelled, observed voxel with the largest trilinear weight among
-    the 8 corners of each point's cell (``points_vox``: float (M, 3) in voxel units)."""
+    """Key and confidence at each point (``points_vox``: float (M, 3) in voxel units): the 8
+    corners of its cell with their trilinear weights, picked by the render's own rule
+    (:func:`raycast.semantics_at_hits`)."""
     m = len(points_vox)
     base = np.floor(points_vox).astype(np.int64)
     corners = (base[:, None, :] + _CORNERS[None, :, :]).reshape(-1, 3)  # (m * 8, 3)
     ratio = np.prod(1.0 - np.abs(np.repeat(points_vox, 8, axis=0) - corners), axis=1)
     flat = _flat_at(storage, corners)
-    ok = flat >= 0
-    stored = np.zeros(m * 8, np.int64)  # key + 1; 0 = none
-    stored[ok] = storage.gather("key", flat[ok])
-    observed = np.zeros(m * 8, bool)
-    observed[ok] = storage.gather("weight", flat[ok]) > 0
-    labelled = (stored > 0) & observed
-    best = np.where(labelled, ratio, -1.0).reshape(m, 8).argmax(axis=1)
-    pick = np.arange(m) * 8 + best
-    keys = np.where(labelled[pick], stored[pick] - 1, -1).astype(np.int32)
-    conf = np.zeros(m, np.float32)
-    hit = np.flatnonzero(keys >= 0)
-    if len(hit):
-        conf[hit] = storage.gather("conf", flat[pick[hit]])
-    return keys, conf
+    observed = flat >= 0
+    observed[observed] = storage.gather("weight", flat[observed]) > 0
+    hits = RayHits(np.zeros((m, 1), np.float32), flat.reshape(m, 1, 8), ratio.astype(np.float32).reshape(m, 1, 8),
+                   observed.reshape(m, 1, 8), storage.generation, b"")
+    keys, conf = semantics_at_hits(storage, hits)
+    return keys.reshape(m), conf.reshape(m)
