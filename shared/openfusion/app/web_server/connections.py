@@ -37,7 +37,10 @@ class PageHTTPServer(ThreadingHTTPServer):
     a watchdog that closes connections whose request head is late (the package docstring)."""
 
     daemon_threads = True
-    request_queue_size = 128  # the listen backlog: a burst of connections waits to be accepted, not refused
+    # The listen backlog: a burst of connections waits to be accepted. When it is full Linux drops
+    # the SYN and the client retries only after a second, so it is sized past any burst the
+    # watchdog's limit lets through (capped by net.core.somaxconn, 4096 by default).
+    request_queue_size = 1024
     backend: WebBackend
     files: dict[str, tuple[bytes, str]]
     csp: str
