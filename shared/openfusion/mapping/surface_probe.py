@@ -130,8 +130,12 @@ def _flat_at(storage: VoxelStorage, grid: np.ndarray) -> np.ndarray:
     its block is not resident. Every row is indexed, then the absent ones masked: picking the
     resident rows of the (N, 3) coordinates first cost a third of a probe's time."""
     res = storage.params.block_resolution
-    block = np.floor_divide(grid, res)
-    local = grid - block * res
+    if res & (res - 1) == 0:  # a power of two (8, the default): the same floor division as shifts
+        shift = res.bit_length() - 1
+        block, local = grid >> shift, grid & (res - 1)
+    else:
+        block = np.floor_divide(grid, res)
+        local = grid - block * res
     buf = storage.find_blocks(block)
     flat = flat_voxel_index(buf, local, res)
     flat[buf < 0] = -1
@@ -145,8 +149,9 @@ def _sample(storage: VoxelStorage, grid: np.ndarray) -> tuple[np.ndarray, np.nda
     flat = _flat_at(storage, grid)
     ok = flat >= 0
     if ok.any():
-        tsdf[ok] = storage.gather("tsdf", flat[ok])
-        weight[ok] = storage.gather("weight", flat[ok])
+        index = flat[ok]
+        tsdf[ok] = storage.gather("tsdf", index)
+        weight[ok] = storage.gather("weight", index)
     return tsdf, weight
 
 
@@ -157,11 +162,14 @@ def _labels_at(storage: VoxelStorage, points_vox: np.ndarray) -> tuple[np.ndarra
     m = len(points_vox)
     base = np.floor(points_vox).astype(np.int64)
     corners = (base[:, None, :] + _CORNERS[None, :, :]).reshape(-1, 3)  # (m * 8, 3)
-    ratio = np.prod(1.0 - np.abs(np.repeat(points_vox, 8, axis=0) - corners), axis=1)
+    frac = points_vox - base
+    ratio = np.ones((m, 8))  # the trilinear weight of each corner: 1 - |point - corner| per axis
+    for axis in range(3):
+        ratio *= np.where(_CORNERS[:, axis] == 1, frac[:, axis, None], 1.0 - frac[:, axis, None])
     flat = _flat_at(storage, corners)
     observed = flat >= 0
     observed[observed] = storage.gather("weight", flat[observed]) > 0
-    hits = RayHits(np.zeros((m, 1), np.float32), flat.reshape(m, 1, 8), ratio.astype(np.float32).reshape(m, 1, 8),
+    hits = RayHits(np.zeros((m, 1), np.float32), flat.reshape(m, 1, 8), ratio.astype(np.float32)[:, None, :],
                    observed.reshape(m, 1, 8), storage.generation, b"")
     keys, conf = semantics_at_hits(storage, hits)
     return keys.reshape(m), conf.reshape(m)
