@@ -268,9 +268,8 @@ def cost(laps_n: int, lap: int, width: int, height: int, widths: list[int]) -> N
         for (view, w), scorer in scorers.items():
             t0 = time.perf_counter()
             K_s = frame.intrinsics.scaled(w, round(frame.intrinsics.height_px * w / frame.intrinsics.width_px))
-            if view == "probe":
-                depth_s = resize_nearest(frame.depth_m(), (K_s.height_px, K_s.width_px))
-                rendered = volume.probe(frame.T_world_cam, K_s, depth_s)
+            if view == "probe":  # the frame's depth at the scored size, converted as the scorer does
+                rendered = volume.probe(frame.T_world_cam, K_s, frame.depth_m((K_s.height_px, K_s.width_px)))
             else:
                 rendered = volume.render(frame.T_world_cam, K_s)
             t1 = time.perf_counter()
