@@ -24,6 +24,7 @@ from openfusion.services.semantic.service import SemanticConfig, SemanticService
 from openfusion.sources import open_source
 from openfusion.testing.bus import (
     ServiceThread,
+    frame_publisher,
     free_port,
     loopback_config,
     send_until_handled,
@@ -74,8 +75,8 @@ class Map:
         subscriber (geometry's): frame 0 never reached the semantic service now and then. So a
         warm-up frame (an id of its own, no instance image: skipped without being encoded, so it
         changes nothing a test counts) is sent until the semantic service has handled one."""
-        pubs = (Publisher(session, SENSOR_RGBD.key(self.keys), message=RgbdFrame),
-                Publisher(session, SENSOR_INSTANCE.key(self.keys), message=InstanceFrame))
+        pubs = (frame_publisher(session, SENSOR_RGBD.key(self.keys), RgbdFrame),
+                frame_publisher(session, SENSOR_INSTANCE.key(self.keys), InstanceFrame))
         for pub in pubs:
             wait_until(lambda pub=pub: pub.has_subscribers, timeout_s=60)
         if not self.warmed:

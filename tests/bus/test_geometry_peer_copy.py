@@ -27,12 +27,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from openfusion.bus import Publisher
 from openfusion.services.bridge.service import BridgeConfig, BridgeSection, BridgeService
 from openfusion.services.geometry import checkpoints, peer_copy
 from openfusion.services.geometry.service import GeometryConfig, GeometrySection, GeometryService
 from openfusion.sources import open_source
-from openfusion.testing.bus import LoopbackRouter, ServiceThread, send_until_handled, wait_until
+from openfusion.testing.bus import (
+    LoopbackRouter,
+    ServiceThread,
+    frame_publisher,
+    send_until_handled,
+    wait_until,
+)
 from openfusion.wire.counters import GeometryCounter
 from openfusion.wire.endpoints import SENSOR_RGBD
 from openfusion.wire.keys import ShardId
@@ -124,7 +129,7 @@ def test_frames_that_come_during_the_copy_are_held_and_taken_once_after_it(
     frames = [RgbdFrame.from_frame(f, with_instance=False, playback="no-replay", prev_frame_id=f.frame_id - 1)
               for f in open_source(f"{SOURCE},frames=12")]
     session = net.open_client()
-    pub = Publisher(session, SENSOR_RGBD.key(net.keys), message=RgbdFrame)
+    pub = frame_publisher(session, SENSOR_RGBD.key(net.keys), RgbdFrame)
     primary, p_thread = _geometry(net, tmp_path / "host1", 0)
     replica, r_thread = _geometry(net, tmp_path / "host2", 1)
     real_get = peer_copy.get
@@ -144,7 +149,9 @@ def test_frames_that_come_during_the_copy_are_held_and_taken_once_after_it(
             send_until_handled(lambda: pub.put(frames[0]), lambda: primary.frames_integrated >= 1, timeout_s=2.0)
             for msg in frames[1:6]:
                 pub.put(msg)
-            wait_until(lambda: primary.frames_integrated == 6, timeout_s=30)
+            wait_until(lambda: primary.frames_integrated == 6, timeout_s=30,
+                       describe=lambda: f"integrated {primary.frames_integrated}, last {primary.last_frame_id}, "
+                                        f"gap {p_thread.counter(GeometryCounter.FRAMES_GAP)}")
             monkeypatch.setattr(peer_copy, "get", get_during_copy)
             with r_thread:  # its start copies the checkpoint (frames 0-5); 6 and 7 come meanwhile
                 assert r_thread.counter(GeometryCounter.PEER_COPY_FRAME_ID) == frames[5].frame_id

@@ -32,6 +32,7 @@ from openfusion.sources import open_source
 from openfusion.testing.bus import (
     LoopbackRouter,
     ServiceThread,
+    frame_publisher,
     loopback_config,
     unique_map_id,
     wait_for_services,
@@ -123,8 +124,8 @@ def test_merges_reach_every_replica_and_survive_a_semantic_restart() -> None:
         try:
             keys = geo_cfg.keys
             # Declared before waiting for the services (their tokens come after their subscribers).
-            rgbd = Publisher(session, SENSOR_RGBD.key(keys), message=RgbdFrame)
-            instances = Publisher(session, SENSOR_INSTANCE.key(keys), message=InstanceFrame)
+            rgbd = frame_publisher(session, SENSOR_RGBD.key(keys), RgbdFrame)
+            instances = frame_publisher(session, SENSOR_INSTANCE.key(keys), InstanceFrame)
             first = SemanticService(sem_cfg, encoder=SplittingEncoder(split_on=[0]))
             with ServiceThread(first, sem_cfg, "semantic") as semantic:
                 wait_for_services(session, map_id, ["geometry", "semantic", "query"])
@@ -207,8 +208,8 @@ def test_a_lost_merge_delta_is_repaired_by_the_resync_and_a_save_merges_first(tm
         session = router.open_client()
         try:
             keys = geo_cfg.keys
-            rgbd = Publisher(session, SENSOR_RGBD.key(keys), message=RgbdFrame)
-            instances = Publisher(session, SENSOR_INSTANCE.key(keys), message=InstanceFrame)
+            rgbd = frame_publisher(session, SENSOR_RGBD.key(keys), RgbdFrame)
+            instances = frame_publisher(session, SENSOR_INSTANCE.key(keys), InstanceFrame)
             service = SemanticService(sem_cfg, encoder=SplittingEncoder(split_on=[0, 3]))
             with ServiceThread(service, sem_cfg, "semantic") as semantic:
                 wait_for_services(session, map_id, ["geometry", "semantic"])

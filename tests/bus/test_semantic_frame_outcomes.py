@@ -17,6 +17,7 @@ from openfusion.services.geometry.service import GeometryConfig, GeometryService
 from openfusion.services.semantic.service import SemanticConfig, SemanticService
 from openfusion.testing.bus import (
     ServiceThread,
+    frame_publisher,
     free_port,
     loopback_config,
     send_until_handled,
@@ -41,7 +42,7 @@ def _rig(stack: ExitStack, *, encoder, semantic_values: dict):  # noqa: ANN001, 
     session = open_session(loopback_config(map_id, connect=[port]))
     stack.callback(session.close)
     wait_for_services(session, map_id, ["semantic", "geometry"])
-    rgbd = Publisher(session, SENSOR_RGBD.key(sem_cfg.keys), message=RgbdFrame)
+    rgbd = frame_publisher(session, SENSOR_RGBD.key(sem_cfg.keys), RgbdFrame)
     wait_until(lambda: rgbd.has_subscribers, timeout_s=60)
     return semantic, rgbd, session, SENSOR_RGBD.key(sem_cfg.keys)
 

@@ -29,6 +29,7 @@ from openfusion.shard_client import reader_for
 from openfusion.sources import open_source
 from openfusion.testing.bus import (
     ServiceThread,
+    frame_publisher,
     free_port,
     loopback_config,
     send_until_handled,
@@ -98,7 +99,7 @@ def _rig(stack: ExitStack, *, encoder, semantic_values: dict, geometry: bool = T
     session = open_session(loopback_config(map_id, connect=[port]))
     stack.callback(session.close)
     wait_for_services(session, map_id, ["semantic", *(["geometry"] if geometry else [])])
-    rgbd = Publisher(session, SENSOR_RGBD.key(sem_cfg.keys), message=RgbdFrame)
+    rgbd = frame_publisher(session, SENSOR_RGBD.key(sem_cfg.keys), RgbdFrame)
     wait_until(lambda: rgbd.has_subscribers, timeout_s=60)
     return semantic, geo, rgbd, port, map_id
 

@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from openfusion.bus import Publisher, open_session
+from openfusion.bus import open_session
 from openfusion.services.geometry.service import GeometryConfig, GeometryService
 from openfusion.services.semantic.service import SemanticConfig, SemanticService
 from openfusion.sources import open_source
 from openfusion.testing.bus import (
     ServiceThread,
+    frame_publisher,
     free_port,
     loopback_config,
     send_until_handled,
@@ -47,8 +48,8 @@ def test_semantic_service_counts_failed_and_empty_frames_and_keeps_going() -> No
         session = open_session(loopback_config(map_id, connect=[port]))
         try:
             keys = geo_cfg.keys
-            rgbd = Publisher(session, SENSOR_RGBD.key(keys), message=RgbdFrame)
-            instances = Publisher(session, SENSOR_INSTANCE.key(keys), message=InstanceFrame)
+            rgbd = frame_publisher(session, SENSOR_RGBD.key(keys), RgbdFrame)
+            instances = frame_publisher(session, SENSOR_INSTANCE.key(keys), InstanceFrame)
             # Both services' tokens are declared after their subscribers: once seen, frames reach both.
             wait_for_services(session, map_id, ["geometry", "semantic"])
             wait_until(lambda: rgbd.has_subscribers and instances.has_subscribers, timeout_s=60)

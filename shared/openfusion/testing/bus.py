@@ -27,7 +27,14 @@ from typing import Any
 
 import zenoh
 
-from openfusion.bus import ServiceRunner, ServiceStats, free_loopback_port, live_services, open_session
+from openfusion.bus import (
+    Publisher,
+    ServiceRunner,
+    ServiceStats,
+    free_loopback_port,
+    live_services,
+    open_session,
+)
 from openfusion.config import ServiceConfig
 
 #: Multiplies every deadline of these helpers (set it > 1 on a very slow machine).
@@ -145,6 +152,13 @@ def wait_until(predicate: Callable[[], Any], *, timeout_s: float = 60.0, interva
                 + (f"; {describe()}" if describe is not None else "")
             )
         time.sleep(interval_s)
+
+
+def frame_publisher(session: zenoh.Session, key: str, message: type) -> Publisher:
+    """A test's publisher of sensor frames, blocking as a playback bridge's is: Zenoh's default
+    drops a put when its queue is full, and a burst of frames on a loaded CI box once lost one
+    before any service saw it (the test then waited for a frame that never came)."""
+    return Publisher(session, key, message=message, congestion_control=zenoh.CongestionControl.BLOCK)
 
 
 def send_until_handled(send: Callable[[], Any], handled: Callable[[], Any], *, attempts: int = 10,
