@@ -13,7 +13,7 @@ import pytest
 
 from openfusion.frame import CameraIntrinsics
 from openfusion.mapping import SemanticVolume, VolumeParams
-from openfusion.mapping.storage import VoxelStorage, flat_voxel_index
+from openfusion.mapping.storage import VoxelStorage, flat_voxel_index, split_voxel_coords
 from openfusion.poses import look_at
 from openfusion.testing.analytic_scene import AnalyticScene, Box, Room
 
@@ -95,3 +95,14 @@ def test_relabel_touches_only_the_voxels_of_the_old_keys() -> None:
     arrays = local.to_arrays()
     assert (arrays["conf"][arrays["key"] < 0] == 0).all()
     assert local.relabel_keys({42: 1}) == 0
+
+
+@pytest.mark.parametrize("res", [8, 6])
+def test_voxel_coordinates_split_into_block_and_voxel_as_floor_division(res: int) -> None:
+    """Negative coordinates too (the shifts of a power-of-two block must floor, not truncate), and a
+    block side that is not a power of two."""
+    voxel = np.random.default_rng(res).integers(-40, 40, (500, 3)).astype(np.int64)
+    block, local = split_voxel_coords(voxel, res)
+    np.testing.assert_array_equal(block, np.floor_divide(voxel, res))
+    np.testing.assert_array_equal(local, np.mod(voxel, res))
+    assert ((local >= 0) & (local < res)).all()

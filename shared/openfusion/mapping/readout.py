@@ -19,7 +19,7 @@ import open3d as o3d
 import open3d.core as o3c
 from scipy.spatial import cKDTree
 
-from openfusion.mapping.storage import VoxelStorage, flat_voxel_index
+from openfusion.mapping.storage import VoxelStorage, flat_voxel_index, split_voxel_coords
 
 FILL_MIN_NORMAL_COS = 0.5  # a fill source must face within 60 degrees of the point it labels
 _FILL_CANDIDATES = 8
@@ -153,8 +153,7 @@ def semantics_at_points(
         for dy in (0, 1):
             for dz in (0, 1):
                 gv = base + np.array([dx, dy, dz], np.int64)
-                block = np.floor_divide(gv, res)
-                local = gv - block * res
+                block, local = split_voxel_coords(gv, res)
                 buf = lookup.find(block)
                 ok = np.flatnonzero(buf >= 0)
                 if len(ok) == 0:

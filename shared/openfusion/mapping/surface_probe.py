@@ -44,7 +44,7 @@ import numpy as np
 
 from openfusion.frame import CameraIntrinsics
 from openfusion.mapping.raycast import RayHits, semantics_at_hits
-from openfusion.mapping.storage import VoxelStorage, flat_voxel_index
+from openfusion.mapping.storage import VoxelStorage, flat_voxel_index, split_voxel_coords
 
 #: The second search, for pixels without a map surface within one truncation distance of their
 #: depth, reaches this many truncation distances (measured on a bench room: 2.5 % of the surface
@@ -130,12 +130,7 @@ def _flat_at(storage: VoxelStorage, grid: np.ndarray) -> np.ndarray:
     its block is not resident. Every row is indexed, then the absent ones masked: picking the
     resident rows of the (N, 3) coordinates first cost a third of a probe's time."""
     res = storage.params.block_resolution
-    if res & (res - 1) == 0:  # a power of two (8, the default): the same floor division as shifts
-        shift = res.bit_length() - 1
-        block, local = grid >> shift, grid & (res - 1)
-    else:
-        block = np.floor_divide(grid, res)
-        local = grid - block * res
+    block, local = split_voxel_coords(grid, res)
     buf = storage.find_blocks(block)
     flat = flat_voxel_index(buf, local, res)
     flat[buf < 0] = -1
