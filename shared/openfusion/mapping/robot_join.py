@@ -51,7 +51,6 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 from scipy.ndimage import binary_dilation
-from scipy.signal import fftconvolve
 from scipy.spatial import cKDTree
 
 from openfusion.frame import CameraIntrinsics, Frame, resize_nearest
@@ -237,6 +236,10 @@ def _search(source: o3d.geometry.PointCloud, target: o3d.geometry.PointCloud,
     shape = tuple(int(n) for n in np.ceil((tgt[:, :2].max(axis=0) + cell_m - origin) / cell_m)) + (0,)
     target_grid = binary_dilation(_occupancy(tgt[:, :2], origin, shape[:2], cell_m)).astype(np.float32)
     centre = src.mean(axis=0)
+    # scipy.signal is imported here, not at the top: it pulls in scipy.stats (0.6 s), and every
+    # geometry process imports this module at start while few ever search without a guess.
+    from scipy.signal import fftconvolve
+
     dz = _z_offset(source, target, cell_m)
     found = []
     for yaw in np.arange(0.0, 360.0, YAW_STEP_DEG):
