@@ -221,6 +221,40 @@ def test_merges_carry_a_regions_coverage_to_the_surviving_region() -> None:
     assert scorer.regions_recorded == 0
 
 
+def test_a_held_floor_scored_at_32_px_is_not_new_to_the_next_frames() -> None:
+    """A chosen view waiting for a busy encoder (held) marks its unsure surface at 192 px or more,
+    whatever width it is scored at: a floor 1.5 m below a 640x480 camera, scored at 32 px and held;
+    the next frames, 3 and 7 cm further on (the map still unlabelled, as in the services before
+    the labels come), show at most 0.2 of their view as new (measured 0.125 / 0.133, as at 64 px:
+    0.127 / 0.088). Marks at 3x the score (96 px) left holes between far floor rows: 0.335 / 0.384,
+    and the services chose 71 of 90 frames instead of 52."""
+    full = CameraIntrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)
+    scorer = CoverageScorer(SelectParams(select_width_px=32, select_patience_s=None))
+    h, w = scoring_size(full, 32)
+
+    def floor_view(x_m: float, frame_id: int):  # noqa: ANN202
+        T = look_at(np.array([x_m, 0.0, 1.5]), np.array([x_m + 4.0, 0.0, 0.0]), up=np.array([0.0, 0.0, 1.0]))
+
+        def depth(k: CameraIntrinsics) -> np.ndarray:  # the floor plane z = 0 along each pixel's ray
+            u, v = np.meshgrid(np.arange(k.width_px), np.arange(k.height_px))
+            dz = (np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones(u.shape)], -1) @ T[:3, :3].T)[..., 2]
+            t = -T[2, 3] / np.where(dz < -1e-6, dz, np.nan)
+            return np.where((t > 0) & (t < 6.0), t, 0.0).astype(np.float32)
+
+        small = full.scaled(w, h)
+        return scorer.prepare(frame_id=frame_id, stamp_ns=frame_id * 10**8, T_world_cam=T, intrinsics=small,
+                              depth_m=depth(small), key_map=np.full((h, w), -1, np.int32),
+                              conf_map=np.zeros((h, w), np.float32), full_depth_m=depth(full), full_intrinsics=full)
+
+    chosen = floor_view(0.0, 0)
+    assert chosen.mark_depth_m is not None and chosen.mark_depth_m.shape[1] >= 192
+    first = scorer.score(chosen)  # all of its floor (0.6 of the view: the rest is past 6 m) is new
+    assert first.new_surface == pytest.approx(first.surface) and first.surface > 0.5
+    scorer.hold(chosen)
+    for frame_id, x_m in ((1, 0.03), (2, 0.07)):
+        assert scorer.score(floor_view(x_m, frame_id)).new_surface <= 0.2
+
+
 def test_prepare_refuses_maps_of_another_size() -> None:
     scorer = CoverageScorer(params())
     with pytest.raises(ValueError, match=r"key_map is \(6, 8\), the scored view is \(12, 16\)"):

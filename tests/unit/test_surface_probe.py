@@ -101,13 +101,12 @@ def test_bad_depth_is_refused_or_read_as_no_depth(volume: SemanticVolume) -> Non
     assert (keys < 0).all() and (conf == 0).all() and (surface == 0).all()
 
 
-def test_a_candidate_is_probed_only_on_a_map_larger_than_select_probe_blocks(volume: SemanticVolume) -> None:
-    """``select_view``: auto renders a candidate while the map is small (the render reads it a hair
-    better, docs/EVAL.md) and probes it above ``select_probe_blocks``; render and probe always do
-    what they say."""
+def test_select_view_probes_renders_or_chooses_by_the_maps_size(volume: SemanticVolume) -> None:
+    """``select_view``: probe (the default) always probes; auto renders a candidate while the map
+    is small and probes it above ``select_probe_blocks``; render always renders."""
     f, n = FRAMES[7], volume.num_blocks
-    assert SelectParams().probe_above_blocks == SelectParams().select_probe_blocks
-    assert SelectParams(select_view="probe").probe_above_blocks == 0
+    assert SelectParams(select_view="auto").probe_above_blocks == SelectParams().select_probe_blocks
+    assert SelectParams().probe_above_blocks == SelectParams(select_view="probe").probe_above_blocks == 0
     assert SelectParams(select_view="render").probe_above_blocks is None
     for above, probed in ((n, False), (n - 1, True), (0, True), (None, False)):
         view = volume.candidate_view(f.T_world_cam, K, _depth(f), above)

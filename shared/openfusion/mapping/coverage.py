@@ -55,8 +55,9 @@ Why these rules and defaults (measured in docs/EVAL.md, "Frame selection")
     directions of known regions at half weight (a second view of a labelled surface refines
     its embedding and its borders but is worth less than a first one), and staleness as a floor.
     The bins are coarse (24, about 47 degrees across): finer bins made a robot's small turns look
-    new. The view is scored at 64 px wide (a region of 0.5 % of the view is still 15 pixels): a
-    render, or on a large map a probe at the frame's depth (``select_view``, :mod:`.surface_probe`).
+    new. The view is the map's keys probed at the frame's own depth, 32 px wide (``select_view``,
+    :mod:`.surface_probe`): at 64 px, or ray-cast, the bench rooms map the same per encoder call
+    at 2-3 times the scoring cost (docs/EVAL.md, "Scored at 32 px").
 
 What is remembered (the scorer's state; it grows with the mapped surface, not with time)
     per region: a bit mask of the direction bins it was encoded from and the stamp of its last
@@ -65,12 +66,9 @@ What is remembered (the scorer's state; it grows with the mapped surface, not wi
     service starts with an empty record: every labelled region looks unseen from every direction
     once, so the first views after a restart are encoded again (the map itself is recovered).
 
-Cost: :meth:`CoverageScorer.prepare` is numpy over the scored view's pixels (~0.3 ms at 64x48); a
-rescore (:meth:`CoverageScorer.score`) ~0.1 ms; the map's view at the candidate's pose is the
-caller's (``SemanticVolume.probe`` or ``render``, a ``geometry/render`` request) and dominates.
-
-Written here rather than taken from a library: no library scores views against a semantic map;
-the pieces are numpy.
+Cost: :meth:`CoverageScorer.prepare` is numpy over the scored pixels (~0.3 ms at 64x48); a rescore
+~0.1 ms; the map's view (``SemanticVolume.probe`` or ``render``, or a ``geometry/render`` request)
+dominates. Written here, not taken from a library: none scores views against a semantic map.
 """
 
 from __future__ import annotations
@@ -90,17 +88,24 @@ from openfusion.mapping.map_clock import MapClock
 from openfusion.mapping.params import SelectParams
 from openfusion.mapping.still_views import StillViews
 
-#: A chosen view marks the surface it shows sampled this many times denser (per side) than it is
-#: scored: at 64 px wide a scored pixel of a wall 4.7 m away is 9 cm across, about a cube, and
-#: the cubes between the scored pixels' samples were counted as never shown in the next frame
-#: (measured: 4-10 % of every view looked new right after an encoded frame).
+#: A chosen view marks the surface it shows sampled MARK_DENSITY times denser (per side) than it is
+#: scored, and at least MARK_MIN_WIDTH_PX wide: the cubes between sparser samples counted as never
+#: shown in the next frame (4-10 % of every view looked new right after an encoded frame). The floor
+#: is because those holes are in metres, not scored pixels: a 32 px score marked at 96 px left holes
+#: in the floor, and the services (whose next candidates see the map before the chosen frame's labels
+#: are in) chose 71 of 90 frames instead of 52 on the bench scene (docs/EVAL.md, "Scored at 32 px").
 MARK_DENSITY = 3
+MARK_MIN_WIDTH_PX = 192
+
+
+def mark_width_px(scored_width_px: int) -> int:
+    """Width of the sample a chosen view marks as shown (:data:`MARK_DENSITY`, :data:`MARK_MIN_WIDTH_PX`)."""
+    return max(MARK_MIN_WIDTH_PX, MARK_DENSITY * int(scored_width_px))
 
 #: Frame times of chosen views kept for the patience rule (:meth:`CoverageScorer.min_gain_at`).
 SELECTED_KEPT = 1024
 
-#: Cell coordinates are packed into one int64: 21 bits per axis around 0 (+-1,048,576 cells; at
-#: 0.1 m cells +-100 km).
+#: Cell coordinates are packed into one int64: 21 bits per axis around 0 (at 0.1 m cells +-100 km).
 _CELL_BITS = 21
 _CELL_OFFSET = 1 << (_CELL_BITS - 1)
 _CELL_MASK = (1 << _CELL_BITS) - 1
@@ -147,8 +152,7 @@ class ViewEvidence:
     #: per distinct confident key in view (sorted, as ``np.unique``): its embedding is settled (enough
     #: views that agree, :attr:`CoverageScorer.embedding_support`, read when prepared); None: not asked
     settled: np.ndarray | None = field(default=None, repr=False)
-    # For marking a chosen view (:meth:`CoverageScorer.mark_selected`): the frame's depth sampled
-    # MARK_DENSITY times denser than the score, and that grid's camera (None: the scored pixels are marked)
+    # marking a chosen view: its depth sampled at mark_width_px and that grid's camera (None: scored pixels)
     mark_depth_m: np.ndarray | None = field(default=None, repr=False)
     mark_intrinsics: CameraIntrinsics | None = None
     T_world_cam: np.ndarray | None = field(default=None, repr=False)
@@ -214,8 +218,7 @@ class CoverageScorer:
         with self._lock:
             return len(self._cell_tries[0])
 
-    def record_bytes(self) -> int:
-        """Rough memory of the record (python dict entries of two ints, ~100 B each)."""
+    def record_bytes(self) -> int:  # rough: python dict entries of two ints, ~100 B each
         with self._lock:
             return 100 * (sum(len(t) for t in self._cell_tries) + 3 * len(self._region_bins))
 
@@ -302,8 +305,8 @@ class CoverageScorer:
         """The evidence of one view: ``intrinsics`` of the scored view (:func:`scoring_size`),
         the frame's depth in metres at that size, and the map's key and confidence maps rendered at
         the frame's pose at that size. ``full_depth_m`` with its ``full_intrinsics`` (the frame's
-        own): what the view marks as shown when it is chosen is sampled from it, :data:`MARK_DENSITY`
-        times denser than the score (a cube the scored pixels step over is shown all the same); only
+        own): what the view marks as shown when it is chosen is sampled from it, :func:`mark_width_px`
+        (denser than the score) (a cube the scored pixels step over is shown all the same); only
         that sample is kept. Raises ValueError when the sizes disagree."""
         h, w = intrinsics.height_px, intrinsics.width_px
         for name, arr in (("depth_m", depth_m), ("key_map", key_map), ("conf_map", conf_map)):
@@ -330,14 +333,14 @@ class CoverageScorer:
             ev.settled = ((np.asarray(count) >= self.params.select_embed_min_views)
                           & (np.asarray(agreement) >= self.params.select_embed_min_agreement))
         if full_depth_m is not None and full_intrinsics is not None:
-            mh, mw = scoring_size(full_intrinsics, MARK_DENSITY * w)
+            mh, mw = scoring_size(full_intrinsics, mark_width_px(w))
             ev.mark_depth_m = np.asarray(resize_nearest(np.asarray(full_depth_m), (mh, mw)), np.float32)
             ev.mark_intrinsics = full_intrinsics.scaled(mw, mh)
         return ev
 
     def _marks(self, ev: ViewEvidence) -> tuple[np.ndarray, np.ndarray]:
         """(cubes, bins) a chosen view marks as shown: its unsure surface (the rest is labelled and
-        never looked up), sampled :data:`MARK_DENSITY` times denser than it was scored."""
+        never looked up), sampled denser than it was scored (:func:`mark_width_px`)."""
         unsure = ~ev.confident
         if ev.mark_depth_m is None or ev.mark_intrinsics is None or ev.unsure_px is None or ev.T_world_cam is None:
             return ev.cells[unsure], ev.bins[unsure]
@@ -360,7 +363,7 @@ class CoverageScorer:
         reuses its last render (:mod:`openfusion.mapping.still_views`); None: always rendered."""
         h, w = scoring_size(frame.intrinsics, self.params.select_width_px)
         K = frame.intrinsics.scaled(w, h)
-        mh, mw = scoring_size(frame.intrinsics, MARK_DENSITY * w)
+        mh, mw = scoring_size(frame.intrinsics, mark_width_px(w))
         depth_small, depth_mark = frame.depth_m((h, w)), frame.depth_m((mh, mw))
         look = render if self.params.select_view == "render" else lambda T, K: render(T, K, depth_small)
         rendered = self.still.render(look, robot, frame.T_world_cam, K, depth_small, frame.stamp_ns / 1e9,
@@ -500,13 +503,10 @@ class CoverageScorer:
     # ------------------------------------------------------------------ views chosen, not encoded yet
     def hold(self, ev: ViewEvidence) -> None:
         """A chosen view waits for the encoder: until :meth:`release`, the unsure surface it shows
-        counts as shown ``select_tries`` times from its bins (new to no other view). One process
-        encodes a chosen frame before it scores the next, which then sees the frame's labels; a
-        window of chosen frames waiting for a busy encoder shows the next frames the same surface
-        still unlabelled, and without the hold they chose it again and again (84 of 90 frames chosen
-        on the bench scene through the services, against 50 in one process), and a full window let
-        frames go that one process would have encoded. Released, the surface counts as it then is:
-        labelled where the encoder labelled it, a second try where it did not."""
+        counts as shown ``select_tries`` times from its bins. One process encodes a chosen frame
+        before it scores the next; behind a busy encoder the next frames see the same surface still
+        unlabelled, and without the hold chose it again and again (84 of 90 frames on the bench
+        scene, against 50 in one process). Released, the surface counts as it then is."""
         cells, bins = self._marks(ev)
         with self._lock:
             self._held.add((ev.robot, ev.frame_id, ev.stamp_s), cells, bins)

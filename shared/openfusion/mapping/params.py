@@ -337,15 +337,18 @@ class SelectParams(SectionParams):
         "640x480 frame with its instance image). 64 holds a first sweep's backlog behind a 150 ms encoder (2 s at "
         "30 fps); 32 let 1-11 chosen frames go on the 90-frame bench scene")
     select_width_px: int = Field(
-        64, ge=8, le=640, description="coverage: width of the view a candidate is scored at (height from the "
-        "frame's aspect ratio); the render of the map at that size is the scoring's main cost")
+        32, ge=8, le=640, description="coverage: width of the view a candidate is scored at (height from the "
+        "frame's aspect ratio); reading the map's view at that size is the scoring's main cost. 32 px probed maps "
+        "the bench rooms as well per encoder call as 64 px ray-cast, at a third of the scoring time (docs/EVAL.md, "
+        "'Scored at 32 px')")
     select_view: Literal["auto", "probe", "render"] = Field(
-        "auto", description="coverage: how a candidate's view of the map is read. render: a ray cast of the map at "
-        "the candidate's pose, whose cost grows with the blocks the map holds (Open3D's CPU ray cast copies its "
-        "block hash map per call: 11 ms at 2,000 blocks, 45-76 ms at 67,000-90,000 on a 2-core box); probe: the "
-        "map's region keys at the surface the frame's own depth sees, a few lookups per scored pixel whatever the "
-        "map's size (openfusion.mapping.surface_probe; on the bench rooms 0.001-0.003 f-mIoU under the render at the "
-        "same calls); auto: render while the map holds at most select_probe_blocks blocks, probe above")
+        "probe", description="coverage: how a candidate's view of the map is read. probe: the map's region keys at "
+        "the surface the frame's own depth sees, a few lookups per scored pixel whatever the map's size "
+        "(openfusion.mapping.surface_probe); render: a ray cast of the map at the candidate's pose, whose cost grows "
+        "with the blocks the map holds (Open3D's CPU ray cast copies its block hash map per call: 11 ms at 2,000 "
+        "blocks, 45-76 ms at 67,000-90,000 on a 2-core box; at 64 px on the bench rooms 0.001-0.003 f-mIoU over a "
+        "64 px probe at the same calls); auto: render while the map holds at most select_probe_blocks blocks, "
+        "probe above")
     select_probe_blocks: int = Field(
         20000, ge=0, description="coverage, select_view=auto: the map's blocks (a geometry shard's own) above which "
         "a candidate is probed instead of rendered (20,000 blocks of 8^3 voxels at 2 cm: two furnished rooms; a "
