@@ -305,9 +305,9 @@ class CoverageScorer:
         """The evidence of one view: ``intrinsics`` of the scored view (:func:`scoring_size`),
         the frame's depth in metres at that size, and the map's key and confidence maps rendered at
         the frame's pose at that size. ``full_depth_m`` with its ``full_intrinsics`` (the frame's
-        own): what the view marks as shown when it is chosen is sampled from it, :func:`mark_width_px`
-        (denser than the score) (a cube the scored pixels step over is shown all the same); only
-        that sample is kept. Raises ValueError when the sizes disagree."""
+        own): what the view marks as shown when it is chosen is sampled from it at
+        :func:`mark_width_px`, denser than the score (a cube the scored pixels step over is shown
+        all the same); only that sample is kept. Raises ValueError when the sizes disagree."""
         h, w = intrinsics.height_px, intrinsics.width_px
         for name, arr in (("depth_m", depth_m), ("key_map", key_map), ("conf_map", conf_map)):
             if np.shape(arr) != (h, w):
