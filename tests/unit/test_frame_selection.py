@@ -28,6 +28,7 @@ from openfusion.mapping.selection import (
 )
 from openfusion.poses import look_at
 from openfusion.sources import open_source
+from openfusion.testing.analytic_scene import AnalyticScene, Room
 from openfusion.testing.encoders import FlakyEncoder
 
 W, H = 16, 12
@@ -232,14 +233,14 @@ def test_a_held_floor_scored_at_32_px_is_not_new_to_the_next_frames() -> None:
     scorer = CoverageScorer(SelectParams(select_width_px=32, select_patience_s=None))
     h, w = scoring_size(full, 32)
 
-    def floor_view(x_m: float, frame_id: int):  # noqa: ANN202
-        T = look_at(np.array([x_m, 0.0, 1.5]), np.array([x_m + 4.0, 0.0, 0.0]), up=np.array([0.0, 0.0, 1.0]))
+    hall = AnalyticScene(room=Room(size_m=(30.0, 20.0, 10.0)))  # only its floor lies within 6 m
 
-        def depth(k: CameraIntrinsics) -> np.ndarray:  # the floor plane z = 0 along each pixel's ray
-            u, v = np.meshgrid(np.arange(k.width_px), np.arange(k.height_px))
-            dz = (np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones(u.shape)], -1) @ T[:3, :3].T)[..., 2]
-            t = -T[2, 3] / np.where(dz < -1e-6, dz, np.nan)
-            return np.where((t > 0) & (t < 6.0), t, 0.0).astype(np.float32)
+    def floor_view(x_m: float, frame_id: int):  # noqa: ANN202
+        T = look_at(np.array([2.0 + x_m, 10.0, 1.5]), np.array([6.0 + x_m, 10.0, 0.0]), up=np.array([0.0, 0.0, 1.0]))
+
+        def depth(k: CameraIntrinsics) -> np.ndarray:
+            d = hall.render(T, k)[0]
+            return np.where(d < 6.0, d, 0.0).astype(np.float32)
 
         small = full.scaled(w, h)
         return scorer.prepare(frame_id=frame_id, stamp_ns=frame_id * 10**8, T_world_cam=T, intrinsics=small,
