@@ -307,7 +307,9 @@ def cost(laps_n: int, lap: int, width: int, height: int, widths: list[int]) -> N
 def render_growth(frames_n: int, width: int, height: int, sizes: list[int]) -> None:
     """What a render of the map costs as the map grows: the synthetic building's walk integrated
     into one volume, and after each of ``sizes`` frames the render at the scored size (64 px wide)
-    and at the semantic step's 160x120, from the poses of the last frames, CPU time per render;
+    and at the semantic step's 160x120, from the poses of the last frames, CPU time per render (and
+    per probe at the frame's own depth, at both sizes: what the scorer and, past
+    ``step_probe_blocks``, the semantic step read instead);
     Open3D's ``ray_cast`` given only 50 blocks (the floor of a call); and the same 50 blocks cast in
     a grid of the same capacity that holds only them (what a call would cost if it followed the
     blocks it is given). Ratios against the first row.
@@ -326,8 +328,8 @@ def render_growth(frames_n: int, width: int, height: int, sizes: list[int]) -> N
     print()
     print("| frames integrated | resident blocks | 64 px render ms | × first | 160x120 render ms | × first | "
           "ray cast of 50 blocks ms | × first | the 50 blocks alone in a grid ms | × first | 64 px probe ms | × first | "
-          "probe / 64 px render |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "probe / 64 px render | 160x120 probe ms | × first | 160x120 probe / render |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     first: list[float] = []
     done = 0
     for target in sorted(n for n in sizes if n <= len(frames)):
@@ -355,19 +357,22 @@ def render_growth(frames_n: int, width: int, height: int, sizes: list[int]) -> N
                 t0 = time.process_time()
                 raycast._cast(target_storage, coords[:50], frame.T_world_cam, K, volume._intrinsic_tensor(K))  # noqa: SLF001
                 out.append((time.process_time() - t0) * 1e3)
-        probe_ms = []
-        for frame in recent:  # timed as the renders are: a call before, outside the timing
-            K = frame.intrinsics.scaled(*scoring_size(frame.intrinsics, 64)[::-1])
-            depth_small = resize_nearest(frame.depth_m(), (K.height_px, K.width_px))
-            volume.probe(frame.T_world_cam, K, depth_small)
-            t0 = time.process_time()
-            volume.probe(frame.T_world_cam, K, depth_small)
-            probe_ms.append((time.process_time() - t0) * 1e3)
-        row += [float(np.median(ms)), float(np.median(alone_ms)), float(np.median(probe_ms))]
+        row += [float(np.median(ms)), float(np.median(alone_ms))]
+        for w in (64, 160):  # the scorer's probe and the semantic step's (MatchParams.step_probe_blocks)
+            probe_ms = []
+            for frame in recent:  # timed as the renders are: a call before, outside the timing
+                K = frame.intrinsics.scaled(*scoring_size(frame.intrinsics, w)[::-1])
+                depth_small = resize_nearest(frame.depth_m(), (K.height_px, K.width_px))
+                volume.probe(frame.T_world_cam, K, depth_small)
+                t0 = time.process_time()
+                volume.probe(frame.T_world_cam, K, depth_small)
+                probe_ms.append((time.process_time() - t0) * 1e3)
+            row.append(float(np.median(probe_ms)))
         first = first or row
         print(f"| {target} | {volume.num_blocks} | {row[0]:.1f} | {row[0] / first[0]:.2f} | {row[1]:.1f} | "
               f"{row[1] / first[1]:.2f} | {row[2]:.1f} | {row[2] / first[2]:.2f} | {row[3]:.1f} | "
-              f"{row[3] / first[3]:.2f} | {row[4]:.1f} | {row[4] / first[4]:.2f} | {row[4] / row[0]:.2f} |", flush=True)
+              f"{row[3] / first[3]:.2f} | {row[4]:.1f} | {row[4] / first[4]:.2f} | {row[4] / row[0]:.2f} | "
+              f"{row[5]:.1f} | {row[5] / first[5]:.2f} | {row[5] / row[1]:.2f} |", flush=True)
     print()
     print("Open3D's CPU ray cast costs in proportion to the blocks the grid holds, whatever blocks it is given "
           "(the 50-block column; the same 50 blocks alone in a grid of the same capacity grow only with that "

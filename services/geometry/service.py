@@ -332,18 +332,20 @@ class GeometryService(FrameIntake, MapPersistence, DictionaryFollower, PeerCopy)
         with self._lock:
             started = time.monotonic()  # the view's own time, not the wait for an integration to end
             T_map_cam = self._map_pose(req.robot, req.T_world_cam)
-            if req.probe_depth_m is not None:  # a candidate's view: probed near its own depth on a large map
+            if req.probe_depth_m is not None:  # with the frame's depth: probed near it on a large map
                 view = self.volume.candidate_view(T_map_cam, req.intrinsics, req.probe_depth_m, req.probe_above_blocks)
             else:
                 view = self.volume.render(T_map_cam, req.intrinsics)
-                # The semantic service's update for this frame comes next, at the same pose and size:
-                # it writes through these ray hits instead of casting again (the volume checks the
-                # pose, the size and that the grid's buffers have not moved since).
+            if req.after_update_source:
+                # A semantic step's view (a candidate's names no update): the update for this frame
+                # comes next, at the same pose and size, and writes through these hits instead of
+                # casting again (the volume checks the pose, the size and that the grid's buffers
+                # have not moved since).
                 self._recent_renders[(req.robot, req.frame_id)] = view
                 while len(self._recent_renders) > RECENT_RENDERS:
                     self._recent_renders.popitem(last=False)
             busy_s = time.monotonic() - started
-        probed = view.hits is None
+        probed = view.probed
         self._count(GeometryCounter.PROBES if probed else GeometryCounter.RENDERS)
         self._count(GeometryCounter.PROBE_BUSY_S if probed else GeometryCounter.RENDER_BUSY_S, busy_s)
         return RenderReply(frame_id=req.frame_id, key_map=view.key_map, conf_map=view.conf_map, depth_m=view.depth_m,

@@ -242,12 +242,15 @@ class SemanticService:
                 and not self._integrated.wait(robot, frame.stamp_ns, self.section.integrate_wait_s)):
             runner.stats.incr(SemanticCounter.INTEGRATE_WAIT_TIMEOUTS)
         # ... and has applied the update sent before it (that frame's labels: matched, not made again)
+        # With the frame's depth, geometry probes it on a large map instead of ray-casting (step_probe_blocks)
+        depth_m = resize_nearest(frame.depth_m(), (h, w)).astype(np.float32)
+        probe_above = self.match_params.step_probe_blocks
         request = RenderRequest(frame_id=frame.frame_id, T_world_cam=frame.T_world_cam, robot=robot,
                                 after_update_source=self._update_source, after_update_seq=self._updates_sent,
-                                **RenderRequest.intrinsics_fields(K_small))
+                                probe_depth_m=None if probe_above is None else depth_m,
+                                probe_above_blocks=probe_above or 0, **RenderRequest.intrinsics_fields(K_small))
         reply = self._step_render(runner, request)
         rendered = RenderedView(key_map=reply.key_map, conf_map=reply.conf_map, depth_m=reply.depth_m)
-        depth_m = resize_nearest(frame.depth_m(), (h, w)).astype(np.float32)
         assert self._update_pub is not None and self._delta_pub is not None
         with self._dictionary_lock:
             prev_version = self.dictionary.version

@@ -97,8 +97,8 @@ def test_bad_depth_is_refused_or_read_as_no_depth(volume: SemanticVolume) -> Non
     good = volume.probe(f.T_world_cam, K, depth)
     np.testing.assert_array_equal(view.key_map[3:], good.key_map[3:])
     empty = SemanticVolume(VolumeParams())
-    keys, conf, surface = probe_view(empty._storage, f.T_world_cam, K, depth)  # noqa: SLF001
-    assert (keys < 0).all() and (conf == 0).all() and (surface == 0).all()
+    keys, conf, hits = probe_view(empty._storage, f.T_world_cam, K, depth)  # noqa: SLF001
+    assert (keys < 0).all() and (conf == 0).all() and (hits.depth_m == 0).all() and not hits.mask.any()
 
 
 def test_select_view_probes_renders_or_chooses_by_the_maps_size(volume: SemanticVolume) -> None:
@@ -110,4 +110,4 @@ def test_select_view_probes_renders_or_chooses_by_the_maps_size(volume: Semantic
     assert SelectParams(select_view="render").probe_above_blocks is None
     for above, probed in ((n, False), (n - 1, True), (0, True), (None, False)):
         view = volume.candidate_view(f.T_world_cam, K, _depth(f), above)
-        assert (view.hits is None) == probed, above
+        assert view.probed == probed, above

@@ -3,6 +3,9 @@
 The services run the same pieces on different machines: geometry renders and applies updates
 (``SemanticVolume.render`` / ``apply_update``), semantic plans and owns the dictionary
 (``plan_update``). :class:`SemanticMapper` chains them for the in-process pipeline and tests.
+The view of the map a step matches against is a ray cast, or, given the frame's depth on a map of
+more than ``MatchParams.step_probe_blocks`` blocks, a probe at that depth (the same images and
+voxels, at a cost that does not grow with the map: :mod:`openfusion.mapping.surface_probe`).
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from openfusion.frame import CameraIntrinsics
+from openfusion.frame import CameraIntrinsics, resize_nearest
 from openfusion.mapping.dictionary import RegionDictionary
 from openfusion.mapping.matching import PlannedUpdate, plan_update
 from openfusion.mapping.params import MatchParams
@@ -75,7 +78,11 @@ class SemanticMapper:
             intrinsics if (intrinsics.width_px, intrinsics.height_px) == (w, h) else intrinsics.scaled(w, h)
         )
         t0 = time.perf_counter()
-        rendered = self.volume.render(T_world_cam, intr)
+        if depth_m is None:
+            rendered = self.volume.render(T_world_cam, intr)
+        else:  # probed at its own depth on a large map (MatchParams.step_probe_blocks), else rendered
+            depth_small = resize_nearest(np.asarray(depth_m, np.float32), (h, w))
+            rendered = self.volume.candidate_view(T_world_cam, intr, depth_small, self.params.step_probe_blocks)
         t1 = time.perf_counter()
         plan = plan_update(obs, rendered, self.dictionary, self.params)
         t2 = time.perf_counter()

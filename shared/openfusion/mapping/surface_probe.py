@@ -25,13 +25,16 @@ is. Per pixel of the scored view with a valid depth ``z``:
    probe and a render name the same voxels where they find the same surface.
 
 The result is the same three images a render gives (key, confidence, depth of the surface found),
-so it composites across geometry shards as renders do (nearest depth). It costs two block-hash
+so it composites across geometry shards as renders do (nearest depth), and the same hits (the 8
+voxels around each pixel's surface point), so an update of that view writes through them as
+through a render's: past ``MatchParams.step_probe_blocks`` the semantic step reads an encoded
+frame's view this way too (docs/EVAL.md, "The step's view on a large map"). It costs two block-hash
 lookups per scored pixel's samples (Open3D's ``HashMap.find``, which reads the map in place),
 whatever the map's size. What it does not see that a render would: a surface of the map in front
 of the frame's (something the map holds that has since moved away) — the frame scores what it
 sees, which is what its encoder would label. Measured against renders in docs/EVAL.md ("A
-candidate on a large map"): it reads the map a hair worse for the scorer than a render, so frame
-selection probes only a map larger than ``select_probe_blocks`` (``select_view``).
+candidate on a large map", "Scored at 32 px"): at 32 px it reads the map as well per encoder call
+as a 64 px render, at a third of the time, and is frame selection's default (``select_view``).
 
 Written here rather than taken from a library: Open3D has no call that samples a voxel block
 grid at arbitrary points (its ``ray_cast`` is the copy above), and the sampling is a few numpy
@@ -43,7 +46,7 @@ from __future__ import annotations
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics
-from openfusion.mapping.raycast import RayHits, semantics_at_hits
+from openfusion.mapping.raycast import RayHits, semantics_at_hits, view_key
 from openfusion.mapping.storage import VoxelStorage, flat_voxel_index, split_voxel_coords
 
 #: The second search, for pixels without a map surface within one truncation distance of their
@@ -59,18 +62,33 @@ _CORNERS = np.array([[dx, dy, dz] for dz in (0, 1) for dy in (0, 1) for dx in (0
 
 def probe_view(
     storage: VoxelStorage, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics, depth_m: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Key (int32 (h, w), -1 = none), confidence (float32) and depth in metres (float32, 0 = no map
-    surface) of the map's surface near ``depth_m`` (the frame's depth at ``intrinsics``' size) along
-    every pixel's ray from ``T_world_cam`` (a checked rigid pose). Raises ValueError when
-    ``depth_m`` is not ``intrinsics``' size."""
+) -> tuple[np.ndarray, np.ndarray, RayHits]:
+    """Key (int32 (h, w), -1 = none) and confidence (float32) of the map's surface near ``depth_m``
+    (the frame's depth at ``intrinsics``' size) along every pixel's ray from ``T_world_cam`` (a
+    checked rigid pose), and the hits they were read from (:func:`probe_hits`; their ``depth_m`` is
+    the depth of the surface found, 0 where none). Raises ValueError when ``depth_m`` is not
+    ``intrinsics``' size."""
+    hits = probe_hits(storage, T_world_cam, intrinsics, depth_m)
+    key_map, conf_map = semantics_at_hits(storage, hits)
+    return key_map, conf_map, hits
+
+
+def probe_hits(
+    storage: VoxelStorage, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics, depth_m: np.ndarray,
+) -> RayHits:
+    """What a ray cast of the view would return (:class:`~openfusion.mapping.raycast.RayHits`: per
+    pixel the 8 voxels around the surface point, their trilinear weights, and the depth), for the
+    map's surface found near ``depth_m`` (steps 1-2 of the module docstring); pixels without one
+    have depth 0 and no voxels. An update can write through them as through a render's
+    (``SemanticVolume.apply_update``)."""
     h, w = intrinsics.height_px, intrinsics.width_px
     if np.shape(depth_m) != (h, w):
         raise ValueError(f"probe depth is {np.shape(depth_m)}, the view is {(h, w)}")
     p = storage.params
-    key_map = np.full(h * w, -1, np.int32)
-    conf_map = np.zeros(h * w, np.float32)
     surface_m = np.zeros(h * w, np.float32)
+    index = np.full((h * w, 8), -1, np.int64)
+    ratio = np.zeros((h * w, 8), np.float32)
+    mask = np.zeros((h * w, 8), bool)
     z = np.asarray(depth_m, np.float64).reshape(-1)
     px = np.flatnonzero(np.isfinite(z) & (z >= p.depth_min_m) & (z <= p.depth_max_m))
     if len(px) and storage.num_blocks:
@@ -78,9 +96,9 @@ def probe_view(
         found = px[rows]
         surface_m[found] = d_m
         points_vox = (T_world_cam[:3, 3] + dirs[rows] * d_m[:, None]) / p.voxel_size_m
-        keys, conf = _labels_at(storage, points_vox)
-        key_map[found], conf_map[found] = keys, conf
-    return key_map.reshape(h, w), conf_map.reshape(h, w), surface_m.reshape(h, w)
+        index[found], ratio[found], mask[found] = _corners_of(storage, points_vox)
+    return RayHits(surface_m.reshape(h, w), index.reshape(h, w, 8), ratio.reshape(h, w, 8), mask.reshape(h, w, 8),
+                   storage.generation, view_key(T_world_cam, intrinsics))
 
 
 def _surface_along_rays(
@@ -150,10 +168,11 @@ def _sample(storage: VoxelStorage, grid: np.ndarray) -> tuple[np.ndarray, np.nda
     return tsdf, weight
 
 
-def _labels_at(storage: VoxelStorage, points_vox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Key and confidence at each point (``points_vox``: float (M, 3) in voxel units): the 8
-    corners of its cell with their trilinear weights, picked by the render's own rule
-    (:func:`raycast.semantics_at_hits`)."""
+def _corners_of(storage: VoxelStorage, points_vox: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The 8 corners of each point's cell (``points_vox``: float (M, 3) in voxel units): their flat
+    voxel indices (int64 (M, 8), -1 where the block is not resident), trilinear weights (float32)
+    and whether each is observed (bool: resident, weight > 0); a label is then picked by the
+    render's own rule (:func:`raycast.semantics_at_hits`)."""
     m = len(points_vox)
     base = np.floor(points_vox).astype(np.int64)
     corners = (base[:, None, :] + _CORNERS[None, :, :]).reshape(-1, 3)  # (m * 8, 3)
@@ -164,7 +183,4 @@ def _labels_at(storage: VoxelStorage, points_vox: np.ndarray) -> tuple[np.ndarra
     flat = _flat_at(storage, corners)
     observed = flat >= 0
     observed[observed] = storage.gather("weight", flat[observed]) > 0
-    hits = RayHits(np.zeros((m, 1), np.float32), flat.reshape(m, 1, 8), ratio.astype(np.float32)[:, None, :],
-                   observed.reshape(m, 1, 8), storage.generation, b"")
-    keys, conf = semantics_at_hits(storage, hits)
-    return keys.reshape(m), conf.reshape(m)
+    return flat.reshape(m, 8), ratio.astype(np.float32), observed.reshape(m, 8)

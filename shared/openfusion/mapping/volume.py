@@ -107,6 +107,7 @@ class RenderedView:
     conf_map: np.ndarray  # (h, w) float32
     depth_m: np.ndarray  # (h, w) float32, 0 = no surface
     hits: RayHits | None = field(default=None, repr=False)
+    probed: bool = False  # read by a probe at the frame's own depth (surface_probe), not a ray cast
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -474,13 +475,14 @@ class SemanticVolume(VolumeReadOuts, VolumeCheckpoints):
         """Key, confidence and depth images of the map's surface near a frame's own depth
         (``depth_m`` at ``intrinsics``' size) from ``T_world_cam``: frame selection's view of a
         candidate without a ray cast, at a cost that does not grow with the map
-        (:mod:`openfusion.mapping.surface_probe`). No ``hits``: an update ray-casts its own."""
+        (:mod:`openfusion.mapping.surface_probe`). Its ``hits`` name the voxels it read, so an
+        update of the same view writes through them as through a render's (:meth:`apply_update`)."""
         T = check_pose(T_world_cam)
         self._settle_growth()
         self._page_in_view(T, intrinsics)
-        key_map, conf_map, surface_m = surface_probe.probe_view(self._storage, T, intrinsics, depth_m)
+        key_map, conf_map, hits = surface_probe.probe_view(self._storage, T, intrinsics, depth_m)
         self.stats.probes += 1
-        return RenderedView(key_map, conf_map, surface_m)
+        return RenderedView(key_map, conf_map, hits.depth_m, hits, probed=True)
 
     def candidate_view(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics, depth_m: np.ndarray,
                        probe_above_blocks: int | None = 0) -> RenderedView:
