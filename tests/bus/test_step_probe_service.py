@@ -5,7 +5,7 @@ test as the bridge would.
 Shown: with ``step_probe_blocks`` 0 every encoded frame's render request carries the frame's depth,
 geometry answers it with a probe (counted as a probe, not a render), and the update that follows
 writes through that probe's hits (``updates_reused_render``): no ray cast anywhere, and the frames'
-labels are in the map. With the default on this small room the same frames are ray-cast."""
+labels are in the map. With the default (none) the same frames are ray-cast."""
 
 from __future__ import annotations
 
@@ -67,7 +67,7 @@ def test_the_step_probes_the_frames_depth_and_the_update_writes_through_the_prob
     assert probed["fused"] == len(FRAMES)
     assert probed[GeometryCounter.PROBES] == len(FRAMES) and probed[GeometryCounter.RENDERS] == 0
     assert probed[GeometryCounter.UPDATES_APPLIED] == probed[GeometryCounter.UPDATES_REUSED_RENDER] == len(FRAMES)
-    rendered, labelled_rendered = _map(MatchParams().step_probe_blocks)  # a small room: below the default
+    rendered, labelled_rendered = _map(MatchParams().step_probe_blocks)  # the default: ray-cast
     assert rendered[GeometryCounter.RENDERS] == len(FRAMES) and rendered[GeometryCounter.PROBES] == 0
     assert rendered[GeometryCounter.UPDATES_REUSED_RENDER] == len(FRAMES)
     # the same frames label about as much of the map either way

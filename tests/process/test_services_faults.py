@@ -23,15 +23,21 @@ pytestmark = pytest.mark.timeout(600)
 
 
 @pytest.fixture
-def env(tmp_path: Path) -> Iterator[Env]:
-    """A fresh cluster with 20 frames mapped and settled."""
+def started(tmp_path: Path) -> Iterator[Env]:
+    """A fresh cluster, nothing played yet."""
     e = Env(tmp_path)
     try:
         e.start_all()
-        e.play(20)
         yield e
     finally:
         e.close()
+
+
+@pytest.fixture
+def env(started: Env) -> Env:
+    """A fresh cluster with 20 frames mapped and settled."""
+    started.play(20)
+    return started
 
 
 def test_kill_semantic_geometry_keeps_integrating_then_restart_keeps_the_dictionary(env: Env) -> None:
@@ -76,20 +82,20 @@ def _rss_mb(pid: int) -> float:
     raise AssertionError("no VmRSS")
 
 
-def test_ten_times_slower_encoder_keeps_memory_bounded_and_geometry_at_camera_rate(env: Env) -> None:
+def test_ten_times_slower_encoder_keeps_memory_bounded_and_geometry_at_camera_rate(started: Env) -> None:
     """A semantic service 10x slower than the camera (0.5 s per frame) takes only the newest frame:
     it drops the others (counted) instead of queueing them, its memory stays well under what a
     queue of the frames would take, and geometry drops nothing. Memory is compared over a second
     batch, after a first one grew the allocator's arenas to their working size."""
-    env.restart("semantic", "--set", "semantic.encoder_delay_ms=500")
-    pid = env.cluster.processes["semantic"].proc.pid
+    started.restart("semantic", "--set", "semantic.encoder_delay_ms=500")
+    pid = started.cluster.processes["semantic"].proc.pid
     big = "synthetic:seed=1,frames={n},width=640,height=480"
-    env.play(20, source=big)  # warm-up: text model loaded, arenas grown at this frame size
-    before = env.health()["semantic"]
+    started.play(20, source=big)  # warm-up: text model loaded, arenas grown at this frame size
+    before = started.health()["semantic"]
     rss_start = _rss_mb(pid)
-    env.play(60, source=big)  # returns once the newest frame was fused: nothing is pending
+    started.play(60, source=big)  # returns once the newest frame was fused: nothing is pending
     rss_end = _rss_mb(pid)
-    after = env.health()["semantic"]
+    after = started.health()["semantic"]
     processed = after.counters["semantic_frames"] - before.counters["semantic_frames"]
     # let go by the subscription's small queue, or passed over for a newer frame geometry had taken
     dropped = (after.drops - before.drops + after.counters.get("frames_superseded", 0)
@@ -102,12 +108,13 @@ def test_ten_times_slower_encoder_keeps_memory_bounded_and_geometry_at_camera_ra
     queue_mb = dropped * 640 * 480 * (3 + 2 + 4) / 2**20
     assert rss_end - rss_start < queue_mb / 2, f"semantic RSS grew {rss_end - rss_start:.1f} MB (a queue: {queue_mb:.0f})"
     # play() waited until geometry integrated every frame.
-    assert env.health()["geometry"].drops == 0
+    assert started.health()["geometry"].drops == 0
 
 
-def test_services_stay_alive_and_exit_cleanly_on_sigterm(env: Env) -> None:
+def test_services_stay_alive_and_exit_cleanly_on_sigterm(started: Env) -> None:
     """After a playback every service is alive, and SIGTERM ends each with exit code 0."""
-    env.cluster.check_alive()
-    procs = list(env.cluster.processes.values())
-    env.cluster.stop()
+    started.play(4)
+    started.cluster.check_alive()
+    procs = list(started.cluster.processes.values())
+    started.cluster.stop()
     assert all(p.proc.returncode == 0 for p in procs), {p.name: p.proc.returncode for p in procs}

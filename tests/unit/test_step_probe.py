@@ -93,10 +93,11 @@ def test_a_probing_step_maps_the_scene_as_a_ray_casting_one(rendered: SemanticMa
     assert same >= 0.97, same
 
 
-def test_below_the_threshold_the_step_ray_casts(rendered: SemanticMapper) -> None:
-    mapper, _ = _map(MatchParams().step_probe_blocks)
-    assert mapper.volume.num_blocks <= MatchParams().step_probe_blocks  # a small room
+def test_below_the_threshold_and_by_default_the_step_ray_casts(rendered: SemanticMapper) -> None:
+    mapper, _ = _map(20_000)
+    assert mapper.volume.num_blocks <= 20_000  # a small room
     assert mapper.volume.stats.renders == len(POSES) and mapper.volume.stats.probes == 0
+    assert MatchParams().step_probe_blocks is None  # the default: always ray-cast
     assert rendered.volume.stats.renders == len(POSES) and rendered.volume.stats.probes == 0
 
 

@@ -239,11 +239,13 @@ class MatchParams(SectionParams):
     )
     join_min_cos: float = Field(0.9, ge=-1, le=1, description="embedding cosine a joining frame region needs")
     step_probe_blocks: int | None = Field(
-        20000, ge=0, description="the semantic step reads the map's view of an encoded frame by a probe at the "
+        None, ge=0, description="the semantic step reads the map's view of an encoded frame by a probe at the "
         "frame's own depth (openfusion.mapping.surface_probe) instead of a ray cast once the map (a geometry shard's "
         "own blocks) holds more than this many blocks: Open3D's CPU ray cast costs in proportion to the blocks held "
-        "(13.5 ms at 2,000, 68 ms at 90,000 at 160x120), a probe does not; the bench rooms map alike either way "
-        "(docs/EVAL.md, 'The step's view on a large map'); none = always ray-cast"
+        "(at 160x120 31 ms at 2,000 blocks, 86 ms at 90,000), a probe in proportion to the pixels (30-46 ms), so it "
+        "pays past about 40,000. Not the default: probed, the bench rooms map 0.006 (median) worse under the "
+        "standard encoder noise, alike without noise (docs/EVAL.md, 'The step's view on a large map'); none = "
+        "always ray-cast"
     )
 
 

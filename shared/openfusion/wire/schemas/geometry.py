@@ -71,10 +71,12 @@ class RenderRequest(PinholeMessage):
     frame is matched against the labels of the frame encoded before it (geometry waits at most
     ``render_update_wait_s``); 0: at once.
 
-    v4: ``probe_depth_m``, a candidate frame's own depth in metres at the request's size (0 = none):
+    v4: ``probe_depth_m``, the frame's own depth in metres at the request's size (0 = none):
     geometry answers with the map's surface near that depth instead of a ray cast
     (:mod:`openfusion.mapping.surface_probe`) when it holds more than ``probe_above_blocks`` blocks:
-    the same reply, at a cost that does not grow with the map (frame selection's ``select_view``)."""
+    the same reply, at a cost that does not grow with the map (a candidate's view: frame selection's
+    ``select_view``; an encoded frame's: ``step_probe_blocks``). A request that names an update
+    (``after_update_source``: a semantic step's) has its view kept for the update that follows."""
 
     schema_name: ClassVar[str] = "geometry.render_request"
     schema_version: ClassVar[int] = 4
