@@ -16,13 +16,12 @@ from openfusion.mapping import (
     segment_points,
 )
 from openfusion.mapping.params import MatchParams
-from openfusion.poses import look_at
 from openfusion.testing.analytic_scene import (
+    TWO_OBJECTS_POSES,
     AnalyticScene,
-    Box,
-    Room,
     category_embedding,
     observation_from_instances,
+    two_objects_room,
 )
 
 K_FULL = CameraIntrinsics(320, 240, 262.5, 262.5, 159.5, 119.5)
@@ -31,22 +30,7 @@ DIM = 32
 SPACE = "analytic-test"
 
 
-def scene_two_objects() -> AnalyticScene:
-    return AnalyticScene(
-        room=Room(size_m=(3.0, 3.0, 2.5), face_ids=(1, 1, 1, 1, 2, 3)),
-        boxes=[
-            Box((0.7, 1.8, 0.0), (1.3, 2.3, 0.8), 10, "chair", (200, 40, 40)),
-            Box((1.8, 1.6, 0.0), (2.5, 2.2, 0.5), 11, "table", (40, 200, 40)),
-        ],
-    )
-
-
-POSES = [
-    look_at((1.5, 0.3, 1.4), (1.5, 2.0, 0.4)),
-    look_at((0.5, 0.5, 1.3), (1.4, 2.0, 0.4)),
-    look_at((2.6, 0.6, 1.3), (1.6, 2.0, 0.4)),
-    look_at((1.5, 0.2, 1.6), (1.5, 2.2, 0.2)),
-]
+POSES = TWO_OBJECTS_POSES
 
 
 def run_mapping(scene: AnalyticScene, poses: list[np.ndarray]) -> tuple[SemanticMapper, list]:
@@ -64,7 +48,7 @@ def run_mapping(scene: AnalyticScene, poses: list[np.ndarray]) -> tuple[Semantic
 
 @pytest.fixture(scope="module")
 def mapped() -> tuple[AnalyticScene, SemanticMapper, list]:
-    scene = scene_two_objects()
+    scene = two_objects_room()
     mapper, steps = run_mapping(scene, POSES)
     return scene, mapper, steps
 
@@ -144,7 +128,7 @@ def test_query_ranks_the_right_region_with_its_bounding_box(mapped) -> None:
 
 def test_merge_regions_relabels_voxels(mapped) -> None:
     """Merging the table into the chair: one dictionary entry, and every table voxel now reads chair."""
-    scene = scene_two_objects()
+    scene = two_objects_room()
     mapper, _ = run_mapping(scene, POSES[:2])
     chair, table = keys_labelled(mapper, "chair")[0], keys_labelled(mapper, "table")[0]
     n_table = int((mapper.volume.to_arrays()["key"] == table).sum())
@@ -171,7 +155,7 @@ def test_min_embedding_cos_refuses_a_match_whose_embedding_disagrees() -> None:
     """The same chair seen twice, but the second observation's embedding is orthogonal to the first:
     with ``min_embedding_cos=0.5`` the overlap alone must not match it (a new key appears); without
     the gate it matches the existing key."""
-    scene = scene_two_objects()
+    scene = two_objects_room()
     outcomes = {}
     for gate in (None, 0.5):
         volume = SemanticVolume(VolumeParams())
@@ -216,7 +200,7 @@ def test_dilated_mask_does_not_eat_its_neighbour() -> None:
     halo of wall and floor)."""
     from openfusion.encoders.masks import dilate_soft
 
-    scene = scene_two_objects()
+    scene = two_objects_room()
     T = POSES[0]
     frame = scene.make_frame(T, K_FULL, frame_id=0)
     clean = observation_from_instances(frame.instance, frame.instance_categories, out_size=OBS_HW, dim=DIM)

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_mapping_mapper import DIM, K_FULL, OBS_HW, POSES, SPACE, scene_two_objects
 
+from openfusion.frame import CameraIntrinsics
 from openfusion.mapping import (
     RegionDictionary,
     SemanticMapper,
@@ -23,10 +23,21 @@ from openfusion.mapping import (
     segment_points,
 )
 from openfusion.mapping.params import MatchParams
-from openfusion.testing.analytic_scene import category_embedding, observation_from_instances
+from openfusion.testing.analytic_scene import (
+    TWO_OBJECTS_POSES as POSES,
+)
+from openfusion.testing.analytic_scene import (
+    category_embedding,
+    observation_from_instances,
+    two_objects_room,
+)
 
+K_FULL = CameraIntrinsics(320, 240, 262.5, 262.5, 159.5, 119.5)  # test_mapping_mapper's camera and sizes
+OBS_HW = (60, 80)
+DIM = 32
+SPACE = "analytic-test"  # observation_from_instances' space
 CLASSES = ["wall", "floor", "chair", "table"]
-SCENE = scene_two_objects()
+SCENE = two_objects_room()
 
 
 def _map(step_probe_blocks: int | None, monkeypatch: pytest.MonkeyPatch | None = None) -> tuple[SemanticMapper, list]:

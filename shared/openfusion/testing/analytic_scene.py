@@ -206,6 +206,27 @@ def furnished_room(seed: int = 0) -> AnalyticScene:
     return AnalyticScene(room=Room(), boxes=boxes)
 
 
+def two_objects_room() -> AnalyticScene:
+    """A 3 x 3 x 2.5 m room with a chair and a table, and four poses that see both
+    (:data:`TWO_OBJECTS_POSES`): the semantic step's tests map it."""
+    return AnalyticScene(
+        room=Room(size_m=(3.0, 3.0, 2.5), face_ids=(1, 1, 1, 1, 2, 3)),
+        boxes=[
+            Box((0.7, 1.8, 0.0), (1.3, 2.3, 0.8), 10, "chair", (200, 40, 40)),
+            Box((1.8, 1.6, 0.0), (2.5, 2.2, 0.5), 11, "table", (40, 200, 40)),
+        ],
+    )
+
+
+#: Four poses of :func:`two_objects_room` that see the chair and the table from different sides.
+TWO_OBJECTS_POSES = [
+    look_at((1.5, 0.3, 1.4), (1.5, 2.0, 0.4)),
+    look_at((0.5, 0.5, 1.3), (1.4, 2.0, 0.4)),
+    look_at((2.6, 0.6, 1.3), (1.6, 2.0, 0.4)),
+    look_at((1.5, 0.2, 1.6), (1.5, 2.2, 0.2)),
+]
+
+
 def orbit_poses(
     num_frames: int, *, center=(3.0, 2.5, 1.4), radius_m: float = 1.2, height_m: float = 1.5
 ) -> list[np.ndarray]:
