@@ -78,11 +78,12 @@ class SemanticMapper:
             intrinsics if (intrinsics.width_px, intrinsics.height_px) == (w, h) else intrinsics.scaled(w, h)
         )
         t0 = time.perf_counter()
-        if depth_m is None:
+        probe_above = self.params.step_probe_blocks
+        if depth_m is None or probe_above is None:
             rendered = self.volume.render(T_world_cam, intr)
         else:  # probed at its own depth on a large map (MatchParams.step_probe_blocks), else rendered
             depth_small = resize_nearest(np.asarray(depth_m, np.float32), (h, w))
-            rendered = self.volume.candidate_view(T_world_cam, intr, depth_small, self.params.step_probe_blocks)
+            rendered = self.volume.candidate_view(T_world_cam, intr, depth_small, probe_above)
         t1 = time.perf_counter()
         plan = plan_update(obs, rendered, self.dictionary, self.params)
         t2 = time.perf_counter()
