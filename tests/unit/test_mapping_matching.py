@@ -167,7 +167,34 @@ def test_plan_update_embedding_gate() -> None:
     assert plan_update(obs, rendered, d).matched == [(0, k)]
     d2 = RegionDictionary("s", 2)
     k2 = d2.add(np.array([1.0, 0.0], np.float32))
-    plan = plan_update(obs, rendered_from(np.full((H, W), k2), np.ones((H, W))), d2, MatchParams(min_embedding_cos=0.5))
+    plan = plan_update(obs, rendered_from(np.full((H, W), k2), np.ones((H, W))), d2,
+                       MatchParams(min_embedding_cos=0.5, min_embedding_cos_views=0))
+    assert plan.matched == [] and len(plan.new_keys) == 1
+
+
+def test_embedding_gate_judges_only_keys_settled_by_enough_views() -> None:
+    """``min_embedding_cos_views`` 3: a key seen once is matched by geometry alone, even by a region
+    whose embedding is orthogonal to it (one view is not yet the key's word: the encoder's own
+    noise); once its embedding averages 3 views that region gets a new key (the floor key that
+    took a wall, docs/EVAL.md "A settled key refuses"), while a region that agrees (cosine 0.9)
+    still matches it."""
+    params = MatchParams(min_embedding_cos=0.6, min_embedding_cos_views=3)
+    d = RegionDictionary("s", 2)
+    k = d.add(np.array([1.0, 0.0], np.float32))
+    rendered = rendered_from(np.full((H, W), k), np.ones((H, W)))
+    other = SimpleObservation(np.ones((1, H, W), np.float32), np.array([[0.0, 1.0]], np.float32), "s")
+    agreeing = SimpleObservation(np.ones((1, H, W), np.float32), np.array([[0.9, 0.436]], np.float32), "s")
+    young = d.snapshot()
+    assert plan_update(other, rendered, RegionDictionary.from_snapshot(young), params).matched == [(0, k)]
+    for _ in range(2):
+        d.observe(k, np.array([1.0, 0.0], np.float32))
+    assert d.count(k) == 3
+    settled = RegionDictionary.from_snapshot(d.snapshot())
+    plan = plan_update(other, rendered, settled, params)
+    assert plan.matched == [] and len(plan.new_keys) == 1
+    assert plan_update(agreeing, rendered, RegionDictionary.from_snapshot(d.snapshot()), params).matched == [(0, k)]
+    # With the views rule off (0) the gate judges the young key too.
+    plan = plan_update(other, rendered, RegionDictionary.from_snapshot(young), MatchParams(min_embedding_cos=0.6, min_embedding_cos_views=0))
     assert plan.matched == [] and len(plan.new_keys) == 1
 
 

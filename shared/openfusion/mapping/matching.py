@@ -472,8 +472,8 @@ def plan_update(
     takes pixels and fuses its matched key there, but updates no embedding, joins no region and
     starts none.
     With ``min_embedding_cos``, a pair may only match when the cosine similarity of the frame
-    region's embedding and the key's embedding reaches it (off by default: geometry alone, as in
-    the paper). Matching compares the frame's soft maps with the rendered confidences (or with the
+    region's embedding and the key's embedding reaches it, for keys whose embedding averages at
+    least ``min_embedding_cos_views`` views (younger keys: geometry alone, as in the paper). Matching compares the frame's soft maps with the rendered confidences (or with the
     rendered key masks, ``rendered_conf_weighted=False``).
 
     A pixel's planned confidence is its region's confidence there (minus the runner-up's with
@@ -522,9 +522,11 @@ def plan_update(
 
         def gate(rkeys: np.ndarray) -> np.ndarray:
             allowed = np.zeros((n, len(rkeys)), bool)
-            for j, key in enumerate(rkeys):
-                if int(key) in dictionary:  # a region without an embedding is judged by geometry alone
-                    allowed[:, j] = (unit @ dictionary.embedding(int(key)) >= min_embedding_cos) | ~embedded
+            views, _ = dictionary.support_of(rkeys)
+            for j, key in enumerate(rkeys):  # a young key, or a region without an embedding: geometry alone
+                if int(key) in dictionary:
+                    young = views[j] < p.min_embedding_cos_views
+                    allowed[:, j] = young | (unit @ dictionary.embedding(int(key)) >= min_embedding_cos) | ~embedded
             return allowed
 
     match = _match_checked(conf_maps, rendered, p.min_iou, gate, p.rendered_conf_weighted)

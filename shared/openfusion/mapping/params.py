@@ -179,8 +179,16 @@ class MatchParams(SectionParams):
     min_pixel_conf: float = Field(
         0.05, ge=0, le=1, description="a pixel whose best region confidence is below this takes no region"
     )
+    # A settled key refuses a region it disagrees with (docs/EVAL.md, "A settled key refuses"): under
+    # noisy masks a floor key that spilled onto a wall went on matching the wall's masks by overlap and
+    # took the wall (45,685 points on bench room 2); gating every key, young ones too, cost 0.001-0.033.
     min_embedding_cos: float | None = Field(
-        None, ge=-1, le=1, description="a pair may match only when its embeddings agree this much (none = geometry only)"
+        0.6, ge=-1, le=1, description="a pair may match only when its embeddings agree this much, for keys settled "
+        "by min_embedding_cos_views views (a cosine in the encoder's space; none = geometry only, as in the paper)"
+    )
+    min_embedding_cos_views: int = Field(
+        3, ge=0, le=1000, description="min_embedding_cos judges only keys whose embedding averages at least this many "
+        "views; a younger key is matched by geometry alone (0 = every key)"
     )
     mask_edge_px: float = Field(
         2.0, ge=0, description="planned confidences fall off within this many pixels of a region border (0 = off)"
