@@ -159,7 +159,8 @@ def test_min_embedding_cos_refuses_a_match_whose_embedding_disagrees() -> None:
     outcomes = {}
     for gate in (None, 0.5):
         volume = SemanticVolume(VolumeParams())
-        mapper = SemanticMapper(volume, RegionDictionary(SPACE, DIM), params=MatchParams(min_embedding_cos=gate, min_embedding_cos_views=0))
+        params = MatchParams(min_embedding_cos=gate, min_embedding_cos_views=0)  # every key, young ones too
+        mapper = SemanticMapper(volume, RegionDictionary(SPACE, DIM), params=params)
         for i, T in enumerate(POSES[:2]):
             frame = scene.make_frame(T, K_FULL, frame_id=i)
             volume.integrate(frame)

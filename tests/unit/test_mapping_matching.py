@@ -194,7 +194,8 @@ def test_embedding_gate_judges_only_keys_settled_by_enough_views() -> None:
     assert plan.matched == [] and len(plan.new_keys) == 1
     assert plan_update(agreeing, rendered, RegionDictionary.from_snapshot(d.snapshot()), params).matched == [(0, k)]
     # With the views rule off (0) the gate judges the young key too.
-    plan = plan_update(other, rendered, RegionDictionary.from_snapshot(young), MatchParams(min_embedding_cos=0.6, min_embedding_cos_views=0))
+    every_key = MatchParams(min_embedding_cos=0.6, min_embedding_cos_views=0)
+    plan = plan_update(other, rendered, RegionDictionary.from_snapshot(young), every_key)
     assert plan.matched == [] and len(plan.new_keys) == 1
 
 

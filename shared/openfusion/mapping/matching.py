@@ -471,10 +471,10 @@ def plan_update(
     without an embedding (``obs.embedded`` False, :mod:`openfusion.mapping.region_gate`) still
     takes pixels and fuses its matched key there, but updates no embedding, joins no region and
     starts none.
-    With ``min_embedding_cos``, a pair may only match when the cosine similarity of the frame
-    region's embedding and the key's embedding reaches it, for keys whose embedding averages at
-    least ``min_embedding_cos_views`` views (younger keys: geometry alone, as in the paper). Matching compares the frame's soft maps with the rendered confidences (or with the
-    rendered key masks, ``rendered_conf_weighted=False``).
+    With ``min_embedding_cos``, a key whose embedding averages ``min_embedding_cos_views`` views
+    or more matches only regions whose embeddings reach that cosine to it (younger keys: geometry
+    alone, as in the paper). Matching compares the frame's soft maps with the rendered confidences
+    (or with the rendered key masks, ``rendered_conf_weighted=False``).
 
     A pixel's planned confidence is its region's confidence there (minus the runner-up's with
     ``contested_margin``) times the mask-edge weight
