@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from openfusion.frame import CameraIntrinsics
 from openfusion.mapping import (
     EmbeddingSpaceError,
     RegionDictionary,
@@ -17,6 +16,9 @@ from openfusion.mapping import (
 )
 from openfusion.mapping.params import MatchParams
 from openfusion.testing.analytic_scene import (
+    ANALYTIC_SPACE,
+    TWO_OBJECTS_CAMERA,
+    TWO_OBJECTS_OBS_HW,
     TWO_OBJECTS_POSES,
     AnalyticScene,
     category_embedding,
@@ -24,13 +26,8 @@ from openfusion.testing.analytic_scene import (
     two_objects_room,
 )
 
-K_FULL = CameraIntrinsics(320, 240, 262.5, 262.5, 159.5, 119.5)
-OBS_HW = (60, 80)
+K_FULL, OBS_HW, POSES, SPACE = TWO_OBJECTS_CAMERA, TWO_OBJECTS_OBS_HW, TWO_OBJECTS_POSES, ANALYTIC_SPACE
 DIM = 32
-SPACE = "analytic-test"
-
-
-POSES = TWO_OBJECTS_POSES
 
 
 def run_mapping(scene: AnalyticScene, poses: list[np.ndarray]) -> tuple[SemanticMapper, list]:

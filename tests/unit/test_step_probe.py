@@ -13,7 +13,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from openfusion.frame import CameraIntrinsics
 from openfusion.mapping import (
     RegionDictionary,
     SemanticMapper,
@@ -24,18 +23,17 @@ from openfusion.mapping import (
 )
 from openfusion.mapping.params import MatchParams
 from openfusion.testing.analytic_scene import (
-    TWO_OBJECTS_POSES as POSES,
-)
-from openfusion.testing.analytic_scene import (
+    ANALYTIC_SPACE,
+    TWO_OBJECTS_CAMERA,
+    TWO_OBJECTS_OBS_HW,
+    TWO_OBJECTS_POSES,
     category_embedding,
     observation_from_instances,
     two_objects_room,
 )
 
-K_FULL = CameraIntrinsics(320, 240, 262.5, 262.5, 159.5, 119.5)  # test_mapping_mapper's camera and sizes
-OBS_HW = (60, 80)
+K_FULL, OBS_HW, POSES, SPACE = TWO_OBJECTS_CAMERA, TWO_OBJECTS_OBS_HW, TWO_OBJECTS_POSES, ANALYTIC_SPACE
 DIM = 32
-SPACE = "analytic-test"  # observation_from_instances' space
 CLASSES = ["wall", "floor", "chair", "table"]
 SCENE = two_objects_room()
 

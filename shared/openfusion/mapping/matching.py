@@ -522,11 +522,10 @@ def plan_update(
 
         def gate(rkeys: np.ndarray) -> np.ndarray:
             allowed = np.zeros((n, len(rkeys)), bool)
-            views, _ = dictionary.support_of(rkeys)
-            for j, key in enumerate(rkeys):  # a young key, or a region without an embedding: geometry alone
-                if int(key) in dictionary:
-                    young = views[j] < p.min_embedding_cos_views
-                    allowed[:, j] = young | (unit @ dictionary.embedding(int(key)) >= min_embedding_cos) | ~embedded
+            for j, key in enumerate(rkeys.tolist()):  # a young key, or a region without an embedding: geometry alone
+                if key in dictionary:
+                    young = dictionary.count(key) < p.min_embedding_cos_views
+                    allowed[:, j] = young | (unit @ dictionary.embedding(key) >= min_embedding_cos) | ~embedded
             return allowed
 
     match = _match_checked(conf_maps, rendered, p.min_iou, gate, p.rendered_conf_weighted)

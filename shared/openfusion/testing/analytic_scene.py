@@ -218,6 +218,12 @@ def two_objects_room() -> AnalyticScene:
     )
 
 
+#: The camera the semantic step's tests map :func:`two_objects_room` with, and the size and
+#: embedding space of their observations (:func:`observation_from_instances`).
+TWO_OBJECTS_CAMERA = CameraIntrinsics(320, 240, 262.5, 262.5, 159.5, 119.5)
+TWO_OBJECTS_OBS_HW = (60, 80)
+ANALYTIC_SPACE = "analytic-test"
+
 #: Four poses of :func:`two_objects_room` that see the chair and the table from different sides.
 TWO_OBJECTS_POSES = [
     look_at((1.5, 0.3, 1.4), (1.5, 2.0, 0.4)),
@@ -266,7 +272,7 @@ def observation_from_instances(
     dim: int = 32,
     conf: float = 0.9,
     min_pixels: int = 4,
-    embedding_space: str = "analytic-test",
+    embedding_space: str = ANALYTIC_SPACE,
 ) -> SimpleObservation:
     """Ground-truth regions: one confidence map per instance at ``out_size`` (h, w), nearest-sampled."""
     h, w = out_size
