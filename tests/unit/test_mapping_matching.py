@@ -14,7 +14,7 @@ from openfusion.mapping import (
     region_conf_maps,
     soft_iou_matrix,
 )
-from openfusion.mapping.matching import depth_cut_spill, mask_edge_weights
+from openfusion.mapping.mask_edges import depth_cut_spill, mask_edge_weights
 from openfusion.mapping.params import MatchParams
 from openfusion.testing.analytic_scene import SimpleObservation
 
