@@ -17,7 +17,7 @@ def main(argv: list[str]) -> int:
 pytest.importorskip("open3d")
 
 #: Fields docs/EVAL.md promises in results.json.
-SCENE_FIELDS = {"scene", "ground_truth", "surface_points", "quality", "geometry", "speed", "memory", "query"}
+SCENE_FIELDS = {"scene", "ground_truth", "surface_points", "quality", "geometry", "speed", "memory", "query", "wrong_regions"}
 METRIC_FIELDS = {
     "mAcc", "f_mIoU", "mIoU", "overall_accuracy", "num_points", "unlabelled_fraction",
     "classes_evaluated", "classes_excluded", "per_class",
@@ -66,6 +66,10 @@ def test_cli_writes_documented_json_and_markdown(tmp_path: Path, capsys: pytest.
         assert speed["frames"] == speed["encoder_calls"] + speed["skipped_no_gain"] + speed["skipped_switch"]
         assert set(scene["memory"]) == STORED_MAPS and set(scene["query"]) == {"region_map", "point_features"}
         assert scene["ground_truth"]["accuracy_reference"] == "mesh"
+        for r in scene["wrong_regions"]:  # the regions holding mislabelled surface, most first
+            assert 0 < r["wrong"] <= r["points"] and sum(r["gt_classes"].values()) <= r["points"]
+        wrong = [r["wrong"] for r in scene["wrong_regions"]]
+        assert wrong == sorted(wrong, reverse=True)
     summary = results["summary"]
     assert set(summary["quality"]) == MAPS
     assert summary["speed"]["frames"] == 5 and summary["speed"]["raw_open3d_fps"] > 0
@@ -73,6 +77,8 @@ def test_cli_writes_documented_json_and_markdown(tmp_path: Path, capsys: pytest.
     md = (out / "results.md").read_text()
     for section in ("## Quality", "## Per class", "## Geometry", "## Speed", "## Baselines", "## Targets"):
         assert section in md
+    if any(s["wrong_regions"] for s in results["scenes"]):
+        assert "## Regions holding the most mislabelled surface" in md
     assert "**all (summed)**" in md and "per-point features" in md and "skipped (--semantic-every)" in md
     assert "f-mIoU" in capsys.readouterr().out
 

@@ -134,6 +134,16 @@ def render_markdown(results: dict) -> str:
         lines += _table(["class", "GT points", "recall", "precision", "IoU", "left unlabelled"], rows)
         lines.append("")
 
+    wrong = [(s["scene"], r) for s in scenes for r in s.get("wrong_regions", [])[:3]]
+    if wrong:
+        lines += ["## Regions holding the most mislabelled surface (top 3 per scene)", ""]
+        rows = [[scene, str(r["key"]), str(r["mapped_class"]), f"{r['wrong']} of {r['points']}",
+                 ", ".join(f"{n} {c}" for n, c in r["gt_classes"].items()), str(r["views"]), _f(r["agreement"])]
+                for scene, r in wrong]
+        lines += _table(["scene", "region", "labelled", "wrong points", "ground truth under it", "views",
+                         "agreement"], rows)
+        lines.append("")
+
     lines += ["## Geometry", ""]
     rows = []
     for s in scenes:

@@ -42,6 +42,7 @@ from openfusion.eval.summary import (
     encoder_calls_per_region,
     summarize,
 )
+from openfusion.eval.wrong_regions import wrong_regions
 from openfusion.mapping.storage import SEMANTIC_BYTES_PER_VOXEL
 
 __all__ = [
@@ -138,6 +139,7 @@ def evaluate_scene(
     # Diagnostic: what the region map would score if extraction gave every unlabelled surface
     # point the label of its nearest labelled point (isolates the "never labelled" share).
     quality["region_map_nn_fill"] = _quality(nearest_labelled_fill(points, pred), gt_of_points, gt, config)
+    wrong = wrong_regions(keys, pred, gt_of_points, gt.class_names, run.dictionary)
 
     # ---- geometry
     acc_d = mesh_distances(points, gt.mesh_vertices, gt.mesh_triangles) if gt.has_mesh else None
@@ -257,6 +259,7 @@ def evaluate_scene(
         "surface_points": int(len(points)),
         "surface_points_with_key": int((keys >= 0).sum()),
         "quality": quality,
+        "wrong_regions": wrong,
         "geometry": geo.to_dict(),
         "speed": speed,
         "memory": memory,
