@@ -39,6 +39,10 @@ def test_a_picture_region_spread_over_the_wall_is_named_first_with_what_lies_und
     assert first["views"] == 3 and first["agreement"] == pytest.approx(np.linalg.norm([1, 2, 0]) / 3, abs=1e-4)
     assert (out[1]["wrong"], out[1]["gt_classes"]) == (5, {"wall": 100, "floor": 5})
     assert wrong_regions(keys, pred, gt, CLASSES, d, top=1) == out[:1]
+    # With the wall not scored (--exclude-background) its points count nowhere: the picture region
+    # holds only its 10 picture points, right; the wall region only its 5 floor points, wrong.
+    unscored_wall = wrong_regions(keys, pred, gt, CLASSES, d, scored=np.array([False, True, True]))
+    assert [(r["key"], r["wrong"], r["points"]) for r in unscored_wall] == [(wall, 5, 5)]
 
 
 def test_a_region_whose_points_are_unlabelled_counts_them_all_wrong_and_bad_inputs_are_refused() -> None:
@@ -52,3 +56,5 @@ def test_a_region_whose_points_are_unlabelled_counts_them_all_wrong_and_bad_inpu
         wrong_regions(keys, np.array([0]), np.array([0, 0, 0]), CLASSES, d)
     with pytest.raises(ValueError, match="top must be"):
         wrong_regions(keys, keys, keys, CLASSES, d, top=-1)
+    with pytest.raises(ValueError, match="one entry per class"):
+        wrong_regions(keys, keys, keys, CLASSES, d, scored=np.array([True]))

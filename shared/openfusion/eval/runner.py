@@ -139,7 +139,7 @@ def evaluate_scene(
     # Diagnostic: what the region map would score if extraction gave every unlabelled surface
     # point the label of its nearest labelled point (isolates the "never labelled" share).
     quality["region_map_nn_fill"] = _quality(nearest_labelled_fill(points, pred), gt_of_points, gt, config)
-    wrong = wrong_regions(keys, pred, gt_of_points, gt.class_names, run.dictionary)
+    wrong = wrong_regions(keys, pred, gt_of_points, gt.class_names, run.dictionary, scored=allowed)
 
     # ---- geometry
     acc_d = mesh_distances(points, gt.mesh_vertices, gt.mesh_triangles) if gt.has_mesh else None

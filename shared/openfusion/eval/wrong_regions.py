@@ -10,8 +10,8 @@ what a segmenter's or a matching rule's failure looks like in the map.
 
 Per region: the class the protocol gave its points (the most common predicted class over them),
 how many of its surface points have a ground-truth class, how many of those are another class,
-and the ground-truth classes under it, largest first. Points without a key or without a
-ground-truth class do not count. Plain numpy over the arrays the evaluation already holds.
+and the ground-truth classes under it, largest first. Points without a key, without a
+ground-truth class or of a class the protocol does not score do not count. Plain numpy over the arrays the evaluation already holds.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ def wrong_regions(
     *,
     top: int = 5,
     classes_shown: int = 3,
+    scored: np.ndarray | None = None,
 ) -> list[dict]:
     """The ``top`` regions holding the most surface points of a class other than the one their
     points were labelled with, most first (regions with none are left out).
@@ -41,7 +42,8 @@ def wrong_regions(
     a key it does not hold reports 0 and 0). Each entry: ``key``, ``mapped_class`` (None when its
     points are unlabelled), ``points``, ``wrong``, ``gt_classes`` (``{name: points}``, the
     ``classes_shown`` largest), ``views``, ``agreement``, ``label`` (the dictionary's label, when
-    the encoder gave one)."""
+    the encoder gave one). ``scored`` (bool (k,)): the classes the protocol scores; points of the
+    others (``--exclude-background``: no prediction can be right there) do not count."""
     keys, pred, gt = (np.asarray(a).reshape(-1) for a in (keys, pred, gt_of_points))
     if not (len(keys) == len(pred) == len(gt)):
         raise ValueError(f"keys, pred and gt_of_points differ in length: {len(keys)}, {len(pred)}, {len(gt)}")
@@ -49,6 +51,11 @@ def wrong_regions(
         raise ValueError(f"top must be >= 0 and classes_shown >= 1, got {top}, {classes_shown}")
     k = len(class_names)
     use = (keys >= 0) & (gt >= 0) & (gt < k)
+    if scored is not None:
+        scored = np.asarray(scored, bool).reshape(-1)
+        if len(scored) != k:
+            raise ValueError(f"scored must have one entry per class ({k}), got {len(scored)}")
+        use &= scored[np.clip(gt, 0, k - 1)]
     if not use.any() or top == 0:
         return []
     uniq, inv = np.unique(keys[use], return_inverse=True)
