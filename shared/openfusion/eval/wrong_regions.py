@@ -11,7 +11,8 @@ what a segmenter's or a matching rule's failure looks like in the map.
 Per region: the class the protocol gave its points (the most common predicted class over them),
 how many of its surface points have a ground-truth class, how many of those are another class,
 and the ground-truth classes under it, largest first. Points without a key, without a
-ground-truth class or of a class the protocol does not score do not count. Plain numpy over the arrays the evaluation already holds.
+ground-truth class or of a class the protocol does not score do not count. Plain numpy over the
+arrays the evaluation already holds.
 """
 
 from __future__ import annotations
@@ -70,7 +71,7 @@ def wrong_regions(
     right = np.where(mapped < k, by_gt[np.arange(len(uniq)), np.minimum(mapped, k - 1)], 0)
     wrong = points - right
     order = [i for i in np.argsort(-wrong, kind="stable") if wrong[i] > 0][:top]
-    counts, agreement = dictionary.support_of(uniq[order]) if order else (np.zeros(0), np.zeros(0))
+    counts, agreement = dictionary.support_of(uniq[order])
     out = []
     for j, i in enumerate(order):
         key = int(uniq[i])
