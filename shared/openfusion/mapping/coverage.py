@@ -83,6 +83,7 @@ from typing import Any
 import numpy as np
 
 from openfusion.frame import CameraIntrinsics, Frame, resize_nearest
+from openfusion.mapping.coverage_bits import fibonacci_directions, group_bits_arrays, or_into, pack_cells
 from openfusion.mapping.held_views import HeldViews
 from openfusion.mapping.map_clock import MapClock
 from openfusion.mapping.params import SelectParams
@@ -102,24 +103,9 @@ def mark_width_px(scored_width_px: int) -> int:
     """Width of the sample a chosen view marks as shown (:data:`MARK_DENSITY`, :data:`MARK_MIN_WIDTH_PX`)."""
     return max(MARK_MIN_WIDTH_PX, MARK_DENSITY * int(scored_width_px))
 
+
 #: Frame times of chosen views kept for the patience rule (:meth:`CoverageScorer.min_gain_at`).
 SELECTED_KEPT = 1024
-
-#: Cell coordinates are packed into one int64: 21 bits per axis around 0 (at 0.1 m cells +-100 km).
-_CELL_BITS = 21
-_CELL_OFFSET = 1 << (_CELL_BITS - 1)
-_CELL_MASK = (1 << _CELL_BITS) - 1
-
-
-def fibonacci_directions(n: int) -> np.ndarray:
-    """``n`` unit vectors spread evenly over the sphere (float64 (n, 3)): the direction bins' centres."""
-    if n < 1:
-        raise ValueError(f"need at least one direction bin, got {n}")
-    i = np.arange(n, dtype=np.float64) + 0.5
-    z = 1.0 - 2.0 * i / n
-    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    theta = math.pi * (1.0 + math.sqrt(5.0)) * i
-    return np.stack([r * np.cos(theta), r * np.sin(theta), z], axis=1)
 
 
 def scoring_size(intrinsics: CameraIntrinsics, width_px: int) -> tuple[int, int]:
@@ -284,9 +270,7 @@ class CoverageScorer:
         return np.argmax(to_camera @ self.directions.T, axis=1).astype(np.int64)
 
     def _cells_of(self, points_world: np.ndarray) -> np.ndarray:
-        c = np.floor(points_world / self.params.select_cell_m).astype(np.int64) + _CELL_OFFSET
-        c &= _CELL_MASK
-        return (c[:, 0] << (2 * _CELL_BITS)) | (c[:, 1] << _CELL_BITS) | c[:, 2]
+        return pack_cells(points_world, self.params.select_cell_m)
 
     def prepare(
         self,
@@ -538,7 +522,7 @@ class CoverageScorer:
                 self._mark_cells(cells, bins)
             labelled = ev.keys >= 0
             if labelled.any():
-                _or_into(self._region_bins, ev.keys[labelled], ev.bins[labelled])
+                or_into(self._region_bins, ev.keys[labelled], ev.bins[labelled])
                 for k in np.unique(ev.keys[labelled]).tolist():
                     self._region_last_s[k] = max(ev.map_s, self._region_last_s.get(k, -math.inf))
 
@@ -561,7 +545,7 @@ class CoverageScorer:
         keys = small[labelled].astype(np.int64)
         seen_s = self.clock.map_s(str(robot), stamp_ns / 1e9)
         with self._lock:
-            _or_into(self._region_bins, keys, bins)
+            or_into(self._region_bins, keys, bins)
             for k in np.unique(keys).tolist():
                 self._region_last_s[k] = max(seen_s, self._region_last_s.get(k, -math.inf))
                 self._region_views[k] = self._region_views.get(k, 0) + 1
@@ -569,32 +553,10 @@ class CoverageScorer:
     def _mark_cells(self, cells: np.ndarray, bins: np.ndarray) -> None:
         """(lock held) One more encoded frame showed ``cells`` from ``bins``: count it per try level
         (a bin reaches level i + 1 when it was at level i before this frame)."""
-        uniq, bits = _group_bits_arrays(cells, bins)
+        uniq, bits = group_bits_arrays(cells, bins)
         keys = uniq.tolist()
         old = [np.fromiter((t.get(c, 0) for c in keys), np.int64, len(keys)) for t in self._cell_tries]
         for level, table in enumerate(self._cell_tries):
             new = old[level] | (bits if level == 0 else old[level - 1] & bits)
             changed = np.flatnonzero(new != old[level])
             table.update(zip(uniq[changed].tolist(), new[changed].tolist(), strict=True))
-
-
-def _group_bits_arrays(keys: np.ndarray, bins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(distinct keys, the OR of ``1 << bin`` over each key's pairs), as int64 arrays."""
-    if len(keys) == 0:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    order = np.argsort(keys, kind="stable")
-    keys, bits = keys[order], np.left_shift(np.int64(1), bins[order])
-    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
-    return keys[starts], np.bitwise_or.reduceat(bits, starts)
-
-
-def _group_bits(keys: np.ndarray, bins: np.ndarray) -> list[tuple[int, int]]:
-    """``(key, bits)`` per distinct key: the OR of ``1 << bin`` over its pairs."""
-    uniq, bits = _group_bits_arrays(keys, bins)
-    return list(zip(uniq.tolist(), bits.tolist(), strict=True))
-
-
-def _or_into(table: dict[int, int], keys: np.ndarray, bins: np.ndarray) -> None:
-    """``table[k] |= 1 << bin`` for every (key, bin) pair, grouped per key."""
-    for k, b in _group_bits(keys, bins):
-        table[k] = table.get(k, 0) | b

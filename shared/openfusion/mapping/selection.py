@@ -34,9 +34,9 @@ from openfusion.mapping.coverage import (
     CoverageScorer,
     ViewEvidence,
     ViewScore,
-    fibonacci_directions,
     scoring_size,
 )
+from openfusion.mapping.coverage_bits import fibonacci_directions
 from openfusion.mapping.params import SelectParams
 
 __all__ = [

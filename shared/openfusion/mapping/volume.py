@@ -70,7 +70,6 @@ from openfusion.mapping.storage import (
     BYTES_PER_VOXEL,
     SEMANTIC_BYTES_PER_VOXEL,
     VoxelStorage,
-    check_arrays,
 )
 from openfusion.mapping.tilereadouts import TileReadouts
 from openfusion.mapping.tiles import TileGrid
@@ -78,6 +77,7 @@ from openfusion.mapping.tilestore import TileStore
 from openfusion.mapping.volume_checkpoints import VolumeCheckpoints
 from openfusion.mapping.volume_locks import locked as _locked
 from openfusion.mapping.volume_readouts import VolumeReadOuts
+from openfusion.mapping.voxel_arrays import check_arrays
 from openfusion.poses import check_pose, invert_pose
 
 __all__ = [

@@ -22,6 +22,7 @@ from openfusion.mapping.storage import VoxelStorage
 from openfusion.mapping.summaries import RegionTable
 from openfusion.mapping.tilereadouts import TileReadouts
 from openfusion.mapping.volume_locks import read_out as _read_out
+from openfusion.mapping.voxel_arrays import labelled_of, voxels_of_labelled
 from openfusion.wire.keys import ShardId
 
 
@@ -40,8 +41,6 @@ class VolumeReadOuts:
     def labelled_voxels(self) -> tuple[np.ndarray, np.ndarray]:
         """(integer voxel coordinates (n, 3) int64, keys (n,) int64) of every voxel carrying a key."""
         coords, keys = self.labelled_blocks()
-        from openfusion.mapping.storage import voxels_of_labelled
-
         return voxels_of_labelled(coords, keys, self.params.block_resolution)
 
     @_read_out
@@ -50,8 +49,6 @@ class VolumeReadOuts:
         coords, keys = self._storage.labelled_blocks()
         if not self._pager.stored_blocks:
             return coords, keys
-        from openfusion.mapping.storage import labelled_of
-
         parts_c, parts_k = [coords], [keys]
         res = self.params.block_resolution
         for _, tc, raw in self._pager.iter_stored():
