@@ -38,8 +38,9 @@ why the hash of 8-block tiles stays (docs/SHARDS.md).
 A fifth table (``--seam-ghosts``, in this process): Open3D's ``integrate`` CPU per frame of each shard
 of 2 with whole ghost blocks (what runs), with its own blocks only, and with the ghosts cut to the
 seam (the cells of a ghost block that touch the shard's own blocks, in a second Open3D grid of 1- or
-2-voxel blocks), and whether the seam's voxels equal the whole ghost blocks' (docs/SHARDS.md, "What
-would close it").
+2-voxel blocks, or in numpy: Open3D's integrate kernel written out for the first 1 or 2 voxel layers of
+each ghost block that face the shard's own blocks, ``bench_shard_seams.py``), and whether the seam's
+voxels equal the whole ghost blocks' (docs/SHARDS.md, "What would close it").
 
     .venv/bin/python bench/bench_shards.py --quick    # 60 frames at 320x240 and 640x480, 1 and 2 shards
     .venv/bin/python bench/bench_shards.py --full     # 150 frames, 1, 2 and 3 shards (also the default)
@@ -331,99 +332,6 @@ def _frame_inputs(width: int, height: int, frames: int, scene: str = "room"):  #
         yield depth, color, scale, K, extrinsic, coords.cpu().numpy().astype(np.int64)
 
 
-def _seam_ghosts(width: int, height: int, frames: int) -> None:
-    """The seam table (module docstring): whole ghost blocks against ghosts cut to the seam."""
-    import numpy as np
-    import open3d as o3d
-    import open3d.core as o3c
-
-    from openfusion.mapping import VolumeParams
-    from openfusion.mapping.shards import _UPPER, owned_blocks, take_blocks
-    from openfusion.mapping.storage import flat_voxel_index
-
-    p = VolumeParams()
-    res = p.block_resolution
-    inputs = list(_frame_inputs(width, height, frames))
-    warm = min(5, len(inputs) - 1)  # the first frames grow the grids: not counted
-
-    def grid(resolution: int, blocks: int) -> o3d.t.geometry.VoxelBlockGrid:
-        return o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight", "color"), (o3c.float32, o3c.float32, o3c.float32),
-                                             ((1), (1), (3)), p.voxel_size_m, resolution, blocks, o3c.Device("CPU:0"))
-
-    def integrate(g: o3d.t.geometry.VoxelBlockGrid, coords: np.ndarray, args: tuple) -> float:
-        depth, color, scale, K, extrinsic = args
-        t = time.process_time()
-        if len(coords):
-            g.integrate(o3c.Tensor(np.ascontiguousarray(coords, np.int32)), depth, color, K, extrinsic, scale,
-                        p.depth_max_m, p.trunc_voxels)
-        return time.process_time() - t
-
-    def cell_patterns(cells: int) -> tuple[np.ndarray, np.ndarray]:
-        """A block's cells (cells^3, 3) and, per step u of _UPPER, those on the lower faces u steps in."""
-        local = np.stack(np.meshgrid(*[np.arange(cells)] * 3, indexing="ij"), -1).reshape(-1, 3)
-        return local, np.stack([((local == 0) | (u == 0)).all(axis=1) for u in _UPPER])
-
-    def values(g: o3d.t.geometry.VoxelBlockGrid, resolution: int, voxels: np.ndarray) -> tuple[np.ndarray, ...]:
-        blocks = np.floor_divide(voxels, resolution)
-        buf, found = g.hashmap().find(o3c.Tensor(blocks.astype(np.int32)))
-        flat = flat_voxel_index(buf.cpu().numpy(), voxels - blocks * resolution, resolution)
-        flat = np.where(found.cpu().numpy(), flat, 0)
-        return (found.cpu().numpy(), g.attribute("tsdf").numpy().reshape(-1)[flat],
-                g.attribute("weight").numpy().reshape(-1)[flat])
-
-    one = grid(res, 40_000)
-    base = 0.0
-    for n, (*args, coords) in enumerate(inputs):
-        spent = integrate(one, coords, tuple(args))
-        base += spent if n >= warm else 0.0
-    counted = len(inputs) - warm
-    print(f"\nseam ghosts: Open3D's integrate of {counted} frames at {width}x{height}, CPU ms per frame "
-          f"(ratio against one geometry's {1000 * base / counted:.2f} ms); shard i of 2")
-    print(f"{'shard':>5} {'what':>32} {'blocks or cells':>15} {'ms/frame':>9} {'ratio':>6} {'seam values equal':>18}")
-    for index in range(2):
-        shard = VolumeParams(shard=f"{index}/2").shard_id
-        whole, own = grid(res, 40_000), grid(res, 40_000)
-        seams = {cells: grid(res // cells, 400_000) for cells in (res, res // 2)}  # 1- and 2-voxel cells
-        patterns = {cells: cell_patterns(cells) for cells in seams}
-        spent = {"whole": 0.0, "own": 0.0, **{c: 0.0 for c in seams}}
-        counts = {"whole": 0, "own": 0, **{c: 0 for c in seams}}
-        for n, (*args, coords) in enumerate(inputs):
-            owned, taken = take_blocks(coords, p.tile_blocks, shard)
-            ghosts = coords[taken & ~owned]
-            below = owned_blocks((ghosts[:, None, :] - _UPPER[None]).reshape(-1, 3), p.tile_blocks, shard)
-            below = below.reshape(len(ghosts), len(_UPPER))
-            parts = {"whole": (whole, coords[taken]), "own": (own, coords[owned])}
-            for cells, g in seams.items():
-                local, on_faces = patterns[cells]
-                on_seam = (below[:, :, None] & on_faces[None]).any(axis=1)
-                b, c = np.nonzero(on_seam)
-                parts[cells] = (g, ghosts[b] * cells + local[c])
-            for name, (g, part) in parts.items():
-                t = integrate(g, part, tuple(args))
-                if n >= warm:
-                    spent[name] += t
-                    counts[name] += len(part)
-        for name in spent:
-            labels = {"whole": "own + whole ghost blocks (runs)", "own": "own blocks only"}
-            what = labels[name] if name in labels else f"ghost seam, {res // name}-voxel cells"
-            equal = ""
-            if name in seams:
-                g = seams[name]
-                cell_res = res // name
-                hm = g.hashmap()
-                keys = hm.key_tensor().cpu().numpy().astype(np.int64)[hm.active_buf_indices().cpu().numpy()]
-                local, _ = cell_patterns(cell_res)
-                voxels = (keys[:, None, :] * cell_res + local[None]).reshape(-1, 3)
-                fw, tw, ww = values(whole, res, voxels)
-                fs, ts, ws = values(g, cell_res, voxels)
-                seen = fw & fs & (ws > 0)
-                equal = f"{np.mean((tw[seen] == ts[seen]) & (ww[seen] == ws[seen])):.6f} of {int(seen.sum())}"
-            ms = 1000 * spent[name] / counted
-            print(f"{index:>5} {what:>32} {counts[name] / counted:15.0f} {ms:9.2f} {spent[name] / base:6.3f} {equal:>18}")
-        ratio = (spent["own"] + min(spent[c] for c in seams)) / base
-        print(f"{index:>5} {'own + cheaper seam':>32} {'':>15} {'':>9} {ratio:6.3f}")
-
-
 def _ownership(width: int, height: int, frames: int, scene: str = "room") -> None:
     """The ownership table (module docstring): Open3D's touched blocks of each frame, split. Besides
     the scattered schemes, two that keep space together (x slabs of 4 tiles, districts: the hash of
@@ -507,7 +415,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.ownership:
         _ownership(*sizes[-1], frames, args.ownership_scene)
     if args.seam_ghosts:
-        _seam_ghosts(*sizes[-1], frames)
+        from bench_shard_seams import seam_ghosts  # this folder is on the path when a bench runs as a script
+
+        seam_ghosts(*sizes[-1], frames)
     if args.no_in_process:
         return 0
     from openfusion.sources import open_source
