@@ -5,7 +5,7 @@ with the seam's first 1 or 2 voxel layers integrated by Open3D's kernel written 
 (:func:`_seam_kernel`), and whether the seam's voxels equal the whole ghost blocks' (docs/SHARDS.md,
 "What would close it"). Frames: the synthetic room, as ``bench_shards.py`` prepares them.
 
-    .venv/bin/python bench/bench_shard_seams.py --frames 60 --size 640x480
+    .venv/bin/python bench/bench_shard_seams.py --quick    # 60 frames at 640x480 (--full: 150)
 """
 
 from __future__ import annotations
@@ -186,11 +186,14 @@ def seam_ghosts(width: int, height: int, frames: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--frames", type=int, default=60)
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_true", help="60 frames (the default)")
+    size.add_argument("--full", action="store_true", help="150 frames")
+    parser.add_argument("--frames", type=int, default=None, help="frames (overrides --quick / --full)")
     parser.add_argument("--size", default="640x480", help="WIDTHxHEIGHT")
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.size.lower().split("x"))
-    seam_ghosts(width, height, args.frames)
+    seam_ghosts(width, height, args.frames or (150 if args.full else 60))
     return 0
 
 
