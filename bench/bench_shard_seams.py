@@ -11,10 +11,19 @@ with the seam's first 1 or 2 voxel layers integrated by Open3D's kernel written 
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 
 from bench_shards import _frame_inputs
 
+
+@functools.lru_cache(maxsize=4)
+def _block_voxels(res: int):  # noqa: ANN202
+    """Every voxel's place (x, y, z) in a block of ``res`` cells, int (res**3, 3), x varying slowest (not the
+    storage's flat order: :func:`~openfusion.mapping.storage.flat_voxel_index` gives that)."""
+    import numpy as np
+
+    return np.stack(np.meshgrid(*[np.arange(res)] * 3, indexing="ij"), -1).reshape(-1, 3)
 
 def _seam_kernel(g, ghosts, bits, layers, depth, color, K, extrinsic, scale, p, cache):  # noqa: ANN001, ANN202
     """Open3D's TSDF integrate (``VoxelBlockGridImpl.h``, ``IntegrateCPU``: the same float32 steps in the
@@ -25,10 +34,11 @@ def _seam_kernel(g, ghosts, bits, layers, depth, color, K, extrinsic, scale, p, 
     import open3d.core as o3c
 
     from openfusion.mapping.shards import _UPPER
+    from openfusion.mapping.storage import flat_voxel_index
 
     res, f32 = p.block_resolution, np.float32
     multiplier = f32(255) if color.dtype == np.float32 else f32(1)  # Open3D: float colour in [0, 1]
-    loc = np.stack(np.meshgrid(*[np.arange(res)] * 3, indexing="ij"), -1).reshape(-1, 3)  # x, y, z
+    loc = _block_voxels(res)
     keys = o3c.Tensor(np.ascontiguousarray(ghosts, np.int32))
     g.hashmap().activate(keys)
     buf = g.hashmap().find(keys)[0].numpy().astype(np.int64)
@@ -53,7 +63,7 @@ def _seam_kernel(g, ghosts, bits, layers, depth, color, K, extrinsic, scale, p, 
     sdf, trunc = d - zc[i], f32(p.trunc_voxels * p.voxel_size_m)
     ok = (d > 0) & (d <= f32(p.depth_max_m)) & (zc[i] > 0) & (sdf >= -trunc)
     i, ui, vi, sdf = i[ok], ui[ok], vi[ok], np.minimum(sdf[ok], trunc) / trunc
-    flat = buf[rows[i]] * res**3 + (loc[local[i], 2] * res + loc[local[i], 1]) * res + loc[local[i], 0]
+    flat = flat_voxel_index(buf[rows[i]], loc[local[i]], res)
     tsdf, weight = g.attribute("tsdf").numpy().reshape(-1), g.attribute("weight").numpy().reshape(-1)
     col = g.attribute("color").numpy().reshape(-1, 3)
     w = weight[flat].astype(f32)
@@ -93,7 +103,7 @@ def seam_ghosts(width: int, height: int, frames: int) -> None:
 
     def cell_patterns(cells: int) -> tuple[np.ndarray, np.ndarray]:
         """A block's cells (cells^3, 3) and, per step u of _UPPER, those on the lower faces u steps in."""
-        local = np.stack(np.meshgrid(*[np.arange(cells)] * 3, indexing="ij"), -1).reshape(-1, 3)
+        local = _block_voxels(cells)
         return local, np.stack([((local == 0) | (u == 0)).all(axis=1) for u in _UPPER])
 
     def values(g: o3d.t.geometry.VoxelBlockGrid, resolution: int, voxels: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -160,7 +170,7 @@ def seam_ghosts(width: int, height: int, frames: int) -> None:
                 layers = int(name.split()[1])
                 ghost_keys = np.array(list(kernel_bits[name]), np.int64).reshape(-1, 3)
                 local = [cache[b, layers] for b in kernel_bits[name].values()]
-                loc = np.stack(np.meshgrid(*[np.arange(res)] * 3, indexing="ij"), -1).reshape(-1, 3)
+                loc = _block_voxels(res)
                 voxels = np.concatenate([k * res + loc[lv] for k, lv in zip(ghost_keys, local, strict=True)])
                 fw, tw, ww = values(whole, res, voxels)
                 fs, ts, ws = values(kernels[name], res, voxels)
