@@ -68,8 +68,9 @@ def paged() -> SemanticVolume:
 
 
 def test_summaries_per_tile_equal_the_whole_surface_and_only_changed_tiles_are_read_again(paged: SemanticVolume) -> None:
-    """Exact against the whole surface's table; an unchanged map reads no tile, a merge none, a
-    cleared key only the tiles holding it, a frame only the tiles around what it changed."""
+    """Exact against the whole surface's table; an unchanged map reads no tile, a merge only the
+    tiles whose read-out vote read the merged-away key (none without the vote), a cleared key only
+    the tiles holding it, a frame only the tiles around what it changed."""
     v = paged
     every = len(v.pager.all_tiles())
     _assert_same_table(v.region_table(), _reference(v))
@@ -78,16 +79,31 @@ def test_summaries_per_tile_equal_the_whole_surface_and_only_changed_tiles_are_r
     assert _read(v, "summary") == every  # nothing changed: nothing read
     ref = _reference(v)
     a, b = int(ref.keys[0]), int(ref.keys[1])
-    v.relabel_keys({a: b})  # a merge: the parts speak slots, nothing to read
+    v.relabel_keys({a: b})  # a merge: the parts speak slots; only the votes around key a change
     _assert_same_table(v.region_table(), _reference(v))
-    assert _read(v, "summary") == every
+    merged = _read(v, "summary") - every
+    assert 0 < merged < every / 4
     v.relabel_keys({int(ref.keys[2]): -1})  # a cleared key: the fill labels its points anew
     _assert_same_table(v.region_table(), _reference(v))
-    cleared = _read(v, "summary") - every
+    cleared = _read(v, "summary") - every - merged
     assert 0 < cleared < every
     v.integrate(FRAMES[-1])
     _assert_same_table(v.region_table(), _reference(v))
-    assert 0 < _read(v, "summary") - every - cleared < every
+    assert 0 < _read(v, "summary") - every - merged - cleared < every
+
+
+def test_without_the_vote_a_merge_reads_no_tile_and_the_table_stays_exact() -> None:
+    """``label_vote_radius_m`` 0: no point's slot depends on another's key, so a merge reads
+    nothing and the parts still add up to the whole surface's table."""
+    volume = SemanticVolume(VolumeParams(**BASE, label_vote_radius_m=0.0))
+    _labelled(volume, FRAMES[:6])
+    ref = _reference(volume)
+    _assert_same_table(volume.region_table(), ref)
+    every = _read(volume, "summary")
+    volume.relabel_keys({int(ref.keys[0]): int(ref.keys[1])})
+    _assert_same_table(volume.region_table(), _reference(volume))
+    assert _read(volume, "summary") == every
+    volume.close()
 
 
 def test_a_part_that_kept_too_few_values_is_read_again_until_the_box_is_exact(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -127,13 +127,23 @@ def summarise_chunk(copy: ChunkCopy, scratch: Scratch, tile_blocks: int) -> dict
     if grid is None:
         return out
     grid.slots = _identity_slots(copy.key1)
-    pts = readout.extract_points(grid)
+    surface = readout.surface_points(grid)
+    if surface is None:
+        return out
+    points_all, _, normals = surface
+    slot, conf = readout.semantics_at_points(grid, points_all, normals, vote=False)
     p = grid.params
-    owner = np.floor_divide(np.floor(pts.points.astype(np.float64) / p.voxel_size_m + 1e-4).astype(np.int64), p.block_resolution)
+    seen = _seen_slots(points_all, slot, p.label_vote_radius_m, p.voxel_size_m, p.block_resolution * tile_blocks)
+    if p.label_vote_radius_m > 0:  # the whole map's vote, by the slots' keys at the copy
+        classes = np.where(slot >= 0, copy.key1[np.maximum(slot, 0)].astype(np.int64) - 1, -1)
+        readout.vote_labels(points_all, slot, conf, p.label_vote_radius_m, normals, classes=classes)
+    owner = np.floor_divide(np.floor(points_all.astype(np.float64) / p.voxel_size_m + 1e-4).astype(np.int64), p.block_resolution)
     tile_of = np.floor_divide(owner, tile_blocks)
-    slot = pts.keys.astype(np.int64)
+    slot = slot.astype(np.int64)
     labelled = slot > 0
-    points, tile_of, slot = pts.points[labelled], tile_of[labelled], slot[labelled]
+    points, tile_of, slot = points_all[labelled], tile_of[labelled], slot[labelled]
+    for t in copy.tiles:
+        out[t].seen = seen.get(t, out[t].seen)
     if not len(points):
         return out
     tkey = pack_coords(tile_of)
@@ -151,6 +161,29 @@ def summarise_chunk(copy: ChunkCopy, scratch: Scratch, tile_blocks: int) -> dict
         by_tile.setdefault(wanted[int(tkey[a])], []).append((int(slot[a]), points[a:b]))
     for t, groups in by_tile.items():
         out[t] = _summary_part(copy.clock, groups, {s: copy.keep.get((t, s), 0) for s, _ in groups})
+        out[t].seen = seen.get(t, out[t].seen)
+    return out
+
+
+def _seen_slots(points: np.ndarray, slots: np.ndarray, radius_m: float, voxel_m: float,
+                tile_vox: int) -> dict[Tile, np.ndarray]:
+    """Per tile, the slots of the labelled points (before the vote) within ``radius_m`` of it (the
+    corners of each point's box of that half-width): the slots whose key a tile's vote read, so a
+    merge or a cleared key of one of them makes the tile's part stale
+    (:meth:`~openfusion.mapping.tilereadouts.TileReadouts.relabelled`). Empty without a vote."""
+    lab = np.flatnonzero(slots > 0)  # slot 0 is never a region's (the slot table's first entry)
+    if radius_m <= 0 or not len(lab):
+        return {}
+    g = points[lab].astype(np.float64) / voxel_m
+    r = radius_m / voxel_m
+    corners = np.array([(dx, dy, dz) for dx in (-r, r) for dy in (-r, r) for dz in (-r, r)])
+    tiles = np.floor_divide(np.floor(g[:, None, :] + corners[None] + 1e-4).astype(np.int64), tile_vox).reshape(-1, 3)
+    rows = np.unique(np.column_stack([tiles, np.repeat(slots[lab].astype(np.int64), 8)]), axis=0)
+    starts = np.flatnonzero(np.r_[True, (rows[1:, :3] != rows[:-1, :3]).any(axis=1)])
+    ends = np.r_[starts[1:], len(rows)]
+    out: dict[Tile, np.ndarray] = {}
+    for a, b in zip(starts, ends, strict=True):
+        out[(int(rows[a, 0]), int(rows[a, 1]), int(rows[a, 2]))] = rows[a:b, 3].copy()
     return out
 
 

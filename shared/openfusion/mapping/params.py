@@ -114,6 +114,12 @@ class VolumeParams(SectionParams):
         description="read-out: an unlabelled surface point takes the key of the nearest same-facing labelled point "
         "within this distance (thin structures the encoder-sized view misses); 0 = off",
     )
+    label_vote_radius_m: float = Field(
+        0.045,
+        ge=0,
+        description="read-out: a labelled surface point takes the key most of the same-facing labelled points "
+        "within this distance hold (itself included) when more of them hold it than hold its own; 0 = off",
+    )
     device: str = Field("CPU:0", description="Open3D device of the volume: CPU:0 or CUDA:<n>")
     shard: str = Field(
         "0/1", description="geometry shard I/N: this volume integrates only the blocks of the tiles shard I of N owns "

@@ -7,7 +7,16 @@ Read-out
     Surface points (TSDF zero crossings of voxels observed ``min_weight`` times, or marching-cubes
     vertices) take the key of the nearest labelled voxel of their cell
     (:func:`semantics_at_points`); points with none take the nearest same-facing labelled point's
-    within ``VolumeParams.label_fill_radius_m`` (:func:`fill_nearest_labels`).
+    within ``VolumeParams.label_fill_radius_m`` (:func:`fill_nearest_labels`); then every labelled
+    point takes the key most of its same-facing labelled neighbours within
+    ``VolumeParams.label_vote_radius_m`` hold when more of them hold it than its own
+    (:func:`vote_labels`).
+
+The vote is ours (Open3D has no label filter over a point cloud; neighbours come from scipy's
+``cKDTree``). It reads the map and never writes it: a key that a few voxels took from a mask's
+border draw (one noisy frame's spill over a neighbour) is outvoted by the points around it in the
+answer, while the voxels keep their evidence for the next update (docs/EVAL.md, "The read-out's
+vote").
 """
 
 from __future__ import annotations
@@ -130,13 +139,83 @@ def fill_nearest_labels(
     return int(found.sum())
 
 
+def vote_labels(
+    points: np.ndarray,
+    keys: np.ndarray,
+    conf: np.ndarray,
+    radius_m: float,
+    normals: np.ndarray | None = None,
+    *,
+    classes: np.ndarray | None = None,
+) -> int:
+    """Give every labelled point the key that most labelled points within ``radius_m`` hold
+    (itself included; with ``normals``, only points facing the same way, cosine >=
+    ``FILL_MIN_NORMAL_COS``) when more of them hold it than hold the point's own key, in place;
+    returns the number of points that changed key. A changed point takes the mean confidence of
+    the neighbours that outvoted it.
+
+    One pass over the keys as given (every point votes with the key it came in with), so a point's
+    result depends only on the points within ``radius_m`` of it: a tile read out with a halo wider
+    than ``radius_m`` gives its own points the keys the whole map's read-out gives them. Every
+    neighbour within the radius counts (not the k nearest, whose ties on the voxel grid would
+    depend on the point set). Ties keep the point's own key; between two other keys the smaller
+    wins. Unlabelled points (key -1) neither vote nor change.
+
+    ``classes`` (per point, for labelled points): vote by these instead of the keys, for a read-out
+    whose keys are storage slots (:mod:`openfusion.mapping.chunkreadouts`: two slots of one merged
+    region vote together, as their key does in the whole map's read-out). A point outvoted takes
+    the smallest key among its neighbours of the winning class.
+    """
+    if radius_m <= 0:
+        return 0
+    labelled = np.flatnonzero(keys >= 0)
+    if len(labelled) < 2:
+        return 0
+    pairs = cKDTree(points[labelled]).query_pairs(float(radius_m), output_type="ndarray")
+    if len(pairs) == 0:
+        return 0
+    a, b = pairs[:, 0], pairs[:, 1]
+    if normals is not None:
+        n = normals[labelled]
+        same = np.einsum("ij,ij->i", n[a], n[b]) >= FILL_MIN_NORMAL_COS
+        a, b = a[same], b[same]
+    key = keys[labelled].astype(np.int64)
+    cls = key if classes is None else np.asarray(classes)[labelled].astype(np.int64)
+    agree = cls[a] == cls[b]
+    own_votes = 1 + np.bincount(a[agree], minlength=len(key)) + np.bincount(b[agree], minlength=len(key))
+    # Votes for another class come only from neighbours that disagree: each such pair votes both ways.
+    a, b = a[~agree], b[~agree]
+    if len(a) == 0:
+        return 0
+    voter = np.concatenate([a, b])
+    receiver = np.concatenate([b, a])
+    order = np.lexsort((key[voter], cls[voter], receiver))
+    voter, receiver = voter[order], receiver[order]
+    vote_cls = cls[voter]
+    start = np.flatnonzero(np.r_[True, (receiver[1:] != receiver[:-1]) | (vote_cls[1:] != vote_cls[:-1])])
+    count = np.diff(np.r_[start, len(receiver)])
+    conf_sum = np.add.reduceat(conf[labelled][voter].astype(np.float64), start)
+    g_point, g_cls, g_key = receiver[start], vote_cls[start], key[voter[start]]  # the group's smallest key
+    # Per point, the group with the most votes; the smaller class first among equals (lexsort is stable).
+    best = np.lexsort((g_cls, -count, g_point))
+    first = best[np.r_[True, g_point[best][1:] != g_point[best][:-1]]]
+    win = first[count[first] > own_votes[g_point[first]]]
+    if len(win) == 0:
+        return 0
+    target = labelled[g_point[win]]
+    keys[target] = g_key[win].astype(keys.dtype)
+    conf[target] = (conf_sum[win] / count[win]).astype(conf.dtype)
+    return int(len(win))
+
+
 def semantics_at_points(
-    storage: VoxelStorage, points: np.ndarray, normals: np.ndarray | None = None
+    storage: VoxelStorage, points: np.ndarray, normals: np.ndarray | None = None, *, vote: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
     """Key and confidence for surface points: the nearest labelled voxel among the 8 corners of
     the voxel cell containing each point (surface points lie on cell edges); points left
     without one take the nearest labelled point's within ``params.label_fill_radius_m`` (facing
-    the same way when ``normals`` are given; see :func:`fill_nearest_labels`)."""
+    the same way when ``normals`` are given; see :func:`fill_nearest_labels`); then, unless
+    ``vote`` is false, the vote of :func:`vote_labels` within ``params.label_vote_radius_m``."""
     n_pts = len(points)
     keys = np.full(n_pts, -1, np.int32)
     conf = np.zeros(n_pts, np.float32)
@@ -169,7 +248,26 @@ def semantics_at_points(
                 keys[sel] = stored[better] - 1
                 conf[sel] = storage.gather("conf", flat[better])
     fill_nearest_labels(points, keys, conf, params.label_fill_radius_m, normals)
+    if vote:
+        vote_labels(points, keys, conf, params.label_vote_radius_m, normals)
     return keys, conf
+
+
+def surface_points(storage: VoxelStorage) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
+    """The surface's points (zero crossings of voxels observed ``min_weight`` times), colours and
+    unit normals, sorted by (x, y, z); None when there are none."""
+    if storage.num_blocks == 0:
+        return None
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        pcd = storage.vbg.extract_point_cloud(float(storage.params.min_weight) - 0.5)
+    if "positions" not in pcd.point or pcd.point.positions.shape[0] == 0:
+        return None
+    points = pcd.point.positions.cpu().numpy().astype(np.float32, copy=False)
+    colors = np.clip(np.round(pcd.point.colors.cpu().numpy() * 255.0), 0, 255).astype(np.uint8)
+    # Open3D emits points in a thread-dependent order: sort so results are reproducible.
+    order = np.lexsort((points[:, 2], points[:, 1], points[:, 0]))
+    normals = _unit_rows(pcd.point.normals.cpu().numpy()[order]) if "normals" in pcd.point else None
+    return points[order], colors[order], normals
 
 
 def extract_points(
@@ -187,19 +285,11 @@ def extract_points(
     """
     if max_points is not None and max_points < 0:
         raise ValueError(f"max_points must be >= 0, got {max_points}")
-    if storage.num_blocks == 0:
+    surface = surface_points(storage)
+    if surface is None:
         return _empty_points()
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        pcd = storage.vbg.extract_point_cloud(float(storage.params.min_weight) - 0.5)
-    if "positions" not in pcd.point or pcd.point.positions.shape[0] == 0:
-        return _empty_points()
-    points = pcd.point.positions.cpu().numpy().astype(np.float32, copy=False)
-    colors = np.clip(np.round(pcd.point.colors.cpu().numpy() * 255.0), 0, 255).astype(np.uint8)
-    # Open3D emits points in a thread-dependent order: sort so results are reproducible.
-    order = np.lexsort((points[:, 2], points[:, 1], points[:, 0]))
-    points, colors = points[order], colors[order]
-    normals = pcd.point.normals.cpu().numpy()[order] if "normals" in pcd.point else None
-    pkeys, pconf = semantics_at_points(storage, points, _unit_rows(normals) if normals is not None else None)
+    points, colors, normals = surface
+    pkeys, pconf = semantics_at_points(storage, points, normals)
     keep = _key_filter(pkeys, keys)
     if keep is not None:
         points, colors, pkeys, pconf = points[keep], colors[keep], pkeys[keep], pconf[keep]

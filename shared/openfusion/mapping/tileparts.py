@@ -37,6 +37,13 @@ class SummaryPart:
     sums: np.ndarray  # (S, 3) float64
     low: list[list[np.ndarray]] = field(default_factory=list)
     high: list[list[np.ndarray]] = field(default_factory=list)
+    #: The slots the read-out's vote read around the tile (``chunkreadouts._seen_slots``), sorted:
+    #: a merge or a cleared key of one of them makes the part stale. Empty without a vote.
+    seen: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    def holds(self, slots: np.ndarray) -> bool:
+        """Whether the part counts points of one of ``slots`` or its vote read one of them."""
+        return bool(np.isin(self.slots, slots).any() or np.isin(self.seen, slots).any())
 
 
 @dataclass
@@ -86,7 +93,7 @@ def part_arrays(part: SummaryPart | ContactPart) -> dict[str, np.ndarray]:
     lows = [v for per in part.low for v in per]
     highs = [v for per in part.high for v in per]
     return {"clock": np.array([part.clock], np.int64), "slots": part.slots, "count": part.count, "sums": part.sums,
-            "low_n": np.array([len(v) for v in lows], np.int64), "high_n": np.array([len(v) for v in highs], np.int64),
+            "seen": part.seen, "low_n": np.array([len(v) for v in lows], np.int64), "high_n": np.array([len(v) for v in highs], np.int64),
             "low": np.concatenate(lows) if lows else np.zeros(0, np.float32),
             "high": np.concatenate(highs) if highs else np.zeros(0, np.float32)}
 
@@ -96,7 +103,7 @@ def part_of(kind: str, a: dict[str, np.ndarray]) -> SummaryPart | ContactPart:
     clock = int(a["clock"][0])
     if kind == "contacts":
         return ContactPart(clock, a["keys"], a["surface"], a["owner"], a["other"], a["count"])
-    part = SummaryPart(clock, a["slots"], a["count"], a["sums"])
+    part = SummaryPart(clock, a["slots"], a["count"], a["sums"], seen=a.get("seen", np.zeros(0, np.int64)))
     for name, out in (("low", part.low), ("high", part.high)):
         values = np.split(a[name], np.cumsum(a[f"{name}_n"])[:-1]) if len(a[f"{name}_n"]) else []
         for i in range(len(part.slots)):
@@ -107,7 +114,7 @@ def part_of(kind: str, a: dict[str, np.ndarray]) -> SummaryPart | ContactPart:
 def _present(kind: str, part: SummaryPart | ContactPart) -> np.ndarray:
     if isinstance(part, ContactPart):
         return np.unique(np.concatenate([part.keys, part.owner, part.other]).astype(np.int64))
-    return np.unique(part.slots.astype(np.int64))
+    return np.unique(np.concatenate([part.slots, part.seen]).astype(np.int64))
 
 
 def relabel_contacts(part: ContactPart, mapping: dict[int, int]) -> ContactPart | None:

@@ -16,9 +16,13 @@ voxels, so they are kept *per tile* and added up:
   A tile keeps ``max(64, 2 %)`` of its values per axis and side; when the combined percentile of
   a region needs more of one tile (a region reaching far past that tile, e.g. a corridor wall
   whose end lies in it), the check below finds it and the tile is read out again keeping enough.
-  Parts speak key *slots* (:mod:`openfusion.mapping.keyslots`): a merge changes no part (the slot
-  reads the surviving key when parts are added up); a cleared key drops the parts holding its
-  slots (their points are labelled by the fill from other voxels now), a key compaction all.
+  Parts speak key *slots* (:mod:`openfusion.mapping.keyslots`): the slot reads the surviving key
+  of a merge when parts are added up; a cleared key drops the parts holding its slots (their
+  points are labelled by the fill from other voxels now), a key compaction all. The read-out's
+  vote (:func:`openfusion.mapping.readout.vote_labels`) counts a point's neighbours by key, so a
+  chunk votes by the slots' keys at its copy, and a part also lists the slots its vote read
+  (``seen``): a merge drops the parts that read one of the merged-away slots (their points may
+  vote otherwise now), a cleared key those that read one of its slots.
 - **Contacts** (:meth:`TileReadouts.contact_parts`): a tile's part holds
   :func:`openfusion.mapping.merging.contact_counts` of its blocks' voxels (labelled voxels per
   key, voxels of one key touching another), counted with the tile's neighbouring blocks as halo.
@@ -189,7 +193,8 @@ class TileReadouts:
     def relabelled(self, changed_slots: np.ndarray, mapping: dict[int, int]) -> None:
         """Keys were merged or cleared (``mapping``; ``changed_slots`` now read another key).
         Contact parts are rewritten where that is exact (:func:`relabel_contacts`), else dropped;
-        summary parts speak slots: only those holding a cleared slot are dropped."""
+        summary parts speak slots: those holding a cleared slot are dropped, and with the read-out's
+        vote (``label_vote_radius_m``) every part whose vote read a slot that changed key."""
         keys = np.array([k for pair in mapping.items() for k in pair if k >= 0], np.int64)
         if len(keys):
             for t, part in [(t, p) for t, p in self.contacts.items() if p.holds(keys)]:
@@ -208,11 +213,11 @@ class TileReadouts:
                         self.contacts[t] = stored_index("contacts", new)
                     else:
                         self.contacts[t] = new
-        cleared = np.asarray(changed_slots, np.int64)
-        cleared = cleared[self.storage.slots.key1[cleared] <= 0] if len(cleared) else cleared
-        if len(cleared):
-            for t, part in [(t, p) for t, p in self.summaries.items()
-                            if np.isin(p.present if isinstance(p, StoredPart) else p.slots, cleared).any()]:
+        stale_slots = np.asarray(changed_slots, np.int64)
+        if self.storage.params.label_vote_radius_m <= 0 and len(stale_slots):  # only a cleared key moves points
+            stale_slots = stale_slots[self.storage.slots.key1[stale_slots] <= 0]
+        if len(stale_slots):
+            for t, part in [(t, p) for t, p in self.summaries.items() if p.holds(stale_slots)]:
                 del self.summaries[t]
                 if isinstance(part, StoredPart):
                     self._drop_stored("summaries", t)
