@@ -13,6 +13,9 @@ measured in the same run with the gt encoder on synthetic scenes, noise off and 
         # encoder calls (frames, regions, per ground-truth object), scoring cost; no baselines
     python bench/bench_eval.py --full --compare-select --select-also select_lookahead=3
     python bench/bench_eval.py --full --compare-select --select-also select_embed_share=   # FIELD= is None
+    python bench/bench_eval.py --full --compare-vote
+        # the read-out's vote off (before) and at its default radius (after), every frame encoded and
+        # the default selection, same run: quality and what a read-out of the map costs
         # ... plus a row per --select-also (comma-separated FIELD=VALUE of select_*), same run
 
 Prints markdown tables (the ratios are to the region map). Exit 0 always unless it crashes;
@@ -32,7 +35,7 @@ from openfusion.encoders.gt import REGION_TEXTS
 from openfusion.eval.report import render_markdown, write_results
 from openfusion.eval.runner import FULL, QUICK, run_eval
 from openfusion.eval.scenes import parse_scene_specs
-from openfusion.mapping.params import MatchParams, MergeParams, SelectParams
+from openfusion.mapping.params import MatchParams, MergeParams, SelectParams, VolumeParams
 
 QUICK_SCENES = "synthetic:seed=1,synthetic:seed=2"
 FULL_SCENES = "synthetic:seed=1,synthetic:seed=2,synthetic:seed=3"
@@ -72,6 +75,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--select-also", action="append", default=[], metavar="FIELD=VALUE[,FIELD=VALUE]",
                         help="with --compare-select: one more coverage row with these select_* parameters "
                              "(repeatable: a row each)")
+    parser.add_argument("--compare-vote", action="store_true",
+                        help="each profile and selection (every frame, coverage) with the read-out's vote off "
+                             "(before) and at its default radius (after); no baselines")
     parser.add_argument("--merge-embedding", default="weighted",
                         help="with --compare-merging: comma-separated merged-embedding rules to compare "
                              "(weighted, mean, first)")
@@ -87,6 +93,8 @@ def main(argv: list[str] | None = None) -> int:
         after = SelectParams.from_pairs(args.select_set)  # FIELD= (empty) is none, as with --set
         also = [SelectParams.from_pairs([kv for kv in row.split(",") if kv]) for row in args.select_also]
         return compare_select(base, specs, profiles, after, also)
+    if args.compare_vote:
+        return compare_vote(base, specs, profiles)
     if args.compare_merging:
         return compare_merging(base, specs, profiles, [e.strip() for e in args.merge_embedding.split(",") if e.strip()])
 
@@ -197,6 +205,36 @@ def compare_select(base, specs, profiles: list[str], after: SelectParams,  # noq
                   f"{_f(share, '{:.2f}')} | {sel['encoder_regions']} | {_f(reg['calls_per_object'], '{:.1f}')} | "
                   f"{_f(reg['calls_per_region'], '{:.1f}')} | {_f(sel['select_ms'], '{:.1f}')} | "
                   f"{_f(sel['semantic_step_ms'], '{:.1f}')} | {_f(cost, '{:.2f}')} | {wall:.0f} |", flush=True)
+    return 0
+
+
+def compare_vote(base, specs, profiles: list[str]) -> int:  # noqa: ANN001
+    """The read-out's vote (``volume.label_vote_radius_m``) off and at its default, per noise profile
+    and selection, in one run: quality, surface points that changed key, and the read-out's time."""
+    base = replace(base, baselines=False, raw_open3d_baseline=False)
+    radius = VolumeParams().label_vote_radius_m
+    print(f"### The read-out's vote, off / {radius * 100:g} cm ({len(specs)} synthetic scenes, {base.frames} frames at "
+          f"{base.width_px}x{base.height_px}, gt encoder + {base.text_encoder})")
+    print()
+    print("| noise | frames encoded | vote | f-mIoU | Δ f-mIoU | mAcc | Δ mAcc | unlabelled | read-out ms (ratio) | "
+          "wall (s) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for noise in profiles:
+        for select in ("every", "coverage"):
+            before: dict | None = None
+            for r_m in (0.0, radius):
+                t0 = time.perf_counter()
+                volume = base.volume.model_copy(update={"label_vote_radius_m": r_m})
+                r = run_eval(specs, replace(base, noise=noise, select=SelectParams(select=select), volume=volume))
+                wall = time.perf_counter() - t0
+                s = r["summary"]
+                m = s["quality"]["region_map"]["metrics"]
+                readout_ms = 1e3 * sum(sc["speed"]["readout_s"] for sc in r["scenes"]) / len(r["scenes"])
+                before = before or {"f": m["f_mIoU"], "a": m["mAcc"], "ms": readout_ms}
+                print(f"| {noise} | {select} | {'off' if r_m == 0 else f'{r_m * 100:g} cm'} | {m['f_mIoU']:.4f} | "
+                      f"{m['f_mIoU'] - before['f']:+.4f} | {m['mAcc']:.4f} | {m['mAcc'] - before['a']:+.4f} | "
+                      f"{_f(m['unlabelled_fraction'])} | {readout_ms:.0f} ({readout_ms / before['ms']:.2f}x) | "
+                      f"{wall:.0f} |", flush=True)
     return 0
 
 

@@ -118,7 +118,9 @@ def evaluate_scene(
         raw_open3d_baseline=config.raw_open3d_baseline,
     )
     volume = run.volume
+    t_readout = time.perf_counter()
     surface = volume.extract_points()
+    readout_s = time.perf_counter() - t_readout
     points = np.asarray(surface.points, dtype=np.float64)
     keys = np.asarray(surface.keys, dtype=np.int64)
 
@@ -241,6 +243,7 @@ def evaluate_scene(
         "select_s": run.select_s,
         "renders_reused": run.renders_reused,
         "select_ms": 1e3 * run.select_s / run.frames_scored if run.frames_scored else None,
+        "readout_s": readout_s,  # the map's surface points with keys (fill and vote included)
     }
     regions = region_counts(keys, gt, observed.mask)
     regions.update(merge_passes=run.merge_passes, regions_merged=run.regions_merged, merge_s=run.merge_s)

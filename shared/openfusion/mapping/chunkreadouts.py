@@ -133,12 +133,14 @@ def summarise_chunk(copy: ChunkCopy, scratch: Scratch, tile_blocks: int) -> dict
     points_all, _, normals = surface
     slot, conf = readout.semantics_at_points(grid, points_all, normals, vote=False)
     p = grid.params
-    seen = _seen_slots(points_all, slot, p.label_vote_radius_m, p.voxel_size_m, p.block_resolution * tile_blocks)
-    if p.label_vote_radius_m > 0:  # the whole map's vote, by the slots' keys at the copy
-        classes = np.where(slot >= 0, copy.key1[np.maximum(slot, 0)].astype(np.int64) - 1, -1)
-        readout.vote_labels(points_all, slot, conf, p.label_vote_radius_m, normals, classes=classes)
     owner = np.floor_divide(np.floor(points_all.astype(np.float64) / p.voxel_size_m + 1e-4).astype(np.int64), p.block_resolution)
     tile_of = np.floor_divide(owner, tile_blocks)
+    seen: dict[Tile, np.ndarray] = {}
+    if p.label_vote_radius_m > 0:  # the whole map's vote, by the slots' keys at the copy
+        classes = np.where(slot >= 0, copy.key1[np.maximum(slot, 0)].astype(np.int64) - 1, -1)
+        pairs = readout.vote_neighbours(points_all, slot, p.label_vote_radius_m, normals, classes=classes)
+        seen = _seen_slots(tile_of[pairs[0]], slot[pairs[1]].astype(np.int64))
+        readout.vote_labels(points_all, slot, conf, p.label_vote_radius_m, normals, classes=classes, neighbours=pairs)
     slot = slot.astype(np.int64)
     labelled = slot > 0
     points, tile_of, slot = points_all[labelled], tile_of[labelled], slot[labelled]
@@ -165,25 +167,27 @@ def summarise_chunk(copy: ChunkCopy, scratch: Scratch, tile_blocks: int) -> dict
     return out
 
 
-def _seen_slots(points: np.ndarray, slots: np.ndarray, radius_m: float, voxel_m: float,
-                tile_vox: int) -> dict[Tile, np.ndarray]:
-    """Per tile, the slots of the labelled points (before the vote) within ``radius_m`` of it (the
-    corners of each point's box of that half-width): the slots whose key a tile's vote read, so a
-    merge or a cleared key of one of them makes the tile's part stale
-    (:meth:`~openfusion.mapping.tilereadouts.TileReadouts.relabelled`). Empty without a vote."""
-    lab = np.flatnonzero(slots > 0)  # slot 0 is never a region's (the slot table's first entry)
-    if radius_m <= 0 or not len(lab):
+def _seen_slots(tiles: np.ndarray, slots: np.ndarray) -> dict[Tile, np.ndarray]:
+    """Per tile, the slots of the neighbours its points' votes counted (``tiles``: the tile of each
+    pair's receiving point, ``slots``: the voter's slot before the vote): a merge or a cleared key of
+    one of them makes the tile's part stale
+    (:meth:`~openfusion.mapping.tilereadouts.TileReadouts.relabelled`)."""
+    if not len(slots):
         return {}
-    g = points[lab].astype(np.float64) / voxel_m
-    r = radius_m / voxel_m
-    corners = np.array([(dx, dy, dz) for dx in (-r, r) for dy in (-r, r) for dz in (-r, r)])
-    tiles = np.floor_divide(np.floor(g[:, None, :] + corners[None] + 1e-4).astype(np.int64), tile_vox).reshape(-1, 3)
-    rows = np.unique(np.column_stack([tiles, np.repeat(slots[lab].astype(np.int64), 8)]), axis=0)
-    starts = np.flatnonzero(np.r_[True, (rows[1:, :3] != rows[:-1, :3]).any(axis=1)])
-    ends = np.r_[starts[1:], len(rows)]
+    base = tiles.min(axis=0)
+    span = tiles.max(axis=0) - base + 1  # a chunk and its halo: a few tiles per axis
+    rel = tiles - base
+    n_slots = int(slots.max()) + 1
+    pairs = np.unique(((rel[:, 0] * span[1] + rel[:, 1]) * span[2] + rel[:, 2]) * n_slots + slots)
+    code, slot_of = np.divmod(pairs, n_slots)
+    starts = np.flatnonzero(np.r_[True, code[1:] != code[:-1]])
+    ends = np.r_[starts[1:], len(pairs)]
+    xy, z = np.divmod(code[starts], span[2])
+    x, y = np.divmod(xy, span[1])
+    firsts = np.stack([x, y, z], axis=1) + base
     out: dict[Tile, np.ndarray] = {}
-    for a, b in zip(starts, ends, strict=True):
-        out[(int(rows[a, 0]), int(rows[a, 1]), int(rows[a, 2]))] = rows[a:b, 3].copy()
+    for a, b, t in zip(starts, ends, firsts.tolist(), strict=True):
+        out[(int(t[0]), int(t[1]), int(t[2]))] = slot_of[a:b].copy()
     return out
 
 

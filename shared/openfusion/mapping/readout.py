@@ -29,9 +29,11 @@ import open3d.core as o3c
 from scipy.spatial import cKDTree
 
 from openfusion.mapping.storage import VoxelStorage, flat_voxel_index, split_voxel_coords
+from openfusion.mapping.tiles import pack_coords, unpack_coords
 
 FILL_MIN_NORMAL_COS = 0.5  # a fill source must face within 60 degrees of the point it labels
 _FILL_CANDIDATES = 8
+_NEIGHBOUR_CELLS = np.array([(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if (x, y, z) != (0, 0, 0)])
 
 
 @dataclass
@@ -147,6 +149,7 @@ def vote_labels(
     normals: np.ndarray | None = None,
     *,
     classes: np.ndarray | None = None,
+    neighbours: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> int:
     """Give every labelled point the key that most labelled points within ``radius_m`` hold
     (itself included; with ``normals``, only points facing the same way, cosine >=
@@ -164,37 +167,28 @@ def vote_labels(
     ``classes`` (per point, for labelled points): vote by these instead of the keys, for a read-out
     whose keys are storage slots (:mod:`openfusion.mapping.chunkreadouts`: two slots of one merged
     region vote together, as their key does in the whole map's read-out). A point outvoted takes
-    the smallest key among its neighbours of the winning class.
+    the smallest key among its neighbours of the winning class. ``neighbours``: the pairs of
+    :func:`vote_neighbours` for these arguments, when the caller has them already.
     """
     if radius_m <= 0:
         return 0
-    labelled = np.flatnonzero(keys >= 0)
-    if len(labelled) < 2:
+    receiver, voter = neighbours if neighbours is not None else vote_neighbours(
+        points, keys, radius_m, normals, classes=classes)
+    if len(receiver) == 0:
         return 0
-    pairs = cKDTree(points[labelled]).query_pairs(float(radius_m), output_type="ndarray")
-    if len(pairs) == 0:
+    key = keys.astype(np.int64)
+    cls = key if classes is None else np.asarray(classes).astype(np.int64)
+    agree = cls[receiver] == cls[voter]
+    own_votes = 1 + np.bincount(receiver[agree], minlength=len(key))
+    receiver, voter = receiver[~agree], voter[~agree]  # votes for another class
+    if len(receiver) == 0:
         return 0
-    a, b = pairs[:, 0], pairs[:, 1]
-    if normals is not None:
-        n = normals[labelled]
-        same = np.einsum("ij,ij->i", n[a], n[b]) >= FILL_MIN_NORMAL_COS
-        a, b = a[same], b[same]
-    key = keys[labelled].astype(np.int64)
-    cls = key if classes is None else np.asarray(classes)[labelled].astype(np.int64)
-    agree = cls[a] == cls[b]
-    own_votes = 1 + np.bincount(a[agree], minlength=len(key)) + np.bincount(b[agree], minlength=len(key))
-    # Votes for another class come only from neighbours that disagree: each such pair votes both ways.
-    a, b = a[~agree], b[~agree]
-    if len(a) == 0:
-        return 0
-    voter = np.concatenate([a, b])
-    receiver = np.concatenate([b, a])
     order = np.lexsort((key[voter], cls[voter], receiver))
     voter, receiver = voter[order], receiver[order]
     vote_cls = cls[voter]
     start = np.flatnonzero(np.r_[True, (receiver[1:] != receiver[:-1]) | (vote_cls[1:] != vote_cls[:-1])])
     count = np.diff(np.r_[start, len(receiver)])
-    conf_sum = np.add.reduceat(conf[labelled][voter].astype(np.float64), start)
+    conf_sum = np.add.reduceat(conf[voter].astype(np.float64), start)
     g_point, g_cls, g_key = receiver[start], vote_cls[start], key[voter[start]]  # the group's smallest key
     # Per point, the group with the most votes; the smaller class first among equals (lexsort is stable).
     best = np.lexsort((g_cls, -count, g_point))
@@ -202,10 +196,63 @@ def vote_labels(
     win = first[count[first] > own_votes[g_point[first]]]
     if len(win) == 0:
         return 0
-    target = labelled[g_point[win]]
+    target = g_point[win]
     keys[target] = g_key[win].astype(keys.dtype)
     conf[target] = (conf_sum[win] / count[win]).astype(conf.dtype)
     return int(len(win))
+
+
+def vote_neighbours(
+    points: np.ndarray,
+    keys: np.ndarray,
+    radius_m: float,
+    normals: np.ndarray | None = None,
+    *,
+    classes: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs :func:`vote_labels` counts, as (receiver, voter) indices into ``points``: every
+    labelled point within ``radius_m`` (facing the same way) of each labelled point that may be
+    outvoted. A point whose cell and the 26 cells around it hold only its own class has none: no
+    merge or cleared key can change its vote, since every point around it changes alike."""
+    none = (np.zeros(0, np.int64), np.zeros(0, np.int64))
+    labelled = np.flatnonzero(keys >= 0)
+    if radius_m <= 0 or len(labelled) < 2:
+        return none
+    at = points[labelled].astype(np.float64)
+    cls = (keys if classes is None else np.asarray(classes))[labelled].astype(np.int64)
+    cand = np.flatnonzero(_may_be_outvoted(at, cls, float(radius_m)))
+    if len(cand) == 0:
+        return none
+    # The tree's pairs within a slightly larger radius, then our own distance test: which pairs a
+    # tree finds at exactly the radius depends on how it split the points, and a tile's read-out
+    # must not differ from the whole map's there.
+    near = cKDTree(at[cand]).sparse_distance_matrix(cKDTree(at), float(radius_m) * 1.01, output_type="ndarray")
+    receiver, voter = cand[near["i"].astype(np.int64)], near["j"].astype(np.int64)
+    ok = (voter != receiver) & (((at[receiver] - at[voter]) ** 2).sum(axis=1) <= float(radius_m) ** 2)
+    if normals is not None:
+        n = normals[labelled]
+        ok &= np.einsum("ij,ij->i", n[receiver], n[voter]) >= FILL_MIN_NORMAL_COS
+    return labelled[receiver[ok]], labelled[voter[ok]]
+
+
+def _may_be_outvoted(at: np.ndarray, cls: np.ndarray, radius_m: float) -> np.ndarray:
+    """Per point, whether a point of another class may lie within ``radius_m``: cells a little
+    wider than the radius, and a point is left out when its cell and the 26 around it hold its
+    class only (most of a map: the vote then only asks about the points along region borders)."""
+    cell = pack_coords(np.floor(at / (radius_m * 1.001)).astype(np.int64))
+    cells, inv = np.unique(cell, return_inverse=True)
+    lo = np.full(len(cells), np.iinfo(np.int64).max)
+    hi = np.full(len(cells), np.iinfo(np.int64).min)
+    np.minimum.at(lo, inv, cls)
+    np.maximum.at(hi, inv, cls)
+    clean = lo == hi
+    coords = unpack_coords(cells)
+    for offset in _NEIGHBOUR_CELLS:
+        nb = pack_coords(coords + offset)
+        j = np.minimum(np.searchsorted(cells, nb), len(cells) - 1)
+        there = cells[j] == nb
+        clean &= ~there | ((lo[j] == hi[j]) & (lo[j] == lo))
+    return ~clean[inv]
 
 
 def semantics_at_points(
