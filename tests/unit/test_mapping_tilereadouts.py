@@ -209,3 +209,20 @@ def test_paged_out_tiles_parts_come_from_the_part_store_without_decoding(monkeyp
     finally:
         v.close()
     assert v._readouts.part_store is None
+
+
+def test_a_summary_part_keeps_the_slots_its_vote_read_through_the_part_store() -> None:
+    """A paged-out tile's part keeps ``seen`` on disk and in its index, so a merge of a slot its
+    vote read drops it even while the tile is paged out; a part stored before ``seen`` existed
+    reads as having seen none."""
+    from openfusion.mapping.tileparts import SummaryPart, part_arrays, part_of, stored_index
+
+    part = SummaryPart(7, np.array([2, 5], np.int64), np.array([10, 3], np.int64), np.ones((2, 3)),
+                       low=[[np.zeros(1)] * 3] * 2, high=[[np.zeros(1)] * 3] * 2, seen=np.array([5, 9], np.int64))
+    back = part_of("summaries", part_arrays(part))
+    np.testing.assert_array_equal(back.seen, [5, 9])
+    assert back.holds(np.array([9])) and not back.holds(np.array([4]))
+    assert stored_index("summaries", part).holds(np.array([9]))
+    old = part_arrays(part)
+    del old["seen"]
+    assert len(part_of("summaries", old).seen) == 0

@@ -21,8 +21,10 @@ voxels, so they are kept *per tile* and added up:
   points are labelled by the fill from other voxels now), a key compaction all. The read-out's
   vote (:func:`openfusion.mapping.readout.vote_labels`) counts a point's neighbours by key, so a
   chunk votes by the slots' keys at its copy, and a part also lists the slots its vote read
-  (``seen``): a merge drops the parts that read one of the merged-away slots (their points may
-  vote otherwise now), a cleared key those that read one of its slots.
+  (``seen``: the slots of the neighbours its points near another region counted): a merge drops
+  the parts that hold or read one of the merged-away slots (their points may vote otherwise now),
+  a cleared key likewise. A point whose neighbourhood holds one region only is not voted on, so
+  no relabelling changes it (every point around it changes alike).
 - **Contacts** (:meth:`TileReadouts.contact_parts`): a tile's part holds
   :func:`openfusion.mapping.merging.contact_counts` of its blocks' voxels (labelled voxels per
   key, voxels of one key touching another), counted with the tile's neighbouring blocks as halo.

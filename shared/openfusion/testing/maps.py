@@ -75,24 +75,36 @@ def volume_with_every_tile(frames: Iterable[Any]) -> tuple[SemanticVolume, dict[
     return volume, tiles
 
 
-def plant_small_region(volume, dictionary, *, like_key: int, label: str, voxels: int = 1):  # noqa: ANN001, ANN201
+def plant_small_region(volume, dictionary, *, like_key: int, label: str, voxels: int = 16):  # noqa: ANN001, ANN201
     """A copy of the map with a new region of a few surface points: a dictionary entry with region
-    ``like_key``'s embedding (so it ties with it in every query) that takes over the ``voxels``
-    surface voxels of ``like_key`` nearest the zero crossing. Returns (volume, dictionary, new key);
-    the stray fragments a query must not return look like this."""
+    ``like_key``'s embedding (so it ties with it in every query) that takes over a compact patch
+    of ``like_key``'s surface voxels: the one nearest the zero crossing and the ``voxels - 1``
+    nearest it. Returns (volume, dictionary, new key). The stray fragments a query must not return
+    look like this: a patch (a single stray voxel is voted away by the read-out, so it never
+    reaches an answer; :func:`openfusion.mapping.readout.vote_labels`)."""
     from openfusion.mapping import RegionDictionary, SemanticVolume
 
     dictionary = RegionDictionary.from_snapshot(dictionary.snapshot())
     key = dictionary.add(dictionary.embedding(like_key), label=label)
     arrays = volume.to_arrays()
+    res = volume.params.block_resolution
     candidates = np.flatnonzero(
         (arrays["key"].reshape(-1) == like_key) & (arrays["weight"].reshape(-1) >= volume.params.min_weight)
+        & (np.abs(arrays["tsdf"].reshape(-1)) < 0.5)
     )
     if len(candidates) < voxels:
         raise ValueError(f"region {like_key} has {len(candidates)} surface voxels, fewer than {voxels}")
-    nearest = candidates[np.argsort(np.abs(arrays["tsdf"].reshape(-1)[candidates]), kind="stable")[:voxels]]
-    arrays["key"].reshape(-1)[nearest] = key
-    arrays["conf"].reshape(-1)[nearest] = 1.0
+    seed = candidates[np.argmin(np.abs(arrays["tsdf"].reshape(-1)[candidates]))]
+
+    def position(flat: np.ndarray) -> np.ndarray:
+        block, within = np.divmod(flat, res**3)
+        local = np.stack([within % res, (within // res) % res, within // (res * res)], axis=-1)
+        return arrays["block_coords"][block].astype(np.int64) * res + local
+
+    d2 = ((position(candidates) - position(np.array([seed]))) ** 2).sum(axis=1)
+    patch = candidates[np.argsort(d2, kind="stable")[:voxels]]
+    arrays["key"].reshape(-1)[patch] = key
+    arrays["conf"].reshape(-1)[patch] = 1.0
     return SemanticVolume.from_arrays(volume.params, arrays), dictionary, key
 
 
