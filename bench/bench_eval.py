@@ -13,10 +13,10 @@ measured in the same run with the gt encoder on synthetic scenes, noise off and 
         # encoder calls (frames, regions, per ground-truth object), scoring cost; no baselines
     python bench/bench_eval.py --full --compare-select --select-also select_lookahead=3
     python bench/bench_eval.py --full --compare-select --select-also select_embed_share=   # FIELD= is None
+        # ... plus a row per --select-also (comma-separated FIELD=VALUE of select_*), same run
     python bench/bench_eval.py --full --compare-vote
         # the read-out's vote off (before) and at its default radius (after), every frame encoded and
         # the default selection, same run: quality and what a read-out of the map costs
-        # ... plus a row per --select-also (comma-separated FIELD=VALUE of select_*), same run
 
 Prints markdown tables (the ratios are to the region map). Exit 0 always unless it crashes;
 targets are reported, not asserted (use ``openfusion eval --check-targets`` for that).
@@ -210,7 +210,7 @@ def compare_select(base, specs, profiles: list[str], after: SelectParams,  # noq
 
 def compare_vote(base, specs, profiles: list[str]) -> int:  # noqa: ANN001
     """The read-out's vote (``volume.label_vote_radius_m``) off and at its default, per noise profile
-    and selection, in one run: quality, surface points that changed key, and the read-out's time."""
+    and selection, in one run: quality and the time of the eval's read-out of the whole map."""
     base = replace(base, baselines=False, raw_open3d_baseline=False)
     radius = VolumeParams().label_vote_radius_m
     print(f"### The read-out's vote, off / {radius * 100:g} cm ({len(specs)} synthetic scenes, {base.frames} frames at "
