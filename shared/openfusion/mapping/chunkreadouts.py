@@ -25,13 +25,11 @@ from openfusion.mapping.merging import contact_counts
 from openfusion.mapping.storage import ATTR_NAMES, VoxelStorage
 from openfusion.mapping.tilecodec import decode_tile
 from openfusion.mapping.tileparts import ContactPart, SummaryPart, Tile
-from openfusion.mapping.tiles import pack_coords
+from openfusion.mapping.tiles import NEIGHBOUR_OFFSETS, pack_coords, unpack_coords
 
 #: Values a summary part keeps per axis and side at least, and as a share of its points.
 KEEP_MIN = 64
 KEEP_SHARE = 0.02
-#: The 27 offsets of a block (or tile) and its 26 neighbours.
-NEIGHBOUR_OFFSETS = np.array([(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)], np.int64)
 
 
 @dataclass
@@ -174,20 +172,16 @@ def _seen_slots(tiles: np.ndarray, slots: np.ndarray) -> dict[Tile, np.ndarray]:
     (:meth:`~openfusion.mapping.tilereadouts.TileReadouts.relabelled`)."""
     if not len(slots):
         return {}
-    base = tiles.min(axis=0)
-    span = tiles.max(axis=0) - base + 1  # a chunk and its halo: a few tiles per axis
-    rel = tiles - base
-    n_slots = int(slots.max()) + 1
-    pairs = np.unique(((rel[:, 0] * span[1] + rel[:, 1]) * span[2] + rel[:, 2]) * n_slots + slots)
-    code, slot_of = np.divmod(pairs, n_slots)
-    starts = np.flatnonzero(np.r_[True, code[1:] != code[:-1]])
-    ends = np.r_[starts[1:], len(pairs)]
-    xy, z = np.divmod(code[starts], span[2])
-    x, y = np.divmod(xy, span[1])
-    firsts = np.stack([x, y, z], axis=1) + base
+    tkey = pack_coords(tiles)
+    order = np.lexsort((slots, tkey))
+    tkey, slots = tkey[order], slots[order]
+    first = np.r_[True, (tkey[1:] != tkey[:-1]) | (slots[1:] != slots[:-1])]
+    tkey, slots = tkey[first], slots[first]
+    starts = np.flatnonzero(np.r_[True, tkey[1:] != tkey[:-1]])
+    ends = np.r_[starts[1:], len(tkey)]
     out: dict[Tile, np.ndarray] = {}
-    for a, b, t in zip(starts, ends, firsts.tolist(), strict=True):
-        out[(int(t[0]), int(t[1]), int(t[2]))] = slot_of[a:b].copy()
+    for a, b, t in zip(starts, ends, unpack_coords(tkey[starts]).tolist(), strict=True):
+        out[(int(t[0]), int(t[1]), int(t[2]))] = slots[a:b].copy()
     return out
 
 

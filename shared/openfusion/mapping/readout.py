@@ -29,11 +29,10 @@ import open3d.core as o3c
 from scipy.spatial import cKDTree
 
 from openfusion.mapping.storage import VoxelStorage, flat_voxel_index, split_voxel_coords
-from openfusion.mapping.tiles import pack_coords, unpack_coords
+from openfusion.mapping.tiles import NEIGHBOUR_OFFSETS, pack_coords, unpack_coords
 
 FILL_MIN_NORMAL_COS = 0.5  # a fill source must face within 60 degrees of the point it labels
 _FILL_CANDIDATES = 8
-_NEIGHBOUR_CELLS = np.array([(x, y, z) for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if (x, y, z) != (0, 0, 0)])
 
 
 @dataclass
@@ -247,7 +246,7 @@ def _may_be_outvoted(at: np.ndarray, cls: np.ndarray, radius_m: float) -> np.nda
     np.maximum.at(hi, inv, cls)
     clean = lo == hi
     coords = unpack_coords(cells)
-    for offset in _NEIGHBOUR_CELLS:
+    for offset in NEIGHBOUR_OFFSETS:  # (0, 0, 0) among them: the cell against itself changes nothing
         nb = pack_coords(coords + offset)
         j = np.minimum(np.searchsorted(cells, nb), len(cells) - 1)
         there = cells[j] == nb

@@ -79,7 +79,6 @@ from openfusion.mapping import readout_worker
 from openfusion.mapping.chunkreadouts import KEEP_MIN as KEEP_MIN  # re-exported, as the parts' names
 from openfusion.mapping.chunkreadouts import KEEP_SHARE as KEEP_SHARE
 from openfusion.mapping.chunkreadouts import (
-    NEIGHBOUR_OFFSETS,
     ChunkCopy,
     Scratch,
     count_contacts_chunk,
@@ -103,6 +102,7 @@ from openfusion.mapping.tileparts import (
 )
 from openfusion.mapping.tileparts import combine_contacts as combine_contacts
 from openfusion.mapping.tileparts import combine_summaries as combine_summaries
+from openfusion.mapping.tiles import NEIGHBOUR_OFFSETS
 
 logger = logging.getLogger(__name__)
 

@@ -49,6 +49,8 @@ def tile_of_key(key: bytes) -> tuple[int, int, int]:
 
 
 _PACK_BIAS = 1 << 20  # block/tile coordinates within +-1,048,576 (at 16 cm blocks: +-167 km)
+#: The 27 offsets of a cell (block, tile) and its 26 neighbours, (0, 0, 0) among them.
+NEIGHBOUR_OFFSETS = np.array([(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)], np.int64)
 
 
 def pack_coords(coords: np.ndarray) -> np.ndarray:

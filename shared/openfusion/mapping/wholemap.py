@@ -31,7 +31,7 @@ from openfusion.mapping.mesh_weld import join_welded
 from openfusion.mapping.paging import TilePager
 from openfusion.mapping.readout import SurfaceMesh, SurfacePoints
 from openfusion.mapping.storage import ATTR_NAMES, VoxelStorage
-from openfusion.mapping.tiles import pack_coords
+from openfusion.mapping.tiles import NEIGHBOUR_OFFSETS, pack_coords
 
 Tile = tuple[int, int, int]
 #: Blocks read out at once (4 MiB of compact voxels, plus the halo and Open3D's read-out buffers).
@@ -137,7 +137,7 @@ def _iter_scratch(
     source = _TileSource(storage, pager)
     grid = pager.grid
     scratch: VoxelStorage | None = None
-    offsets = np.array([(dx, dy, dz) for dx in (-1, 0, 1) for dy in (-1, 0, 1) for dz in (-1, 0, 1)], np.int64)
+    offsets = NEIGHBOUR_OFFSETS
     for chunk in _chunks(source, keys):
         own_coords: list[np.ndarray] = []
         raws: list[dict[str, np.ndarray]] = []

@@ -83,25 +83,19 @@ def plant_small_region(volume, dictionary, *, like_key: int, label: str, voxels:
     look like this: a patch (a single stray voxel is voted away by the read-out, so it never
     reaches an answer; :func:`openfusion.mapping.readout.vote_labels`)."""
     from openfusion.mapping import RegionDictionary, SemanticVolume
+    from openfusion.mapping.voxel_arrays import voxels_of_labelled
 
     dictionary = RegionDictionary.from_snapshot(dictionary.snapshot())
     key = dictionary.add(dictionary.embedding(like_key), label=label)
     arrays = volume.to_arrays()
-    res = volume.params.block_resolution
-    candidates = np.flatnonzero(
-        (arrays["key"].reshape(-1) == like_key) & (arrays["weight"].reshape(-1) >= volume.params.min_weight)
-        & (np.abs(arrays["tsdf"].reshape(-1)) < 0.5)
-    )
+    surface = (arrays["key"] == like_key) & (arrays["weight"] >= volume.params.min_weight) & (np.abs(arrays["tsdf"]) < 0.5)
+    candidates = np.flatnonzero(surface.reshape(-1))
     if len(candidates) < voxels:
         raise ValueError(f"region {like_key} has {len(candidates)} surface voxels, fewer than {voxels}")
-    seed = candidates[np.argmin(np.abs(arrays["tsdf"].reshape(-1)[candidates]))]
-
-    def position(flat: np.ndarray) -> np.ndarray:
-        block, within = np.divmod(flat, res**3)
-        local = np.stack([within % res, (within // res) % res, within // (res * res)], axis=-1)
-        return arrays["block_coords"][block].astype(np.int64) * res + local
-
-    d2 = ((position(candidates) - position(np.array([seed]))) ** 2).sum(axis=1)
+    # Voxel coordinates of the candidates, in the same (flat) order.
+    position, _ = voxels_of_labelled(arrays["block_coords"], np.where(surface, 0, -1), volume.params.block_resolution)
+    seed = int(np.argmin(np.abs(arrays["tsdf"].reshape(-1)[candidates])))
+    d2 = ((position - position[seed]) ** 2).sum(axis=1)
     patch = candidates[np.argsort(d2, kind="stable")[:voxels]]
     arrays["key"].reshape(-1)[patch] = key
     arrays["conf"].reshape(-1)[patch] = 1.0
