@@ -62,6 +62,9 @@ BAD_ARGUMENTS = [
     (["health", "--map", "bad/map id", "--no-multicast"], "map id 'bad/map id' is not a valid key segment"),
     (["service", "nosuch"], "invalid choice: 'nosuch'"),
     (["service", "geometry", "--voxel-size-m", "-1", "--no-multicast"], "geometry.voxel_size_m = -1.0"),
+    # 1 cm voxels keep the default 8-voxel blocks of 8 cm: the read-out's fill and vote reach past the halo
+    (["service", "geometry", "--voxel-size-m", "0.01", "--no-multicast"],
+     "label_fill_radius_m (0.06) + label_vote_radius_m (0.045) + voxel_size_m (0.01) = 0.115 m exceeds one block"),
     (["service", "semantic", "--encoder", "onnx", "--noise", "light", "--no-multicast"],
      "semantic.noise = 'light' (from command line): noise applies to the gt encoder only, not to 'onnx'"),
     (["run", "--encoder", "nosuch"], "unknown region encoder 'nosuch'; known: gt"),

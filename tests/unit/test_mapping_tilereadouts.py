@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 from openfusion.mapping import SemanticVolume, VolumeParams, chunkreadouts, tilereadouts
 from openfusion.mapping.merging import RegionContacts, block_contacts
@@ -226,3 +227,26 @@ def test_a_summary_part_keeps_the_slots_its_vote_read_through_the_part_store() -
     old = part_arrays(part)
     del old["seen"]
     assert len(part_of("summaries", old).seen) == 0
+
+
+def test_radii_that_reach_past_the_halo_are_refused_and_those_that_fit_read_out_exactly(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Bad input tried: 4-voxel blocks (8 cm at 2 cm voxels) with the default fill and vote radii
+    (6 + 4.5 cm + a voxel > 8 cm), refused at construction with the three numbers named (built
+    anyway, the per-tile summaries leave points in other regions than the whole map's read-out:
+    the check is not needless). Radii that fit the same blocks give summaries equal to the whole
+    surface's table."""
+    small = {"block_resolution": 4, "tile_blocks": 4}
+    with pytest.raises(ValidationError, match=r"= 0\.125 m exceeds one block \(4 voxels x 0\.02 m = 0\.08 m\)"):
+        VolumeParams(**small)
+    monkeypatch.setattr(VolumeParams, "with_changes", lambda self, **changes: self.model_copy(update=changes))
+    forced = SemanticVolume(VolumeParams.model_construct(**{**VolumeParams().model_dump(), **small}))
+    _labelled(forced, FRAMES[:12])
+    got, ref = forced.region_table(), _reference(forced)
+    forced.close()
+    assert not np.array_equal(got.num_points, ref.num_points)
+    monkeypatch.undo()
+    volume = SemanticVolume(VolumeParams(**small, label_fill_radius_m=0.03, label_vote_radius_m=0.03))
+    _labelled(volume, FRAMES[:12])
+    _assert_same_table(volume.region_table(), _reference(volume))
+    volume.close()
