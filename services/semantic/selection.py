@@ -218,6 +218,14 @@ class CandidateFeeder:
     def _prepare(self, runner: ServiceRunner, msg: RgbdFrame) -> tuple[Any, float]:
         """(on the scoring pool) The frame's evidence and the seconds it took."""
         started = time.monotonic()
+        version = self.labels_version() if self.labels_version is not None else None
+        evidence = self.scorer.prepare_frame(msg.to_frame(), self._render_for(msg), robot=msg.robot,
+                                             labels_version=version)
+        runner.stats.set(SemanticCounter.RENDERS_REUSED, self.scorer.still.reused)
+        return evidence, time.monotonic() - started
+
+    def _render_for(self, msg: RgbdFrame) -> Callable[..., Any]:
+        """``render(T_world_cam, K_small[, depth_m])`` of the map for ``msg`` (a geometry request)."""
 
         def render(T_world_cam: Any, K_small: CameraIntrinsics, depth_m: np.ndarray | None = None) -> Any:
             # with the candidate's depth (select_view auto / probe) geometry may probe rather than ray-cast
@@ -227,10 +235,24 @@ class CandidateFeeder:
                 frame_id=msg.frame_id, T_world_cam=T_world_cam, robot=msg.robot, probe_depth_m=probe,
                 probe_above_blocks=self.scorer.params.probe_above_blocks or 0, **RenderRequest.intrinsics_fields(K_small)))
 
-        version = self.labels_version() if self.labels_version is not None else None
-        evidence = self.scorer.prepare_frame(msg.to_frame(), render, robot=msg.robot, labels_version=version)
-        runner.stats.set(SemanticCounter.RENDERS_REUSED, self.scorer.still.reused)
-        return evidence, time.monotonic() - started
+        return render
+
+    def _wanted_now(self, runner: ServiceRunner, pending: Pending, evidence: Any) -> np.ndarray | None:
+        """The chosen frame's wanted pixels against the map as it is when the encoder takes it
+        (:meth:`CoverageScorer.wanted_now`: the frames taken before it have labelled and settled
+        much of what its render showed); as decided when geometry gives no render."""
+        if evidence.wanted_base is None:
+            return evidence.wanted_px
+        try:
+            key_map, conf_map = self.scorer.render_again(pending.msg.to_frame(), self._render_for(pending.msg))
+        except QueryError as exc:
+            runner.stats.incr(SemanticCounter.WANTED_RENDER_FAILURES)
+            logger.debug("frame %s: no render for its wanted pixels (%s); the decision's are used",
+                      pending.msg.frame_id, exc)
+            key_map = conf_map = None
+        wanted = self.scorer.wanted_now(evidence, key_map, conf_map)
+        self.scorer.embedding_in_flight(evidence, key_map, wanted)  # until finish() releases it
+        return wanted
 
     def take(self, runner: ServiceRunner, timeout_s: float) -> Pending | None:
         """The best candidate for the encoder now (waiting up to ``timeout_s``), or None."""
@@ -239,7 +261,7 @@ class CandidateFeeder:
         if change.taken is None:
             return None
         pending = change.taken.payload
-        pending.wanted_px = change.taken.evidence.wanted_px
+        pending.wanted_px = self._wanted_now(runner, pending, change.taken.evidence)
         return pending
 
     def account(self, runner: ServiceRunner, change: WindowChange[Pending]) -> None:

@@ -194,6 +194,89 @@ def test_wanted_pixels_are_new_surface_new_directions_and_unsettled_regions() ->
     assert chosen and ev.wanted_px is not None and ev.wanted_px[:, : SW // 2].all()
 
 
+def test_a_chosen_view_waiting_for_the_encoder_wants_what_is_still_new_when_it_is_encoded() -> None:
+    """The services' window encodes a chosen frame later than it decided it, after the frames
+    taken before it labelled and settled much of what its render showed (with the decision's mask
+    the services embedded 3.5-4x the regions one process does). Asked again with the map rendered
+    again: regions settled meanwhile are not wanted, surface labelled meanwhile is wanted only from
+    a direction its region was not encoded from, surface still unlabelled stays wanted, a region
+    whose views came to disagree is wanted again, and without a new render only the settling is
+    asked again."""
+    scorer = CoverageScorer(SelectParams(select_width_px=SW, select_patience_s=None))
+    support = {"count": 1, "agreement": 1.0}
+    scorer.embedding_support = lambda k: (np.full(len(k), support["count"], np.int64),
+                                          np.full(len(k), support["agreement"], np.float32))
+    left, right = np.s_[:, : SW // 2], np.s_[:, SW // 2:]
+    keys = np.full((SH, SW), 7, np.int32)
+    keys[right] = -1
+    scorer.mark_selected(_view(scorer, keys))
+    scorer.observe_plan(keys, T_FRONT, SK, 0)  # region 7 encoded once from the front
+    waiting = _view(scorer, keys, stamp_s=1.0)  # chosen while region 7 has one view of the 2 asked
+    _, chosen = scorer.decide(waiting, hold=True)
+    assert chosen and waiting.wanted_px.all()
+    np.testing.assert_array_equal(scorer.wanted_now(waiting), waiting.wanted_px)  # nothing applied since
+    # frames taken before it applied: region 7 settled, the right half labelled region 8
+    later = keys.copy()
+    later[right] = 8
+    scorer.observe_plan(later, T_FRONT, SK, int(0.5e9))
+    support.update(count=3)
+    conf = (later >= 0).astype(np.float32)
+    assert not scorer.wanted_now(waiting, later, conf).any()  # both covered from here and settled
+    without_render = scorer.wanted_now(waiting)
+    assert not without_render[left].any() and without_render[right].all()  # as decided, settling asked again
+    still_bare = later.copy()
+    still_bare[:, -2:] = -1
+    assert scorer.wanted_now(waiting, still_bare, (still_bare >= 0).astype(np.float32))[:, -2:].all()
+    from_behind = later.copy()
+    from_behind[right] = 9  # labelled since by a region never encoded from this side
+    scorer.observe_plan(from_behind, T_BACK, SK, int(0.6e9))
+    assert scorer.wanted_now(waiting, from_behind, conf)[right].all()
+    support.update(agreement=0.5)  # its views came to disagree: wanted again
+    assert scorer.wanted_now(waiting, later, conf).all()
+
+
+def test_regions_an_encoder_is_embedding_count_as_viewed_until_its_frame_is_done() -> None:
+    """A pool of two: a second worker takes a frame while the first encodes one that will embed
+    region 7 (its one view so far, two asked). Until the first frame is released, region 7 counts
+    as settled for the second; once released (applied, or let go) it is asked for again. A region
+    the first frame wanted too little of (under ``select_embed_share``) is not counted. Surface
+    the first frame shows unlabelled is not wanted from the same direction while it is in flight."""
+    scorer = CoverageScorer(SelectParams(select_width_px=SW, select_patience_s=None, select_embed_min_views=2))
+    scorer.embedding_support = lambda k: (np.ones(len(k), np.int64), np.ones(len(k), np.float32))
+    keys = np.full((SH, SW), 7, np.int32)
+    keys[:, SW // 2:] = 8
+    scorer.mark_selected(_view(scorer, keys))
+    scorer.observe_plan(keys, T_FRONT, SK, 0)
+    scorer.observe_plan(keys, T_FRONT, SK, 1)  # both written by 2 encoded frames, embeddings of 1 view
+    first, second = _view(scorer, keys, stamp_s=1.0), _view(scorer, keys, stamp_s=2.0)
+    second.frame_id = 1
+    for ev in (first, second):
+        scorer.wanted_px(ev)
+    wanted = np.zeros((SH, SW), bool)
+    wanted[:, : SW // 2] = True  # region 7 wanted, region 8 not
+    wanted[0, -1] = True  # one pixel of region 8: under the share
+    assert scorer.wanted_now(second).all()
+    scorer.embedding_in_flight(first, None, wanted)
+    now = scorer.wanted_now(second)
+    assert not now[:, : SW // 2].any() and now[:, SW // 2:].all()
+    scorer.release(first.frame_id, first.stamp_s)
+    assert scorer.wanted_now(second).all()
+    # surface no region holds yet: wanted unless a frame in flight shows it from the same direction
+    bare = keys.copy()
+    bare[:, SW // 2:] = -1
+    first, second = _view(scorer, bare, stamp_s=3.0), _view(scorer, bare, stamp_s=4.0)
+    for ev in (first, second):
+        scorer.wanted_px(ev)
+    assert scorer.wanted_now(second)[:, SW // 2:].all()
+    scorer.embedding_in_flight(first, None, np.ones((SH, SW), bool))
+    assert not scorer.wanted_now(second)[:, SW // 2:].any()
+    behind = _view(scorer, bare, T=T_BACK, stamp_s=4.5)
+    scorer.wanted_px(behind)
+    assert scorer.wanted_now(behind)[:, SW // 2:].any()  # the same surface from another side: wanted
+    scorer.release(first.frame_id, first.stamp_s)
+    assert scorer.wanted_now(second)[:, SW // 2:].all()
+
+
 # ------------------------------------------------------------------ the pool's messages
 def _rgbd() -> RgbdFrame:
     K = CameraIntrinsics(8, 6, 7.0, 7.0, 4.0, 3.0)

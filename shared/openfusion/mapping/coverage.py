@@ -77,7 +77,6 @@ import bisect
 import math
 import threading
 from collections.abc import Callable, Hashable, Iterable, Mapping
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -88,79 +87,19 @@ from openfusion.mapping.held_views import HeldViews
 from openfusion.mapping.map_clock import MapClock
 from openfusion.mapping.params import SelectParams
 from openfusion.mapping.still_views import StillViews
+from openfusion.mapping.view_evidence import (
+    MARK_DENSITY,
+    ViewEvidence,
+    ViewScore,
+    mark_width_px,
+    scoring_size,
+)
 
-#: A chosen view marks the surface it shows sampled MARK_DENSITY times denser (per side) than it is
-#: scored, and at least MARK_MIN_WIDTH_PX wide: the cubes between sparser samples counted as never
-#: shown in the next frame (4-10 % of every view looked new right after an encoded frame). The floor
-#: is because those holes are in metres, not scored pixels: a 32 px score marked at 96 px left holes
-#: in the floor, and the services (whose next candidates see the map before the chosen frame's labels
-#: are in) chose 71 of 90 frames instead of 52 on the bench scene (docs/EVAL.md, "Scored at 32 px").
-MARK_DENSITY = 3
-MARK_MIN_WIDTH_PX = 192
-
-
-def mark_width_px(scored_width_px: int) -> int:
-    """Width of the sample a chosen view marks as shown (:data:`MARK_DENSITY`, :data:`MARK_MIN_WIDTH_PX`)."""
-    return max(MARK_MIN_WIDTH_PX, MARK_DENSITY * int(scored_width_px))
-
+__all__ = ["MARK_DENSITY", "SELECTED_KEPT", "CoverageScorer", "ViewEvidence", "ViewScore", "mark_width_px",
+           "scoring_size"]
 
 #: Frame times of chosen views kept for the patience rule (:meth:`CoverageScorer.min_gain_at`).
 SELECTED_KEPT = 1024
-
-
-def scoring_size(intrinsics: CameraIntrinsics, width_px: int) -> tuple[int, int]:
-    """(height, width) of the scored view: ``width_px`` wide (at most the frame's), same aspect."""
-    w = max(1, min(int(width_px), intrinsics.width_px))
-    h = max(1, int(round(intrinsics.height_px * w / intrinsics.width_px)))
-    return h, w
-
-
-@dataclass(eq=False)  # one view's arrays: compared by identity
-class ViewEvidence:
-    """A candidate view, prepared once (:meth:`CoverageScorer.prepare`): per surface pixel of the
-    scored view its direction bin, its surface cube and the region the map holds there."""
-
-    frame_id: int
-    stamp_s: float
-    #: the stamp in map time (:mod:`openfusion.mapping.map_clock`): what staleness compares across robots
-    map_s: float
-    view_px: int  # pixels of the scored view (the shares' denominator)
-    bins: np.ndarray  # (n,) int64, direction bin of each surface pixel
-    cells: np.ndarray  # (n,) int64, packed surface cube of each surface pixel
-    keys: np.ndarray  # (n,) int64, the map's region at each surface pixel (-1: none)
-    confident: np.ndarray  # (n,) bool, key >= 0 with confidence >= select_low_conf
-    robot: str = ""  # whose frame: the patience rule runs on each robot's own frames, a hold is keyed by it
-    unsure_px: np.ndarray | None = None  # (h, w) bool: surface pixels without a confident region
-    surface_idx: np.ndarray | None = field(default=None, repr=False)  # (n,) flat index of each surface pixel
-    #: (h, w) bool, set when the view is chosen (:meth:`CoverageScorer.decide`): the pixels that add
-    #: something, against the record before the view was marked (:meth:`CoverageScorer.wanted_px`)
-    wanted_px: np.ndarray | None = field(default=None, repr=False)
-    #: per distinct confident key in view (sorted, as ``np.unique``): its embedding is settled (enough
-    #: views that agree, :attr:`CoverageScorer.embedding_support`, read when prepared); None: not asked
-    settled: np.ndarray | None = field(default=None, repr=False)
-    # marking a chosen view: its depth sampled at mark_width_px and that grid's camera (None: scored pixels)
-    mark_depth_m: np.ndarray | None = field(default=None, repr=False)
-    mark_intrinsics: CameraIntrinsics | None = None
-    T_world_cam: np.ndarray | None = field(default=None, repr=False)
-
-    @property
-    def surface_px(self) -> int:
-        return int(len(self.bins))
-
-
-@dataclass(frozen=True)
-class ViewScore:
-    """What encoding a view would add, in shares of its pixels (module docstring)."""
-
-    frame_id: int
-    stamp_s: float
-    gain: float
-    new_surface: float
-    new_direction: float
-    stale: float
-    surface: float  # share of the view with valid depth
-    regions: int  # regions in view big enough to count
-    robot: str = ""
 
 
 class CoverageScorer:
@@ -180,6 +119,11 @@ class CoverageScorer:
         # _cell_tries[i][cube]: the direction bins the cube was shown from by at least i + 1 encoded frames
         self._cell_tries: list[dict[int, int]] = [{} for _ in range(p.select_tries)]
         self._held = HeldViews()  # views chosen but not encoded yet (the services' window; :meth:`hold`)
+        #: views handed to an encoder, not applied yet -> the regions they will likely embed, and per
+        #: region how many such views (:meth:`embedding_in_flight`, dropped at :meth:`release`)
+        self._in_flight: dict[tuple[str, int, float], list[int]] = {}
+        self._embeds_in_flight: dict[int, int] = {}
+        self._shown_in_flight = HeldViews()  # and the unsure surface they show
         self._rays: dict[CameraIntrinsics, np.ndarray] = {}
         #: per robot, frame times of the views chosen (sorted; the newest SELECTED_KEPT): each robot's
         #: stamps are its own clock, and the patience rule is about the frames of one stream
@@ -216,6 +160,9 @@ class CoverageScorer:
             self._selected_s.clear()
             self.clock.reset()
             self._held.clear()
+            self._in_flight.clear()
+            self._embeds_in_flight.clear()
+            self._shown_in_flight.clear()
             for table in self._cell_tries:
                 table.clear()
         self.still.forget()
@@ -311,11 +258,7 @@ class CoverageScorer:
             map_s=self.clock.map_s(str(robot), stamp_ns / 1e9), bins=self._bins_of(rays, T),
             cells=self._cells_of(points), keys=keys, confident=confident, unsure_px=unsure_px.reshape(h, w),
             surface_idx=np.flatnonzero(surface), T_world_cam=T)
-        if self.embedding_support is not None and self.params.select_embed_share is not None:
-            # asked here, outside the record's lock (its owner may lock); only when regions are gated
-            count, agreement = self.embedding_support(np.unique(keys[confident]))
-            ev.settled = ((np.asarray(count) >= self.params.select_embed_min_views)
-                          & (np.asarray(agreement) >= self.params.select_embed_min_agreement))
+        ev.support = self._support_of(np.unique(keys[confident]))  # outside the record's lock
         if full_depth_m is not None and full_intrinsics is not None:
             mh, mw = scoring_size(full_intrinsics, mark_width_px(w))
             ev.mark_depth_m = np.asarray(resize_nearest(np.asarray(full_depth_m), (mh, mw)), np.float32)
@@ -407,26 +350,117 @@ class CoverageScorer:
         direction is still its first). None for a view prepared without its pixel layout."""
         if ev.unsure_px is None or ev.surface_idx is None:
             return None
-        p = self.params
-        want = ~ev.confident
         with self._lock:
+            ev.wanted_base = self._new_to(ev.keys, ev.bins, ev.confident, stale_at_s=ev.map_s)
+            want = ~ev.confident | ev.wanted_base
             if ev.confident.any():
-                keys, bins = ev.keys[ev.confident], ev.bins[ev.confident]
-                uniq, inv = np.unique(keys, return_inverse=True)
-                masks = np.fromiter((self._region_bins.get(int(k), 0) for k in uniq), np.int64, len(uniq))
-                again = np.fromiter((self._region_views.get(int(k), 0) < p.select_min_views for k in uniq), bool,
-                                    len(uniq))
-                if p.select_stale_s is not None:
-                    last = np.fromiter((self._region_last_s.get(int(k), math.inf) for k in uniq), np.float64,
-                                       len(uniq))
-                    again |= ev.map_s - last >= p.select_stale_s
-                if ev.settled is not None and len(ev.settled) == len(uniq):
-                    again |= ~ev.settled
-                want = want.copy()
-                want[ev.confident] = (((masks[inv] >> bins) & 1) == 0) | again[inv]
-        out = np.zeros(ev.unsure_px.size, bool)
-        out[ev.surface_idx[want]] = True
-        return out.reshape(ev.unsure_px.shape)
+                uniq, inv = np.unique(ev.keys[ev.confident], return_inverse=True)
+                want[ev.confident] |= self._unsettled(uniq, ev.support)[inv]
+        return self._view_mask(ev, want)
+
+    def wanted_now(self, ev: ViewEvidence, key_map: np.ndarray | None = None,
+                   conf_map: np.ndarray | None = None) -> np.ndarray | None:
+        """:meth:`wanted_px` of a chosen view as its encoder call is made, over the map's
+        ``key_map`` / ``conf_map`` rendered again at its scored view (None: the decision's). The
+        services' window encodes a chosen frame after the frames taken before it labelled and settled
+        much of what its render showed (with the decision's mask they embedded 3.5-4x the regions
+        one process does: docs/EVAL.md, "Embeddings per region"). Pixels confident at the decision
+        keep its reasons; pixels labelled since are wanted from a direction new to their region;
+        unlabelled ones unless an encoder labels them now; every region if not settled now."""
+        if ev.wanted_base is None or ev.surface_idx is None or ev.unsure_px is None:
+            return ev.wanted_px
+        keys, confident = ev.keys, ev.confident
+        if key_map is not None and conf_map is not None:
+            keys = np.asarray(key_map).reshape(-1)[ev.surface_idx].astype(np.int64)
+            conf = np.asarray(conf_map, np.float32).reshape(-1)[ev.surface_idx]
+            confident = (keys >= 0) & (conf >= self.params.select_low_conf)
+        uniq, inv = np.unique(keys[confident], return_inverse=True)
+        support = self._support_of(uniq)
+        with self._lock:
+            since = confident & ~ev.confident  # labelled after the decision
+            want = ~confident | (ev.wanted_base & confident)
+            if len(self._shown_in_flight) and (~confident).any():  # an encoder is labelling it now
+                shown = self._shown_in_flight.bits
+                bits = np.fromiter((shown.get(c, 0) for c in ev.cells[~confident].tolist()), np.int64,
+                                   int((~confident).sum()))
+                want[~confident] = ((bits >> ev.bins[~confident]) & 1) == 0
+            want |= self._new_to(keys, ev.bins, since)
+            if len(uniq):
+                want[confident] |= self._unsettled(uniq, support)[inv]
+        return self._view_mask(ev, want)
+
+    def _new_to(self, keys: np.ndarray, bins: np.ndarray, where: np.ndarray,
+                stale_at_s: float | None = None) -> np.ndarray:
+        """(lock held) Per pixel in ``where``: its region was not encoded from its direction bin
+        (or, given ``stale_at_s``, not seen for ``select_stale_s``); False elsewhere."""
+        out = np.zeros(len(keys), bool)
+        if not where.any():
+            return out
+        uniq, inv = np.unique(keys[where], return_inverse=True)
+        masks = np.fromiter((self._region_bins.get(int(k), 0) for k in uniq), np.int64, len(uniq))
+        new = ((masks[inv] >> bins[where]) & 1) == 0
+        if stale_at_s is not None and self.params.select_stale_s is not None:
+            last = np.fromiter((self._region_last_s.get(int(k), math.inf) for k in uniq), np.float64, len(uniq))
+            new |= (stale_at_s - last >= self.params.select_stale_s)[inv]
+        out[where] = new
+        return out
+
+    def _support_of(self, keys: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Per key, (embeddings averaged, their agreement); None: no support, or regions not gated."""
+        if self.embedding_support is None or self.params.select_embed_share is None:
+            return None
+        count, agreement = self.embedding_support(keys)
+        return np.asarray(count), np.asarray(agreement)
+
+    def _unsettled(self, keys: np.ndarray, support: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+        """(lock held) Per key: fewer than ``select_min_views`` encoded frames, or (``support``) fewer
+        than ``select_embed_min_views`` embeddings or ones that disagree; embeddings in flight count."""
+        p = self.params
+        extra = np.fromiter((self._embeds_in_flight.get(int(k), 0) for k in keys), np.int64, len(keys))
+        views = np.fromiter((self._region_views.get(int(k), 0) for k in keys), np.int64, len(keys))
+        again = views + extra < p.select_min_views
+        if support is not None and len(support[0]) == len(keys):
+            count, agreement = support
+            again |= (count + extra < p.select_embed_min_views) | (agreement < p.select_embed_min_agreement)
+        return again
+
+    def embedding_in_flight(self, ev: ViewEvidence, key_map: np.ndarray | None, wanted_px: np.ndarray | None) -> None:
+        """A chosen view was handed to an encoder with ``wanted_px`` (:meth:`wanted_now`, over the
+        map's ``key_map`` at its scored view, None: as decided): until :meth:`release`, the regions
+        it will likely embed (at least ``select_embed_share`` of their pixels wanted) count one view
+        more, and the unsure surface it shows counts as labelled from its bins. So a second worker
+        of the pool, taking a frame while the first encodes, does not embed them again. One
+        encoder at a time releases each before the next is taken."""
+        share = self.params.select_embed_share
+        if wanted_px is None or share is None or ev.surface_idx is None:
+            return
+        keys = ev.keys if key_map is None else np.asarray(key_map).reshape(-1)[ev.surface_idx].astype(np.int64)
+        want = np.asarray(wanted_px).reshape(-1)[ev.surface_idx]
+        labelled = keys >= 0
+        uniq, inv = np.unique(keys[labelled], return_inverse=True)
+        hit = np.bincount(inv, weights=want[labelled], minlength=len(uniq)) >= share * np.bincount(inv, minlength=len(uniq))
+        taken = uniq[hit].tolist()
+        cells, bins = self._marks(ev)
+        with self._lock:
+            self._in_flight[(ev.robot, ev.frame_id, ev.stamp_s)] = taken
+            self._shown_in_flight.add((ev.robot, ev.frame_id, ev.stamp_s), cells, bins)
+            for k in taken:
+                self._embeds_in_flight[k] = self._embeds_in_flight.get(k, 0) + 1
+
+    @staticmethod
+    def _view_mask(ev: ViewEvidence, want: np.ndarray) -> np.ndarray:
+        out = np.zeros(ev.unsure_px.shape, bool)  # type: ignore[union-attr]  # callers check it
+        out.reshape(-1)[ev.surface_idx[want]] = True  # type: ignore[index]
+        return out
+
+    def render_again(self, frame: Frame, render: Callable[..., Any]) -> tuple[np.ndarray, np.ndarray]:
+        """The map's ``(key_map, conf_map)`` at ``frame``'s scored view now, rendered as
+        :meth:`prepare_frame` renders it (never a reused render): for :meth:`wanted_now`."""
+        h, w = scoring_size(frame.intrinsics, self.params.select_width_px)
+        K = frame.intrinsics.scaled(w, h)
+        rendered = (render(frame.T_world_cam, K) if self.params.select_view == "render"
+                    else render(frame.T_world_cam, K, frame.depth_m((h, w))))
+        return rendered.key_map, rendered.conf_map
 
     def _wanted_if_gated(self, ev: ViewEvidence) -> np.ndarray | None:
         """:meth:`wanted_px` when ``select_embed_share`` gates regions (None, not computed, otherwise)."""
@@ -500,6 +534,13 @@ class CoverageScorer:
         not held)."""
         with self._lock:
             self._held.remove((str(robot), int(frame_id), float(stamp_s)))
+            self._shown_in_flight.remove((str(robot), int(frame_id), float(stamp_s)))
+            for k in self._in_flight.pop((str(robot), int(frame_id), float(stamp_s)), ()):
+                left = self._embeds_in_flight.get(k, 0) - 1
+                if left > 0:
+                    self._embeds_in_flight[k] = left
+                else:
+                    self._embeds_in_flight.pop(k, None)
 
     @property
     def held(self) -> int:

@@ -93,9 +93,9 @@ class FrameSelector:
         self.stats = SelectionStats()
         self.last_score: ViewScore | None = None
         self._run: list[tuple[Frame, ViewEvidence]] = []  # frames waiting for their run's decision
-        # id(frame) -> (the frame, its wanted pixels) for chosen frames not yet asked for (embed_where);
+        # id(frame) -> (the frame, its evidence: wanted pixels read at embed_where) for chosen frames not yet asked for (embed_where);
         # holding the frame keeps its id from being reused; the oldest go past WANTED_KEPT
-        self._wanted: dict[int, tuple[Frame, np.ndarray | None]] = {}
+        self._wanted: dict[int, tuple[Frame, ViewEvidence]] = {}
         #: the labels' version for reusing a still camera's render: one more with every update and
         #: merge this selector is told of (:meth:`embed_where`, asked before each chosen frame's update
         #: is written, :meth:`encoded` after it, :meth:`merged`), which in one process are every change
@@ -115,7 +115,7 @@ class FrameSelector:
         ev = self._prepare(frame)
         score, chosen = self.scorer.decide(ev)
         if chosen:
-            self._keep_wanted(frame, ev.wanted_px)
+            self._keep_wanted(frame, ev)
         self.last_score = score
         self.stats.frames_scored += 1
         self.stats.skipped_no_gain += int(not chosen)
@@ -161,11 +161,11 @@ class FrameSelector:
         if best is None:
             return []
         frame, ev = run[best]
-        self._keep_wanted(frame, ev.wanted_px)
+        self._keep_wanted(frame, ev)
         return [frame]
 
-    def _keep_wanted(self, frame: Frame, wanted: np.ndarray | None) -> None:
-        self._wanted[id(frame)] = (frame, wanted)
+    def _keep_wanted(self, frame: Frame, ev: ViewEvidence) -> None:
+        self._wanted[id(frame)] = (frame, ev)
         while len(self._wanted) > WANTED_KEPT:
             del self._wanted[next(iter(self._wanted))]
 
@@ -176,7 +176,7 @@ class FrameSelector:
         per chosen frame (what it keeps is dropped)."""
         self._labels_version += 1  # its update is next: no render kept from before it is reused after it
         kept = self._wanted.pop(id(frame), None)
-        wanted = kept[1] if kept is not None and kept[0] is frame else None
+        wanted = self.scorer.wanted_now(kept[1]) if kept is not None and kept[0] is frame else None
         if wanted is None or self.params.select_embed_share is None:
             return None, None
         return wanted, self.params.select_embed_share

@@ -137,6 +137,7 @@ class SemanticCounter(StrEnum):
     SELECT_EVICTED = "select_evicted"  # candidates a full window let go for better ones (never encoded)
     SELECT_BUSY_S = "select_busy_s"  # time spent scoring candidates (render request + scoring)
     RENDERS_REUSED = "renders_reused"  # candidates scored on their still camera's last render, not a new one
+    WANTED_RENDER_FAILURES = "wanted_render_failures"  # a taken frame's second render failed: the decision's mask
     SELECT_WINDOW = "select_window"  # candidates waiting for the encoder now
     # what became of the frames on sensor/rgbd (SEMANTIC_FRAME_OUTCOMES: each frame ends in one)
     FRAMES_RECEIVED = "frames_received"  # frames that came on the subscription
