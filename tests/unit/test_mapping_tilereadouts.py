@@ -250,3 +250,24 @@ def test_radii_that_reach_past_the_halo_are_refused_and_those_that_fit_read_out_
     _labelled(volume, FRAMES[:12])
     _assert_same_table(volume.region_table(), _reference(volume))
     volume.close()
+
+
+def test_a_merge_reads_again_only_the_tiles_where_the_merged_region_took_part_in_a_vote() -> None:
+    """Six merges in a row, each key into the next: the table stays exact after every one, and
+    together they read fewer tiles again than held the merged keys' points (a tile whose points of
+    the key have only that key around them keeps its part: no vote there can change)."""
+    volume = SemanticVolume(VolumeParams(**BASE))
+    _labelled(volume, FRAMES)
+    _assert_same_table(volume.region_table(), _reference(volume))
+    read = holding = 0
+    for _ in range(6):
+        ref = _reference(volume)
+        a, b = int(ref.keys[0]), int(ref.keys[1])
+        slots_a = np.flatnonzero(volume._storage.slots.key1 == a + 1)
+        holding += sum(bool(np.isin(slots_a, p.slots).any()) for p in volume._readouts.summaries.values())
+        before = _read(volume, "summary")
+        volume.relabel_keys({a: b})
+        _assert_same_table(volume.region_table(), _reference(volume))
+        read += _read(volume, "summary") - before
+    volume.close()
+    assert 0 < read < holding

@@ -137,7 +137,8 @@ def summarise_chunk(copy: ChunkCopy, scratch: Scratch, tile_blocks: int) -> dict
     if p.label_vote_radius_m > 0:  # the whole map's vote, by the slots' keys at the copy
         classes = np.where(slot >= 0, copy.key1[np.maximum(slot, 0)].astype(np.int64) - 1, -1)
         pairs = readout.vote_neighbours(points_all, slot, p.label_vote_radius_m, normals, classes=classes)
-        seen = _seen_slots(tile_of[pairs[0]], slot[pairs[1]].astype(np.int64))
+        seen = _seen_slots(np.concatenate([tile_of[pairs[0]], tile_of[pairs[0]]]),
+                           np.concatenate([slot[pairs[1]], slot[pairs[0]]]).astype(np.int64))
         readout.vote_labels(points_all, slot, conf, p.label_vote_radius_m, normals, classes=classes, neighbours=pairs)
     slot = slot.astype(np.int64)
     labelled = slot > 0
@@ -166,10 +167,11 @@ def summarise_chunk(copy: ChunkCopy, scratch: Scratch, tile_blocks: int) -> dict
 
 
 def _seen_slots(tiles: np.ndarray, slots: np.ndarray) -> dict[Tile, np.ndarray]:
-    """Per tile, the slots of the neighbours its points' votes counted (``tiles``: the tile of each
-    pair's receiving point, ``slots``: the voter's slot before the vote): a merge or a cleared key of
-    one of them makes the tile's part stale
-    (:meth:`~openfusion.mapping.tilereadouts.TileReadouts.relabelled`)."""
+    """Per tile, the slots whose keys decide its points' votes (``tiles``: the tile of the voting
+    point, ``slots``: a slot before the vote): of the neighbours its points counted and of those
+    points themselves. A point with no other class around does not vote, and a merge cannot give it
+    one, so only a merge of one of these slots makes the tile's part stale; a cleared key, every
+    slot the part holds too (:meth:`~openfusion.mapping.tilereadouts.TileReadouts.relabelled`)."""
     if not len(slots):
         return {}
     tkey = pack_coords(tiles)

@@ -37,13 +37,17 @@ class SummaryPart:
     sums: np.ndarray  # (S, 3) float64
     low: list[list[np.ndarray]] = field(default_factory=list)
     high: list[list[np.ndarray]] = field(default_factory=list)
-    #: The slots the read-out's vote read around the tile (``chunkreadouts._seen_slots``), sorted:
-    #: a merge or a cleared key of one of them makes the part stale. Empty without a vote.
+    #: The slots whose keys decided the read-out's vote in the tile (``chunkreadouts._seen_slots``),
+    #: sorted: a merge or a cleared key of one of them makes the part stale. Empty without a vote.
     seen: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     def holds(self, slots: np.ndarray) -> bool:
         """Whether the part counts points of one of ``slots`` or its vote read one of them."""
         return bool(np.isin(self.slots, slots).any() or np.isin(self.seen, slots).any())
+
+    def votes_on(self, slots: np.ndarray) -> bool:
+        """Whether its vote read one of ``slots`` (a merge of them may move its points)."""
+        return bool(np.isin(self.seen, slots).any())
 
 
 @dataclass
@@ -73,15 +77,19 @@ class StoredPart:
     slots: np.ndarray | None = None
     count: np.ndarray | None = None
     sums: np.ndarray | None = None
+    seen: np.ndarray | None = None  # a summary part's ``seen``
 
     def holds(self, keys: np.ndarray) -> bool:
         return bool(np.isin(self.present, keys).any())
+
+    def votes_on(self, slots: np.ndarray) -> bool:
+        return bool(np.isin(self.seen, slots).any()) if self.seen is not None else self.holds(slots)
 
 
 def stored_index(kind: str, part: SummaryPart | ContactPart) -> StoredPart:
     """What memory keeps of ``part`` once the part itself is in the part store."""
     if isinstance(part, SummaryPart):
-        return StoredPart(part.clock, _present(kind, part), part.slots, part.count, part.sums)
+        return StoredPart(part.clock, _present(kind, part), part.slots, part.count, part.sums, part.seen)
     return StoredPart(part.clock, _present(kind, part))
 
 

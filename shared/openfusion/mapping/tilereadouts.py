@@ -196,7 +196,8 @@ class TileReadouts:
         """Keys were merged or cleared (``mapping``; ``changed_slots`` now read another key).
         Contact parts are rewritten where that is exact (:func:`relabel_contacts`), else dropped;
         summary parts speak slots: those holding a cleared slot are dropped, and with the read-out's
-        vote (``label_vote_radius_m``) every part whose vote read a slot that changed key."""
+        vote (``label_vote_radius_m``) every part whose vote a merged slot took part in (a point of
+        it voted, or it was among a point's voters); a merge moves no other point."""
         keys = np.array([k for pair in mapping.items() for k in pair if k >= 0], np.int64)
         if len(keys):
             for t, part in [(t, p) for t, p in self.contacts.items() if p.holds(keys)]:
@@ -215,11 +216,13 @@ class TileReadouts:
                         self.contacts[t] = stored_index("contacts", new)
                     else:
                         self.contacts[t] = new
-        stale_slots = np.asarray(changed_slots, np.int64)
-        if self.storage.params.label_vote_radius_m <= 0 and len(stale_slots):  # only a cleared key moves points
-            stale_slots = stale_slots[self.storage.slots.key1[stale_slots] <= 0]
-        if len(stale_slots):
-            for t, part in [(t, p) for t, p in self.summaries.items() if p.holds(stale_slots)]:
+        changed = np.asarray(changed_slots, np.int64)
+        gone = self.storage.slots.key1[changed] <= 0
+        cleared = changed[gone]  # its points are labelled anew (the fill) and stop voting
+        merged = changed[~gone] if self.storage.params.label_vote_radius_m > 0 else changed[:0]
+        if len(cleared) or len(merged):
+            for t, part in [(t, p) for t, p in self.summaries.items()
+                            if (len(cleared) and p.holds(cleared)) or (len(merged) and p.votes_on(merged))]:
                 del self.summaries[t]
                 if isinstance(part, StoredPart):
                     self._drop_stored("summaries", t)
