@@ -131,6 +131,7 @@ class CandidateFeeder:
         on_no_render: Any,
         renders_in_flight: int = RENDERS_IN_FLIGHT,
         labels_version: Callable[[], Hashable] | None = None,
+        after_update: Callable[[], dict[str, Any]] | None = None,
     ) -> None:
         self.frames = frames
         self.window = window
@@ -145,6 +146,9 @@ class CandidateFeeder:
         #: () -> a value that changes with the map's labels: given, a still camera's candidates reuse
         #: its last render (openfusion.mapping.still_views); None: every candidate is rendered
         self.labels_version = labels_version
+        #: () -> the RenderRequest fields of the last update this service sent (``after_update_*``): a
+        #: taken frame's second render waits for geometry to apply it (:meth:`_wanted_now`)
+        self.after_update = after_update
         self.handled = HandledFrames()
 
     def run(self, runner: ServiceRunner) -> None:
@@ -224,8 +228,10 @@ class CandidateFeeder:
         runner.stats.set(SemanticCounter.RENDERS_REUSED, self.scorer.still.reused)
         return evidence, time.monotonic() - started
 
-    def _render_for(self, msg: RgbdFrame) -> Callable[..., Any]:
-        """``render(T_world_cam, K_small[, depth_m])`` of the map for ``msg`` (a geometry request)."""
+    def _render_for(self, msg: RgbdFrame, *, after_updates: bool = False) -> Callable[..., Any]:
+        """``render(T_world_cam, K_small[, depth_m])`` of the map for ``msg`` (a geometry request);
+        ``after_updates``: once geometry has applied the updates this service sent."""
+        wait = self.after_update() if after_updates and self.after_update is not None else {}
 
         def render(T_world_cam: Any, K_small: CameraIntrinsics, depth_m: np.ndarray | None = None) -> Any:
             # with the candidate's depth (select_view auto / probe) geometry may probe rather than ray-cast
@@ -233,7 +239,8 @@ class CandidateFeeder:
                 np.nan_to_num(np.asarray(depth_m, np.float32), nan=0.0, posinf=0.0, neginf=0.0), 0.0, None)
             return self.render(RenderRequest(
                 frame_id=msg.frame_id, T_world_cam=T_world_cam, robot=msg.robot, probe_depth_m=probe,
-                probe_above_blocks=self.scorer.params.probe_above_blocks or 0, **RenderRequest.intrinsics_fields(K_small)))
+                probe_above_blocks=self.scorer.params.probe_above_blocks or 0, **wait,
+                **RenderRequest.intrinsics_fields(K_small)))
 
         return render
 
@@ -244,7 +251,8 @@ class CandidateFeeder:
         if evidence.wanted_base is None:
             return evidence.wanted_px
         try:
-            key_map, conf_map = self.scorer.render_again(pending.msg.to_frame(), self._render_for(pending.msg))
+            key_map, conf_map = self.scorer.render_again(pending.msg.to_frame(),
+                                                         self._render_for(pending.msg, after_updates=True))
         except QueryError as exc:
             runner.stats.incr(SemanticCounter.WANTED_RENDER_FAILURES)
             logger.debug("frame %s: no render for its wanted pixels (%s); the decision's are used",

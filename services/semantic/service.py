@@ -402,7 +402,9 @@ class SemanticService:
                 instances=self._instances, instance_wait_s=self.section.instance_wait_s,
                 on_no_instance=self._skip_without_instance,
                 on_no_render=self._skip_no_render,
-                labels_version=self._labels_version)
+                labels_version=self._labels_version,
+                after_update=lambda: {"after_update_source": self._update_source,
+                                      "after_update_seq": self._updates_sent})
             runner.stats.set(SemanticCounter.SKIPPED_NO_GAIN, 0)
         if self.section.encoder_pool:
             assert runner.session is not None

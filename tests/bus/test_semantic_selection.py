@@ -6,7 +6,8 @@ Shown: a frame that adds nothing is not encoded even when the encoder is idle (`
 and a camera that stands still is scored on its last render (``renders_reused``);
 a frame with new surface is, with the pixels it adds for the encoder's per-region embeddings (here
 and through the pool: the mask goes with the request, the embedded flags come back, counted); while the encoder is busy the candidates wait in the window and the
-encoder gets the one that adds something, not the newest; the encoder pool dispatches from the
+encoder gets the one that adds something, not the newest, and embeds what it adds once the frames
+before it are in the map (its wanted pixels asked again over a second render); the encoder pool dispatches from the
 same window; an encoded frame whose render times out once is asked again and fused. Bad input
 tried: a geometry that does not answer an encoded frame's render twice (the frame is
 ``skipped_no_render``, the next one is fused); no geometry to render candidates (each frame is counted in
@@ -243,4 +244,51 @@ def test_an_encoded_frame_whose_render_timed_out_is_asked_once_more_not_thrown_a
         wait_until(lambda: _handled(semantic) == 2, timeout_s=60)
         assert semantic.counter(SemanticCounter.SEMANTIC_FRAMES) == 2
         assert reader.step_renders == 5 and semantic.counter(SemanticCounter.ENCODER_CALLS) == 3
+        wait_until(lambda: geometry.counter(GeometryCounter.UPDATES_APPLIED) == 2, timeout_s=60)
+
+
+#: 640x480: a 160x120 frame's update labels too little of the map to show it (13 % of its own view;
+#: 320x240 58 %, and every region of the next frame then keeps 30 % of its pixels unlabelled)
+NEAR = list(open_source("synthetic:frames=6,lap=90,width=640,height=480"))
+
+
+class GatedRecorder(GateRecorder):
+    """:class:`GateRecorder` that holds frame ``gate_on`` until :attr:`release` is set."""
+
+    def __init__(self, gate_on: int) -> None:
+        super().__init__()
+        self.gate_on = gate_on
+        self.started = threading.Event()
+        self.release = threading.Event()
+
+    def encode(self, frame):  # noqa: ANN001, ANN201
+        if frame.frame_id == self.gate_on:
+            self.started.set()
+            self.release.wait(timeout=120)
+        return super().encode(frame)
+
+
+def test_a_frame_chosen_while_the_encoder_was_busy_embeds_what_is_new_when_it_is_encoded() -> None:
+    """Frame 1 is scored while frame 0 holds the encoder: the map is still empty, so at its
+    decision every pixel was worth an embedding. It is encoded after frame 0's update has labelled
+    most of what it shows from about the same direction (regions settle after one view here): its
+    wanted pixels are asked again over the map rendered again, and most of its regions are fused
+    without an embedding (before, the services embedded 3.5-4x what one process does)."""
+    encoder = GatedRecorder(gate_on=0)
+    with ExitStack() as stack:
+        semantic, geometry, rgbd, _, _ = _rig(stack, encoder=encoder, semantic_values={
+            "select_window": 4, "select_embed_min_views": 1, "select_min_views": 1})
+        send_until_handled(lambda: _send(rgbd, _as(NEAR[0], 0)), lambda: encoder.started.is_set())
+        _send(rgbd, _as(NEAR[4], 1))
+        wait_until(lambda: semantic.counter(SemanticCounter.FRAMES_SCORED) == 2, timeout_s=60)
+        assert semantic.counter(SemanticCounter.SELECT_WINDOW) == 1  # chosen, waiting
+        assert semantic.counter(SemanticCounter.SEMANTIC_FRAMES) == 0  # decided on an empty map
+        encoder.release.set()
+        wait_until(lambda: _handled(semantic) == 1, timeout_s=60)
+        assert semantic.counter(SemanticCounter.ENCODER_CALLS) == 2
+        (first, _, n0, e0), (second, share, n1, e1) = encoder.calls
+        assert first.mean() > 0.9 and e0 == n0 > 3  # frame 0: everything is new
+        # frame 1: only what frame 0 did not label (at 320x240 it labels about half of the view)
+        assert second.mean() < first.mean() - 0.25 and e1 < n1
+        assert semantic.counter(SemanticCounter.WANTED_RENDER_FAILURES) == 0
         wait_until(lambda: geometry.counter(GeometryCounter.UPDATES_APPLIED) == 2, timeout_s=60)
