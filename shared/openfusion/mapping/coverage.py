@@ -123,7 +123,6 @@ class CoverageScorer:
         #: region how many such views (:meth:`embedding_in_flight`, dropped at :meth:`release`)
         self._in_flight: dict[tuple[str, int, float], list[int]] = {}
         self._embeds_in_flight: dict[int, int] = {}
-        self._shown_in_flight = HeldViews()  # and the unsure surface they show
         self._rays: dict[CameraIntrinsics, np.ndarray] = {}
         #: per robot, frame times of the views chosen (sorted; the newest SELECTED_KEPT): each robot's
         #: stamps are its own clock, and the patience rule is about the frames of one stream
@@ -162,7 +161,6 @@ class CoverageScorer:
             self._held.clear()
             self._in_flight.clear()
             self._embeds_in_flight.clear()
-            self._shown_in_flight.clear()
             for table in self._cell_tries:
                 table.clear()
         self.still.forget()
@@ -366,7 +364,7 @@ class CoverageScorer:
         much of what its render showed (with the decision's mask they embedded 3.5-4x the regions
         one process does: docs/EVAL.md, "Embeddings per region"). Pixels confident at the decision
         keep its reasons; pixels labelled since are wanted from a direction new to their region;
-        unlabelled ones unless an encoder labels them now; every region if not settled now."""
+        unlabelled ones are wanted; every region if not settled now."""
         if ev.wanted_base is None or ev.surface_idx is None or ev.unsure_px is None:
             return ev.wanted_px
         keys, confident = ev.keys, ev.confident
@@ -379,11 +377,6 @@ class CoverageScorer:
         with self._lock:
             since = confident & ~ev.confident  # labelled after the decision
             want = ~confident | (ev.wanted_base & confident)
-            if len(self._shown_in_flight) and (~confident).any():  # an encoder is labelling it now
-                shown = self._shown_in_flight.bits
-                bits = np.fromiter((shown.get(c, 0) for c in ev.cells[~confident].tolist()), np.int64,
-                                   int((~confident).sum()))
-                want[~confident] = ((bits >> ev.bins[~confident]) & 1) == 0
             want |= self._new_to(keys, ev.bins, since)
             if len(uniq):
                 want[confident] |= self._unsettled(uniq, support)[inv]
@@ -428,9 +421,11 @@ class CoverageScorer:
         """A chosen view was handed to an encoder with ``wanted_px`` (:meth:`wanted_now`, over the
         map's ``key_map`` at its scored view, None: as decided): until :meth:`release`, the regions
         it will likely embed (at least ``select_embed_share`` of their pixels wanted) count one view
-        more, and the unsure surface it shows counts as labelled from its bins. So a second worker
-        of the pool, taking a frame while the first encodes, does not embed them again. One
-        encoder at a time releases each before the next is taken."""
+        more. So a second worker of the pool, taking a frame while the first encodes, does not
+        embed them again. Surface it shows unlabelled stays wanted: crediting it too (the pool
+        then embedded what one process does) lost the ceiling's only region in 4 of 9 runs of the
+        bench scene, where the frame in flight did not label it after all. One encoder at a time
+        releases each frame before the next is taken."""
         share = self.params.select_embed_share
         if wanted_px is None or share is None or ev.surface_idx is None:
             return
@@ -440,10 +435,8 @@ class CoverageScorer:
         uniq, inv = np.unique(keys[labelled], return_inverse=True)
         hit = np.bincount(inv, weights=want[labelled], minlength=len(uniq)) >= share * np.bincount(inv, minlength=len(uniq))
         taken = uniq[hit].tolist()
-        cells, bins = self._marks(ev)
         with self._lock:
             self._in_flight[(ev.robot, ev.frame_id, ev.stamp_s)] = taken
-            self._shown_in_flight.add((ev.robot, ev.frame_id, ev.stamp_s), cells, bins)
             for k in taken:
                 self._embeds_in_flight[k] = self._embeds_in_flight.get(k, 0) + 1
 
@@ -534,7 +527,6 @@ class CoverageScorer:
         not held)."""
         with self._lock:
             self._held.remove((str(robot), int(frame_id), float(stamp_s)))
-            self._shown_in_flight.remove((str(robot), int(frame_id), float(stamp_s)))
             for k in self._in_flight.pop((str(robot), int(frame_id), float(stamp_s)), ()):
                 left = self._embeds_in_flight.get(k, 0) - 1
                 if left > 0:
