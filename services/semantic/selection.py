@@ -42,7 +42,7 @@ import numpy as np
 from openfusion.bus import QueryError, ServiceRunner, Subscriber
 from openfusion.bus.instance_join import InstanceBuffer
 from openfusion.frame import CameraIntrinsics
-from openfusion.mapping.selection import CandidateWindow, CoverageScorer, WindowChange
+from openfusion.mapping.selection import CandidateWindow, CoverageScorer, ViewEvidence, WindowChange
 from openfusion.wire.counters import SemanticCounter
 from openfusion.wire.schemas import InstanceFrame, RenderRequest, RgbdFrame
 
@@ -244,7 +244,7 @@ class CandidateFeeder:
 
         return render
 
-    def _wanted_now(self, runner: ServiceRunner, pending: Pending, evidence: Any) -> np.ndarray | None:
+    def _wanted_now(self, runner: ServiceRunner, pending: Pending, evidence: ViewEvidence) -> np.ndarray | None:
         """The chosen frame's wanted pixels against the map as it is when the encoder takes it
         (:meth:`CoverageScorer.wanted_now`: the frames taken before it have labelled and settled
         much of what its render showed); as decided when geometry gives no render."""
@@ -256,7 +256,7 @@ class CandidateFeeder:
         except QueryError as exc:
             runner.stats.incr(SemanticCounter.WANTED_RENDER_FAILURES)
             logger.debug("frame %s: no render for its wanted pixels (%s); the decision's are used",
-                      pending.msg.frame_id, exc)
+                         pending.msg.frame_id, exc)
             key_map = conf_map = None
         wanted = self.scorer.wanted_now(evidence, key_map, conf_map)
         self.scorer.embedding_in_flight(evidence, key_map, wanted)  # until finish() releases it

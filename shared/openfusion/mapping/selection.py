@@ -93,8 +93,8 @@ class FrameSelector:
         self.stats = SelectionStats()
         self.last_score: ViewScore | None = None
         self._run: list[tuple[Frame, ViewEvidence]] = []  # frames waiting for their run's decision
-        # id(frame) -> (the frame, its evidence: wanted pixels read at embed_where) for chosen frames not yet asked for (embed_where);
-        # holding the frame keeps its id from being reused; the oldest go past WANTED_KEPT
+        # id(frame) -> (the frame, its evidence) for chosen frames not yet asked for their wanted pixels
+        # (embed_where); holding the frame keeps its id from being reused; the oldest go past WANTED_KEPT
         self._wanted: dict[int, tuple[Frame, ViewEvidence]] = {}
         #: the labels' version for reusing a still camera's render: one more with every update and
         #: merge this selector is told of (:meth:`embed_where`, asked before each chosen frame's update
