@@ -204,9 +204,10 @@ def test_without_geometry_frames_are_counted_as_not_rendered_and_the_service_goe
 
 
 class StepRendersTimeOut:
-    """The semantic service's geometry reader, except that the renders asked for encoded frames
-    (those that wait on an update: ``after_update_source``) time out as ``script`` says, in turn
-    (True: no answer); candidates' renders and everything else go through."""
+    """The semantic service's geometry reader, except that the step's renders of encoded frames
+    (those that wait on an update, ``after_update_source``, at the encoder's size, not a taken
+    candidate's second render at the scored size) time out as ``script`` says, in turn (True: no
+    answer); candidates' renders and everything else go through."""
 
     def __init__(self, inner, script: list[bool]) -> None:  # noqa: ANN001
         self.inner = inner
@@ -217,7 +218,7 @@ class StepRendersTimeOut:
         return getattr(self.inner, name)
 
     def render(self, request, *, timeout_s: float = 5.0):  # noqa: ANN001, ANN201
-        if request.after_update_source:
+        if request.after_update_source and request.width_px > SelectParams().select_width_px:
             self.step_renders += 1
             if self.script and self.script.pop(0):
                 raise QueryError("geometry/render", "timeout", f"no answer within {timeout_s} s (the test)")
