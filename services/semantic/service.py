@@ -246,7 +246,7 @@ class SemanticService:
         depth_m = resize_nearest(frame.depth_m(), (h, w)).astype(np.float32)
         probe_above = self.match_params.step_probe_blocks
         request = RenderRequest(frame_id=frame.frame_id, T_world_cam=frame.T_world_cam, robot=robot,
-                                after_update_source=self._update_source, after_update_seq=self._updates_sent,
+                                **self._after_update_fields(),
                                 probe_depth_m=None if probe_above is None else depth_m,
                                 probe_above_blocks=probe_above or 0, **RenderRequest.intrinsics_fields(K_small))
         reply = self._step_render(runner, request)
@@ -285,6 +285,10 @@ class SemanticService:
                      prev_version, self.dictionary.version)
         if self._merge_schedule.due():  # on the merge worker's thread: the loop goes on (merge_worker)
             self._merges.request(lambda: self._merge(runner))
+
+    def _after_update_fields(self) -> dict[str, Any]:
+        """A RenderRequest's ``after_update_*``: rendered once geometry applied the updates sent so far."""
+        return {"after_update_source": self._update_source, "after_update_seq": self._updates_sent}
 
     def _labels_version(self) -> tuple[int, int]:
         """What changes whenever this service changes the map's labels: the updates it sent and its
@@ -403,8 +407,7 @@ class SemanticService:
                 on_no_instance=self._skip_without_instance,
                 on_no_render=self._skip_no_render,
                 labels_version=self._labels_version,
-                after_update=lambda: {"after_update_source": self._update_source,
-                                      "after_update_seq": self._updates_sent})
+                after_update=self._after_update_fields)
             runner.stats.set(SemanticCounter.SKIPPED_NO_GAIN, 0)
         if self.section.encoder_pool:
             assert runner.session is not None

@@ -119,10 +119,9 @@ class CoverageScorer:
         # _cell_tries[i][cube]: the direction bins the cube was shown from by at least i + 1 encoded frames
         self._cell_tries: list[dict[int, int]] = [{} for _ in range(p.select_tries)]
         self._held = HeldViews()  # views chosen but not encoded yet (the services' window; :meth:`hold`)
-        #: views handed to an encoder, not applied yet -> the regions they will likely embed, and per
-        #: region how many such views (:meth:`embedding_in_flight`, dropped at :meth:`release`)
+        #: views handed to an encoder, not applied yet -> the regions they will likely embed
+        #: (:meth:`embedding_in_flight`, dropped at :meth:`release`; a pool holds a few at once)
         self._in_flight: dict[tuple[str, int, float], list[int]] = {}
-        self._embeds_in_flight: dict[int, int] = {}
         self._rays: dict[CameraIntrinsics, np.ndarray] = {}
         #: per robot, frame times of the views chosen (sorted; the newest SELECTED_KEPT): each robot's
         #: stamps are its own clock, and the patience rule is about the frames of one stream
@@ -160,7 +159,6 @@ class CoverageScorer:
             self.clock.reset()
             self._held.clear()
             self._in_flight.clear()
-            self._embeds_in_flight.clear()
             for table in self._cell_tries:
                 table.clear()
         self.still.forget()
@@ -369,9 +367,8 @@ class CoverageScorer:
             return ev.wanted_px
         keys, confident = ev.keys, ev.confident
         if key_map is not None and conf_map is not None:
-            keys = np.asarray(key_map).reshape(-1)[ev.surface_idx].astype(np.int64)
-            conf = np.asarray(conf_map, np.float32).reshape(-1)[ev.surface_idx]
-            confident = (keys >= 0) & (conf >= self.params.select_low_conf)
+            keys = self._at_surface(ev, key_map).astype(np.int64)
+            confident = (keys >= 0) & (self._at_surface(ev, conf_map) >= self.params.select_low_conf)
         uniq, inv = np.unique(keys[confident], return_inverse=True)
         support = self._support_of(uniq)
         with self._lock:
@@ -409,7 +406,9 @@ class CoverageScorer:
         """(lock held) Per key: fewer than ``select_min_views`` encoded frames, or (``support``) fewer
         than ``select_embed_min_views`` embeddings or ones that disagree; embeddings in flight count."""
         p = self.params
-        extra = np.fromiter((self._embeds_in_flight.get(int(k), 0) for k in keys), np.int64, len(keys))
+        extra = np.zeros(len(keys), np.int64)
+        for taken in self._in_flight.values():
+            extra += np.isin(keys, taken)
         views = np.fromiter((self._region_views.get(int(k), 0) for k in keys), np.int64, len(keys))
         again = views + extra < p.select_min_views
         if support is not None and len(support[0]) == len(keys):
@@ -429,16 +428,19 @@ class CoverageScorer:
         share = self.params.select_embed_share
         if wanted_px is None or share is None or ev.surface_idx is None:
             return
-        keys = ev.keys if key_map is None else np.asarray(key_map).reshape(-1)[ev.surface_idx].astype(np.int64)
-        want = np.asarray(wanted_px).reshape(-1)[ev.surface_idx]
+        keys = ev.keys if key_map is None else self._at_surface(ev, key_map).astype(np.int64)
+        want = self._at_surface(ev, wanted_px)
         labelled = keys >= 0
         uniq, inv = np.unique(keys[labelled], return_inverse=True)
         hit = np.bincount(inv, weights=want[labelled], minlength=len(uniq)) >= share * np.bincount(inv, minlength=len(uniq))
         taken = uniq[hit].tolist()
         with self._lock:
             self._in_flight[(ev.robot, ev.frame_id, ev.stamp_s)] = taken
-            for k in taken:
-                self._embeds_in_flight[k] = self._embeds_in_flight.get(k, 0) + 1
+
+    @staticmethod
+    def _at_surface(ev: ViewEvidence, image: np.ndarray) -> np.ndarray:
+        """An (h, w) image of the scored view at the view's surface pixels (as ``ev.keys``)."""
+        return np.asarray(image).reshape(-1)[ev.surface_idx]
 
     @staticmethod
     def _view_mask(ev: ViewEvidence, want: np.ndarray) -> np.ndarray:
@@ -527,12 +529,7 @@ class CoverageScorer:
         not held)."""
         with self._lock:
             self._held.remove((str(robot), int(frame_id), float(stamp_s)))
-            for k in self._in_flight.pop((str(robot), int(frame_id), float(stamp_s)), ()):
-                left = self._embeds_in_flight.get(k, 0) - 1
-                if left > 0:
-                    self._embeds_in_flight[k] = left
-                else:
-                    self._embeds_in_flight.pop(k, None)
+            self._in_flight.pop((str(robot), int(frame_id), float(stamp_s)), None)
 
     @property
     def held(self) -> int:
