@@ -224,14 +224,23 @@ def vote_neighbours(
         return none
     # The tree's pairs within a slightly larger radius, then our own distance test: which pairs a
     # tree finds at exactly the radius depends on how it split the points, and a tile's read-out
-    # must not differ from the whole map's there.
-    near = cKDTree(at[cand]).sparse_distance_matrix(cKDTree(at), float(radius_m) * 1.01, output_type="ndarray")
-    receiver, voter = cand[near["i"].astype(np.int64)], near["j"].astype(np.int64)
-    ok = (voter != receiver) & (((at[receiver] - at[voter]) ** 2).sum(axis=1) <= float(radius_m) ** 2)
+    # must not differ from the whole map's there. The tree's distance settles every pair but those
+    # within a hair of the radius; only those are measured again (gathering the coordinates of
+    # millions of pairs cost as much as the search).
+    r = float(radius_m)
+    near = cKDTree(at[cand]).sparse_distance_matrix(cKDTree(at), r * 1.01, output_type="ndarray")
+    receiver, voter, dist = cand[near["i"]], near["j"], near["v"]
+    ok = dist <= r * (1.0 - 1e-9)
+    edge = np.flatnonzero(~ok & (dist <= r * (1.0 + 1e-9)))
+    if len(edge):
+        ok[edge] = ((at[receiver[edge]] - at[voter[edge]]) ** 2).sum(axis=1) <= r**2
+    ok &= voter != receiver
+    receiver, voter = receiver[ok], voter[ok]
     if normals is not None:
         n = normals[labelled]
-        ok &= np.einsum("ij,ij->i", n[receiver], n[voter]) >= FILL_MIN_NORMAL_COS
-    return labelled[receiver[ok]], labelled[voter[ok]]
+        facing = np.einsum("ij,ij->i", n[receiver], n[voter]) >= FILL_MIN_NORMAL_COS
+        receiver, voter = receiver[facing], voter[facing]
+    return labelled[receiver], labelled[voter]
 
 
 def _may_be_outvoted(at: np.ndarray, cls: np.ndarray, radius_m: float) -> np.ndarray:
