@@ -14,7 +14,7 @@ import argparse
 import functools
 import time
 
-from bench_shards import _frame_inputs
+from shard_frames import frame_inputs  # this folder is on the path when a bench runs as a script
 
 
 @functools.lru_cache(maxsize=4)
@@ -86,7 +86,7 @@ def seam_ghosts(width: int, height: int, frames: int) -> None:
 
     p = VolumeParams()
     res = p.block_resolution
-    inputs = list(_frame_inputs(width, height, frames))
+    inputs = list(frame_inputs(width, height, frames))
     warm = min(5, len(inputs) - 1)  # the first frames grow the grids: not counted
 
     def grid(resolution: int, blocks: int) -> o3d.t.geometry.VoxelBlockGrid:

@@ -59,6 +59,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from shard_frames import frame_inputs  # this folder is on the path when a bench runs as a script
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -310,28 +312,6 @@ def _print_phases(sizes: list[tuple[int, int]], counts: list[int], frames: int) 
             print(f"{label:>36} " + " ".join(cells))
 
 
-def _frame_inputs(width: int, height: int, frames: int, scene: str = "room"):  # noqa: ANN202
-    """Per frame of the synthetic room (or ``scene`` "building": the building's walk), what Open3D's
-    ``integrate`` takes, as one volume prepares it: ``(depth image, color image, depth scale, K,
-    extrinsic, touched block coords int64 (N, 3))``."""
-    import numpy as np
-    import open3d.core as o3c
-
-    from openfusion.mapping import SemanticVolume, VolumeParams, integration
-    from openfusion.poses import invert_pose
-    from openfusion.sources import open_source
-
-    vol = SemanticVolume(VolumeParams())
-    p, vbg = vol.params, vol._storage.vbg
-    world = "building," if scene == "building" else "seed=1,"
-    for f in open_source(f"synthetic:{world}width={width},height={height},frames={frames}"):
-        depth, color, scale = integration.frame_images(vol._storage, f)
-        K = o3c.Tensor(f.intrinsics.K, o3c.float64)
-        extrinsic = o3c.Tensor(invert_pose(np.asarray(f.T_world_cam, np.float64)))
-        coords = vbg.compute_unique_block_coordinates(depth, K, extrinsic, scale, p.depth_max_m, p.trunc_voxels)
-        yield depth, color, scale, K, extrinsic, coords.cpu().numpy().astype(np.int64)
-
-
 def _ownership(width: int, height: int, frames: int, scene: str = "room") -> None:
     """The ownership table (module docstring): Open3D's touched blocks of each frame, split. Besides
     the scattered schemes, two that keep space together (x slabs of 4 tiles, districts: the hash of
@@ -344,7 +324,7 @@ def _ownership(width: int, height: int, frames: int, scene: str = "room") -> Non
     from openfusion.mapping.tiles import pack_coords
 
     p = VolumeParams()
-    touched = [coords for *_inputs, coords in _frame_inputs(width, height, frames, scene)]
+    touched = [coords for *_inputs, coords in frame_inputs(width, height, frames, scene)]
     total = sum(len(t) for t in touched)
 
     def owner(kind: str, tb: int, n: int):  # noqa: ANN202
