@@ -108,6 +108,15 @@ class VolumeParams(SectionParams):
         description="weight w of a voxel's stored confidence against one new observation (update rule): same key "
         "(w*conf + c)/(w+1); another key removes c/(w+1) and takes the voxel when that uses it up",
     )
+    update_min_width_px: int = Field(
+        160,
+        ge=0,
+        le=4096,
+        description="semantic update: key and confidence maps narrower than this are enlarged by the smallest whole "
+        "factor that reaches it (nearest neighbour) before the update's rays are cast, so that each voxel of the "
+        "surface in view gets a ray (an encoder's quarter-size maps of a 320x240 frame are 80 wide, one ray per "
+        "1.5 voxels at 2 m with 2 cm voxels); 0 = the maps' own size",
+    )
     label_fill_radius_m: float = Field(
         0.06,
         ge=0,

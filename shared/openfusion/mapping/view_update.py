@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from openfusion.frame import resize_nearest
+from openfusion.frame import CameraIntrinsics, resize_nearest
 from openfusion.mapping.raycast import RayHits
 from openfusion.mapping.storage import VoxelStorage
 from openfusion.mapping.update_rule import fuse_semantics
@@ -52,6 +52,31 @@ def check_update_maps(
     if not ((conf_map >= 0) & (conf_map <= 1)).all():  # NaN fails both comparisons
         raise ValueError("conf_map must be finite and within [0, 1]")
     return key_map, conf_map
+
+
+def enlarge_update_maps(
+    intrinsics: CameraIntrinsics, key_map: np.ndarray, conf_map: np.ndarray, min_width_px: int
+) -> tuple[CameraIntrinsics, np.ndarray, np.ndarray]:
+    """``(intrinsics, key_map, conf_map)`` enlarged by the smallest whole factor that makes them at
+    least ``min_width_px`` wide (each pixel repeated, nearest neighbour; the intrinsics of the same
+    camera at that size), or as given when they are that wide already or ``min_width_px`` is 0.
+
+    Why: a pixel's ray writes the 8 voxels around its hit, so rays further apart than a voxel leave
+    voxels between them unlabelled. An encoder's maps are a quarter of the frame's size or less
+    (80x60 for a 320x240 frame: at 2 m one ray per 1.5 voxels of 2 cm); the map rendered at 32 px
+    then shows most of a frame's own view unlabelled, and frame selection encodes the same surface
+    again (docs/EVAL.md, "Rays for every voxel"). Repeating pixels adds rays, not detail: region
+    borders stay where the encoder put them."""
+    width = intrinsics.width_px
+    if min_width_px <= 0 or width >= min_width_px or width == 0:
+        return intrinsics, key_map, conf_map
+    factor = -(-int(min_width_px) // width)
+    big = intrinsics.scaled(width * factor, intrinsics.height_px * factor)
+    return (
+        big,
+        np.repeat(np.repeat(key_map, factor, axis=0), factor, axis=1),
+        np.repeat(np.repeat(conf_map, factor, axis=0), factor, axis=1),
+    )
 
 
 def depth_consistent(

@@ -507,6 +507,12 @@ class SemanticVolume(VolumeReadOuts, VolumeCheckpoints):
     ) -> UpdateStats:
         """Write per-pixel keys and confidences into the voxels at the surface seen from the pose.
 
+        Maps narrower than ``params.update_min_width_px`` are enlarged first
+        (:func:`~openfusion.mapping.view_update.enlarge_update_maps`); a reusable ``rendered`` then
+        gives the depth at which the enlarged maps' rays find the surface
+        (:func:`~openfusion.mapping.surface_probe.probe_hits`: no ray cast, at a cost that does not
+        grow with the map, as the render's own reuse).
+
         The rule is in :mod:`openfusion.mapping.view_update`. ``rendered`` (a render of the same pose and size) lets
         the update reuse that ray cast when the grid's buffers have not moved since.
 
@@ -521,12 +527,20 @@ class SemanticVolume(VolumeReadOuts, VolumeCheckpoints):
         )
         stats = UpdateStats()
         hits = rendered.hits if rendered is not None else None
-        if (
+        reusable = (
             hits is not None
             and hits.generation == self._storage.generation
             and hits.pose_key == raycast.view_key(T, intrinsics)
-        ):
+        )
+        small = intrinsics
+        intrinsics, key_map, conf_map = view_update.enlarge_update_maps(
+            intrinsics, key_map, conf_map, self.params.update_min_width_px)
+        if reusable and hits is not None:
             stats.reused_render = True
+            if intrinsics is not small:  # the view's surface, found again along the enlarged maps' rays
+                factor = intrinsics.width_px // small.width_px
+                hits = surface_probe.probe_hits(
+                    self._storage, T, intrinsics, np.repeat(np.repeat(hits.depth_m, factor, axis=0), factor, axis=1))
         else:
             hits = self.ray_cast(T, intrinsics)
         use = (key_map >= 0) & (conf_map > 0) & (hits.depth_m > 0)
