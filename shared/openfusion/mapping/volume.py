@@ -50,7 +50,7 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
-from openfusion.frame import CameraIntrinsics, Frame
+from openfusion.frame import CameraIntrinsics, Frame, resize_nearest
 from openfusion.mapping import (
     integration,
     raycast,
@@ -508,10 +508,14 @@ class SemanticVolume(VolumeReadOuts, VolumeCheckpoints):
         """Write per-pixel keys and confidences into the voxels at the surface seen from the pose.
 
         Maps narrower than ``params.update_min_width_px`` are enlarged first
-        (:func:`~openfusion.mapping.view_update.enlarge_update_maps`); a reusable ``rendered`` then
-        gives the depth at which the enlarged maps' rays find the surface
-        (:func:`~openfusion.mapping.surface_probe.probe_hits`: no ray cast, at a cost that does not
-        grow with the map, as the render's own reuse).
+        (:func:`~openfusion.mapping.view_update.enlarge_update_maps`). With a reusable ``rendered``
+        (the step's render or probe of the maps' view) each enlarged pixel's ray looks for the
+        surface at the depth its map pixel's ray found it
+        (:func:`~openfusion.mapping.surface_probe.probe_hits`; no ray cast, 40 ms at 160x120 on
+        this 2-core box, whatever the map's size), else the update casts its own rays at that size;
+        with ``observed_depth_m`` each enlarged pixel is gated by its map pixel's observed depth.
+        Both keep a label on the surface its encoder pixel saw (docs/EVAL.md, "Rays for every
+        voxel": a ray cast lets the rays near a silhouette label the background instead).
 
         The rule is in :mod:`openfusion.mapping.view_update`. ``rendered`` (a render of the same pose and size) lets
         the update reuse that ray cast when the grid's buffers have not moved since.
@@ -537,12 +541,19 @@ class SemanticVolume(VolumeReadOuts, VolumeCheckpoints):
             intrinsics, key_map, conf_map, self.params.update_min_width_px)
         if reusable and hits is not None:
             stats.reused_render = True
-            if intrinsics is not small:  # the view's surface, found again along the enlarged maps' rays
-                factor = intrinsics.width_px // small.width_px
-                hits = surface_probe.probe_hits(
-                    self._storage, T, intrinsics, np.repeat(np.repeat(hits.depth_m, factor, axis=0), factor, axis=1))
+            if intrinsics is not small:
+                # The enlarged maps' rays find the surface at the depth their map pixel's ray found
+                # it (a probe, no ray cast): a label stays on the surface its encoder pixel saw.
+                hits = surface_probe.probe_hits(self._storage, T, intrinsics, view_update.enlarge_to(hits.depth_m, intrinsics))
         else:
             hits = self.ray_cast(T, intrinsics)
+        if observed_depth_m is not None and intrinsics is not small:
+            # Each enlarged pixel is gated by its map pixel's depth: its label keeps to the surface
+            # the encoder's pixel saw (at a silhouette, the rays between a map pixel's centre and
+            # the object's edge reach the background, which the object's label must not take).
+            observed_depth_m = view_update.enlarge_to(
+                resize_nearest(np.asarray(observed_depth_m, np.float32), (small.height_px, small.width_px)),
+                intrinsics)
         use = (key_map >= 0) & (conf_map > 0) & (hits.depth_m > 0)
         if observed_depth_m is not None:
             consistent = view_update.depth_consistent(
