@@ -17,6 +17,9 @@ measured in the same run with the gt encoder on synthetic scenes, noise off and 
     python bench/bench_eval.py --full --compare-vote
         # the read-out's vote off (before) and at its default radius (after), every frame encoded and
         # the default selection, same run: quality and what a read-out of the map costs
+    python bench/bench_eval.py --full --compare-update-width --size 320x240 --scenes synthetic:seed=4,synthetic:seed=5
+        # the semantic update at the encoder maps' own size (before) and with at least
+        # volume.update_min_width_px rays across (after), every frame and the default selection
 
 Prints markdown tables (the ratios are to the region map). Exit 0 always unless it crashes;
 targets are reported, not asserted (use ``openfusion eval --check-targets`` for that).
@@ -78,6 +81,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--compare-vote", action="store_true",
                         help="each profile and selection (every frame, coverage) with the read-out's vote off "
                              "(before) and at its default radius (after); no baselines")
+    parser.add_argument("--compare-update-width", action="store_true",
+                        help="each profile and selection with the semantic update at the encoder maps' own size "
+                             "(before) and enlarged to volume.update_min_width_px (after); no baselines")
+    parser.add_argument("--size", default=None, metavar="WxH", help="frame size (default: --quick's or --full's)")
+    parser.add_argument("--frames", type=int, default=None, help="frames per scene (default: --quick's or --full's)")
     parser.add_argument("--merge-embedding", default="weighted",
                         help="with --compare-merging: comma-separated merged-embedding rules to compare "
                              "(weighted, mean, first)")
@@ -86,6 +94,14 @@ def main(argv: list[str] | None = None) -> int:
 
     base = FULL if args.full else QUICK
     base = replace(base, text_encoder=args.text_encoder, region_text=args.region_text)
+    if args.size:
+        try:
+            width_px, height_px = (int(v) for v in args.size.lower().split("x"))
+        except ValueError:
+            parser.error(f"--size must be WxH (e.g. 320x240), got {args.size!r}")
+        base = replace(base, width_px=width_px, height_px=height_px)
+    if args.frames is not None:
+        base = replace(base, frames=args.frames)
     specs = parse_scene_specs([args.scenes or (FULL_SCENES if args.full else QUICK_SCENES)])
     profiles = [p.strip() for p in args.noise.split(",") if p.strip()]
 
@@ -95,6 +111,8 @@ def main(argv: list[str] | None = None) -> int:
         return compare_select(base, specs, profiles, after, also)
     if args.compare_vote:
         return compare_vote(base, specs, profiles)
+    if args.compare_update_width:
+        return compare_update_width(base, specs, profiles)
     if args.compare_merging:
         return compare_merging(base, specs, profiles, [e.strip() for e in args.merge_embedding.split(",") if e.strip()])
 
@@ -211,30 +229,50 @@ def compare_select(base, specs, profiles: list[str], after: SelectParams,  # noq
 def compare_vote(base, specs, profiles: list[str]) -> int:  # noqa: ANN001
     """The read-out's vote (``volume.label_vote_radius_m``) off and at its default, per noise profile
     and selection, in one run: quality and the time of the eval's read-out of the whole map."""
-    base = replace(base, baselines=False, raw_open3d_baseline=False)
     radius = VolumeParams().label_vote_radius_m
-    print(f"### The read-out's vote, off / {radius * 100:g} cm ({len(specs)} synthetic scenes, {base.frames} frames at "
-          f"{base.width_px}x{base.height_px}, gt encoder + {base.text_encoder})")
+    return compare_volume_field(base, specs, profiles, "label_vote_radius_m", [0.0, radius],
+                                f"The read-out's vote, off / {radius * 100:g} cm", "vote",
+                                lambda v: "off" if v == 0 else f"{v * 100:g} cm")
+
+
+def compare_update_width(base, specs, profiles: list[str]) -> int:  # noqa: ANN001
+    """The semantic update at the encoder maps' own size and enlarged to ``volume.update_min_width_px``
+    (its default), per noise profile and selection, in one run: quality, encoder calls and the
+    semantic step's time."""
+    width = VolumeParams().update_min_width_px
+    return compare_volume_field(base, specs, profiles, "update_min_width_px", [0, width],
+                                f"The update's rays, the maps' own size / at least {width} px wide",
+                                "update rays", lambda v: "maps' size" if v == 0 else f">= {v} px")
+
+
+def compare_volume_field(base, specs, profiles: list[str], field: str, values: list,  # noqa: ANN001
+                         title: str, column: str, label) -> int:  # noqa: ANN001
+    """One ``VolumeParams`` field at each of ``values`` (the first is the 'before'), per noise
+    profile and selection (every frame, coverage), in one run."""
+    base = replace(base, baselines=False, raw_open3d_baseline=False)
+    print(f"### {title} ({len(specs)} synthetic scenes, {base.frames} frames at {base.width_px}x{base.height_px}, "
+          f"gt encoder + {base.text_encoder})")
     print()
-    print("| noise | frames encoded | vote | f-mIoU | Δ f-mIoU | mAcc | Δ mAcc | unlabelled | read-out ms (ratio) | "
-          "wall (s) |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print(f"| noise | frames encoded | {column} | f-mIoU | Δ f-mIoU | mAcc | Δ mAcc | unlabelled | encoder calls | "
+          "calls per object | semantic step ms | read-out ms (ratio) | wall (s) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for noise in profiles:
         for select in ("every", "coverage"):
             before: dict | None = None
-            for r_m in (0.0, radius):
+            for value in values:
                 t0 = time.perf_counter()
-                volume = base.volume.model_copy(update={"label_vote_radius_m": r_m})
+                volume = base.volume.model_copy(update={field: value})
                 r = run_eval(specs, replace(base, noise=noise, select=SelectParams(select=select), volume=volume))
                 wall = time.perf_counter() - t0
                 s = r["summary"]
-                m = s["quality"]["region_map"]["metrics"]
+                m, sel, reg = s["quality"]["region_map"]["metrics"], s["selection"], s["regions"]
                 readout_ms = 1e3 * sum(sc["speed"]["readout_s"] for sc in r["scenes"]) / len(r["scenes"])
                 before = before or {"f": m["f_mIoU"], "a": m["mAcc"], "ms": readout_ms}
-                print(f"| {noise} | {select} | {'off' if r_m == 0 else f'{r_m * 100:g} cm'} | {m['f_mIoU']:.4f} | "
+                print(f"| {noise} | {select} | {label(value)} | {m['f_mIoU']:.4f} | "
                       f"{m['f_mIoU'] - before['f']:+.4f} | {m['mAcc']:.4f} | {m['mAcc'] - before['a']:+.4f} | "
-                      f"{_f(m['unlabelled_fraction'])} | {readout_ms:.0f} ({readout_ms / before['ms']:.2f}x) | "
-                      f"{wall:.0f} |", flush=True)
+                      f"{_f(m['unlabelled_fraction'])} | {sel['encoder_calls']} of {sel['frames']} | "
+                      f"{_f(reg['calls_per_object'], '{:.1f}')} | {_f(sel['semantic_step_ms'], '{:.1f}')} | "
+                      f"{readout_ms:.0f} ({readout_ms / before['ms']:.2f}x) | {wall:.0f} |", flush=True)
     return 0
 
 
