@@ -337,51 +337,6 @@ def test_apply_update_rejects_bad_maps(volume: SemanticVolume) -> None:
         volume.apply_update(np.eye(3), K_SMALL, good_keys, good_conf)
 
 
-def test_narrow_update_maps_get_a_ray_per_voxel(scene: AnalyticScene) -> None:
-    """An encoder's quarter-size maps of a 320x240 frame (80x60) are enlarged to 160x120 before the
-    update's rays are cast (``update_min_width_px``, default 160): more of the surface in view is
-    labelled, the region border stays where the maps put it; with the step's render at hand the
-    enlarged rays look for the surface at the depth it found (no ray cast), nearly as a ray cast
-    labels it; maps already that wide are written as before (one ray per pixel, the step's render
-    reused)."""
-    K_OBS = K_FULL.scaled(80, 60)
-    keys = np.where(np.arange(80)[None, :] < 40, 2, 5).repeat(60, axis=0).astype(np.int32)
-    conf = np.full((60, 80), 0.8, np.float32)
-    results = {}
-    depth_obs = scene.make_frame(POSES[0], K_OBS).depth_m()
-    for name, min_width, view in (("one ray", 0, "render"), ("probed", 160, "probe"), ("cast", 160, None),
-                                  ("rendered", 160, "render")):
-        vol = integrated_volume(VolumeParams(update_min_width_px=min_width))
-        step_view = {"render": lambda v: v.render(POSES[0], K_OBS), "probe": lambda v: v.probe(POSES[0], K_OBS, depth_obs),
-                     None: lambda v: None}[view](vol)
-        stats = vol.apply_update(POSES[0], K_OBS, keys, conf, rendered=step_view)
-        view = vol.render(POSES[0], K_FULL)
-        hit = view.depth_m > 0
-        results[name] = (stats, ((view.key_map >= 0) & hit).sum() / hit.sum(), np.where(hit, view.key_map, -1))
-    (one_ray, share_one, keys_one), (probed, share_probed, _), (cast, share_cast, keys_cast), (rendered, share_rendered, _) = (
-        results.values())
-    assert one_ray.reused_render and probed.reused_render and rendered.reused_render and not cast.reused_render
-    assert share_rendered > 0.99 and rendered.voxels_updated > 1.3 * one_ray.voxels_updated
-    assert cast.pixels_used >= 3.5 * one_ray.pixels_used and probed.pixels_used >= 3.5 * one_ray.pixels_used
-    assert probed.voxels_updated > 1.3 * one_ray.voxels_updated and cast.voxels_updated > 1.3 * one_ray.voxels_updated
-    assert share_one < 0.98 and share_probed > 0.99 and share_cast > 0.995
-    both = (keys_one >= 0) & (keys_cast >= 0)
-    differ = np.argwhere(both & (keys_one != keys_cast))
-    assert len(differ) < 0.005 * both.sum()
-    assert (np.abs(differ[:, 1] - 160) <= 2).all()  # only at the border (column 160), within half a map pixel
-    # Maps at least that wide: exactly what one ray per pixel writes.
-    wide_keys = np.repeat(np.repeat(keys, 2, axis=0), 2, axis=1)
-    wide_conf = np.full((120, 160), 0.8, np.float32)
-    arrays = []
-    for min_width in (0, 160):
-        vol = integrated_volume(VolumeParams(update_min_width_px=min_width))
-        stats = vol.apply_update(POSES[0], K_SMALL, wide_keys, wide_conf, rendered=vol.render(POSES[0], K_SMALL))
-        assert stats.reused_render
-        arrays.append(vol.to_arrays())
-    for name in ("key", "conf"):
-        np.testing.assert_array_equal(arrays[0][name], arrays[1][name])
-
-
 def test_tensor_path_matches_numpy_path(scene: AnalyticScene) -> None:
     """The Open3D-tensor attribute path (used on CUDA) writes and reads exactly what the CPU
     numpy-view path does (run here on CPU by switching paths)."""
