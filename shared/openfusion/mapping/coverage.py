@@ -284,11 +284,9 @@ class CoverageScorer:
         joined to the map's frame: another robot's frame) is the pose the view is filed under, so every robot's views
         share one record. ``labels_version`` (changes with every update and merge): a still camera
         reuses its last render (:mod:`openfusion.mapping.still_views`); None: always rendered."""
-        h, w = scoring_size(frame.intrinsics, self.params.select_width_px)
-        K = frame.intrinsics.scaled(w, h)
-        mh, mw = scoring_size(frame.intrinsics, mark_width_px(w))
-        depth_small, depth_mark = frame.depth_m((h, w)), frame.depth_m((mh, mw))
-        look = render if self.params.select_view == "render" else lambda T, K: render(T, K, depth_small)
+        K, depth_small, look = self._scored_view(frame, render)
+        mh, mw = scoring_size(frame.intrinsics, mark_width_px(K.width_px))
+        depth_mark = frame.depth_m((mh, mw))
         rendered = self.still.render(look, robot, frame.T_world_cam, K, depth_small, frame.stamp_ns / 1e9,
                                      labels_version)
         T_map_cam = getattr(rendered, "T_map_cam", None)
@@ -451,11 +449,18 @@ class CoverageScorer:
     def render_again(self, frame: Frame, render: Callable[..., Any]) -> tuple[np.ndarray, np.ndarray]:
         """The map's ``(key_map, conf_map)`` at ``frame``'s scored view now, rendered as
         :meth:`prepare_frame` renders it (never a reused render): for :meth:`wanted_now`."""
-        h, w = scoring_size(frame.intrinsics, self.params.select_width_px)
-        K = frame.intrinsics.scaled(w, h)
-        rendered = (render(frame.T_world_cam, K) if self.params.select_view == "render"
-                    else render(frame.T_world_cam, K, frame.depth_m((h, w))))
+        K, _depth, look = self._scored_view(frame, render)
+        rendered = look(frame.T_world_cam, K)
         return rendered.key_map, rendered.conf_map
+
+    def _scored_view(self, frame: Frame, render: Callable[..., Any]) -> tuple[CameraIntrinsics, np.ndarray, Callable]:
+        """``(K, depth_m, look)`` of ``frame``'s scored view: its intrinsics, its depth at that size,
+        and ``look(T_world_cam, K)`` rendering the map there (with the depth, to probe, unless
+        ``select_view`` is ``render``)."""
+        h, w = scoring_size(frame.intrinsics, self.params.select_width_px)
+        depth_small = frame.depth_m((h, w))
+        look = render if self.params.select_view == "render" else lambda T, K: render(T, K, depth_small)
+        return frame.intrinsics.scaled(w, h), depth_small, look
 
     def _wanted_if_gated(self, ev: ViewEvidence) -> np.ndarray | None:
         """:meth:`wanted_px` when ``select_embed_share`` gates regions (None, not computed, otherwise)."""

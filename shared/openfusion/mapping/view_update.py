@@ -72,16 +72,8 @@ def enlarge_update_maps(
         return intrinsics, key_map, conf_map
     factor = -(-int(min_width_px) // width)
     big = intrinsics.scaled(width * factor, intrinsics.height_px * factor)
-    return big, enlarge_to(key_map, big), enlarge_to(conf_map, big)
-
-
-def enlarge_to(image: np.ndarray, intrinsics: CameraIntrinsics) -> np.ndarray:
-    """``image`` (h, w) with each pixel repeated to ``intrinsics``' size, a whole multiple of it."""
-    h, w = np.shape(image)
-    fy, fx = intrinsics.height_px // h, intrinsics.width_px // w
-    if (fy * h, fx * w) != (intrinsics.height_px, intrinsics.width_px):
-        raise ValueError(f"{intrinsics.width_px}x{intrinsics.height_px} is not a whole multiple of {w}x{h}")
-    return np.repeat(np.repeat(image, fy, axis=0), fx, axis=1)
+    size_hw = (big.height_px, big.width_px)
+    return big, resize_nearest(key_map, size_hw), resize_nearest(conf_map, size_hw)
 
 
 def depth_consistent(

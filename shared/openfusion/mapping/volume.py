@@ -544,16 +544,17 @@ class SemanticVolume(VolumeReadOuts, VolumeCheckpoints):
             if intrinsics is not small:
                 # The enlarged maps' rays find the surface at the depth their map pixel's ray found
                 # it (a probe, no ray cast): a label stays on the surface its encoder pixel saw.
-                hits = surface_probe.probe_hits(self._storage, T, intrinsics, view_update.enlarge_to(hits.depth_m, intrinsics))
+                hits = surface_probe.probe_hits(
+                    self._storage, T, intrinsics, resize_nearest(hits.depth_m, (intrinsics.height_px, intrinsics.width_px)))
         else:
             hits = self.ray_cast(T, intrinsics)
         if observed_depth_m is not None and intrinsics is not small:
             # Each enlarged pixel is gated by its map pixel's depth: its label keeps to the surface
             # the encoder's pixel saw (at a silhouette, the rays between a map pixel's centre and
             # the object's edge reach the background, which the object's label must not take).
-            observed_depth_m = view_update.enlarge_to(
+            observed_depth_m = resize_nearest(
                 resize_nearest(np.asarray(observed_depth_m, np.float32), (small.height_px, small.width_px)),
-                intrinsics)
+                (intrinsics.height_px, intrinsics.width_px))
         use = (key_map >= 0) & (conf_map > 0) & (hits.depth_m > 0)
         if observed_depth_m is not None:
             consistent = view_update.depth_consistent(
